@@ -1,0 +1,25 @@
+"""Errors raised by gnssfuse.
+
+Every error a user can provoke with bad input is a ``ValueError`` subclass, so callers that
+already catch ``ValueError`` keep working, and the CLI can print one line and exit non-zero.
+"""
+from __future__ import annotations
+
+
+class GnssfuseError(ValueError):
+    """Base class for every input error gnssfuse raises on purpose."""
+
+
+class DataError(GnssfuseError):
+    """A measurement / truth / navigation file is missing, malformed or inconsistent.
+
+    The message always names the file (and row or epoch where known) and what is wrong.
+    """
+
+
+class GeometryError(GnssfuseError):
+    """A solve cannot proceed: too few satellites, singular geometry, divergence."""
+
+
+class CheckpointError(GnssfuseError):
+    """A model checkpoint is corrupt, truncated or does not match the code that loads it."""

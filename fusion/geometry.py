@@ -1,0 +1,91 @@
+"""Frames and line-of-sight geometry shared by WLS, features, the simulator and the graph.
+
+All functions are vectorised over arbitrary leading dimensions ``(...)``. Frame names follow
+pymap3d: ``ecef``, ``ned`` (north, east, down), ``geodetic`` (degrees, ellipsoidal height).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pymap3d
+
+#: Speed of light [m/s] (IS-GPS-200).
+C_LIGHT = 299_792_458.0
+#: WGS-84 Earth rotation rate [rad/s] (IS-GPS-200).
+OMEGA_E = 7.2921151467e-5
+
+
+def ecef2geodetic(xyz: np.ndarray) -> np.ndarray:
+    """ECEF (..., 3) [m] -> (..., 3) latitude [deg], longitude [deg], ellipsoidal height [m]."""
+    xyz = np.asarray(xyz, float)
+    lat, lon, h = pymap3d.ecef2geodetic(xyz[..., 0], xyz[..., 1], xyz[..., 2])
+    return np.stack(np.broadcast_arrays(lat, lon, h), axis=-1)
+
+
+def geodetic2ecef(llh: np.ndarray) -> np.ndarray:
+    """(..., 3) latitude [deg], longitude [deg], ellipsoidal height [m] -> ECEF (..., 3) [m]."""
+    llh = np.asarray(llh, float)
+    x, y, z = pymap3d.geodetic2ecef(llh[..., 0], llh[..., 1], llh[..., 2])
+    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
+
+
+def ned_rotation(ref_ecef: np.ndarray) -> np.ndarray:
+    """Rotation matrices taking ECEF vectors into the NED frame at ``ref_ecef``.
+
+    ref_ecef: (..., 3) ECEF [m]. Returns (..., 3, 3) R with ``v_ned = R @ v_ecef``.
+    """
+    llh = ecef2geodetic(ref_ecef)
+    lat, lon = np.radians(llh[..., 0]), np.radians(llh[..., 1])
+    sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
+    zero = np.zeros_like(sl)
+    return np.stack([
+        np.stack([-sl * co, -sl * so, cl], axis=-1),
+        np.stack([-so, co, zero], axis=-1),
+        np.stack([-cl * co, -cl * so, -sl], axis=-1),
+    ], axis=-2)
+
+
+def ecef2ned_vec(v_ecef: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
+    """Rotate ECEF vectors (..., 3) into the NED frame at ``ref_ecef`` (broadcastable (..., 3))."""
+    return np.einsum("...ij,...j->...i", ned_rotation(ref_ecef), v_ecef)
+
+
+def ned2ecef_vec(v_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
+    """Rotate NED vectors (..., 3) at ``ref_ecef`` back into ECEF (inverse of :func:`ecef2ned_vec`)."""
+    return np.einsum("...ji,...j->...i", ned_rotation(ref_ecef), v_ned)
+
+
+def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
+    """Rotate transmit-time satellite ECEF positions into the ECEF frame at receive time.
+
+    The Earth turns by ``OMEGA_E * tau`` during the signal's flight time ``tau`` (~70 ms), which
+    moves the satellite by up to ~30 m in the receive-time frame.
+
+    sat_pos: (..., S, 3) ECEF at transmit time. rx_pos: (..., 3) receiver ECEF guess.
+    Returns (..., S, 3).
+    """
+    rng = np.linalg.norm(sat_pos - rx_pos[..., None, :], axis=-1)
+    theta = OMEGA_E * rng / C_LIGHT
+    c, s = np.cos(theta), np.sin(theta)
+    x, y = sat_pos[..., 0], sat_pos[..., 1]
+    return np.stack([c * x + s * y, -s * x + c * y, sat_pos[..., 2]], axis=-1)
+
+
+def line_of_sight(sat_pos: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Geometric ranges and unit vectors from receiver to satellites, Sagnac included.
+
+    sat_pos: (..., S, 3) transmit-time ECEF. rx_pos: (..., 3).
+    Returns ``(rng (..., S), los_ecef (..., S, 3))`` with ``los`` pointing receiver -> satellite.
+    """
+    rot = sagnac_rotate(sat_pos, rx_pos)
+    d = rot - rx_pos[..., None, :]
+    rng = np.linalg.norm(d, axis=-1)
+    return rng, d / np.maximum(rng, 1.0)[..., None]
+
+
+def elevation_azimuth(los_ecef: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation and azimuth [deg] of unit LOS vectors (..., S, 3) seen from ``rx_pos`` (..., 3)."""
+    R = ned_rotation(rx_pos)
+    ned = np.einsum("...ij,...sj->...si", R, los_ecef)
+    el = np.degrees(np.arcsin(np.clip(-ned[..., 2], -1.0, 1.0)))
+    az = np.degrees(np.arctan2(ned[..., 1], ned[..., 0])) % 360.0
+    return el, az

@@ -1,0 +1,181 @@
+"""The one measurement container every mode consumes.
+
+A :class:`Trace` is a struct-of-arrays over ``E`` epochs and at most ``S`` satellite slots per
+epoch. Epochs with fewer satellites are padded; ``mask`` says which slots are real. Padded slots
+hold finite filler (zeros, ``pr_sigma`` = 1) so vectorised maths never meets NaN; code must
+still multiply by ``mask`` (or index with it) before trusting a slot.
+
+Conventions (see ARCHITECTURE.md):
+- ``t_ms`` is the true receive time in integer GPS milliseconds (the GSDC 2021 one-second
+  timestamp shift is already removed by the loader).
+- ``sat_pos`` is ECEF at signal *transmit* time, not yet rotated for Earth rotation during
+  flight: :func:`fusion.geometry.sagnac_rotate` does that at the receiver guess.
+- ``pr`` is the corrected pseudorange (satellite clock, ISRB, iono, tropo removed), metres.
+- ``truth`` is ECEF metres, NaN rows where no truth exists for that epoch; ``None`` when the
+  source has no truth at all. Truth is for metrics and training targets only.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from fusion.errors import DataError
+
+#: Signal names in the GSDC vocabulary; ``Trace.signal`` stores indices into this tuple.
+SIGNALS: tuple[str, ...] = (
+    "GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A", "BDS_B1I", "QZS_J1", "QZS_J5",
+)
+#: Constellation names, indexed by the Android ``constellationType`` code.
+CONSTELLATIONS: dict[int, str] = {1: "GPS", 2: "SBAS", 3: "GLONASS", 4: "QZSS", 5: "BEIDOU", 6: "GALILEO"}
+
+
+@dataclass
+class Trace:
+    """Padded per-epoch GNSS measurements of one phone on one drive.
+
+    Shapes: ``E`` epochs, ``S`` satellite slots.
+
+    t_ms:        (E,)     int64, receive time, GPS milliseconds.
+    sat_pos:     (E,S,3)  float64, satellite ECEF at transmit time [m].
+    sat_vel:     (E,S,3)  float64, satellite ECEF velocity [m/s] (zeros when unknown).
+    pr:          (E,S)    float64, corrected pseudorange [m].
+    pr_sigma:    (E,S)    float64, reported 1-sigma pseudorange uncertainty [m].
+    sat_id:      (E,S)    int32, ``1000 * constellationType + svid`` (GPS PRN 5 -> 1005).
+    signal:      (E,S)    int8, index into :data:`SIGNALS`.
+    mask:        (E,S)    bool, True where the slot holds a real measurement.
+    clock_reset: (E,)     bool, True where the receiver clock is known/suspected to have jumped
+                          since the previous epoch (first epoch is False).
+    truth:       (E,3)    float64 ECEF truth [m] with NaN rows where unknown, or None.
+    name:        ``"<collection>/<phone>"`` or a file stem.
+    skipped:     counts of dropped rows / epochs by reason, for the user's report.
+    """
+
+    t_ms: np.ndarray
+    sat_pos: np.ndarray
+    sat_vel: np.ndarray
+    pr: np.ndarray
+    pr_sigma: np.ndarray
+    sat_id: np.ndarray
+    signal: np.ndarray
+    mask: np.ndarray
+    clock_reset: np.ndarray
+    truth: np.ndarray | None = None
+    name: str = "trace"
+    skipped: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    # ------------------------------------------------------------------ shape checks
+    def validate(self) -> None:
+        """Raise :class:`DataError` naming the field whose shape or dtype is wrong."""
+        E = np.shape(self.t_ms)[0] if np.ndim(self.t_ms) == 1 else -1
+        if E < 0:
+            raise DataError(f"{self.name}: t_ms must be 1-D, got shape {np.shape(self.t_ms)}")
+        S = np.shape(self.pr)[1] if np.ndim(self.pr) == 2 else -1
+        expected = {
+            "sat_pos": (E, S, 3), "sat_vel": (E, S, 3), "pr": (E, S), "pr_sigma": (E, S),
+            "sat_id": (E, S), "signal": (E, S), "mask": (E, S), "clock_reset": (E,),
+        }
+        for key, shape in expected.items():
+            got = np.shape(getattr(self, key))
+            if got != shape:
+                raise DataError(f"{self.name}: {key} has shape {got}, expected {shape}")
+        if self.truth is not None and np.shape(self.truth) != (E, 3):
+            raise DataError(f"{self.name}: truth has shape {np.shape(self.truth)}, expected {(E, 3)}")
+        if self.mask.dtype != bool:
+            raise DataError(f"{self.name}: mask must be bool, got {self.mask.dtype}")
+        m = self.mask
+        for key in ("sat_pos", "pr", "pr_sigma"):
+            if not np.all(np.isfinite(getattr(self, key)[m])):
+                raise DataError(f"{self.name}: {key} has non-finite values in unmasked slots")
+        if E > 1 and np.any(np.diff(self.t_ms) <= 0):
+            raise DataError(f"{self.name}: epoch times are not strictly increasing")
+
+    # ------------------------------------------------------------------ convenience
+    @property
+    def n_epochs(self) -> int:
+        return int(self.t_ms.shape[0])
+
+    @property
+    def n_slots(self) -> int:
+        return int(self.pr.shape[1])
+
+    @property
+    def n_sats(self) -> np.ndarray:
+        """(E,) number of real measurements per epoch."""
+        return self.mask.sum(axis=1)
+
+    @property
+    def has_truth(self) -> bool:
+        return self.truth is not None and bool(np.isfinite(self.truth).all(axis=1).any())
+
+    def select(self, epochs: np.ndarray) -> "Trace":
+        """A new Trace with only the given epochs (bool mask (E,) or integer indices).
+
+        Slot padding is trimmed to the widest remaining epoch. ``clock_reset`` is kept as is:
+        dropping epochs does not invent or hide clock jumps.
+        """
+        idx = np.arange(self.n_epochs)[epochs]
+        mask = self.mask[idx]
+        S = max(int(mask.sum(axis=1).max(initial=0)), 1)
+        # Compact real slots to the front so trimming to S loses nothing.
+        order = np.argsort(~mask, axis=1, kind="stable")[:, :S]
+
+        def take(a: np.ndarray) -> np.ndarray:
+            a = a[idx]
+            if a.ndim == 3:
+                return np.take_along_axis(a, order[..., None], axis=1)
+            return np.take_along_axis(a, order, axis=1)
+
+        return replace(
+            self,
+            t_ms=self.t_ms[idx], sat_pos=take(self.sat_pos), sat_vel=take(self.sat_vel),
+            pr=take(self.pr), pr_sigma=take(self.pr_sigma), sat_id=take(self.sat_id),
+            signal=take(self.signal), mask=take(self.mask), clock_reset=self.clock_reset[idx],
+            truth=None if self.truth is None else self.truth[idx], skipped=dict(self.skipped),
+        )
+
+    def select_slots(self, keep: np.ndarray) -> "Trace":
+        """A new Trace whose mask is ``mask & keep`` (keep: (E,S) bool), e.g. a signal filter."""
+        return replace(self, mask=self.mask & keep).select(np.ones(self.n_epochs, bool))
+
+    def count_skip(self, reason: str, n: int) -> None:
+        if n:
+            self.skipped[reason] = self.skipped.get(reason, 0) + int(n)
+
+
+def empty_trace(E: int, S: int, name: str = "trace", with_truth: bool = False) -> dict:
+    """Zero-filled keyword arguments for :class:`Trace` of shape (E, S); loaders fill them in."""
+    return dict(
+        t_ms=np.zeros(E, np.int64), sat_pos=np.zeros((E, S, 3)), sat_vel=np.zeros((E, S, 3)),
+        pr=np.zeros((E, S)), pr_sigma=np.ones((E, S)), sat_id=np.zeros((E, S), np.int32),
+        signal=np.zeros((E, S), np.int8), mask=np.zeros((E, S), bool),
+        clock_reset=np.zeros(E, bool),
+        truth=np.full((E, 3), np.nan) if with_truth else None, name=name,
+    )
+
+
+def pack_rows(epoch_index: np.ndarray, n_epochs: int, columns: dict[str, np.ndarray]) -> dict:
+    """Scatter row-major measurements into padded (E, S[, k]) arrays without a Python loop.
+
+    epoch_index: (N,) int, epoch of each row, sorted ascending.
+    columns:     name -> (N,) or (N, k) array.
+    Returns name -> (E, S) / (E, S, k) arrays plus ``mask`` (E, S).
+    """
+    N = epoch_index.shape[0]
+    counts = np.bincount(epoch_index, minlength=n_epochs)
+    S = max(int(counts.max(initial=0)), 1)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.arange(N) - starts[epoch_index]
+    out: dict[str, np.ndarray] = {}
+    for key, col in columns.items():
+        filler = 1.0 if key == "pr_sigma" else 0
+        arr = np.full((n_epochs, S) + col.shape[1:], filler, dtype=col.dtype)
+        arr[epoch_index, slot] = col
+        out[key] = arr
+    mask = np.zeros((n_epochs, S), bool)
+    mask[epoch_index, slot] = True
+    out["mask"] = mask
+    return out
