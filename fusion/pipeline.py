@@ -1,0 +1,195 @@
+"""One pipeline, several estimators, identical inputs: the ``gnssfuse run`` command.
+
+A *mode* is a function ``estimate(trace, wls, opts) -> ModeResult``. WLS is solved once per
+trace and handed to every mode, so ``wls``, ``dnn``, ``fused`` and ``fused-nodnn`` are compared
+on the same measurements and the same initial positions. Modes that need torch or GTSAM live in
+other modules and are imported only when asked for.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from fusion.errors import GnssfuseError
+from fusion.geometry import ecef2geodetic
+from fusion.trace import SIGNALS, Trace
+
+
+@dataclass
+class RunOptions:
+    """Settings shared by every mode of one run."""
+
+    weights: Path | None = None          # DNN checkpoint; None = the weights shipped in learned/weights
+    elev_mask_deg: float = 10.0
+    device: str = "cpu"
+    dnn_passes: int = 1                  # DNN applied iteratively, features recomputed each pass
+    incremental: bool = False            # fused modes: ISAM2 / fixed-lag instead of batch LM
+    signals: tuple[str, ...] = ("GPS_L1",)
+    wls_weighting: str = "elevation"
+    wls_robust: bool = False
+
+
+@dataclass
+class ModeResult:
+    """Output of one mode on one trace.
+
+    pos:   (E, 3) ECEF [m], NaN rows where the epoch was not solved.
+    valid: (E,) bool.
+    cov:   (E, 3, 3) ECEF position covariance [m^2], or None when the mode gives none.
+    info:  counts and diagnostics for the report (e.g. skipped epochs by reason).
+    """
+
+    pos: np.ndarray
+    valid: np.ndarray
+    cov: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
+
+
+def estimate_wls(trace: Trace, wls, opts: RunOptions) -> ModeResult:
+    """The WLS baseline as a mode (WLS is already solved by :func:`run_modes`)."""
+    return ModeResult(pos=wls.pos, valid=wls.valid.copy(), cov=wls.cov[:, :3, :3],
+                      info={"unsolved": int((~wls.valid).sum())})
+
+
+#: mode name -> "module:function". Adding a mode is one line here.
+MODES: dict[str, str] = {
+    "wls": "fusion.pipeline:estimate_wls",
+    "dnn": "learned.infer:estimate_dnn",
+    "fused": "fusion.graph:estimate_fused",
+    "fused-nodnn": "fusion.graph:estimate_fused_nodnn",
+}
+
+
+def get_mode(name: str) -> Callable[..., ModeResult]:
+    if name not in MODES:
+        raise GnssfuseError(f"unknown mode {name!r}; choose from {', '.join(MODES)}")
+    module, func = MODES[name].split(":")
+    return getattr(importlib.import_module(module), func)
+
+
+def solve_initial(trace: Trace, opts: RunOptions):
+    """The WLS solution every mode starts from."""
+    from fusion.wls import solve_wls
+
+    return solve_wls(trace, elev_mask_deg=opts.elev_mask_deg, weighting=opts.wls_weighting,
+                     robust=opts.wls_robust)
+
+
+def run_modes(trace: Trace, modes: list[str] | tuple[str, ...], opts: RunOptions | None = None,
+              wls=None) -> dict[str, ModeResult]:
+    """Run each mode on the same trace and the same WLS solution."""
+    opts = opts or RunOptions()
+    funcs = {m: get_mode(m) for m in modes}  # fail on a bad mode name before any work
+    wls = solve_initial(trace, opts) if wls is None else wls
+    return {m: f(trace, wls, opts) for m, f in funcs.items()}
+
+
+# ---------------------------------------------------------------------------- outputs
+ESTIMATE_COLUMNS = ["gps_millis", "lat_deg", "lon_deg", "height_m", "x_m", "y_m", "z_m"]
+
+
+def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
+    """One row per solved epoch, in the CLI contract's columns."""
+    ok = result.valid & np.isfinite(result.pos).all(axis=1)
+    pos = result.pos[ok]
+    llh = ecef2geodetic(pos) if len(pos) else np.zeros((0, 3))
+    return pd.DataFrame({
+        "gps_millis": trace.t_ms[ok], "lat_deg": llh[:, 0], "lon_deg": llh[:, 1],
+        "height_m": llh[:, 2], "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
+    })
+
+
+def mode_metrics(trace: Trace, result: ModeResult) -> dict | None:
+    """Accuracy against truth (None when the trace has none). Truth is used here only."""
+    if not trace.has_truth:
+        return None
+    from fusion.metrics import ned_errors, summarize
+
+    est = np.where(result.valid[:, None], result.pos, np.nan)
+    return summarize(ned_errors(est, trace.truth))
+
+
+def format_table(rows: dict[str, dict | None]) -> str:
+    """Plain-text accuracy table, one row per mode."""
+    head = f"{'mode':<12} {'MAE N':>14} {'MAE E':>14} {'MAE D':>14} {'h p50':>7} {'h p95':>7} {'score':>7} {'n':>6}"
+    lines = [head, "-" * len(head)]
+    for mode, m in rows.items():
+        if m is None:
+            lines.append(f"{mode:<12} (no truth: metrics unavailable)")
+            continue
+        axes = [f"{m[f'mae_{a}']:6.2f}±{m[f'std_{a}']:<6.2f}" for a in "ned"]
+        lines.append(f"{mode:<12} {axes[0]:>14} {axes[1]:>14} {axes[2]:>14} "
+                     f"{m['h_p50']:7.2f} {m['h_p95']:7.2f} {m['gsdc_score']:7.2f} {m['n']:6d}")
+    return "\n".join(lines)
+
+
+def write_outputs(out_dir: Path, trace: Trace, mode: str, result: ModeResult) -> dict:
+    """Write estimates.csv (+ metrics.json when truth exists); return the metrics record."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    estimates_frame(trace, result).to_csv(out_dir / "estimates.csv", index=False, float_format="%.10g")
+    record = {
+        "trace": trace.name, "mode": mode, "epochs_total": trace.n_epochs,
+        "epochs_solved": int(result.valid.sum()), "skipped": dict(trace.skipped),
+        "info": {k: v for k, v in result.info.items() if isinstance(v, (int, float, str, bool))},
+        "metrics": mode_metrics(trace, result),
+    }
+    if record["metrics"] is not None:
+        (out_dir / "metrics.json").write_text(json.dumps(record, indent=2))
+    return record
+
+
+# ---------------------------------------------------------------------------- CLI
+def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="Solve one trace in one mode and write estimates.csv.")
+    p.add_argument("trace_dir", type=Path, help="a <collection>/<phone> folder (GSDC 2021 derived or 2022/23 device_gnss)")
+    p.add_argument("--mode", default="wls", choices=list(MODES))
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
+    p.add_argument("--signals", default="GPS_L1", help=f"comma-separated, from {','.join(SIGNALS)}")
+    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
+    p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
+    p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
+    p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-truth-height-fix", action="store_true",
+                   help="keep GSDC 2021 truth heights as published (~63 m too high)")
+    return p
+
+
+def options_from_args(args: argparse.Namespace) -> RunOptions:
+    signals = tuple(s.strip() for s in args.signals.split(",") if s.strip())
+    unknown = [s for s in signals if s not in SIGNALS]
+    if unknown:
+        raise GnssfuseError(f"unknown signal(s) {unknown}; choose from {', '.join(SIGNALS)}")
+    if args.dnn_passes < 1:
+        raise GnssfuseError("--dnn-passes must be >= 1")
+    return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
+                      dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
+                      wls_robust=args.robust_wls)
+
+
+def main(argv: list[str], prog: str = "gnssfuse run") -> int:
+    from fusion.io_gsdc import load_trace
+
+    args = build_parser(prog).parse_args(argv)
+    opts = options_from_args(args)
+    trace = load_trace(args.trace_dir, signals=opts.signals, fix_truth_height=not args.no_truth_height_fix)
+    result = run_modes(trace, [args.mode], opts)[args.mode]
+    record = write_outputs(args.out, trace, args.mode, result)
+    print(f"{trace.name}: {record['epochs_solved']}/{trace.n_epochs} epochs solved in mode {args.mode}"
+          + (f"; skipped while loading: {record['skipped']}" if record["skipped"] else ""))
+    print(format_table({args.mode: record["metrics"]}))
+    print(f"wrote {args.out / 'estimates.csv'}" + (" and metrics.json" if record["metrics"] else ""))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main(sys.argv[1:]))
