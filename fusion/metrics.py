@@ -1,0 +1,79 @@
+"""Accuracy metrics: errors in the truth's local NED frame, summary statistics, CDFs.
+
+Rows that cannot be scored (no estimate, or no truth for that epoch) are NaN in the error arrays;
+:func:`summarize` excludes and counts them (``n_excluded``) rather than dropping them silently.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.errors import DataError
+from fusion.geometry import ecef2ned_vec
+
+
+def ned_errors(est_ecef: np.ndarray, truth_ecef: np.ndarray) -> np.ndarray:
+    """Estimate minus truth, rotated into the NED frame at the truth.
+
+    est_ecef, truth_ecef: (E, 3) ECEF [m], NaN rows allowed. Returns (E, 3) [north, east, down] [m],
+    NaN where either row is not finite.
+    """
+    est = np.asarray(est_ecef, float)
+    truth = np.asarray(truth_ecef, float)
+    if est.shape != truth.shape or est.ndim != 2 or est.shape[1] != 3:
+        raise DataError(f"ned_errors needs two (E, 3) arrays, got {est.shape} and {truth.shape}")
+    out = np.full(est.shape, np.nan)
+    ok = np.isfinite(est).all(1) & np.isfinite(truth).all(1)
+    if ok.any():
+        out[ok] = ecef2ned_vec(est[ok] - truth[ok], truth[ok])
+    return out
+
+
+def horizontal(err_ned: np.ndarray) -> np.ndarray:
+    """(E,) horizontal error magnitude [m] from (E, 3) NED errors (NaN rows stay NaN)."""
+    return np.hypot(err_ned[:, 0], err_ned[:, 1])
+
+
+def summarize(err_ned: np.ndarray) -> dict:
+    """Summary of (E, 3) NED errors [m].
+
+    Returns a dict with
+    - ``mae_n/e/d``: mean absolute error per axis;
+    - ``std_n/e/d``: standard deviation of the absolute error per axis (the paper's "MAE +- std");
+    - ``h_p50``, ``h_p95``: 50th / 95th percentile of the horizontal error (numpy linear
+      interpolation);
+    - ``gsdc_score``: mean of ``h_p50`` and ``h_p95`` (the GSDC 2021 per-phone score);
+    - ``n``: epochs scored; ``n_excluded``: rows with any NaN (no estimate or no truth).
+    With no scorable row every statistic is NaN and ``n`` is 0.
+    """
+    err = np.asarray(err_ned, float)
+    if err.ndim != 2 or err.shape[1] != 3:
+        raise DataError(f"summarize needs (E, 3) NED errors, got shape {err.shape}")
+    ok = np.isfinite(err).all(1)
+    e = np.abs(err[ok])
+    out: dict = {"n": int(ok.sum()), "n_excluded": int((~ok).sum())}
+    if not ok.any():
+        nan = float("nan")
+        out.update({k: nan for k in ("mae_n", "mae_e", "mae_d", "std_n", "std_e", "std_d",
+                                     "h_p50", "h_p95", "gsdc_score")})
+        return out
+    for i, ax in enumerate("ned"):
+        out[f"mae_{ax}"] = float(e[:, i].mean())
+        out[f"std_{ax}"] = float(e[:, i].std())
+    h = horizontal(err[ok])
+    p50, p95 = np.percentile(h, [50, 95])
+    out.update(h_p50=float(p50), h_p95=float(p95), gsdc_score=float((p50 + p95) / 2))
+    return out
+
+
+def cdf(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Empirical CDF of the finite entries of ``values``: (sorted values, fraction <= value)."""
+    v = np.asarray(values, float).ravel()
+    v = np.sort(v[np.isfinite(v)])
+    return v, np.arange(1, v.size + 1) / max(v.size, 1)
+
+
+def format_summary(s: dict) -> str:
+    """One-line human-readable form of :func:`summarize`'s dict."""
+    return (f"n={s['n']} (excl {s['n_excluded']})  MAE N/E/D {s['mae_n']:.2f}/{s['mae_e']:.2f}/"
+            f"{s['mae_d']:.2f} m  h p50 {s['h_p50']:.2f}  p95 {s['h_p95']:.2f}  "
+            f"GSDC {s['gsdc_score']:.2f} m")
