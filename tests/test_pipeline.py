@@ -1,0 +1,59 @@
+"""The `gnssfuse run` contract on the shipped real trace (wls mode; other modes test themselves)."""
+import gzip
+import json
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from fusion.cli import main
+from fusion.geometry import geodetic2ecef
+from fusion.io_gsdc import load_trace
+from fusion.metrics import ned_errors, summarize
+from fusion.pipeline import ESTIMATE_COLUMNS, RunOptions, run_modes
+
+
+def test_run_wls_writes_contract_files(shipped_trace_dir, tmp_path, capsys):
+    assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--out", str(tmp_path)]) == 0
+    est = pd.read_csv(tmp_path / "estimates.csv")
+    assert list(est.columns) == ESTIMATE_COLUMNS
+    trace = load_trace(shipped_trace_dir)
+    assert 0.95 * trace.n_epochs <= len(est) <= trace.n_epochs
+    # Geodetic and ECEF columns describe the same points.
+    xyz = geodetic2ecef(est[["lat_deg", "lon_deg", "height_m"]].to_numpy())
+    np.testing.assert_allclose(xyz, est[["x_m", "y_m", "z_m"]].to_numpy(), atol=1e-3)
+    # gps_millis are true receive times: they line up with the ground truth's times (1 s shift removed).
+    truth_ms = pd.read_csv(shipped_trace_dir / "ground_truth.csv")["millisSinceGpsEpoch"].to_numpy()
+    gap = np.abs(est["gps_millis"].to_numpy()[:, None] - truth_ms[None, :]).min(axis=1)
+    assert np.median(gap) < 5
+    rec = json.loads((tmp_path / "metrics.json").read_text())
+    assert rec["mode"] == "wls" and rec["epochs_solved"] == len(est)
+    # metrics.json equals metrics recomputed from the written estimates.
+    idx = np.searchsorted(trace.t_ms, est["gps_millis"].to_numpy())
+    again = summarize(ned_errors(est[["x_m", "y_m", "z_m"]].to_numpy(), trace.truth[idx]))
+    assert rec["metrics"]["h_p50"] == pytest.approx(again["h_p50"], abs=1e-3)
+    assert "h p50" in capsys.readouterr().out
+
+
+def test_all_modes_share_one_wls(shipped_trace_dir):
+    trace = load_trace(shipped_trace_dir).select(np.arange(50))
+    res = run_modes(trace, ["wls"], RunOptions())
+    assert res["wls"].pos.shape == (50, 3)
+
+
+def test_unknown_mode_and_signal_are_clear_errors(shipped_trace_dir, tmp_path, capsys):
+    assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--signals", "GPS_L9",
+                 "--out", str(tmp_path)]) == 2
+    assert "GPS_L9" in capsys.readouterr().err
+
+
+def test_missing_column_exits_2_naming_it(shipped_trace_dir, tmp_path, capsys):
+    bad = tmp_path / "c" / "Pixel4"
+    bad.mkdir(parents=True)
+    with gzip.open(shipped_trace_dir / "Pixel4_derived.csv.gz", "rt") as f:
+        df = pd.read_csv(f, nrows=500)
+    df.drop(columns=["rawPrM"]).to_csv(bad / "Pixel4_derived.csv", index=False)
+    shutil.copy(shipped_trace_dir / "ground_truth.csv", bad / "ground_truth.csv")
+    assert main(["run", str(bad), "--mode", "wls", "--out", str(tmp_path / "o")]) == 2
+    assert "rawPrM" in capsys.readouterr().err
