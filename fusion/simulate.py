@@ -1,0 +1,524 @@
+"""GNSS measurement simulator: GPS L1 pseudoranges along any trajectory, anywhere on Earth.
+
+Pipeline (vectorised over all epochs of all traces at once):
+trajectory (t_ms, ECEF) -> nearest valid broadcast ephemeris per (epoch, PRN) -> satellite
+state at the true transmit time -> elevation mask -> random subset of at most ``max_sats`` ->
+pseudorange = |sagnac_rotate(sat_pos, rx) - rx| + receiver clock + noise (+ NLOS bias).
+
+The pseudorange is the *corrected* one of :class:`fusion.trace.Trace` (satellite clock, iono,
+tropo already removed), so WLS, features and the graph consume simulated and real traces alike.
+:func:`write_gsdc2021` saves a result in the GSDC 2021 derived format with ``satClkBiasM``,
+``ionoDelayM`` and ``tropoDelayM`` filled consistently, so that
+``rawPrM + satClkBiasM - isrbM - ionoDelayM - tropoDelayM`` gives back the simulated
+pseudorange (to the file's millimetre rounding).
+
+Truth heights in the written ``ground_truth.csv`` carry the GSDC 2021 +63.1 m error
+(:data:`fusion.trajectory.GSDC2021_HEIGHT_ERROR_M`) by default, exactly like the real files, so
+``load_trace(..., fix_truth_height=True)`` returns the simulated truth.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from fusion.errors import DataError, GeometryError
+from fusion.geometry import C_LIGHT, ecef2geodetic, ned_rotation, sagnac_rotate
+from fusion.orbits import sat_state, select_ephemeris, transmit_states
+from fusion.rinex_nav import GPS_EPOCH, GpsNav, default_nav_path, gps_ms_from_calendar, read_rinex_nav
+from fusion.trace import SIGNALS, Trace
+from fusion.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, load_gsdc_trajectory,
+                               random_trajectories, random_trajectory)
+
+#: Default start: 2021-04-28 20:00:00 GPS time, inside the shipped nav file (2021 day 118).
+DEFAULT_START_MS = gps_ms_from_calendar(2021, 4, 28, 20, 0, 0.0)
+#: Default origin: Mountain View, CA (where the GSDC 2021 MTV drives are), ellipsoidal height.
+DEFAULT_ORIGIN = (37.3958, -122.1030, -5.0)
+#: Visibility is evaluated once per block of this many milliseconds (see _simulate_arrays).
+_BLOCK_MS = 30_000
+#: Flight-time iterations from the block's guess (each shrinks the error by ~1e-5).
+_TAU_ITER = 2
+
+
+@dataclass
+class SimConfig:
+    """Measurement model. Units: metres, seconds, degrees.
+
+    sigma_m:         1-sigma Gaussian pseudorange noise (at zenith when ``elevation_noise``).
+    elevation_noise: scale sigma by 1/sin(elevation) (low satellites noisier).
+    elev_mask_deg:   satellites below this elevation are not visible.
+    max_sats:        cap per epoch (random subset of the visible ones); None = all visible.
+    min_sats:        epochs with fewer visible satellites are skipped and counted.
+    nlos:            multipath/NLOS scenario: per epoch Poisson(``nlos_rate``) satellites get a
+                     positive bias U[``nlos_bias_m``].
+    clock_bias0_m:   receiver clock c*dt at the first epoch, drawn uniformly in this range.
+    clock_drift0_mps: initial clock drift c*ddt/dt, uniform in this range.
+    clock_bias_rw_m / clock_drift_rw_mps: random-walk densities per sqrt(second).
+    iono_zenith_m / tropo_zenith_m: zenith delays written to the derived file (they cancel in
+                     the corrected pseudorange; only the raw pseudorange carries them).
+    """
+
+    sigma_m: float = 6.0
+    elevation_noise: bool = False
+    elev_mask_deg: float = 5.0
+    max_sats: int | None = 10
+    min_sats: int = 4
+    nlos: bool = False
+    nlos_rate: float = 1.0
+    nlos_bias_m: tuple[float, float] = (50.0, 200.0)
+    clock_bias0_m: tuple[float, float] = (-1.0e5, 1.0e5)
+    clock_drift0_mps: tuple[float, float] = (-100.0, 100.0)
+    clock_bias_rw_m: float = 0.3
+    clock_drift_rw_mps: float = 0.05
+    iono_zenith_m: float = 4.0
+    tropo_zenith_m: float = 2.4
+
+    def validate(self) -> None:
+        if self.sigma_m < 0:
+            raise ValueError(f"sigma_m must be >= 0, got {self.sigma_m}")
+        if self.max_sats is not None and self.max_sats < self.min_sats:
+            raise ValueError(f"max_sats ({self.max_sats}) < min_sats ({self.min_sats})")
+        if self.min_sats < 1:
+            raise ValueError(f"min_sats must be >= 1, got {self.min_sats}")
+        lo, hi = self.nlos_bias_m
+        if not (0 <= lo <= hi) or self.nlos_rate < 0:
+            raise ValueError(f"bad NLOS settings: rate {self.nlos_rate}, bias range {self.nlos_bias_m}")
+
+
+@dataclass
+class SimResult:
+    """A simulated trace plus the hidden quantities that made it (for tests and training).
+
+    trace:    the measurements (truth set, ``pr_sigma`` = the noise sigma).
+    clock_m:  (E,) true receiver clock c*dt [m] (never an input to estimators).
+    bias_m:   (E, S) NLOS bias added to each slot [m] (0 where none).
+    noise_m:  (E, S) Gaussian noise added [m].
+    elev_deg, az_deg: (E, S) at the true position.
+    sat_clock_m, sat_clock_drift_mps: (E, S) c*dt_sv and its rate (broadcast model, L1 TGD in).
+    flight_s: (E, S) true signal flight time [s].
+    iono_m, tropo_m: (E, S) delays written to the derived file.
+    """
+
+    trace: Trace
+    clock_m: np.ndarray
+    bias_m: np.ndarray
+    noise_m: np.ndarray
+    elev_deg: np.ndarray
+    az_deg: np.ndarray
+    sat_clock_m: np.ndarray
+    sat_clock_drift_mps: np.ndarray
+    flight_s: np.ndarray
+    iono_m: np.ndarray
+    tropo_m: np.ndarray
+    skipped: dict[str, int] = field(default_factory=dict)
+
+
+def _check_coverage(nav: GpsNav, prns: np.ndarray, t_ms: np.ndarray, min_sats: int) -> np.ndarray:
+    """(E, P) ephemeris indices; DataError if any epoch lies outside the nav file's validity."""
+    idx = select_ephemeris(nav, prns[None, :], t_ms[:, None])
+    n_valid = (idx >= 0).sum(axis=1)
+    bad = np.flatnonzero(n_valid < min_sats)
+    if bad.size:
+        lo, hi = nav.span_ms()
+        k = bad[0]
+        raise DataError(
+            f"{nav.source}: epoch {k} (GPS ms {int(t_ms[k])}, {_fmt_gps(int(t_ms[k]))}) is outside the "
+            f"validity of the navigation file (only {int(n_valid[k])} GPS ephemerides valid; file "
+            f"covers {_fmt_gps(lo)} .. {_fmt_gps(hi)} GPS time); {bad.size} epoch(s) affected")
+    return idx
+
+
+def _fmt_gps(t_ms: int) -> str:
+    return str(GPS_EPOCH + pd.Timedelta(milliseconds=int(t_ms)).to_pytimedelta())
+
+
+def _receiver_clock(t_ms: np.ndarray, seg_start: np.ndarray, cfg: SimConfig,
+                    rng: np.random.Generator) -> np.ndarray:
+    """(E,) c*dt [m]: bias + integrated drift random walk, restarted at each segment start."""
+    E = t_ms.shape[0]
+    seg = np.cumsum(seg_start) - 1                                        # segment id per epoch
+    n_seg = int(seg[-1]) + 1
+    b0 = rng.uniform(*cfg.clock_bias0_m, n_seg)
+    d0 = rng.uniform(*cfg.clock_drift0_mps, n_seg)
+    dt = np.r_[0.0, np.diff(t_ms) * 1e-3]
+    dt[seg_start] = 0.0
+    w_d = rng.standard_normal(E) * cfg.clock_drift_rw_mps * np.sqrt(dt)
+    w_b = rng.standard_normal(E) * cfg.clock_bias_rw_m * np.sqrt(dt)
+
+    def seg_cumsum(x: np.ndarray) -> np.ndarray:
+        c = np.cumsum(x)
+        return c - (c - x)[np.flatnonzero(seg_start)][seg]               # restart per segment
+
+    drift = d0[seg] + seg_cumsum(w_d)
+    drift_prev = np.r_[0.0, drift[:-1]]
+    return b0[seg] + seg_cumsum(drift_prev * dt + w_b)
+
+
+def _simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav: GpsNav,
+                     cfg: SimConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Core simulator on flat arrays. t_ms (E,), rx (E,3), seg_start (E,) bool (trace starts).
+
+    Returns (E, K) slot arrays (K = max_sats or number of PRNs) and (E,) ``keep`` epochs.
+    All random draws happen in a fixed order over all epochs, so a seed fixes the result.
+    """
+    cfg.validate()
+    prns = np.unique(nav.prn)
+    idx = _check_coverage(nav, prns, t_ms, min(cfg.min_sats, 4))
+    E, P = idx.shape
+    K = P if cfg.max_sats is None else min(int(cfg.max_sats), P)
+
+    # Pass 1, visibility: satellites move < 0.012 deg/s on the sky (a car's few hundred metres
+    # shift them by < 0.01 deg), so elevations are computed once per 30 s block of each
+    # segment, at a nominal 75 ms flight time, and kept with a 1 deg margin. It also gives a
+    # flight-time guess good to ~0.1 ms, which one more iteration in pass 2 makes exact.
+    seg_id = np.cumsum(seg_start) - 1
+    t0_seg = t_ms[np.flatnonzero(seg_start)][seg_id]
+    block = seg_id.astype(np.int64) * 10**9 + (t_ms - t0_seg) // _BLOCK_MS
+    first = np.r_[True, block[1:] != block[:-1]]
+    samp = np.flatnonzero(first)                                         # (B,) sample epochs
+    samp_of = np.cumsum(first) - 1                                       # (E,) -> index in samp
+    R = ned_rotation(rx)                                                 # (E, 3, 3)
+    Rs, rxs = R[samp], rx[samp]
+    st = sat_state(nav, np.maximum(idx[samp], 0), t_ms[samp, None], -0.075, position_only=True)
+    d = sagnac_rotate(st["pos"], rxs) - rxs[:, None, :]
+    r = np.linalg.norm(d, axis=-1)
+    tau_s = r / C_LIGHT                                                  # (B, P)
+    el_s = np.degrees(np.arcsin(-np.einsum("bj,bpj->bp", Rs[:, 2], d) / r))
+    # Pass 2, candidates only: exact transmit-time states. A PRN whose ephemeris starts inside
+    # a block (no record at the block's sample) stays a candidate.
+    maybe_up = (el_s >= cfg.elev_mask_deg - 1.0) | (idx[samp] < 0)
+    ce, cp = np.nonzero((idx >= 0) & maybe_up[samp_of])
+    st, ta = transmit_states(nav, idx[ce, cp], rx[ce], t_ms[ce], tau_s[samp_of[ce], cp],
+                             n_iter=_TAU_ITER)
+    d = sagnac_rotate(st["pos"][:, None, :], rx[ce])[:, 0] - rx[ce]
+    ned = np.einsum("nij,nj->ni", R[ce], d) / np.linalg.norm(d, axis=-1, keepdims=True)
+    e_ = np.degrees(np.arcsin(np.clip(-ned[:, 2], -1.0, 1.0)))
+    z_ = np.degrees(np.arctan2(ned[:, 1], ned[:, 0])) % 360.0
+    pos = np.zeros((E, P, 3)); vel = np.zeros((E, P, 3)); el = np.full((E, P), -90.0)
+    az = np.zeros((E, P)); clk = np.zeros((E, P)); drift = np.zeros((E, P)); tau = np.zeros((E, P))
+    pos[ce, cp], vel[ce, cp], el[ce, cp], az[ce, cp] = st["pos"], st["vel"], e_, z_
+    clk[ce, cp], drift[ce, cp], tau[ce, cp] = st["clock_s"], st["clock_drift"], ta
+    eligible = (idx >= 0) & (el >= cfg.elev_mask_deg)
+
+    # Random subset of at most K visible satellites, then slots ordered by PRN.
+    keys = np.where(eligible, rng.random((E, P)), 2.0)
+    pick = np.argsort(keys, axis=1, kind="stable")[:, :K]
+    picked_ok = np.take_along_axis(eligible, pick, axis=1)
+    order = np.argsort(np.where(picked_ok, pick, P + pick), axis=1, kind="stable")
+    pick = np.take_along_axis(pick, order, axis=1)
+    mask = np.take_along_axis(picked_ok, order, axis=1)
+
+    def g(a: np.ndarray) -> np.ndarray:
+        if a.ndim == 3:
+            return np.take_along_axis(a, pick[..., None], axis=1)
+        return np.take_along_axis(a, pick, axis=1)
+
+    sat_pos, sat_vel, el_k, az_k = g(pos), g(vel), g(el), g(az)
+    clock = _receiver_clock(t_ms, seg_start, cfg, rng)
+    sin_el = np.sin(np.radians(np.clip(el_k, 1.0, 90.0)))
+    sigma = np.full((E, K), float(cfg.sigma_m))
+    if cfg.elevation_noise:
+        sigma = sigma / sin_el
+    noise = rng.standard_normal((E, K)) * sigma
+    bias = np.zeros((E, K))
+    if cfg.nlos:
+        n_bad = np.minimum(rng.poisson(cfg.nlos_rate, E), mask.sum(axis=1))
+        rank = np.argsort(np.argsort(np.where(mask, rng.random((E, K)), 2.0), axis=1), axis=1)
+        hit = rank < n_bad[:, None]
+        bias = np.where(hit, rng.uniform(*cfg.nlos_bias_m, (E, K)), 0.0)
+    # Exactly the model a solver inverts (fusion.geometry.line_of_sight).
+    rng_m = np.linalg.norm(sagnac_rotate(sat_pos, rx) - rx[:, None, :], axis=-1)
+    pr = rng_m + clock[:, None] + noise + bias
+
+    # Plausible delays for the raw pseudorange of the derived file (they cancel when corrected).
+    tropo = cfg.tropo_zenith_m * 1.001 / np.sqrt(0.002001 + sin_el**2)
+    iono = cfg.iono_zenith_m * (1.0 + 16.0 * (0.53 - np.clip(el_k, 0, 90) / 180.0) ** 3)
+    zero = ~mask
+    out = dict(
+        sat_pos=sat_pos, sat_vel=sat_vel, pr=pr, pr_sigma=sigma, mask=mask,
+        sat_id=(1000 + prns[pick]).astype(np.int32), el=el_k, az=az_k, noise=noise, bias=bias,
+        sat_clock_m=g(clk) * C_LIGHT, sat_clock_drift_mps=g(drift) * C_LIGHT, flight_s=g(tau),
+        iono=iono, tropo=tropo, clock=clock,
+    )
+    for k in ("sat_pos", "sat_vel", "pr", "el", "az", "noise", "bias", "sat_clock_m",
+              "sat_clock_drift_mps", "flight_s", "iono", "tropo"):
+        out[k] = np.where(zero[..., None] if out[k].ndim == 3 else zero, 0.0, out[k])
+    out["pr_sigma"] = np.where(zero, 1.0, sigma)
+    out["keep"] = mask.sum(axis=1) >= cfg.min_sats
+    return out
+
+
+def _to_result(arrs: dict[str, np.ndarray], t_ms: np.ndarray, rx: np.ndarray, sel: np.ndarray,
+               name: str) -> SimResult:
+    """Slice epochs ``sel`` (indices) of the flat arrays into one SimResult (padding trimmed)."""
+    keep = sel[arrs["keep"][sel]]
+    n_drop = sel.size - keep.size
+    S = max(int(arrs["mask"][keep].sum(axis=1).max(initial=0)), 1)
+    cut = {k: v[keep][:, :S] if v.ndim >= 2 else v[keep] for k, v in arrs.items()}
+    trace = Trace(
+        t_ms=t_ms[keep].copy(), sat_pos=cut["sat_pos"], sat_vel=cut["sat_vel"], pr=cut["pr"],
+        pr_sigma=cut["pr_sigma"], sat_id=np.where(cut["mask"], cut["sat_id"], 0).astype(np.int32),
+        signal=np.full(cut["pr"].shape, SIGNALS.index("GPS_L1"), np.int8), mask=cut["mask"],
+        clock_reset=np.zeros(keep.size, bool), truth=rx[keep].copy(), name=name,
+    )
+    trace.count_skip("sim_too_few_visible_sats", n_drop)
+    return SimResult(
+        trace=trace, clock_m=cut["clock"], bias_m=cut["bias"], noise_m=cut["noise"],
+        elev_deg=cut["el"], az_deg=cut["az"], sat_clock_m=cut["sat_clock_m"],
+        sat_clock_drift_mps=cut["sat_clock_drift_mps"], flight_s=cut["flight_s"],
+        iono_m=cut["iono"], tropo_m=cut["tropo"], skipped=dict(trace.skipped),
+    )
+
+
+def _rng(seed: int | np.random.Generator | None) -> np.random.Generator:
+    return seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+
+
+def _nav(nav: GpsNav | str | Path | None) -> GpsNav:
+    if isinstance(nav, GpsNav):
+        return nav
+    return read_rinex_nav(default_nav_path() if nav is None else nav)
+
+
+def simulate_trajectory(traj: Trajectory, *, nav: GpsNav | str | Path | None = None,
+                        config: SimConfig | None = None,
+                        seed: int | np.random.Generator | None = 0) -> SimResult:
+    """Simulate GPS L1 measurements along ``traj`` (receive times and true ECEF positions).
+
+    Raises DataError when the trajectory's times lie outside the nav file's validity, and
+    GeometryError when no epoch has ``min_sats`` visible satellites; epochs with too few are
+    otherwise skipped and counted in ``trace.skipped``.
+    """
+    cfg = config or SimConfig()
+    nav = _nav(nav)
+    seg = np.zeros(len(traj), bool); seg[0] = True
+    arrs = _simulate_arrays(traj.t_ms, traj.ecef, seg, nav, cfg, _rng(seed))
+    if not arrs["keep"].any():
+        llh = ecef2geodetic(traj.ecef[0])
+        raise GeometryError(
+            f"{traj.name}: fewer than {cfg.min_sats} GPS satellites above {cfg.elev_mask_deg} deg "
+            f"at every epoch (first epoch {_fmt_gps(int(traj.t_ms[0]))} at lat {llh[0]:.4f}, "
+            f"lon {llh[1]:.4f}, h {llh[2]:.1f} m); nothing to simulate")
+    return _to_result(arrs, traj.t_ms, traj.ecef, np.arange(len(traj)), traj.name)
+
+
+def simulate(origin_llh: tuple[float, ...] = DEFAULT_ORIGIN, n_epochs: int = 600, *,
+             start_ms: int = DEFAULT_START_MS, rate_hz: float = 1.0,
+             nav: GpsNav | str | Path | None = None, config: SimConfig | None = None,
+             seed: int | np.random.Generator | None = 0, name: str = "sim") -> SimResult:
+    """A random smooth drive at ``origin_llh`` (lat, lon[, h]) and its simulated measurements."""
+    rng = _rng(seed)
+    origin = tuple(origin_llh) + (0.0,) * (3 - len(origin_llh))
+    traj = random_trajectory(origin, n_epochs, start_ms, rng, rate_hz=rate_hz, name=name)
+    return simulate_trajectory(traj, nav=nav, config=config, seed=rng)
+
+
+def random_origins(n: int, rng: np.random.Generator, height_range: tuple[float, float] = (-50.0, 500.0)
+                   ) -> np.ndarray:
+    """(n, 3) lat, lon [deg], ellipsoidal height [m] uniform over the sphere's surface."""
+    lat = np.degrees(np.arcsin(rng.uniform(-1.0, 1.0, n)))
+    lon = rng.uniform(-180.0, 180.0, n)
+    return np.stack([lat, lon, rng.uniform(*height_range, n)], axis=1)
+
+
+def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarray | None = None,
+                     seed: int | np.random.Generator | None = 0, rate_hz: float = 1.0,
+                     nav: GpsNav | str | Path | None = None, config: SimConfig | None = None,
+                     start_range_ms: tuple[int, int] | None = None, concatenate: bool = False
+                     ) -> list[Trace] | Trace:
+    """Many short random drives at different origins and start times (training data).
+
+    origins: (K, 2|3) lat, lon[, h]; trace i uses origins[i % K]; None = uniform over the Earth.
+    start_range_ms: start times are uniform in it; default = the nav file's toe range.
+    concatenate: return one Trace with the drives laid back to back in time (each marked by
+    ``clock_reset``); they must then fit into ``start_range_ms`` one after the other.
+    All epochs of all traces go through the simulator in one vectorised pass.
+    """
+    if n_traces < 1 or epochs_per_trace < 1:
+        raise ValueError(f"need n_traces >= 1 and epochs_per_trace >= 1, got {n_traces}, {epochs_per_trace}")
+    rng = _rng(seed)
+    nav = _nav(nav)
+    cfg = config or SimConfig()
+    step = int(round(1000.0 / rate_hz))
+    dur = step * (epochs_per_trace - 1)
+    lo, hi = start_range_ms or (int(nav.toe_ms.min()), int(nav.toe_ms.max()))
+    if origins is None:
+        org = random_origins(n_traces, rng)
+    else:
+        rows = [origins] if np.ndim(origins[0]) == 0 else list(origins)
+        try:
+            org = np.array([[float(v) for v in o] + [0.0] * (3 - len(o)) for o in rows])
+        except (TypeError, ValueError):
+            raise ValueError("origins must be (lat, lon[, h]) rows") from None
+        if org.shape[1] != 3 or np.any(np.abs(org[:, 0]) > 90):
+            raise ValueError(f"origins must be (lat, lon[, h]) rows with |lat| <= 90, got shape {org.shape}")
+        org = org[np.arange(n_traces) % org.shape[0]]
+    if concatenate:
+        gap = 10 * step
+        total = n_traces * (dur + gap)
+        if total > hi - lo:
+            raise DataError(f"{nav.source}: {n_traces} traces of {epochs_per_trace} epochs do not fit "
+                            f"back to back into {(hi - lo) / 3.6e6:.1f} h of valid ephemerides; "
+                            "use concatenate=False or a longer nav file")
+        starts = lo + rng.integers(0, hi - lo - total + 1) + np.arange(n_traces) * (dur + gap)
+    else:
+        if hi - lo < dur:
+            raise DataError(f"{nav.source}: a trace of {epochs_per_trace} epochs is longer than the "
+                            f"{(hi - lo) / 3.6e6:.1f} h the navigation file covers")
+        starts = rng.integers(lo, hi - dur + 1, n_traces)
+    starts = starts // step * step
+    trajs = random_trajectories(org, epochs_per_trace, starts, rng, rate_hz=rate_hz)
+    t_ms = np.concatenate([tr.t_ms for tr in trajs])
+    rx = np.concatenate([tr.ecef for tr in trajs])
+    seg = np.zeros(t_ms.size, bool); seg[::epochs_per_trace] = True
+    arrs = _simulate_arrays(t_ms, rx, seg, nav, cfg, rng)
+    if concatenate:
+        res = _to_result(arrs, t_ms, rx, np.arange(t_ms.size), "sim/dataset")
+        first = seg[arrs["keep"]]
+        res.trace.clock_reset = first & (np.arange(first.size) > 0)
+        return res.trace
+    traces = []
+    for i in range(n_traces):  # slicing only; all maths above was vectorised
+        sel = np.arange(i * epochs_per_trace, (i + 1) * epochs_per_trace)
+        if arrs["keep"][sel].any():
+            traces.append(_to_result(arrs, t_ms, rx, sel, trajs[i].name).trace)
+    if not traces:
+        raise GeometryError("no simulated trace has an epoch with enough visible satellites")
+    return traces
+
+
+# ---------------------------------------------------------------------------------- output
+def write_gsdc2021(result: SimResult, out_dir: str | Path, collection: str, phone: str = "SimPhone",
+                   *, height_error_m: float = GSDC2021_HEIGHT_ERROR_M) -> tuple[Path, Path]:
+    """Save as ``<out>/<collection>/<phone>/<phone>_derived.csv`` + ``ground_truth.csv``.
+
+    Derived rows follow GSDC 2021: ``millisSinceGpsEpoch`` is one second late (receive time +
+    1000 ms), ``receivedSvTimeInGpsNanos`` is the transmit time on the satellite's clock,
+    satellite states are at the true transmit time, and rawPrM carries the satellite clock,
+    iono and tropo so that the standard correction gives back ``trace.pr``. Truth heights get
+    ``+height_error_m`` (the real files' error; 0 writes true heights).
+    Returns (derived path, ground-truth path).
+    """
+    tr = result.trace
+    folder = Path(out_dir) / collection / phone
+    folder.mkdir(parents=True, exist_ok=True)
+    e, s = np.nonzero(tr.mask)
+    t = tr.t_ms[e]
+    clk = np.round(result.sat_clock_m[e, s], 3)
+    iono = np.round(result.iono_m[e, s], 3)
+    tropo = np.round(result.tropo_m[e, s], 3)
+    # Use the rounded columns so the correction reproduces pr to the file's last digit.
+    raw = np.round(tr.pr[e, s] - clk + iono + tropo, 3)
+    tx_sv_ns = t * 1_000_000 - np.round((result.flight_s[e, s] - result.sat_clock_m[e, s] / C_LIGHT)
+                                        * 1e9).astype(np.int64)
+    pos, vel = np.round(tr.sat_pos[e, s], 3), np.round(tr.sat_vel[e, s], 3)
+    derived = pd.DataFrame({
+        "collectionName": collection, "phoneName": phone, "millisSinceGpsEpoch": t + 1000,
+        "constellationType": tr.sat_id[e, s] // 1000, "svid": tr.sat_id[e, s] % 1000,
+        "signalType": np.asarray(SIGNALS)[tr.signal[e, s]], "receivedSvTimeInGpsNanos": tx_sv_ns,
+        "xSatPosM": pos[:, 0], "ySatPosM": pos[:, 1], "zSatPosM": pos[:, 2],
+        "xSatVelMps": vel[:, 0], "ySatVelMps": vel[:, 1], "zSatVelMps": vel[:, 2],
+        "satClkBiasM": clk, "satClkDriftMps": np.round(result.sat_clock_drift_mps[e, s], 3),
+        "rawPrM": raw, "rawPrUncM": np.round(tr.pr_sigma[e, s], 3), "isrbM": 0.0,
+        "ionoDelayM": iono, "tropoDelayM": tropo,
+    })
+    d_path = folder / f"{phone}_derived.csv"
+    derived.to_csv(d_path, index=False)
+
+    llh = ecef2geodetic(tr.truth)
+    v = np.gradient(tr.truth, tr.t_ms * 1e-3, axis=0) if tr.n_epochs > 1 else np.zeros((1, 3))
+    v_ned = np.einsum("eij,ej->ei", ned_rotation(tr.truth), v)
+    gt = pd.DataFrame({
+        "collectionName": collection, "phoneName": phone, "millisSinceGpsEpoch": tr.t_ms,
+        "latDeg": np.round(llh[:, 0], 10), "lngDeg": np.round(llh[:, 1], 10),
+        "heightAboveWgs84EllipsoidM": np.round(llh[:, 2] + height_error_m, 4),
+        "timeSinceFirstFixSeconds": np.round((tr.t_ms - tr.t_ms[0]) * 1e-3, 3),
+        "hDop": 0.5, "vDop": 0.0, "speedMps": np.round(np.hypot(v_ned[:, 0], v_ned[:, 1]), 3),
+        "courseDegree": np.round(np.degrees(np.arctan2(v_ned[:, 1], v_ned[:, 0])) % 360.0, 2),
+    })
+    g_path = folder / "ground_truth.csv"
+    gt.to_csv(g_path, index=False)
+    return d_path, g_path
+
+
+# ---------------------------------------------------------------------------------- CLI
+def _parse_origin(text: str) -> tuple[float, float, float]:
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"origin must be LAT,LON[,H] in degrees/metres, got {text!r}")
+    if len(vals) not in (2, 3) or not (-90 <= vals[0] <= 90 and -180 <= vals[1] <= 360):
+        raise argparse.ArgumentTypeError(f"origin must be LAT,LON[,H] with a valid lat/lon, got {text!r}")
+    return (vals[0], vals[1], vals[2] if len(vals) == 3 else 0.0)
+
+
+def _parse_start(text: str) -> int:
+    if text.strip().lstrip("-").isdigit():
+        return int(text)
+    try:
+        d = datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"start must be GPS ms or an ISO date-time (GPS time), got {text!r}")
+    return gps_ms_from_calendar(d.year, d.month, d.day, d.hour, d.minute, d.second + d.microsecond * 1e-6)
+
+
+def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
+    ap = argparse.ArgumentParser(prog=prog, description=(
+        "Simulate GPS L1 pseudoranges along a random drive (or a replayed GSDC 2021 ground-truth "
+        "track) and write them in the GSDC 2021 derived format with ground_truth.csv."))
+    ap.add_argument("--out", required=True, type=Path, help="output root; writes OUT/COLLECTION/PHONE/")
+    ap.add_argument("--origin", type=_parse_origin, default=DEFAULT_ORIGIN,
+                    help="LAT,LON[,H] start of the random drive (default Mountain View, CA)")
+    ap.add_argument("--epochs", type=int, default=None,
+                    help="number of epochs (default 600; a replayed track: all of it)")
+    ap.add_argument("--rate", type=float, default=1.0, help="epochs per second (default 1)")
+    ap.add_argument("--start", type=_parse_start, default=DEFAULT_START_MS,
+                    help="start time: GPS ms or ISO date-time in GPS time (default 2021-04-28T20:00:00)")
+    ap.add_argument("--bias-scenario", action="store_true",
+                    help="multipath/NLOS: per epoch Poisson(1) satellites get a bias U[50,200] m")
+    ap.add_argument("--sigma", type=float, default=6.0, help="pseudorange noise sigma [m] (default 6)")
+    ap.add_argument("--elevation-noise", action="store_true", help="scale sigma by 1/sin(elevation)")
+    ap.add_argument("--elev-mask", type=float, default=5.0, help="elevation mask [deg] (default 5)")
+    ap.add_argument("--max-sats", type=int, default=10, help="satellites per epoch at most (0 = all)")
+    ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ap.add_argument("--nav", type=Path, default=None, help="RINEX 2/3 GPS nav file (default: shipped)")
+    ap.add_argument("--trajectory", type=Path, default=None,
+                    help="replay this GSDC 2021 ground_truth.csv (re-timed to --start) instead")
+    ap.add_argument("--trajectory-height-error", type=float, default=GSDC2021_HEIGHT_ERROR_M,
+                    help="metres subtracted from replayed heights (default 63.1, the GSDC 2021 error)")
+    ap.add_argument("--collection", default=None, help="collection name (default <date>-US-SIM-<seed>)")
+    ap.add_argument("--phone", default="SimPhone", help="phone name (default SimPhone)")
+    args = ap.parse_args(argv)
+    if args.epochs is not None and args.epochs < 1:
+        ap.error("--epochs must be >= 1")
+    cfg = SimConfig(sigma_m=args.sigma, elevation_noise=args.elevation_noise,
+                    elev_mask_deg=args.elev_mask, max_sats=args.max_sats or None,
+                    nlos=args.bias_scenario)
+    try:
+        cfg.validate()
+    except ValueError as exc:
+        ap.error(str(exc))
+    nav = read_rinex_nav(args.nav or default_nav_path())
+    rng = np.random.default_rng(args.seed)
+    if args.trajectory is not None:
+        traj = load_gsdc_trajectory(args.trajectory, height_error_m=args.trajectory_height_error)
+        traj = traj.retimed(args.start)
+        if args.epochs is not None and args.epochs < len(traj):
+            traj = Trajectory(traj.t_ms[:args.epochs], traj.ecef[:args.epochs], traj.name)
+        res = simulate_trajectory(traj, nav=nav, config=cfg, seed=rng)
+    else:
+        try:
+            traj = random_trajectory(args.origin, args.epochs or 600, args.start, rng, rate_hz=args.rate)
+        except ValueError as exc:
+            ap.error(str(exc))
+        res = simulate_trajectory(traj, nav=nav, config=cfg, seed=rng)
+    collection = args.collection or f"{_fmt_gps(args.start)[:10]}-US-SIM-{args.seed}"
+    d_path, g_path = write_gsdc2021(res, args.out, collection, args.phone)
+    tr = res.trace
+    print(f"simulated {tr.n_epochs} epochs, {tr.n_sats.mean():.1f} satellites/epoch "
+          f"(skipped: {tr.skipped or 'none'}) -> {d_path} , {g_path}")
+    return 0

@@ -1,0 +1,66 @@
+"""Minimal SP3-c/d precise-orbit reader (positions only), used to check broadcast orbits.
+
+SP3 positions are ECEF in km at the satellite centre of mass; epochs are in the file's time
+system (GPS for the IGS/CODE products we use). Bad or missing values become NaN.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion.errors import DataError
+from fusion.rinex_nav import gps_ms_from_calendar
+
+
+@dataclass
+class Sp3Orbits:
+    """t_ms: (T,) GPS ms; sats: (N,) ids like ``"G01"``; pos: (T, N, 3) ECEF [m], NaN if missing."""
+
+    t_ms: np.ndarray
+    sats: np.ndarray
+    pos: np.ndarray
+    source: str
+
+
+def read_sp3(path: str | Path) -> Sp3Orbits:
+    """Read epoch (``*``) and position (``P``) records of an SP3 file."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: SP3 file not found")
+    lines = path.read_text(errors="replace").splitlines()
+    if not lines or not lines[0].startswith("#"):
+        raise DataError(f"{path}:1: not an SP3 file")
+    for ln in lines:
+        if ln.startswith("%c") and ln[9:12].strip() not in ("GPS", "ccc", ""):
+            raise DataError(f"{path}: time system {ln[9:12]!r} is not GPS")
+        if ln.startswith("%c"):
+            break
+    times: list[int] = []
+    recs: dict[tuple[int, str], tuple[float, float, float]] = {}
+    for no, ln in enumerate(lines, 1):
+        if ln.startswith("* "):
+            f = ln[1:].split()
+            try:
+                times.append(gps_ms_from_calendar(int(f[0]), int(f[1]), int(f[2]), int(f[3]),
+                                                  int(f[4]), float(f[5])))
+            except (ValueError, IndexError):
+                raise DataError(f"{path}:{no}: cannot read epoch line {ln!r}") from None
+        elif ln.startswith("P") and times:
+            try:
+                xyz = tuple(float(ln[4 + 14 * k: 18 + 14 * k]) for k in range(3))
+            except ValueError:
+                raise DataError(f"{path}:{no}: cannot read position record {ln[:46]!r}") from None
+            recs[(len(times) - 1, ln[1:4].replace(" ", "0"))] = xyz
+    if not times:
+        raise DataError(f"{path}: no epochs in SP3 file")
+    sats = np.array(sorted({s for _, s in recs}))
+    col = {s: k for k, s in enumerate(sats)}
+    pos = np.full((len(times), len(sats), 3), np.nan)
+    for (ti, s), xyz in recs.items():
+        pos[ti, col[s]] = xyz
+    # 0.000000 or 999999.999999 mark a missing position.
+    bad = np.all(pos == 0.0, axis=-1) | np.any(np.abs(pos) > 999_999.0, axis=-1)
+    pos[bad] = np.nan
+    return Sp3Orbits(np.asarray(times, np.int64), sats, pos * 1000.0, str(path))
