@@ -1,0 +1,379 @@
+"""``gnssfuse evaluate``: compare modes on one or more traces and write a report folder.
+
+Every mode of :data:`fusion.pipeline.MODES` is run on the same trace and the same WLS solution
+(:func:`fusion.pipeline.run_modes`), so a new mode appears here with no change to this file.
+Truth is used only to score: never passed to a mode.
+
+Output layout (``--out REPORT_DIR``)::
+
+    report.md                     ties everything together (relative links)
+    metrics.csv / metrics.md      one row per (trace, mode) plus pooled "ALL" rows
+    figures/*.png                 CDFs, box plots, trajectories, error vs time
+    <trace>/<mode>/estimates.csv  the ``gnssfuse run`` format (+ metrics.json when truth exists)
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from fusion.errors import DataError, GnssfuseError
+from fusion.pipeline import (MODES, ModeResult, RunOptions, options_from_args, run_modes,
+                             solve_initial, write_outputs)
+from fusion.trace import SIGNALS, Trace
+
+#: Name of the pooled rows (all traces' epochs together) in the tables.
+ALL = "ALL"
+METRIC_KEYS = ["mae_n", "std_n", "mae_e", "std_e", "mae_d", "std_d", "h_p50", "h_p95", "gsdc_score"]
+TABLE_COLUMNS = (["trace", "mode", "status", "epochs_total", "epochs_solved", "epochs_unsolved",
+                  "epochs_scored"] + METRIC_KEYS + ["skipped_at_load"])
+
+
+@dataclass
+class TraceEval:
+    """One trace evaluated in every requested mode.
+
+    results: mode -> ModeResult (modes that failed are absent and listed in ``failed``).
+    errors:  mode -> (E, 3) NED error [m] (NaN where unsolved or no truth); empty without truth.
+    records: mode -> the record :func:`fusion.pipeline.write_outputs` returned.
+    """
+
+    trace: Trace
+    slug: str
+    results: dict[str, ModeResult] = field(default_factory=dict)
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+    records: dict[str, dict] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)
+    wls_reasons: dict[str, int] = field(default_factory=dict)
+
+
+def check_modes(modes: list[str]) -> None:
+    """Fail before any work when a mode is unknown or its module cannot be imported."""
+    for m in modes:
+        if m not in MODES:
+            raise GnssfuseError(f"unknown mode {m!r}; choose from {', '.join(MODES)}")
+        module, func = MODES[m].split(":")
+        try:
+            mod = importlib.import_module(module)
+        except ImportError as exc:
+            raise GnssfuseError(f"mode {m!r} is unavailable: cannot import {module} ({exc})") from exc
+        if not hasattr(mod, func):
+            raise GnssfuseError(f"mode {m!r} is unavailable: {module} has no {func}()")
+
+
+def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:
+    """(E, 3) NED error of a mode's estimates w.r.t. the truth, or None without truth.
+
+    Same definition as :func:`fusion.pipeline.mode_metrics`: unsolved epochs become NaN rows.
+    """
+    if not trace.has_truth:
+        return None
+    from fusion.metrics import ned_errors
+
+    est = np.where(result.valid[:, None], result.pos, np.nan)
+    return ned_errors(est, trace.truth)
+
+
+def _slug(name: str, taken: set[str]) -> str:
+    base = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "trace"
+    slug, k = base, 2
+    while slug in taken:
+        slug, k = f"{base}_{k}", k + 1
+    taken.add(slug)
+    return slug
+
+
+def evaluate_trace(trace: Trace, modes: list[str], opts: RunOptions, out_dir: Path, slug: str,
+                   wls=None, progress: bool = True) -> TraceEval:
+    """Run every mode on ``trace`` (one shared WLS), write estimates, collect errors.
+
+    A mode that raises one of our input errors on this trace is recorded in ``failed`` and the
+    others still run: one bad mode must not lose the rest of the report.
+    """
+    ev = TraceEval(trace=trace, slug=slug)
+    wls = solve_initial(trace, opts) if wls is None else wls
+    ev.wls_reasons = dict(getattr(wls, "reasons", {}) or {})
+    for mode in tqdm(modes, desc=f"  {trace.name}", leave=False, disable=not progress):
+        try:
+            result = run_modes(trace, [mode], opts, wls=wls)[mode]
+        except GnssfuseError as exc:
+            ev.failed[mode] = str(exc)
+            continue
+        ev.results[mode] = result
+        ev.records[mode] = write_outputs(out_dir / slug / mode, trace, mode, result)
+        err = trace_errors(trace, result)
+        if err is not None:
+            ev.errors[mode] = err
+    return ev
+
+
+# ---------------------------------------------------------------------------- tables
+def _skip_text(skipped: dict[str, int]) -> str:
+    return ";".join(f"{k}={v}" for k, v in sorted(skipped.items()))
+
+
+def metrics_table(evals: list[TraceEval], modes: list[str]) -> pd.DataFrame:
+    """One row per (trace, mode) with the metrics of :func:`fusion.metrics.summarize`, then one
+    pooled row per mode (``trace == "ALL"``: every scored epoch of every trace together)."""
+    from fusion.metrics import summarize
+
+    rows = []
+    for ev in evals:
+        for mode in modes:
+            row = {"trace": ev.trace.name, "mode": mode, "epochs_total": ev.trace.n_epochs,
+                   "skipped_at_load": _skip_text(ev.trace.skipped)}
+            if mode in ev.failed:
+                row.update(status=f"failed: {ev.failed[mode]}")
+            else:
+                rec = ev.records[mode]
+                solved = rec["epochs_solved"]
+                row.update(epochs_solved=solved, epochs_unsolved=ev.trace.n_epochs - solved)
+                m = rec["metrics"]
+                if m is None:
+                    row.update(status="no truth: metrics unavailable")
+                else:
+                    row.update(status="ok", epochs_scored=m["n"], **{k: m[k] for k in METRIC_KEYS})
+            rows.append(row)
+    for mode in modes:
+        errs = [ev.errors[mode] for ev in evals if mode in ev.errors]
+        have = [ev for ev in evals if mode in ev.records]
+        total = sum(ev.trace.n_epochs for ev in evals)
+        solved = sum(ev.records[mode]["epochs_solved"] for ev in have)
+        row = {"trace": ALL, "mode": mode, "epochs_total": total, "epochs_solved": solved,
+               "epochs_unsolved": sum(ev.trace.n_epochs for ev in have) - solved,
+               "skipped_at_load": _skip_text(_sum_skips(evals))}
+        if not have:
+            row.update(status="failed on every trace", epochs_solved=None, epochs_unsolved=None)
+        elif errs:
+            m = summarize(np.concatenate(errs))
+            row.update(status="ok", epochs_scored=m["n"], **{k: m[k] for k in METRIC_KEYS})
+        else:
+            row.update(status="no truth: metrics unavailable")
+        rows.append(row)
+    df = pd.DataFrame(rows).reindex(columns=TABLE_COLUMNS)
+    for c in ("epochs_total", "epochs_solved", "epochs_unsolved", "epochs_scored"):
+        df[c] = df[c].astype("Int64")
+    return df
+
+
+def _sum_skips(evals: list[TraceEval]) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for ev in evals:
+        for k, v in ev.trace.skipped.items():
+            out[k] = out.get(k, 0) + int(v)
+    return out
+
+
+def _fmt(x, spec: str = ".2f") -> str:
+    return "n/a" if x is None or pd.isna(x) else format(x, spec)
+
+
+def markdown_table(df: pd.DataFrame) -> str:
+    """The metrics table as GitHub markdown: MAE ± std per axis, horizontal p50/p95, score."""
+    head = ("| trace | mode | MAE N ± std [m] | MAE E ± std [m] | MAE D ± std [m] | horiz p50 [m] "
+            "| horiz p95 [m] | GSDC score [m] | scored / solved / total epochs | skipped at load |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in df.itertuples(index=False):
+        if r.status == "ok":
+            axes = [f"{_fmt(getattr(r, f'mae_{a}'))} ± {_fmt(getattr(r, f'std_{a}'))}" for a in "ned"]
+            tail = [_fmt(r.h_p50), _fmt(r.h_p95), _fmt(r.gsdc_score)]
+        else:
+            axes, tail = [r.status] + ["", ""], ["", "", ""]
+        counts = f"{_fmt(r.epochs_scored, 'd')} / {_fmt(r.epochs_solved, 'd')} / {_fmt(r.epochs_total, 'd')}"
+        name = f"**{r.trace}**" if r.trace == ALL else r.trace
+        lines.append("| " + " | ".join([name, r.mode, *axes, *tail, counts, r.skipped_at_load or "-"]) + " |")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- figures
+def write_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, dict[str, Path]]:
+    """All PNGs: per trace (CDF, box, trajectory, error vs time) and pooled (CDF, box).
+
+    Returns section -> figure kind -> path; section is a trace slug or ``ALL``.
+    """
+    from fusion import plots
+
+    figs: dict[str, dict[str, Path]] = {}
+    for ev in evals:
+        f: dict[str, Path] = {}
+        title = ev.trace.name
+        if ev.errors:
+            f["cdf"] = plots.plot_error_cdfs(ev.errors, fig_dir / f"{ev.slug}_cdf.png", title)
+            f["box"] = plots.plot_error_boxes(ev.errors, fig_dir / f"{ev.slug}_box.png", title)
+            t_s = (ev.trace.t_ms - ev.trace.t_ms[0]) / 1000.0
+            f["time"] = plots.plot_error_vs_time(t_s, ev.errors, fig_dir / f"{ev.slug}_time.png", title)
+        positions = {m: np.where(r.valid[:, None], r.pos, np.nan) for m, r in ev.results.items()}
+        truth = ev.trace.truth if ev.trace.has_truth else None
+        t_s = (ev.trace.t_ms - ev.trace.t_ms[0]) / 1000.0
+        f["traj"] = plots.plot_trajectories(positions, truth, fig_dir / f"{ev.slug}_traj.png", title, t_s=t_s)
+        figs[ev.slug] = f
+    pooled = {}
+    for ev in evals:
+        for m, e in ev.errors.items():
+            pooled.setdefault(m, []).append(e)
+    if pooled:
+        pooled = {m: np.concatenate(v) for m, v in pooled.items()}
+        n = sum(1 for ev in evals if ev.errors)
+        title = f"all traces with truth ({n})"
+        figs[ALL] = {"cdf": plots.plot_error_cdfs(pooled, fig_dir / "all_cdf.png", title),
+                     "box": plots.plot_error_boxes(pooled, fig_dir / "all_box.png", title)}
+    return figs
+
+
+# ---------------------------------------------------------------------------- report.md
+FIG_CAPTIONS = {
+    "cdf": "Error CDFs (|N|, |E|, |D|, horizontal)",
+    "box": "Quantile box plots of signed N/E/D errors",
+    "traj": "Trajectories in a local east/north frame",
+    "time": "Error vs time",
+}
+
+
+def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], figs: dict,
+                    modes: list[str], opts: RunOptions, argv: list[str],
+                    load_failures: dict[str, str]) -> Path:
+    def rel(p: Path) -> str:
+        return Path(p).relative_to(out_dir).as_posix()
+
+    ok = df[(df.trace != ALL) & (df.status == "ok")]
+    lines = [
+        "# gnssfuse evaluation report", "",
+        f"Command: `gnssfuse evaluate {' '.join(argv)}`", "",
+        f"Modes: {', '.join(modes)}. Signals: {', '.join(opts.signals)}. Elevation mask: "
+        f"{opts.elev_mask_deg:g} deg. DNN weights: {opts.weights or 'shipped'}; DNN passes: "
+        f"{opts.dnn_passes}; incremental graph: {opts.incremental}.", "",
+        "Every mode starts from the same WLS solution (receiver clock estimated, never taken from "
+        "truth); truth is used only for the metrics below. Errors are in the NED frame of the truth "
+        "point. MAE ± std is the mean and standard deviation of the absolute per-axis error. "
+        "GSDC score = (horizontal p50 + p95) / 2. The **ALL** rows pool every scored epoch of "
+        "every trace.", "",
+    ]
+    if len(ok):
+        kaggle = ok.groupby("mode", sort=False)["gsdc_score"].mean()
+        lines += ["Kaggle-style score (mean over traces of each trace's GSDC score): "
+                  + ", ".join(f"{m} {kaggle[m]:.2f} m" for m in modes if m in kaggle.index), ""]
+    lines += ["## Metrics", "", markdown_table(df), "",
+              "Machine-readable: [metrics.csv](metrics.csv). Epoch counts: *scored* have truth and a "
+              "solution, *solved* have a solution; *skipped at load* are rows/epochs the loader "
+              "dropped, by reason.", ""]
+    if load_failures:
+        lines += ["## Traces that could not be loaded", ""]
+        lines += [f"- `{p}`: {msg}" for p, msg in load_failures.items()] + [""]
+    failed = [(ev.trace.name, m, msg) for ev in evals for m, msg in ev.failed.items()]
+    if failed:
+        lines += ["## Modes that failed", ""] + [f"- {t} / {m}: {msg}" for t, m, msg in failed] + [""]
+    if ALL in figs:
+        lines += ["## All traces", ""]
+        for kind, p in figs[ALL].items():
+            lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
+    for ev in evals:
+        lines += [f"## {ev.trace.name}", ""]
+        if ev.wls_reasons:
+            lines += ["WLS epochs not solved, by reason: "
+                      + ", ".join(f"{k} {v}" for k, v in ev.wls_reasons.items()), ""]
+        if not ev.errors:
+            lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
+        lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
+        for kind, p in figs.get(ev.slug, {}).items():
+            lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
+    lines += ["CDF x-axes and error-vs-time y-axes stop at the 99th percentile of the pooled errors "
+              "(the curves use every epoch; each panel states how many points lie beyond). Box plots: "
+              "box Q1–Q3 with the median, whiskers at 1.5×IQR, outliers as dots; outliers beyond the "
+              "plotted range are counted in the panel title.", ""]
+    path = out_dir / "report.md"
+    path.write_text("\n".join(lines))
+    return path
+
+
+# ---------------------------------------------------------------------------- CLI
+def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="Compare modes on traces: tables, CDFs, box "
+                                "plots, trajectories and report.md.")
+    p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR",
+                   help="<collection>/<phone> folders (GSDC 2021 derived or 2022/23 device_gnss)")
+    p.add_argument("--modes", default="wls", help=f"comma-separated, from {','.join(MODES)}")
+    p.add_argument("--out", type=Path, required=True, help="report folder")
+    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
+    p.add_argument("--signals", default="GPS_L1", help=f"comma-separated, from {','.join(SIGNALS)}")
+    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
+    p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
+    p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother")
+    p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--max-epochs", type=int, default=None,
+                   help="use only the first N epochs of each trace (quick looks, tests)")
+    p.add_argument("--no-truth-height-fix", action="store_true",
+                   help="keep GSDC 2021 truth heights as published (~63 m too high)")
+    p.add_argument("--no-progress", action="store_true", help="no tqdm progress bars")
+    return p
+
+
+def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
+             max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
+             argv: list[str] | None = None) -> tuple[pd.DataFrame, dict[str, str]]:
+    """Load, run, tabulate, plot and write the report. Returns (metrics table, load failures).
+
+    A trace that fails to load is reported and skipped; only when none loads is it an error.
+    """
+    from fusion.io_gsdc import load_trace
+
+    check_modes(modes)
+    missing = [str(d) for d in trace_dirs if not Path(d).is_dir()]
+    if missing:
+        raise DataError(f"trace folder(s) not found: {', '.join(missing)}")
+    if max_epochs is not None and max_epochs < 1:
+        raise GnssfuseError("--max-epochs must be >= 1")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    evals, failures, taken = [], {}, set()
+    for d in tqdm(trace_dirs, desc="traces", disable=not progress):
+        try:
+            trace = load_trace(d, signals=opts.signals, fix_truth_height=fix_truth_height)
+            if trace.n_epochs == 0:
+                raise DataError(f"{d}: no epochs with {', '.join(opts.signals)} measurements")
+        except GnssfuseError as exc:
+            failures[str(d)] = str(exc)
+            continue
+        if max_epochs is not None and trace.n_epochs > max_epochs:
+            trace = trace.select(np.arange(max_epochs))
+        evals.append(evaluate_trace(trace, modes, opts, out_dir, _slug(trace.name, taken),
+                                    progress=progress))
+    if not evals:
+        raise DataError("no trace could be loaded: " + "; ".join(failures.values()))
+    df = metrics_table(evals, modes)
+    df.to_csv(out_dir / "metrics.csv", index=False, float_format="%.4f")
+    (out_dir / "metrics.md").write_text(markdown_table(df) + "\n")
+    figs = write_figures(evals, out_dir / "figures")
+    write_report_md(out_dir, df, evals, figs, modes, opts, argv or [], failures)
+    return df, failures
+
+
+def main(argv: list[str], prog: str = "gnssfuse evaluate") -> int:
+    args = build_parser(prog).parse_args(argv)
+    opts = options_from_args(args)
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    if not modes:
+        raise GnssfuseError("--modes is empty")
+    df, failures = evaluate(args.trace_dirs, modes, args.out, opts, max_epochs=args.max_epochs,
+                            fix_truth_height=not args.no_truth_height_fix,
+                            progress=not args.no_progress, argv=argv)
+    print(markdown_table(df))
+    print(f"wrote {args.out / 'report.md'}, metrics.csv, metrics.md and figures/")
+    # The report for the good part is written; still exit non-zero so scripts notice the rest.
+    for path, msg in failures.items():
+        print(f"{prog}: error: could not load {path}: {msg}", file=sys.stderr)
+    bad_modes = df[df.status.str.startswith("failed") & (df.trace != ALL)]
+    for r in bad_modes.itertuples(index=False):
+        print(f"{prog}: error: mode {r.mode} on {r.trace}: {r.status}", file=sys.stderr)
+    return 2 if failures or len(bad_modes) else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main(sys.argv[1:]))
