@@ -1,0 +1,376 @@
+"""Factor-graph building blocks for the fused modes: settings, per-epoch inputs, GTSAM factors.
+
+The graph has, per epoch ``k``:
+
+- ``x(k)``: receiver position, ``Point3`` ECEF [m];
+- ``b(k)``: receiver clock bias in *seconds* (GTSAM's ``PseudorangeFactor`` multiplies it by c;
+  our code carries the clock in metres and converts only here), created only for epochs with at
+  least one pseudorange;
+- ``v(k)``: velocity ECEF [m/s], only with ``motion="cv"``.
+
+Factors: one robust ``PseudorangeFactor`` per selected satellite, an optional
+``PriorFactorPoint3`` from a *position prior provider* (the learned correction), motion factors
+between consecutive epochs, and a clock random walk (``BetweenFactorDouble``) whose mean follows
+the clock drift seen in the WLS clock series.
+
+Sagnac: GTSAM 4.3's ``PseudorangeFactor`` already adds the Earth-rotation range term
+``OMEGA_E / c * (x_sat * y_rx - y_sat * x_rx)`` to the geometric range (checked against
+:func:`fusion.geometry.line_of_sight` in ``tests/test_graph.py``), which is the first-order form of
+:func:`fusion.geometry.sagnac_rotate`. Satellite positions are therefore passed at transmit time,
+unrotated: rotating them as well would apply the correction twice.
+
+Everything except the final factor construction is vectorised over epochs and satellites; the
+factor loop is inherent to GTSAM's Python API (one object per factor) and costs a few µs each.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Callable
+
+import gtsam
+import numpy as np
+
+from fusion.errors import GeometryError
+from fusion.geometry import C_LIGHT, elevation_azimuth, line_of_sight, ned_rotation
+from fusion.trace import Trace
+
+#: ``provider(trace, init_pos (E,3), valid (E,)) -> (mean_ecef (E,3), cov_ecef (E,3,3), valid (E,))``
+PriorProvider = Callable[[Trace, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def X(k: int) -> int:
+    """Key of the position at epoch ``k``."""
+    return gtsam.symbol("x", k)
+
+
+def B(k: int) -> int:
+    """Key of the receiver clock (seconds) at epoch ``k``."""
+    return gtsam.symbol("b", k)
+
+
+def V(k: int) -> int:
+    """Key of the velocity at epoch ``k`` (constant-velocity motion only)."""
+    return gtsam.symbol("v", k)
+
+
+def epoch_of_key(key: int) -> int:
+    return int(gtsam.Symbol(key).index())
+
+
+@dataclass
+class GraphConfig:
+    """Noise and robustness settings. Defaults were tuned on the training traces only
+    (2020-05-14-US-MTV-1, 2020-06-05-US-MTV-1, 2020-09-04-US-SF-2); see benchmarks/bench_graph.py."""
+
+    # Pseudorange sigma [m]: sqrt((pr_sigma_scale * pr_sigma)^2 + (pr_sigma_zenith_m / sin(el))^2).
+    pr_sigma_scale: float = 1.0
+    pr_sigma_zenith_m: float = 1.5
+    robust: str = "cauchy"             # "huber", "cauchy" or "none"
+    robust_k: float = 1.0              # scale on the whitened residual
+    # Motion: "rw" = zero-mean position random walk; "cv" = velocity states, constant velocity.
+    motion: str = "cv"
+    # rw: per-axis position step sigma per second [m/s] (horizontal / vertical, NED at the epoch).
+    rw_sigma_h_mps: float = 10.0
+    rw_sigma_v_mps: float = 2.0
+    # cv: velocity random walk [m/s per sqrt(s)] horizontal / vertical; position process noise
+    # [m per sqrt(s)] on p_k = p_{k-1} + v_{k-1} dt.
+    cv_accel_h: float = 1.0
+    cv_accel_v: float = 0.5
+    cv_pos_sigma_m: float = 0.5
+    max_gap_s: float = 10.0            # motion chain broken beyond this epoch gap
+    # Clock random walk around the WLS-derived drift: sigma = clock_sigma_m + clock_rw_m * sqrt(dt).
+    clock_sigma_m: float = 2.0
+    clock_rw_m: float = 5.0
+    clock_jump_m: float = 1000.0       # WLS clock step beyond drift larger than this = clock reset
+    drift_window: int = 5              # epochs each side for the robust WLS clock-drift estimate
+    # Learned prior: covariance used = prior_cov_scale * cov + prior_sigma_floor_m^2 * I.
+    # Where the provider is asked: "graph" = at the solution of the same graph without the prior
+    # (a better guess than WLS, which is what the network was trained around: on a held-out training
+    # trace this beat asking at WLS); "wls" = at the WLS positions (one solve instead of two).
+    # Incremental mode uses the no-prior smoother's *online* estimates, so it stays causal.
+    prior_at: str = "graph"
+    prior_cov_scale: float = 1.0
+    prior_sigma_floor_m: float = 0.0
+    prior_robust: str = "none"         # robust loss on the learned prior too: "huber", "cauchy", "none"
+    prior_robust_k: float = 2.0
+    # Batch solver: LM stops when the cost improves by less than this fraction (1e-6 took 2-4x the
+    # iterations for < 1 cm change on the training traces).
+    lm_rel_tol: float = 1e-4
+    lm_max_iter: int = 50
+    # Incremental (ISAM2): relinearisation threshold and extra update() calls after the last epoch.
+    isam_relin_threshold: float = 0.05
+    isam_settle: int = 2
+    # relinearisation checked every 5th update: 2.5x faster than every update, same accuracy on the
+    # training traces
+    isam_relin_skip: int = 5
+    # ISAM2 stops back-substitution below this change. GTSAM has one threshold for all variables,
+    # so it is applied in clock units (isam_wildfire_m / c seconds), i.e. effectively full
+    # propagation for positions (see benchmarks/bench_graph.py for the ms/epoch this costs).
+    isam_wildfire_m: float = 0.001
+
+
+@dataclass
+class EpochInputs:
+    """Everything the factor loop needs, precomputed without Python loops.
+
+    E epochs, S slots.
+    init_pos (E,3), init_clock_m (E,) (NaN where no satellite), sel (E,S) bool satellites used,
+    sigma (E,S) [m], pos_link (E,) bool (epoch k linked by motion to k-1), clock_link (E,) int
+    (index of the epoch whose clock k's clock is chained to, -1 for none), clock_mean_m (E,) the
+    expected clock change along that link, clock_sigma_m (E,), prior_mean (E,3), prior_cov (E,3,3),
+    prior_ok (E,) bool, keep (E,) bool (epoch in a determinable component), comp (E,) component id,
+    dropped: counts by reason.
+    """
+
+    init_pos: np.ndarray
+    init_clock_m: np.ndarray
+    init_vel: np.ndarray
+    sel: np.ndarray
+    sigma: np.ndarray
+    dt: np.ndarray
+    pos_link: np.ndarray
+    clock_link: np.ndarray
+    clock_mean_m: np.ndarray
+    clock_sigma_m: np.ndarray
+    prior_mean: np.ndarray
+    prior_cov: np.ndarray
+    prior_ok: np.ndarray
+    keep: np.ndarray
+    comp: np.ndarray
+    dropped: dict
+
+
+# ---------------------------------------------------------------------------- vectorised inputs
+def _interp_rows(t: np.ndarray, rows: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """Fill rows where ``ok`` is False by linear interpolation in time (ends held constant)."""
+    out = rows.copy()
+    if ok.all():
+        return out
+    for j in range(rows.shape[1]):  # 3 columns, not epochs
+        out[~ok, j] = np.interp(t[~ok], t[ok], rows[ok, j])
+    return out
+
+
+def _rolling_nanmedian(x: np.ndarray, w: int) -> np.ndarray:
+    """Median of x over a centred window of 2w+1 samples, ignoring NaN (all-NaN -> NaN)."""
+    pad = np.concatenate([np.full(w, np.nan), x, np.full(w, np.nan)])
+    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * w + 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows -> NaN, on purpose
+        return np.nanmedian(win, axis=1)
+
+
+def _ned_cov_to_ecef(ref: np.ndarray, var_n: np.ndarray, var_e: np.ndarray, var_d: np.ndarray) -> np.ndarray:
+    """(E,3,3) ECEF covariances of diagonal NED covariances at ``ref`` (E,3)."""
+    R = ned_rotation(ref)                                   # v_ned = R v_ecef
+    D = np.stack([var_n, var_e, var_d], axis=-1)            # (E,3)
+    return np.einsum("eji,ej,ejk->eik", R, D, R)
+
+
+def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 10.0,
+                   provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None) -> EpochInputs:
+    """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
+
+    wls: a ``fusion.wls.WlsResult`` (pos (E,3), clock_m (E,), valid (E,), used (E,S)).
+    prior_guess: (E,3) positions at which to ask the provider (NaN rows: the initial position);
+    default the initial positions (WLS, interpolated where it failed).
+    Raises :class:`GeometryError` when no epoch has any usable initial position.
+    """
+    E, S = trace.n_epochs, trace.n_slots
+    t = trace.t_ms.astype(float) / 1000.0
+    wls_ok = np.asarray(wls.valid, bool) & np.isfinite(wls.pos).all(axis=1)
+    dropped: dict[str, int] = {}
+
+    # --- initial positions: WLS, interpolated in time where WLS failed
+    if not wls_ok.any():
+        raise GeometryError(f"{trace.name}: WLS solved no epoch, so the graph has no initial position")
+    init_pos = _interp_rows(t, np.asarray(wls.pos, float), wls_ok)
+
+    # --- the learned prior, asked at the same initial positions every mode sees
+    prior_mean = np.zeros((E, 3))
+    prior_cov = np.tile(np.eye(3), (E, 1, 1))
+    prior_ok = np.zeros(E, bool)
+    if provider is not None:
+        ask = trace.n_sats >= 1
+        at = init_pos
+        if prior_guess is not None:
+            at = np.where(np.isfinite(prior_guess).all(axis=1)[:, None], prior_guess, init_pos)
+        pm, pc, pv = provider(trace, at, ask)
+        pm, pc, pv = np.asarray(pm, float), np.asarray(pc, float), np.asarray(pv, bool)
+        if pm.shape != (E, 3) or pc.shape != (E, 3, 3) or pv.shape != (E,):
+            raise GeometryError(f"{trace.name}: prior provider returned shapes {pm.shape}, {pc.shape}, "
+                                f"{pv.shape}; expected {(E, 3)}, {(E, 3, 3)}, {(E,)}")
+        pc = cfg.prior_cov_scale * pc + cfg.prior_sigma_floor_m ** 2 * np.eye(3)
+        finite = np.isfinite(pm).all(axis=1) & np.isfinite(pc).all(axis=(1, 2))
+        pc_safe = np.where(finite[:, None, None], 0.5 * (pc + pc.transpose(0, 2, 1)), np.eye(3))
+        spd = np.linalg.eigvalsh(pc_safe)[:, 0] > 1e-6
+        prior_ok = pv & finite & spd
+        dropped["prior_rejected"] = int((pv & ~(finite & spd)).sum())
+        prior_mean = np.where(prior_ok[:, None], pm, 0.0)
+        prior_cov = np.where(prior_ok[:, None, None], pc_safe, np.eye(3))
+
+    # --- satellite selection and sigmas at the initial position
+    rng, los = line_of_sight(trace.sat_pos, init_pos)
+    el, _ = elevation_azimuth(los, init_pos)
+    sel = trace.mask & (el >= elev_mask_deg)
+    if getattr(wls, "used", None) is not None:
+        # where WLS solved, trust its choice (it may have excluded outliers); elsewhere elevation only
+        sel &= np.where(wls_ok[:, None], np.asarray(wls.used, bool), True)
+    sin_el = np.sin(np.radians(np.clip(el, 5.0, 90.0)))
+    sigma = np.sqrt((cfg.pr_sigma_scale * trace.pr_sigma) ** 2 + (cfg.pr_sigma_zenith_m / sin_el) ** 2)
+    n_sel = sel.sum(axis=1)
+
+    # --- clock initial values: WLS where solved, else the median residual at the initial position
+    resid = np.where(sel, trace.pr - rng, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # epochs without satellites -> NaN
+        med = np.nanmedian(resid, axis=1)
+    init_clock = np.where(wls_ok, np.asarray(wls.clock_m, float), med)
+    init_clock = np.where(n_sel > 0, init_clock, np.nan)
+
+    # --- motion chain: broken by long gaps
+    dt = np.concatenate([[0.0], np.diff(t)])
+    pos_link = np.concatenate([[False], dt[1:] <= cfg.max_gap_s])
+    comp = np.cumsum(~pos_link) - 1
+
+    # --- velocities for the cv model: central differences of the initial track within components
+    init_vel = np.zeros((E, 3))
+    if E > 1:
+        fwd = np.diff(init_pos, axis=0) / np.maximum(dt[1:], 1e-3)[:, None]
+        fwd = np.where(pos_link[1:, None], fwd, np.nan)
+        both = np.stack([np.vstack([fwd, np.full((1, 3), np.nan)]), np.vstack([np.full((1, 3), np.nan), fwd])])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # isolated epochs -> 0 velocity
+            init_vel = np.nan_to_num(np.nanmean(both, axis=0))
+
+    # --- clock chain: link each clock to the previous epoch that has one, unless reset/gap.
+    has_clock = n_sel > 0
+    idx = np.arange(E)
+    last_clock = np.maximum.accumulate(np.where(has_clock, idx, -1))
+    prev_clock = np.concatenate([[-1], last_clock[:-1]])            # latest clock epoch before k
+    # drift from the WLS clock series (metres per second), robust to single bad epochs
+    cw = np.where(wls_ok, np.asarray(wls.clock_m, float), np.nan)
+    rate = np.full(E, np.nan)
+    rate[1:] = np.diff(cw) / np.maximum(dt[1:], 1e-3)
+    rate = np.where(pos_link, rate, np.nan)
+    drift = _rolling_nanmedian(rate, cfg.drift_window)
+    drift = np.nan_to_num(_interp_rows(t, drift[:, None], np.isfinite(drift))[:, 0]) if np.isfinite(drift).any() \
+        else np.zeros(E)
+    # resets: flagged by the loader, or the WLS clock stepping far from the drift
+    step = np.full(E, np.nan)
+    step[1:] = np.diff(cw) - drift[1:] * dt[1:]
+    jumped = np.abs(np.nan_to_num(step)) > cfg.clock_jump_m
+    reset = np.asarray(trace.clock_reset, bool) | jumped
+    # any reset (or chain break) in (prev_clock, k] breaks the clock link
+    breaks = np.cumsum(reset | ~pos_link)
+    safe_prev = np.maximum(prev_clock, 0)
+    span = t - t[safe_prev]
+    clock_link = np.where(has_clock & (prev_clock >= 0) & (breaks == breaks[safe_prev]), prev_clock, -1)
+    clock_mean = drift * span
+    clock_sig = cfg.clock_sigma_m + cfg.clock_rw_m * np.sqrt(np.maximum(span, 0.0))
+    dropped["clock_resets"] = int(reset.sum())
+
+    # --- determinability: a motion component needs an anchor (an epoch with >= 4 pseudoranges or a
+    # prior); the clocks are then fixed by their pseudoranges. Others are dropped and counted.
+    anchor = (n_sel >= 4) | prior_ok
+    comp_ok = np.bincount(comp, weights=anchor.astype(float), minlength=comp.max() + 1) > 0
+    keep = comp_ok[comp]
+    dropped["epochs_undetermined"] = int((~keep).sum())
+    return EpochInputs(init_pos=init_pos, init_clock_m=init_clock, init_vel=init_vel, sel=sel, sigma=sigma,
+                       dt=dt, pos_link=pos_link, clock_link=clock_link, clock_mean_m=clock_mean,
+                       clock_sigma_m=clock_sig, prior_mean=prior_mean, prior_cov=prior_cov,
+                       prior_ok=prior_ok, keep=keep, comp=comp, dropped=dropped)
+
+
+# ---------------------------------------------------------------------------- factors
+def _robust(cfg: GraphConfig, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+    if cfg.robust == "none":
+        return base
+    if cfg.robust == "huber":
+        est = gtsam.noiseModel.mEstimator.Huber.Create(cfg.robust_k)
+    elif cfg.robust == "cauchy":
+        est = gtsam.noiseModel.mEstimator.Cauchy.Create(cfg.robust_k)
+    else:
+        raise GeometryError(f"unknown robust loss {cfg.robust!r}; choose huber, cauchy or none")
+    return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def pseudorange_factor(key_x: int, key_b: int, pr_m: float, sat_pos: np.ndarray, sigma_m: float,
+                       cfg: GraphConfig) -> gtsam.PseudorangeFactor:
+    """One robust pseudorange factor; ``sat_pos`` at transmit time (GTSAM adds the Sagnac term)."""
+    return gtsam.PseudorangeFactor(key_x, key_b, float(pr_m), sat_pos, 0.0,
+                                   _robust(cfg, gtsam.noiseModel.Isotropic.Sigma(1, float(sigma_m))))
+
+
+class MotionNoise:
+    """Per-epoch motion covariances, computed once for the whole trace (vectorised)."""
+
+    def __init__(self, inp: EpochInputs, cfg: GraphConfig):
+        dt = np.maximum(inp.dt, 1e-3)
+        if cfg.motion == "rw":
+            var_h, var_v = (cfg.rw_sigma_h_mps * dt) ** 2, (cfg.rw_sigma_v_mps * dt) ** 2
+            self.cov = _ned_cov_to_ecef(inp.init_pos, var_h, var_h, var_v)
+        elif cfg.motion == "cv":
+            # velocity random walk; position follows p_k = p_{k-1} + v_{k-1} dt with small noise
+            var_h, var_v = cfg.cv_accel_h ** 2 * dt, cfg.cv_accel_v ** 2 * dt
+            self.vel_cov = _ned_cov_to_ecef(inp.init_pos, var_h, var_h, var_v)
+            self.pos_sqrt_info = 1.0 / (cfg.cv_pos_sigma_m * np.sqrt(dt))
+        else:
+            raise GeometryError(f"unknown motion model {cfg.motion!r}; choose rw or cv")
+
+
+def motion_factors(k: int, inp: EpochInputs, noise: MotionNoise, cfg: GraphConfig) -> list:
+    """Factors tying epoch k to k-1 (caller checks ``inp.pos_link[k]``)."""
+    if cfg.motion == "rw":
+        return [gtsam.BetweenFactorPoint3(X(k - 1), X(k), np.zeros(3),
+                                          gtsam.noiseModel.Gaussian.Covariance(noise.cov[k]))]
+    # p_k - p_{k-1} - dt v_{k-1} = 0 is linear, so a whitened JacobianFactor wrapped for the
+    # nonlinear graph is exact and runs in C++ (a Python CustomFactor would be far slower). With
+    # an all-zero linearisation point its error is exactly A x - b.
+    w = noise.pos_sqrt_info[k]
+    I3 = np.eye(3)
+    jf = gtsam.JacobianFactor(X(k), w * I3, X(k - 1), -w * I3, V(k - 1), -w * inp.dt[k] * I3,
+                              np.zeros(3), gtsam.noiseModel.Unit.Create(3))
+    lin = gtsam.Values()
+    for key in (X(k), X(k - 1), V(k - 1)):
+        lin.insert(key, _ZERO3)
+    return [gtsam.LinearContainerFactor(jf, lin),
+            gtsam.BetweenFactorPoint3(V(k - 1), V(k), np.zeros(3),
+                                      gtsam.noiseModel.Gaussian.Covariance(noise.vel_cov[k]))]
+
+
+_ZERO3 = np.zeros(3)
+
+
+def epoch_factors(k: int, trace: Trace, inp: EpochInputs, noise: MotionNoise, cfg: GraphConfig,
+                  use_prior: bool) -> tuple[list, gtsam.Values]:
+    """Factors and initial values introduced by epoch ``k`` (links point backwards only, so the
+    same function feeds the batch graph and the incremental smoother)."""
+    factors: list = []
+    vals = gtsam.Values()
+    vals.insert(X(k), inp.init_pos[k])
+    c_sel = np.flatnonzero(inp.sel[k])
+    if c_sel.size:
+        vals.insert(B(k), float(inp.init_clock_m[k] / C_LIGHT))
+        for s in c_sel:
+            factors.append(pseudorange_factor(X(k), B(k), trace.pr[k, s], trace.sat_pos[k, s],
+                                              inp.sigma[k, s], cfg))
+        j = int(inp.clock_link[k])
+        if j >= 0:
+            factors.append(gtsam.BetweenFactorDouble(
+                B(j), B(k), float(inp.clock_mean_m[k] / C_LIGHT),
+                gtsam.noiseModel.Isotropic.Sigma(1, float(inp.clock_sigma_m[k] / C_LIGHT))))
+    if use_prior and inp.prior_ok[k]:
+        model = gtsam.noiseModel.Gaussian.Covariance(inp.prior_cov[k])
+        if cfg.prior_robust != "none":
+            model = _robust(GraphConfig(robust=cfg.prior_robust, robust_k=cfg.prior_robust_k), model)
+        factors.append(gtsam.PriorFactorPoint3(X(k), inp.prior_mean[k], model))
+    if cfg.motion == "cv":
+        vals.insert(V(k), inp.init_vel[k])
+    if k > 0 and inp.pos_link[k]:
+        factors.extend(motion_factors(k, inp, noise, cfg))
+    elif cfg.motion == "cv":
+        # a component's first velocity is otherwise free when the component has a single epoch
+        factors.append(gtsam.PriorFactorPoint3(V(k), inp.init_vel[k], gtsam.noiseModel.Isotropic.Sigma(3, 50.0)))
+    return factors, vals

@@ -1,0 +1,120 @@
+"""learned.factor: the learned correction as a GTSAM factor, and example 04 that composes it."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion.errors import GeometryError
+from learned.factor import learned_pose_translation_factor, learned_prior_factor, one_epoch_trace
+from learned.toy import toy_trace
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory) -> Path:
+    """An untrained, tiny set-transformer checkpoint: enough to exercise the factor plumbing."""
+    torch = pytest.importorskip("torch")
+    from learned.checkpoint import save_checkpoint
+    from learned.features import FeatureConfig
+    from learned.model import build_model
+
+    torch.manual_seed(0)
+    hp = dict(d_model=16, n_heads=2, dim_feedforward=16, n_encoder=1, n_decoder=1)
+    path = tmp_path_factory.mktemp("ckpt") / "tiny.pt"
+    save_checkpoint(path, build_model("set", **hp), {"model": {"kind": "set", "hparams": hp},
+                                                      "features": FeatureConfig().to_dict()})
+    return path
+
+
+@pytest.fixture(scope="module")
+def epoch():
+    tr = toy_trace(3, seed=4, n_sats=(8, 8))
+    return tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0] + np.array([8.0, -5.0, 3.0])
+
+
+def test_factor_matches_corrector_prediction(tiny_ckpt, epoch):
+    from learned.infer import Corrector
+
+    corr = Corrector.load(tiny_ckpt)
+    sat_pos, pr, mask, guess = epoch
+    key = gtsam.symbol("x", 7)
+    factor, mean, cov = learned_prior_factor(corr, sat_pos, pr, mask, guess, key)
+    c = corr.predict(one_epoch_trace(sat_pos, pr, mask), guess[None], np.ones(1, bool))
+    np.testing.assert_allclose(mean, c.mean_ecef[0], atol=1e-9)
+    np.testing.assert_allclose(cov, c.cov_ecef[0], atol=1e-9)
+    assert isinstance(factor, gtsam.PriorFactorPoint3) and list(factor.keys()) == [key]
+    v = gtsam.Values()
+    v.insert(key, mean)
+    assert factor.error(v) == pytest.approx(0.0, abs=1e-12)
+    # the noise model is the network's covariance: error of a 1-sigma step along an eigenvector = 0.5
+    w, U = np.linalg.eigh(cov)
+    v2 = gtsam.Values()
+    v2.insert(key, mean + np.sqrt(w[0]) * U[:, 0])
+    assert factor.error(v2) == pytest.approx(0.5, rel=1e-6)
+
+
+def test_factor_with_any_provider_and_padding():
+    tr = toy_trace(1, seed=1, n_sats=(6, 6))
+    sat_pos = np.vstack([tr.sat_pos[0], np.full((2, 3), np.nan)])    # padded slots may hold NaN
+    pr = np.r_[tr.pr[0], np.nan, np.nan]
+    mask = np.r_[tr.mask[0], False, False]
+    seen = {}
+
+    def provider(trace, init_pos, valid):
+        seen["S"], seen["mask"] = trace.n_slots, trace.mask.copy()
+        return init_pos + 1.0, np.tile(np.diag([4.0, 9.0, 16.0]), (1, 1, 1)), valid.copy()
+
+    f, mean, cov = learned_prior_factor(provider, sat_pos, pr, mask, tr.truth[0], gtsam.symbol("x", 0))
+    assert seen["S"] == 8 and seen["mask"][0].sum() == 6
+    np.testing.assert_allclose(mean, tr.truth[0] + 1.0)
+    np.testing.assert_allclose(cov, np.diag([4.0, 9.0, 16.0]))
+
+
+def test_declined_epoch_and_bad_inputs_raise_geometry_error(tiny_ckpt, epoch):
+    from learned.infer import Corrector
+
+    corr = Corrector.load(tiny_ckpt)
+    sat_pos, pr, mask, guess = epoch
+    few = mask.copy()
+    few[3:] = False
+    with pytest.raises(GeometryError, match="no estimate"):
+        learned_prior_factor(corr, sat_pos, pr, few, guess, 1)
+    with pytest.raises(GeometryError, match=r"sat_pos \(S,3\)"):
+        learned_prior_factor(corr, sat_pos[:, :2], pr, mask, guess, 1)
+    with pytest.raises(GeometryError, match="init_pos"):
+        learned_prior_factor(corr, sat_pos, pr, mask, np.array([np.nan, 0, 0]), 1)
+
+    def singular(trace, init_pos, valid):
+        return init_pos, np.zeros((1, 3, 3)), valid
+    with pytest.raises(GeometryError, match="not positive definite"):
+        learned_prior_factor(singular, sat_pos, pr, mask, guess, 1)
+
+
+def test_pose_translation_prior_is_in_world_frame():
+    def provider(trace, init_pos, valid):
+        return init_pos, np.tile(np.diag([1.0, 100.0, 1.0]), (1, 1, 1)), valid
+    tr = toy_trace(1, seed=2, n_sats=(6, 6))
+    key = gtsam.symbol("p", 0)
+    f, mean, _ = learned_pose_translation_factor(provider, tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0], key)
+    v = gtsam.Values()
+    # a pose rotated by 90 deg yaw, displaced 10 m along world y: the loose (100 m^2) world-y axis
+    v.insert(key, gtsam.Pose3(gtsam.Rot3.Yaw(np.pi / 2), mean + np.array([0.0, 10.0, 0.0])))
+    assert f.error(v) == pytest.approx(0.5 * 100.0 / 100.0, rel=1e-9)
+
+
+def test_example_04_runs(tiny_ckpt, shipped_trace_dir):
+    if not shipped_trace_dir.is_dir():
+        pytest.skip("shipped trace not present")
+    out = subprocess.run([sys.executable, str(REPO / "examples" / "04_learned_factor_in_your_graph.py"),
+                          "--weights", str(tiny_ckpt), "--epochs", "40"],
+                         capture_output=True, text=True, timeout=120, env={"OMP_NUM_THREADS": "2",
+                                                                             "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "pose graph  horizontal error p50" in out.stdout
+    assert "40 epochs" in out.stdout

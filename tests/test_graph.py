@@ -1,0 +1,287 @@
+"""The GTSAM factor graph: factor conventions, batch and incremental solves, robustness."""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion.errors import GeometryError
+from fusion.geometry import C_LIGHT, geodetic2ecef, line_of_sight, ned2ecef_vec
+from fusion.graph import fuse
+from fusion.graph_build import B, GraphConfig, X, pseudorange_factor
+from fusion.metrics import ned_errors
+from fusion.pipeline import RunOptions
+from fusion.trace import Trace, empty_trace
+from fusion.wls import solve_wls
+
+R_ORBIT = 26_560e3
+
+
+def synth_trace(E: int = 120, S: int = 8, seed: int = 0, pr_noise_m: float = 3.0,
+                speed_mps: float = 12.0, clock_drift_mps: float = 40.0) -> Trace:
+    """A vehicle driving a gentle curve in Mountain View seen by S GPS-like satellites.
+
+    Pseudoranges are built with the exact Sagnac rotation of ``fusion.geometry`` so the graph is
+    tested against our own measurement model; the clock drifts like a phone's.
+    """
+    rng = np.random.default_rng(seed)
+    t = np.arange(E, dtype=float)
+    heading = np.radians(30.0 + 0.3 * t)                     # slowly turning
+    north = np.cumsum(speed_mps * np.cos(heading))
+    east = np.cumsum(speed_mps * np.sin(heading))
+    origin = geodetic2ecef(np.array([37.42, -122.08, -20.0]))
+    truth = origin + ned2ecef_vec(np.stack([north, east, np.zeros(E)], axis=1), origin)
+    az = np.radians(np.linspace(0, 360, S, endpoint=False) + 17.0)
+    el = np.radians(np.array([15, 25, 40, 55, 70, 35, 20, 80][:S] + [45] * max(0, S - 8)))
+    los_ned = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)], axis=1)
+    los = ned2ecef_vec(los_ned, origin)                      # (S,3) unit, fixed over the short drive
+    # distance d along los so that |origin + d los| = R_ORBIT
+    b = los @ origin
+    d = -b + np.sqrt(b ** 2 - (origin @ origin - R_ORBIT ** 2))
+    sats = origin + d[:, None] * los
+    sat_pos = np.broadcast_to(sats, (E, S, 3)).copy()
+    sat_pos += np.arange(E)[:, None, None] * np.array([0.0, 0.0, 300.0])  # satellites move
+    clock = 3000.0 + clock_drift_mps * t
+    rng_true, _ = line_of_sight(sat_pos, truth)
+    kw = empty_trace(E, S, name="synth", with_truth=True)
+    kw.update(t_ms=(1_300_000_000_000 + 1000 * np.arange(E)).astype(np.int64), sat_pos=sat_pos,
+              pr=rng_true + clock[:, None] + rng.normal(0, pr_noise_m, (E, S)),
+              pr_sigma=np.full((E, S), 3.0), sat_id=np.broadcast_to(1001 + np.arange(S), (E, S)).astype(np.int32),
+              mask=np.ones((E, S), bool), truth=truth)
+    return Trace(**kw)
+
+
+def h_err(trace: Trace, pos: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    e = ned_errors(np.where(valid[:, None], pos, np.nan), trace.truth)
+    return np.hypot(e[:, 0], e[:, 1])
+
+
+def truth_prior(sigma_m: float, seed: int = 1):
+    """Test-only position prior provider: truth + Gaussian noise of known sigma (a stand-in for the DNN)."""
+    def provider(trace, init_pos, valid):
+        r = np.random.default_rng(seed)
+        mean = trace.truth + r.normal(0, sigma_m, trace.truth.shape)
+        cov = np.tile(np.eye(3) * sigma_m ** 2, (trace.n_epochs, 1, 1))
+        return mean, cov, np.asarray(valid, bool).copy()
+    return provider
+
+
+# ---------------------------------------------------------------------------- factor convention
+def test_pseudorange_factor_matches_our_model_including_sagnac():
+    tr = synth_trace(E=2, pr_noise_m=0.0)
+    rx = tr.truth[0] + np.array([30.0, -20.0, 10.0])
+    clock_m = 1234.5
+    rng, _ = line_of_sight(tr.sat_pos[0], rx)
+    for s in range(tr.n_slots):
+        f = pseudorange_factor(X(0), B(0), tr.pr[0, s], tr.sat_pos[0, s], 1.0, GraphConfig(robust="none"))
+        got = f.evaluateError(rx, clock_m / C_LIGHT)[0]
+        ours = rng[s] + clock_m - tr.pr[0, s]                    # predicted - measured
+        assert got == pytest.approx(ours, abs=5e-3)
+    # without Sagnac the plain geometric range would be off by metres for at least one satellite
+    plain = np.linalg.norm(tr.sat_pos[0] - rx, axis=1) + clock_m - tr.pr[0]
+    assert np.max(np.abs(plain - (rng + clock_m - tr.pr[0]))) > 1.0
+
+
+def test_single_epoch_graph_equals_wls():
+    tr = synth_trace(E=1, pr_noise_m=2.0)
+    wls = solve_wls(tr, weighting="elevation")
+    g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for s in range(tr.n_slots):
+        g.add(pseudorange_factor(X(0), B(0), tr.pr[0, s], tr.sat_pos[0, s], 1.0, GraphConfig(robust="none")))
+    v.insert(X(0), wls.pos[0] + 50.0)
+    v.insert(B(0), 0.0)
+    res = gtsam.LevenbergMarquardtOptimizer(g, v).optimize()
+    # unweighted graph vs elevation-weighted WLS differ slightly; both near truth, clock in seconds works
+    assert np.linalg.norm(res.atPoint3(X(0)) - tr.truth[0]) < 15.0
+    assert res.atDouble(B(0)) * C_LIGHT == pytest.approx(wls.clock_m[0], abs=15.0)
+
+
+# ---------------------------------------------------------------------------- batch and incremental
+@pytest.fixture(scope="module")
+def trace():
+    return synth_trace()
+
+
+@pytest.fixture(scope="module")
+def wls(trace):
+    return solve_wls(trace)
+
+
+def test_fused_nodnn_beats_wls(trace, wls):
+    res = fuse(trace, wls, RunOptions())
+    e_wls, e_g = h_err(trace, wls.pos, wls.valid), h_err(trace, res.pos, res.valid)
+    assert res.valid.all()
+    assert np.median(e_g) < 0.7 * np.median(e_wls)
+    assert res.cov is not None and np.all(np.linalg.eigvalsh(res.cov)[:, 0] > 0)
+
+
+def test_learned_prior_helps_and_incremental_matches_batch(trace, wls):
+    batch = fuse(trace, wls, RunOptions(), provider=truth_prior(1.0))
+    nodnn = fuse(trace, wls, RunOptions())
+    assert np.median(h_err(trace, batch.pos, batch.valid)) < np.median(h_err(trace, nodnn.pos, nodnn.valid))
+    inc = fuse(trace, wls, RunOptions(incremental=True), provider=truth_prior(1.0))
+    assert inc.valid.all() and inc.cov is None
+    assert np.max(np.linalg.norm(inc.pos - batch.pos, axis=1)) < 0.5
+    assert inc.info["online_pos"].shape == (trace.n_epochs, 3)
+
+
+@pytest.mark.parametrize("motion", ["rw", "cv"])
+def test_both_motion_models_solve(trace, wls, motion):
+    res = fuse(trace, wls, RunOptions(), cfg=GraphConfig(motion=motion), want_cov=False)
+    assert res.valid.all()
+    assert np.median(h_err(trace, res.pos, res.valid)) < np.median(h_err(trace, wls.pos, wls.valid))
+
+
+# ---------------------------------------------------------------------------- robustness
+def test_epochs_with_few_satellites_are_carried(trace):
+    mask = trace.mask.copy()
+    mask[40:50, 2:] = False                 # 2 satellites for 10 s: WLS cannot solve these
+    mask[60:63, :] = False                  # no satellite at all for 3 s
+    tr = Trace(**{**trace.__dict__, "mask": mask})
+    w = solve_wls(tr)
+    assert not w.valid[40:50].any()
+    res = fuse(tr, w, RunOptions(), provider=truth_prior(2.0))
+    assert res.valid.all()
+    e = h_err(tr, res.pos, res.valid)
+    assert np.max(e[40:63]) < 10.0
+    res0 = fuse(tr, w, RunOptions())        # no prior: motion alone carries them, less well
+    assert res0.valid.all() and np.max(h_err(tr, res0.pos, res0.valid)[40:63]) < 60.0
+
+
+def test_gross_outliers_do_not_pull_the_solution(trace, wls):
+    rng = np.random.default_rng(7)
+    pr = trace.pr.copy()
+    hit = rng.random(pr.shape) < 0.08
+    pr[hit] += 200.0
+    bad = Trace(**{**trace.__dict__, "pr": pr})
+    wb = solve_wls(bad)
+    clean = fuse(trace, wls, RunOptions(), want_cov=False)
+    robust = fuse(bad, wb, RunOptions(), want_cov=False)
+    plain = fuse(bad, wb, RunOptions(), cfg=GraphConfig(robust="none"), want_cov=False)
+    e_c, e_r, e_p = (np.percentile(h_err(trace, r.pos, r.valid), 95) for r in (clean, robust, plain))
+    assert e_r < e_p                        # the robust loss matters
+    assert e_r < e_c + 3.0                  # and nearly undoes the damage
+
+
+def test_clock_jump_breaks_only_the_clock_chain(trace):
+    pr = trace.pr.copy()
+    pr[70:] += 150_000.0                    # a 0.5 ms receiver clock step
+    tr = Trace(**{**trace.__dict__, "pr": pr})
+    w = solve_wls(tr)
+    res = fuse(tr, w, RunOptions(), want_cov=False)
+    assert res.info["clock_resets"] >= 1
+    e = h_err(tr, res.pos, res.valid)
+    assert res.valid.all() and np.max(e[65:75]) < 15.0
+
+
+def test_undetermined_epoch_raises_or_is_dropped(trace):
+    keep = np.r_[0:50, 80:81, 110:120]      # epoch 80 isolated by 30 s gaps on both sides
+    tr = trace.select(keep)
+    mask = tr.mask.copy()
+    mask[50, 3:] = False                    # ...and only 3 satellites there
+    tr = Trace(**{**tr.__dict__, "mask": mask})
+    w = solve_wls(tr)
+    with pytest.raises(GeometryError, match=r"epoch 50 .*undetermined"):
+        fuse(tr, w, RunOptions(), on_undetermined="raise")
+    res = fuse(tr, w, RunOptions())
+    assert not res.valid[50] and res.valid[np.arange(tr.n_epochs) != 50].all()
+    assert res.info["epochs_undetermined"] == 1
+    # with a prior the same epoch is determined
+    res = fuse(tr, w, RunOptions(), provider=truth_prior(2.0), on_undetermined="raise")
+    assert res.valid.all()
+
+
+def test_bad_provider_shapes_are_reported(trace, wls):
+    def broken(tr, init_pos, valid):
+        return init_pos[:5], np.zeros((5, 3, 3)), valid[:5]
+    with pytest.raises(GeometryError, match="prior provider returned shapes"):
+        fuse(trace, wls, RunOptions(), provider=broken)
+
+
+def test_non_spd_prior_covariances_are_skipped_and_counted(trace, wls):
+    def sloppy(tr, init_pos, valid):
+        mean, cov, ok = truth_prior(1.0)(tr, init_pos, valid)
+        cov[::10] = 0.0                     # singular covariance on every tenth epoch
+        mean[5] = np.nan
+        return mean, cov, ok
+    res = fuse(trace, wls, RunOptions(), provider=sloppy, want_cov=False)
+    assert res.valid.all()
+    assert res.info["prior_rejected"] == 12 + 1
+    assert res.info["priors_used"] == trace.n_epochs - 13
+
+
+# ---------------------------------------------------------------------------- pipeline wiring
+def test_fused_modes_run_through_the_pipeline_registry(trace, wls, tmp_path):
+    torch = pytest.importorskip("torch")
+    from learned.checkpoint import save_checkpoint
+    from learned.features import FeatureConfig
+    from learned.model import build_model
+    from fusion.pipeline import run_modes
+
+    torch.manual_seed(0)
+    hp = dict(d_model=16, n_heads=2, dim_feedforward=16, n_encoder=1, n_decoder=1)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", build_model("set", **hp),
+                           {"model": {"kind": "set", "hparams": hp}, "features": FeatureConfig().to_dict()})
+    out = run_modes(trace, ["fused", "fused-nodnn"], RunOptions(weights=ckpt, dnn_passes=2), wls=wls)
+    assert out["fused"].valid.all() and out["fused-nodnn"].valid.all()
+    assert out["fused"].info["priors_used"] > 0 and out["fused-nodnn"].info["priors_used"] == 0
+    assert out["fused"].cov.shape == (trace.n_epochs, 3, 3)
+
+
+def test_iterated_provider_feeds_each_pass_the_previous_mean(trace):
+    from fusion.graph import iterated
+
+    calls = []
+
+    def step(tr, init_pos, valid):           # moves every guess 1 m north-ish in ECEF z
+        calls.append(init_pos.copy())
+        return init_pos + np.array([0, 0, 1.0]), np.tile(np.eye(3), (tr.n_epochs, 1, 1)), valid.copy()
+    init = trace.truth.copy()
+    mean, _, ok = iterated(step, 3)(trace, init, np.ones(trace.n_epochs, bool))
+    assert len(calls) == 3 and ok.all()
+    np.testing.assert_allclose(mean - init, np.tile([0, 0, 3.0], (trace.n_epochs, 1)))
+    np.testing.assert_allclose(calls[2] - init, np.tile([0, 0, 2.0], (trace.n_epochs, 1)))
+
+
+def test_loader_flagged_clock_reset_breaks_the_clock_chain(trace):
+    pr = trace.pr.copy()
+    pr[70:] += 60.0                          # a small step, below the WLS jump detector's threshold
+    reset = np.zeros(trace.n_epochs, bool)
+    reset[70] = True
+    flagged = Trace(**{**trace.__dict__, "pr": pr, "clock_reset": reset})
+    w = solve_wls(flagged)
+    res = fuse(flagged, w, RunOptions(), want_cov=False)
+    assert res.info["clock_resets"] == 1
+    assert np.max(h_err(flagged, res.pos, res.valid)[66:75]) < 8.0
+
+
+def test_real_trace_graph_beats_wls(shipped_trace_dir):
+    if not shipped_trace_dir.is_dir():
+        pytest.skip("shipped trace not present")
+    from fusion.io_gsdc import load_trace
+
+    tr = load_trace(shipped_trace_dir).select(np.arange(300, 700))
+    w = solve_wls(tr)
+    for opts in (RunOptions(), RunOptions(incremental=True)):
+        res = fuse(tr, w, opts, want_cov=False)
+        assert res.valid.all()
+        e_g, e_w = h_err(tr, res.pos, res.valid), h_err(tr, w.pos, w.valid)
+        assert np.median(e_g) < 0.8 * np.median(e_w) and np.percentile(e_g, 95) < np.percentile(e_w, 95)
+
+
+@pytest.mark.parametrize("prior_at", ["graph", "wls"])
+def test_provider_is_asked_at_the_configured_guess(trace, wls, prior_at):
+    seen = {}
+
+    def spy(tr, init_pos, valid):
+        seen["at"] = init_pos.copy()
+        return truth_prior(1.0)(tr, init_pos, valid)
+    res = fuse(trace, wls, RunOptions(), provider=spy, want_cov=False,
+               cfg=GraphConfig(prior_at=prior_at, prior_robust="huber"))
+    assert res.valid.all()
+    if prior_at == "wls":
+        np.testing.assert_allclose(seen["at"], wls.pos)
+    else:                                    # the no-prior graph solution: closer to truth than WLS
+        nodnn = fuse(trace, wls, RunOptions(), want_cov=False)
+        np.testing.assert_allclose(seen["at"], nodnn.pos, atol=1e-6)
+        assert np.median(h_err(trace, seen["at"], res.valid)) < np.median(h_err(trace, wls.pos, wls.valid))
