@@ -1,0 +1,132 @@
+"""Training samples: per-epoch (sat_pos, pr, mask, truth) gathered from simulated and real traces.
+
+Only epochs with truth are kept. Slots are masked with the same elevation mask WLS applies (default 10 deg),
+evaluated at the *truth* for training (the guess is not known until augmentation draws it), so the network
+sees the satellite sets it will see at inference; epochs left with < 4 satellites are dropped and counted.
+Real data is split by trace upstream (whole phone-traces are train or test); validation is a random subset of
+the training epochs (:func:`split_random`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fusion.errors import DataError
+from fusion.trace import Trace
+from learned.features import elevation_mask
+
+#: Held-out traces that must never be trained on (test of the DNN, and of the fused pipeline).
+FORBIDDEN_TRACES = ("2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-SJC-1")
+
+
+@dataclass
+class Samples:
+    """sat_pos (N,S,3), pr (N,S), mask (N,S) bool, truth (N,3) ECEF, trace (N,) index into ``names``."""
+
+    sat_pos: np.ndarray
+    pr: np.ndarray
+    mask: np.ndarray
+    truth: np.ndarray
+    trace: np.ndarray
+    names: list[str]
+    skipped: dict[str, int] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.pr.shape[0])
+
+    def subset(self, idx: np.ndarray) -> "Samples":
+        return Samples(self.sat_pos[idx], self.pr[idx], self.mask[idx], self.truth[idx], self.trace[idx],
+                       list(self.names), dict(self.skipped))
+
+
+def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0) -> Samples:
+    """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth)."""
+    if trace.truth is None:
+        raise DataError(f"{trace.name}: no ground truth, cannot be used for training")
+    ok = np.isfinite(trace.truth).all(1)
+    skipped = {"no_truth": int((~ok).sum())}
+    idx = np.flatnonzero(ok)
+    truth = trace.truth[idx]
+    mask = elevation_mask(trace.sat_pos[idx], trace.mask[idx], truth, elev_mask_deg)
+    enough = mask.sum(1) >= 4
+    skipped["lt4_sats"] = int((~enough).sum())
+    idx, mask, truth = idx[enough], mask[enough], truth[enough]
+    # Compact real slots to the front and trim the padding.
+    order = np.argsort(~mask, axis=1, kind="stable")
+    S = max(int(mask.sum(1).max(initial=0)), 1)
+    order = order[:, :S]
+    mask = np.take_along_axis(mask, order, 1)
+    sat_pos = np.take_along_axis(trace.sat_pos[idx], order[..., None], 1) * mask[..., None]
+    pr = np.take_along_axis(trace.pr[idx], order, 1) * mask
+    return Samples(sat_pos, pr, mask, truth, np.full(len(idx), index), [trace.name], skipped)
+
+
+def concat_samples(parts: list[Samples]) -> Samples:
+    """Concatenate, padding slots to the widest part; trace indices are renumbered."""
+    if not parts:
+        raise DataError("no training samples: every source was empty")
+    S = max(p.mask.shape[1] for p in parts)
+
+    def pad(a: np.ndarray) -> np.ndarray:
+        w = [(0, 0), (0, S - a.shape[1])] + [(0, 0)] * (a.ndim - 2)
+        return np.pad(a, w)
+
+    names, trace, offset, skipped = [], [], 0, {}
+    for p in parts:
+        names += p.names
+        trace.append(p.trace + offset)
+        offset += len(p.names)
+        for k, v in p.skipped.items():
+            skipped[k] = skipped.get(k, 0) + v
+    return Samples(np.concatenate([pad(p.sat_pos) for p in parts]), np.concatenate([pad(p.pr) for p in parts]),
+                   np.concatenate([pad(p.mask) for p in parts]), np.concatenate([p.truth for p in parts]),
+                   np.concatenate(trace), names, skipped)
+
+
+def split_random(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:
+    """Random epochs of the training traces for validation (paper's protocol)."""
+    n = len(samples)
+    perm = rng.permutation(n)
+    n_val = int(round(val_frac * n)) if n > 1 else 0
+    return samples.subset(np.sort(perm[n_val:])), samples.subset(np.sort(perm[:n_val]))
+
+
+def check_not_forbidden(path: Path) -> None:
+    s = Path(path).resolve().as_posix()
+    for bad in FORBIDDEN_TRACES:
+        if bad in s:
+            raise DataError(f"{path}: {bad} is a held-out test trace and must not be used for training")
+
+
+def load_real_traces(paths: list[str | Path], signals=("GPS_L1",)) -> list[Trace]:
+    """Every ``<collection>/<phone>`` folder at or under ``paths`` (via :mod:`fusion.io_gsdc`)."""
+    from fusion.io_gsdc import find_traces, load_trace  # imported late: another engineer's module
+
+    traces = []
+    for p in paths:
+        p = Path(p)
+        if not p.exists():
+            raise DataError(f"{p}: training data path does not exist")
+        folders = find_traces(p) or [p]
+        for f in folders:
+            check_not_forbidden(f)
+            traces.append(load_trace(f, signals=tuple(signals)))
+    return traces
+
+
+def simulated_traces(n_traces: int, epochs_per_trace: int, *, seed: int, bias: bool = False,
+                     toy: bool = False) -> list[Trace]:
+    """Simulated training traces: :func:`fusion.simulate.simulate_dataset`, or the toy generator."""
+    if toy:
+        from learned.toy import toy_dataset
+        return toy_dataset(n_traces, epochs_per_trace, seed=seed, bias=bias)
+    from fusion.simulate import SimConfig, simulate_dataset
+    # Paper's scenarios: Gaussian sigma 6 m; "bias" adds Poisson(1) satellites with +U(50, 200) m.
+    out = simulate_dataset(n_traces, epochs_per_trace, seed=seed, config=SimConfig(nlos=bias))
+    return out if isinstance(out, list) else [out]
+
+
+def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0) -> Samples:
+    return concat_samples([samples_from_trace(t, elev_mask_deg, i) for i, t in enumerate(traces)])

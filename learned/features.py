@@ -1,0 +1,155 @@
+"""Network inputs and targets at an initial position guess (paper Sec. "Position correction").
+
+Per satellite slot the network sees ``[residual / res_scale, los_n, los_e, los_d]``:
+
+- geometry is Sagnac-rotated exactly as :func:`fusion.geometry.line_of_sight` (the same model WLS uses);
+- ``raw = pr - range(guess)`` still contains the receiver clock (often 1e5 m and more on phones), which is
+  *estimated*, never taken from truth: ``clock_hat = median over the epoch's real slots of raw``.
+  The median (not the mean) so that one multipath/NLOS-biased satellite (50-200 m) does not shift every
+  other residual: the network then sees the outlier as the one large residual and the others as
+  ``-los . dx`` plus noise. What removing a common offset costs: the component of ``dx`` that looks like a
+  clock (roughly "up", the mean LOS direction) is only observable through the *spread* of residuals against
+  the LOS vectors, exactly as in WLS, where clock and vertical are correlated;
+- LOS unit vectors are expressed in the NED frame of the guess (geographic invariance, paper Sec. 4.3.1).
+
+Target = ``(truth - guess)`` rotated into the NED frame of the guess, divided by ``out_scale``.
+
+Two implementations: :func:`features_numpy` (reference, built on :mod:`fusion.geometry`) and
+:func:`features_torch` (batched on the training device; training regenerates features every epoch).
+They agree to float64 round-off (tested). Arithmetic is float64 throughout because raw pseudoranges
+are ~2e7 m; only the final network inputs are cast to float32.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+from fusion.geometry import C_LIGHT, OMEGA_E, ecef2ned_vec, line_of_sight, ned_rotation
+
+#: Bump when the meaning or scaling of the inputs changes; checkpoints record it.
+FEATURE_VERSION = 1
+
+# WGS-84 ellipsoid (torch geodetic latitude for the NED rotation).
+_WGS84_A = 6378137.0
+_WGS84_E2 = 6.69437999014e-3
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Normalisation shared by training and inference; stored in every checkpoint.
+
+    res_scale: residuals are divided by this [m] (a typical phone residual spread is ~10 m).
+    out_scale: targets / network outputs are in units of this [m].
+    elev_mask_deg: slots below this elevation (at the truth when training, at the guess at
+        inference, as WLS does) are masked out.
+    """
+
+    version: int = FEATURE_VERSION
+    res_scale: float = 10.0
+    out_scale: float = 10.0
+    elev_mask_deg: float = 10.0
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FeatureConfig":
+        return cls(**{k: d[k] for k in ("version", "res_scale", "out_scale", "elev_mask_deg") if k in d})
+
+
+# ---------------------------------------------------------------------------------------------- numpy
+def masked_median_numpy(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Lower median over axis 1 of (B, S) ``values`` where ``mask``; 0 for rows with no real slot.
+
+    "Lower" (the smaller middle value for even counts) to match :meth:`torch.Tensor.nanmedian`.
+    """
+    v = np.where(mask, values, np.inf)
+    v = np.sort(v, axis=1)
+    n = mask.sum(axis=1)
+    k = np.maximum((n - 1) // 2, 0)
+    med = np.take_along_axis(v, k[:, None], axis=1)[:, 0]
+    return np.where(n > 0, med, 0.0)
+
+
+def features_numpy(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, guess: np.ndarray,
+                   cfg: FeatureConfig = FeatureConfig()) -> tuple[np.ndarray, np.ndarray]:
+    """Reference features. sat_pos (B,S,3), pr (B,S), mask (B,S) bool, guess (B,3) ECEF.
+
+    Returns ``x`` (B,S,4) float32 (zeros in padded slots) and ``clock_hat`` (B,) [m].
+    """
+    rng, los = line_of_sight(sat_pos, guess)
+    raw = pr - rng
+    clock = masked_median_numpy(raw, mask)
+    res = np.where(mask, (raw - clock[:, None]) / cfg.res_scale, 0.0)
+    los_ned = ecef2ned_vec(los, guess[:, None, :]) * mask[..., None]
+    return np.concatenate([res[..., None], los_ned], axis=-1).astype(np.float32), clock
+
+
+def target_numpy(truth: np.ndarray, guess: np.ndarray, cfg: FeatureConfig = FeatureConfig()) -> np.ndarray:
+    """(truth - guess) in the NED frame of the guess, over ``out_scale``: (B,3)."""
+    return ecef2ned_vec(truth - guess, guess) / cfg.out_scale
+
+
+# ---------------------------------------------------------------------------------------------- torch
+def ned_rotation_torch(ref: torch.Tensor) -> torch.Tensor:
+    """(B,3) ECEF -> (B,3,3) rotation ECEF->NED at geodetic latitude/longitude of ``ref``.
+
+    Geodetic latitude by fixed-point iteration (5 steps reach < 1e-12 rad near the surface).
+    """
+    x, y, z = ref.unbind(-1)
+    p = torch.sqrt(x * x + y * y)
+    lon = torch.atan2(y, x)
+    lat = torch.atan2(z, p * (1.0 - _WGS84_E2))
+    for _ in range(5):
+        s = torch.sin(lat)
+        n = _WGS84_A / torch.sqrt(1.0 - _WGS84_E2 * s * s)
+        h = p / torch.cos(lat) - n
+        lat = torch.atan2(z, p * (1.0 - _WGS84_E2 * n / (n + h)))
+    sl, cl, so, co = torch.sin(lat), torch.cos(lat), torch.sin(lon), torch.cos(lon)
+    zero = torch.zeros_like(sl)
+    return torch.stack([
+        torch.stack([-sl * co, -sl * so, cl], -1),
+        torch.stack([-so, co, zero], -1),
+        torch.stack([-cl * co, -cl * so, -sl], -1),
+    ], -2)
+
+
+def line_of_sight_torch(sat_pos: torch.Tensor, rx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Torch twin of :func:`fusion.geometry.line_of_sight`: (B,S,3), (B,3) -> range (B,S), los (B,S,3)."""
+    rng0 = torch.linalg.vector_norm(sat_pos - rx[:, None, :], dim=-1)
+    theta = OMEGA_E * rng0 / C_LIGHT
+    c, s = torch.cos(theta), torch.sin(theta)
+    sx, sy, sz = sat_pos.unbind(-1)
+    rot = torch.stack([c * sx + s * sy, -s * sx + c * sy, sz], -1)
+    d = rot - rx[:, None, :]
+    rng = torch.linalg.vector_norm(d, dim=-1)
+    return rng, d / rng.clamp_min(1.0)[..., None]
+
+
+def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, guess: torch.Tensor,
+                   cfg: FeatureConfig = FeatureConfig()) -> tuple[torch.Tensor, torch.Tensor]:
+    """Batched features on any device. Inputs float64: sat_pos (B,S,3), pr (B,S), mask (B,S) bool,
+    guess (B,3). Returns ``x`` (B,S,4) float32 and the NED rotation at the guess (B,3,3) float64."""
+    rng, los = line_of_sight_torch(sat_pos, guess)
+    raw = pr - rng
+    # nanmedian returns the lower middle value for even counts (same as masked_median_numpy).
+    clock = torch.nan_to_num(raw.masked_fill(~mask, float("nan")).nanmedian(dim=1).values, nan=0.0)
+    res = ((raw - clock[:, None]) / cfg.res_scale).masked_fill(~mask, 0.0)
+    R = ned_rotation_torch(guess)
+    los_ned = torch.einsum("bij,bsj->bsi", R, los) * mask[..., None]
+    return torch.cat([res[..., None], los_ned], -1).float(), R
+
+
+def target_torch(truth: torch.Tensor, guess: torch.Tensor, R: torch.Tensor,
+                 cfg: FeatureConfig = FeatureConfig()) -> torch.Tensor:
+    """(truth - guess) in the NED frame of the guess (R from :func:`features_torch`) over out_scale."""
+    return torch.einsum("bij,bj->bi", R, truth - guess).float() / cfg.out_scale
+
+
+def elevation_mask(sat_pos: np.ndarray, mask: np.ndarray, at: np.ndarray, min_deg: float) -> np.ndarray:
+    """``mask`` & (elevation seen from ``at`` (B,3) >= min_deg): (B,S) bool. Same test WLS applies."""
+    _, los = line_of_sight(sat_pos, at)
+    up = -np.einsum("bj,bsj->bs", ned_rotation(at)[:, 2, :], los)
+    return mask & (up >= np.sin(np.radians(min_deg)))

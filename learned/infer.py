@@ -1,0 +1,153 @@
+"""Inference: the trained network as a position corrector, a position-prior provider and a pipeline mode.
+
+Honest protocol: the initial guess comes from WLS (or any estimate that never saw the truth); the receiver
+clock is re-estimated from the measurements at every guess (:mod:`learned.features`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fusion.errors import CheckpointError
+from fusion.geometry import ned_rotation
+from fusion.trace import Trace
+from learned.checkpoint import load_model
+from learned.features import FeatureConfig, elevation_mask, features_torch
+
+#: Weights shipped with the package (see learned/weights/TRAINING.md).
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.pt"
+#: Epochs per forward pass at inference (bounded memory; 2,000-epoch traces go in one chunk).
+INFER_CHUNK = 4096
+
+
+@dataclass
+class Correction:
+    """Network output for every epoch of a trace (NaN rows where ``valid`` is False).
+
+    mean_ecef: (E,3) corrected position [m].  cov_ecef: (E,3,3) its covariance [m^2].
+    corr_ned:  (E,3) correction in the NED frame of the initial guess [m].  cov_ned: (E,3,3) [m^2].
+    valid:     (E,) bool: initial guess valid and >= 4 satellites above the elevation mask at it.
+    n_too_few: epochs with a valid guess but < 4 satellites above the mask.
+    """
+
+    mean_ecef: np.ndarray
+    cov_ecef: np.ndarray
+    corr_ned: np.ndarray
+    cov_ned: np.ndarray
+    valid: np.ndarray
+    n_too_few: int = 0
+
+
+class Corrector:
+    """A loaded checkpoint. ``corrector(trace, init_pos, valid) -> (mean_ecef, cov_ecef, valid)``."""
+
+    def __init__(self, model: torch.nn.Module, config: dict, device: str = "cpu", path: Path | None = None):
+        self.model = model.eval()
+        self.config = config
+        self.features = FeatureConfig.from_dict(config["features"])
+        self.kind = config["model"]["kind"]
+        self.device = torch.device(device)
+        self.path = path
+        ref = config.get("reference_ecef")
+        if self.kind == "direct" and ref is None:
+            raise CheckpointError(f"{path}: direct-position checkpoint without a reference point")
+        self.reference = None if ref is None else np.asarray(ref, float)
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, device: str = "cpu") -> "Corrector":
+        path = SHIPPED_WEIGHTS if path is None else Path(path)
+        if not path.is_file():
+            raise CheckpointError(f"{path}: checkpoint not found"
+                                  + (" (shipped weights missing from learned/weights/)" if path == SHIPPED_WEIGHTS else ""))
+        model, blob = load_model(path, map_location=device)
+        return cls(model, blob["config"], device=device, path=path)
+
+    @torch.no_grad()
+    def predict(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
+                elev_mask_deg: float | None = None) -> Correction:
+        """Correct ``init_pos`` (E,3) ECEF at epochs where ``valid`` (E,) and >= 4 satellites clear the
+        elevation mask (checkpoint's, unless given) seen from the guess. Batched over all epochs."""
+        E = trace.n_epochs
+        init_pos = np.asarray(init_pos, float)
+        if init_pos.shape != (E, 3) or np.shape(valid) != (E,):
+            raise ValueError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
+                             f"got {init_pos.shape} and {np.shape(valid)}")
+        elev = self.features.elev_mask_deg if elev_mask_deg is None else elev_mask_deg
+        ok = np.asarray(valid, bool) & np.isfinite(init_pos).all(1)
+        idx = np.flatnonzero(ok)
+        guess = init_pos[idx]
+        mask = elevation_mask(trace.sat_pos[idx], trace.mask[idx], guess, elev)
+        enough = mask.sum(1) >= 4
+        n_too_few = int((~enough).sum())
+        idx, guess, mask = idx[enough], guess[enough], mask[enough]
+
+        mean = np.full((E, 3), np.nan)
+        cov = np.full((E, 3, 3), np.nan)
+        corr = np.full((E, 3), np.nan)
+        cov_n = np.full((E, 3, 3), np.nan)
+        if len(idx):
+            at = guess if self.reference is None else np.broadcast_to(self.reference, guess.shape)
+            out, var = self._forward(trace.sat_pos[idx], trace.pr[idx], mask, at)
+            R_at = ned_rotation(at)                               # (N,3,3) ECEF -> NED at feature point
+            m_ecef = at + np.einsum("nji,nj->ni", R_at, out)
+            c_ecef = np.einsum("nji,nj,njk->nik", R_at, var, R_at)
+            R_g = ned_rotation(guess)
+            mean[idx], cov[idx] = m_ecef, c_ecef
+            corr[idx] = np.einsum("nij,nj->ni", R_g, m_ecef - guess)
+            cov_n[idx] = np.einsum("nij,njk,nlk->nil", R_g, c_ecef, R_g)
+        v = np.zeros(E, bool)
+        v[idx] = True
+        return Correction(mean, cov, corr, cov_n, v, n_too_few)
+
+    @torch.no_grad()
+    def _forward(self, sat_pos, pr, mask, at) -> tuple[np.ndarray, np.ndarray]:
+        """Network output (N,3) [m] and per-axis variance (N,3) [m^2] in the NED frame at ``at``."""
+        f64 = dict(dtype=torch.float64, device=self.device)
+        outs, vars_ = [], []
+        for a in range(0, len(pr), INFER_CHUNK):
+            sl = slice(a, a + INFER_CHUNK)
+            m = torch.as_tensor(mask[sl], device=self.device)
+            x, _ = features_torch(torch.as_tensor(sat_pos[sl], **f64), torch.as_tensor(pr[sl], **f64), m,
+                                  torch.as_tensor(np.ascontiguousarray(at[sl]), **f64), self.features)
+            mu, logvar = self.model(x, m)
+            outs.append(mu.double().cpu().numpy())
+            vars_.append(torch.exp(logvar).double().cpu().numpy())
+        s = self.features.out_scale
+        return np.concatenate(outs) * s, np.concatenate(vars_) * s * s
+
+    def __call__(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
+        c = self.predict(trace, init_pos, valid)
+        return c.mean_ecef, c.cov_ecef, c.valid
+
+
+def calibration(err_ned: np.ndarray, cov_ned: np.ndarray) -> dict:
+    """Fraction of |error| within 1 and 2 predicted sigma per NED axis (ideal Gaussian: 0.683 / 0.954).
+
+    err_ned (N,3) [m], cov_ned (N,3,3) [m^2]; rows with NaN are ignored.
+    """
+    ok = np.isfinite(err_ned).all(1) & np.isfinite(cov_ned).all((1, 2))
+    sig = np.sqrt(np.diagonal(cov_ned[ok], axis1=1, axis2=2))
+    z = np.abs(err_ned[ok]) / sig
+    return {"n": int(ok.sum()), "within_1sigma": (z <= 1).mean(0).tolist() if ok.any() else [np.nan] * 3,
+            "within_2sigma": (z <= 2).mean(0).tolist() if ok.any() else [np.nan] * 3}
+
+
+def estimate_dnn(trace: Trace, wls, opts):
+    """Pipeline mode ``dnn``: WLS position as the guess, ``opts.dnn_passes`` corrections (features
+    recomputed at each corrected position). Epochs with invalid WLS or < 4 satellites: not solved."""
+    from fusion.pipeline import ModeResult
+
+    corrector = Corrector.load(opts.weights, device=opts.device)
+    pos, valid = np.asarray(wls.pos, float), np.asarray(wls.valid, bool)
+    cov, too_few = None, 0
+    for _ in range(max(1, int(opts.dnn_passes))):
+        c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg)
+        too_few += c.n_too_few
+        pos, valid, cov = c.mean_ecef, c.valid, c.cov_ecef
+    info = {"passes": int(max(1, opts.dnn_passes)), "unsolved": int((~valid).sum()),
+            "unsolved_wls": int((~np.asarray(wls.valid, bool)).sum()), "too_few_sats": too_few,
+            "weights": str(corrector.path)}
+    return ModeResult(pos=pos, valid=valid, cov=cov, info=info)

@@ -1,0 +1,146 @@
+"""Inference, the pipeline mode, calibration and checkpoint loading errors."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from fusion.errors import CheckpointError
+from fusion.geometry import ned2ecef_vec, ned_rotation
+from learned.checkpoint import load_model, read_checkpoint, save_checkpoint
+from learned.features import FeatureConfig
+from learned.infer import SHIPPED_WEIGHTS, Corrector, calibration, estimate_dnn
+from learned.model import DeepSets, SetTransformer
+from learned.toy import toy_trace
+from learned.train import TrainConfig
+
+
+class ConstantNet(nn.Module):
+    """Stub network: always predicts the NED correction (1, 2, 3) * out_scale with log-variance (0, ln 4, 0)."""
+
+    def forward(self, x, mask):
+        B = x.shape[0]
+        return (torch.tensor([1.0, 2.0, 3.0]).expand(B, 3), torch.tensor([0.0, np.log(4.0), 0.0]).expand(B, 3))
+
+
+def _config(kind="set", **feat):
+    return TrainConfig(model=kind, features=FeatureConfig(**feat)).to_checkpoint_config(None)
+
+
+def test_predict_applies_ned_correction_and_covariance_in_frame_of_guess():
+    tr = toy_trace(30, seed=1)
+    init = tr.truth + 5.0
+    valid = np.ones(30, bool)
+    valid[3] = False
+    init[4] = np.nan
+    c = Corrector(ConstantNet(), _config(out_scale=2.0)).predict(tr, init, valid)
+    assert not c.valid[3] and not c.valid[4] and c.valid[[0, 5, 29]].all()
+    assert np.isnan(c.mean_ecef[3]).all()
+    ok = c.valid
+    np.testing.assert_allclose(c.corr_ned[ok], np.broadcast_to([2.0, 4.0, 6.0], (ok.sum(), 3)), atol=1e-9)
+    expect = init[ok] + ned2ecef_vec(np.array([2.0, 4.0, 6.0]), init[ok])
+    np.testing.assert_allclose(c.mean_ecef[ok], expect, atol=1e-6)
+    np.testing.assert_allclose(c.cov_ned[ok][0], np.diag([4.0, 16.0, 4.0]), atol=1e-9)
+    R = ned_rotation(init[0])
+    np.testing.assert_allclose(c.cov_ecef[0], R.T @ np.diag([4.0, 16.0, 4.0]) @ R, atol=1e-9)
+    mean, cov, v = Corrector(ConstantNet(), _config(out_scale=2.0))(tr, init, valid)
+    np.testing.assert_array_equal(v, c.valid)
+
+
+def test_epochs_with_too_few_satellites_not_solved_and_counted():
+    tr = toy_trace(10, seed=2, n_sats=(6, 6))
+    tr.mask[2, 3:] = False                      # 3 satellites left
+    c = Corrector(ConstantNet(), _config()).predict(tr, tr.truth, np.ones(10, bool))
+    assert not c.valid[2] and c.valid.sum() == 9 and c.n_too_few == 1
+
+
+def test_calibration_of_gaussian_errors():
+    rng = np.random.default_rng(0)
+    sig = np.array([1.0, 2.0, 5.0])
+    err = rng.normal(size=(20000, 3)) * sig
+    cov = np.broadcast_to(np.diag(sig ** 2), (20000, 3, 3))
+    cal = calibration(err, cov)
+    np.testing.assert_allclose(cal["within_1sigma"], 0.683, atol=0.015)
+    np.testing.assert_allclose(cal["within_2sigma"], 0.954, atol=0.01)
+    half = calibration(err, cov / 4)            # overconfident sigma -> low coverage
+    assert max(half["within_1sigma"]) < 0.45
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory):
+    from learned.data import build_samples, split_random
+    from learned.toy import toy_dataset
+    from learned.train import train
+    torch.set_num_threads(1)
+    s = build_samples(toy_dataset(2, 60, seed=3))
+    tr, va = split_random(s, 0.2, np.random.default_rng(0))
+    out = tmp_path_factory.mktemp("ck") / "m.pt"
+    train(tr, va, TrainConfig(epochs=1), out, progress=False)
+    return out
+
+
+def test_estimate_dnn_from_wls_with_passes(tiny_ckpt):
+    from fusion.pipeline import RunOptions
+    from fusion.wls import solve_wls
+    tr = toy_trace(40, seed=9)
+    wls = solve_wls(tr)
+    wls.valid[5] = False
+    r1 = estimate_dnn(tr, wls, RunOptions(weights=tiny_ckpt, dnn_passes=1))
+    r2 = estimate_dnn(tr, wls, RunOptions(weights=tiny_ckpt, dnn_passes=2))
+    assert not r1.valid[5] and np.isnan(r1.pos[5]).all() and r1.info["unsolved_wls"] >= 1
+    assert r1.cov.shape == (40, 3, 3) and r2.info["passes"] == 2
+    ok = r1.valid
+    assert np.abs(r1.pos[ok] - r2.pos[ok]).max() > 1e-3   # second pass recomputed features
+    # A 1-epoch network is not accurate, but its corrections are bounded (output scale x few).
+    assert np.nanmax(np.linalg.norm(r1.pos[ok] - wls.pos[ok], axis=1)) < 100.0
+
+
+def test_checkpoint_errors(tmp_path, tiny_ckpt):
+    with pytest.raises(CheckpointError, match="not found"):
+        Corrector.load(tmp_path / "missing.pt")
+    txt = tmp_path / "notes.pt"
+    txt.write_text("hello, not a checkpoint\n")
+    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+        read_checkpoint(txt)
+    data = tiny_ckpt.read_bytes()
+    trunc = tmp_path / "trunc.pt"
+    trunc.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+        Corrector.load(trunc)
+    tensor_only = tmp_path / "tensor.pt"
+    torch.save({"weights": torch.zeros(3)}, tensor_only)
+    with pytest.raises(CheckpointError, match="not a gnssfuse checkpoint"):
+        read_checkpoint(tensor_only)
+    evil = tmp_path / "evil.pt"
+    torch.save({"format": "gnssfuse-checkpoint", "obj": TrainConfig()}, evil)   # arbitrary pickled object
+    with pytest.raises(CheckpointError, match="refused to load"):
+        read_checkpoint(evil)
+    old = tmp_path / "old.pt"
+    save_checkpoint(old, SetTransformer(), dict(_config(), features={**FeatureConfig().to_dict(), "version": 0}))
+    with pytest.raises(CheckpointError, match="feature version 0"):
+        Corrector.load(old)
+    arch = tmp_path / "arch.pt"
+    save_checkpoint(arch, DeepSets(), _config("set"))
+    with pytest.raises(CheckpointError, match="architecture mismatch"):
+        load_model(arch)
+    hp = tmp_path / "hp.pt"
+    save_checkpoint(hp, SetTransformer(), dict(_config(), model={"kind": "set", "hparams": {"d_model": 32}}))
+    with pytest.raises(CheckpointError, match="architecture mismatch"):
+        load_model(hp)
+
+
+def test_shipped_weights_on_held_out_trace(shared_data):
+    """The shipped network, from WLS, on the held-out real trace: runs, solves every usable epoch."""
+    if not SHIPPED_WEIGHTS.is_file():
+        pytest.skip("no shipped weights yet")
+    from fusion.io_gsdc import load_trace
+    from fusion.pipeline import RunOptions
+    from fusion.wls import solve_wls
+    tr = load_trace(shared_data / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel4")
+    wls = solve_wls(tr)
+    r = estimate_dnn(tr, wls, RunOptions())
+    assert r.valid.sum() >= 0.98 * wls.valid.sum()
+    step = np.linalg.norm(r.pos[r.valid] - wls.pos[r.valid], axis=1)
+    assert np.median(step) < 30.0                # corrections are metre-level, not wild
+    assert read_checkpoint(SHIPPED_WEIGHTS)["config"]["features"]["version"] >= 1
