@@ -147,11 +147,8 @@ def write_outputs(out_dir: Path, trace: Trace, mode: str, result: ModeResult) ->
 
 
 # ---------------------------------------------------------------------------- CLI
-def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description="Solve one trace in one mode and write estimates.csv.")
-    p.add_argument("trace_dir", type=Path, help="a <collection>/<phone> folder (GSDC 2021 derived or 2022/23 device_gnss)")
-    p.add_argument("--mode", default="wls", choices=list(MODES))
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
     p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
     p.add_argument("--signals", default="GPS_L1", help=f"comma-separated, from {','.join(SIGNALS)}")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
@@ -161,6 +158,14 @@ def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-truth-height-fix", action="store_true",
                    help="keep GSDC 2021 truth heights as published (~63 m too high)")
+
+
+def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="Solve one trace in one mode and write estimates.csv.")
+    p.add_argument("trace_dir", type=Path, help="a <collection>/<phone> folder (GSDC 2021 derived or 2022/23 device_gnss)")
+    p.add_argument("--mode", default="wls", choices=list(MODES))
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    add_run_options(p)
     return p
 
 

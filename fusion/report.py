@@ -25,7 +25,7 @@ import pandas as pd
 from tqdm import tqdm
 
 from fusion.errors import DataError, GnssfuseError
-from fusion.pipeline import (MODES, ModeResult, RunOptions, options_from_args, run_modes,
+from fusion.pipeline import (MODES, ModeResult, RunOptions, add_run_options, options_from_args, run_modes,
                              solve_initial, write_outputs)
 from fusion.trace import SIGNALS, Trace
 
@@ -300,17 +300,9 @@ def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
                    help="<collection>/<phone> folders (GSDC 2021 derived or 2022/23 device_gnss)")
     p.add_argument("--modes", default="wls", help=f"comma-separated, from {','.join(MODES)}")
     p.add_argument("--out", type=Path, required=True, help="report folder")
-    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
-    p.add_argument("--signals", default="GPS_L1", help=f"comma-separated, from {','.join(SIGNALS)}")
-    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
-    p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
-    p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother")
-    p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
-    p.add_argument("--device", default="cpu")
+    add_run_options(p)
     p.add_argument("--max-epochs", type=int, default=None,
                    help="use only the first N epochs of each trace (quick looks, tests)")
-    p.add_argument("--no-truth-height-fix", action="store_true",
-                   help="keep GSDC 2021 truth heights as published (~63 m too high)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm progress bars")
     return p
 
