@@ -2,7 +2,10 @@
 
     PYTHONPATH=. python benchmarks/bench_graph.py                  # both parts, /work/shared/data
     PYTHONPATH=. python benchmarks/bench_graph.py --part speed     # speed only (synthetic if no data)
-    PYTHONPATH=. python benchmarks/bench_graph.py --part tune      # the training traces only (fused-nodnn)
+    PYTHONPATH=. python benchmarks/bench_graph.py --part tune --weights LOO.pt
+        # tuning, training traces only: GraphConfig variations for fused-nodnn on the three
+        # training traces, then learned-prior settings on 2020-09-04-US-SF-2 with a checkpoint
+        # trained WITHOUT that trace (LOO.pt, e.g. gnssfuse train --data sim <the other two> ...)
 
 Accuracy: wls / dnn / fused / fused-nodnn on the test traces 2021-04-28-US-MTV-1/Pixel4 (GPS L1)
 and 2021-04-28-US-SJC-1/Pixel4 (multi-signal, 5 windows with gaps), identical inputs per trace
@@ -71,19 +74,93 @@ def _short(info: dict) -> dict:
             if isinstance(v, (int, float)) and not k.endswith("_s")}
 
 
-def tune(root: Path) -> None:
-    """fused-nodnn vs wls on the training traces with the current defaults (the tuning objective)."""
+def _score(trace, pos, valid) -> dict:
+    return summarize(ned_errors(np.where(valid[:, None], pos, np.nan), trace.truth))
+
+
+#: one-parameter-at-a-time variations around the defaults for the graph without the prior
+GRAPH_GRID = (
+    {}, {"pr_sigma_zenith_m": 1.0}, {"pr_sigma_zenith_m": 3.0}, {"pr_sigma_scale": 0.5},
+    {"pr_sigma_scale": 2.0}, {"robust": "huber"}, {"robust_k": 0.5}, {"robust_k": 2.0},
+    {"cv_accel_h": 0.5}, {"cv_accel_h": 2.0}, {"cv_pos_sigma_m": 0.2}, {"cv_pos_sigma_m": 1.0},
+    {"cv_accel_v": 0.2}, {"clock_rw_m": 2.0}, {"clock_rw_m": 20.0}, {"motion": "rw"},
+)
+
+#: learned-prior settings tried on the held-out training trace
+PRIOR_GRID = tuple(
+    {"prior_cov_scale": sc, "prior_sigma_floor_m": fl, "prior_robust": rb, "prior_robust_k": k}
+    for sc in (1.0, 4.0, 16.0, 64.0) for fl in (0.0, 2.0)
+    for rb, k in (("none", 2.0), ("huber", 1.0), ("cauchy", 1.0)))
+
+
+def tune_graph(root: Path, grid=GRAPH_GRID) -> None:
+    """fused-nodnn on the three training traces for each variation of GraphConfig (defaults first)."""
     from fusion.io_gsdc import load_trace
 
-    scores = []
+    data = []
     for name in TRAIN:
-        trace = load_trace(root / name / "Pixel4")
+        trace = load_trace(root / name / "Pixel4", min_sats=1)
         wls = solve_wls(trace)
-        rows = {"wls": metrics(trace, get_mode("wls")(trace, wls, RunOptions())),
-                "fused-nodnn": metrics(trace, fuse(trace, wls, RunOptions(), want_cov=False))}
-        scores.append(rows["fused-nodnn"]["gsdc_score"])
-        print(f"\n{trace.name}\n{format_table(rows)}")
-    print(f"\nmean fused-nodnn GSDC score over the training traces: {np.mean(scores):.3f}  ({GraphConfig()})")
+        data.append((trace, wls))
+        w = _score(trace, wls.pos, wls.valid)
+        print(f"{trace.name}: wls h_p50 {w['h_p50']:.2f} h_p95 {w['h_p95']:.2f} score {w['gsdc_score']:.2f}")
+    print(f"\nfused-nodnn, GSDC score per training trace and mean (variation of the defaults)")
+    for change in grid:
+        cfg = GraphConfig(**change)
+        sc = [_score(tr, *_pv(fuse(tr, wl, RunOptions(), cfg=cfg, want_cov=False)))["gsdc_score"]
+              for tr, wl in data]
+        print(f"  {str(change or 'defaults'):<48} " + " ".join(f"{x:6.2f}" for x in sc) + f"   mean {np.mean(sc):.3f}")
+
+
+def _pv(res):
+    return res.pos, res.valid
+
+
+def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-US-SF-2", grid=PRIOR_GRID) -> None:
+    """fused vs fused-nodnn on one training trace, with a checkpoint trained WITHOUT that trace.
+
+    The network is asked once (at the no-prior graph solution, as ``fused`` does) and its output
+    reused for every prior setting, so the table isolates the effect of the settings.
+    """
+    from fusion.io_gsdc import load_trace
+    from fusion.graph import solve_batch
+    from learned.infer import Corrector, calibration
+
+    if weights is None:
+        print("tune_prior: pass --weights <checkpoint trained without the tuning trace>; skipped")
+        return
+    trace = load_trace(root / trace_name / "Pixel4", min_sats=1)
+    wls = solve_wls(trace)
+    nodnn = fuse(trace, wls, RunOptions(), want_cov=False)
+    corr = Corrector.load(weights)
+    c = corr.predict(trace, np.where(nodnn.valid[:, None], nodnn.pos, wls.pos), trace.n_sats >= 1)
+    ok = c.valid & np.isfinite(trace.truth).all(axis=1)
+    err = ned_errors(c.mean_ecef[ok], trace.truth[ok])
+    cal = calibration(err, c.cov_ned[ok])
+    out = (c.mean_ecef, c.cov_ecef, c.valid)
+
+    def cached(tr, at, valid):
+        return out
+
+    rows = {"wls": _score(trace, wls.pos, wls.valid), "fused-nodnn": _score(trace, *_pv(nodnn)),
+            "dnn@graph": _score(trace, c.mean_ecef, c.valid)}
+    print(f"\n{trace.name} with {weights} (network never saw this trace)")
+    print(f"  DNN calibration at the graph guess: {cal}")
+    print(format_table(rows))
+    print(f"\n  {'cov scale':>9} {'floor m':>7} {'robust':>10}  {'h p50':>6} {'h p95':>6} {'score':>6}")
+    for change in grid:
+        cfg = GraphConfig(**change)
+        inp = prepare_inputs(trace, wls, cfg, 10.0, cached, prior_guess=nodnn.pos)
+        pos, valid, _, _ = solve_batch(trace, inp, cfg, use_prior=True, want_cov=False)
+        m = _score(trace, pos, valid)
+        rb = "none" if change["prior_robust"] == "none" else f"{change['prior_robust']}({change['prior_robust_k']:g})"
+        print(f"  {change['prior_cov_scale']:9g} {change['prior_sigma_floor_m']:7g} {rb:>10}  "
+              f"{m['h_p50']:6.2f} {m['h_p95']:6.2f} {m['gsdc_score']:6.2f}")
+
+
+def tune(root: Path, weights: Path | None) -> None:
+    tune_graph(root)
+    tune_prior(root, weights)
 
 
 def speed(root: Path, repeats: int) -> None:
@@ -138,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.part in ("all", "accuracy"):
         accuracy(args.data, args.weights)
     if args.part == "tune":
-        tune(args.data)
+        tune(args.data, args.weights)
     if args.part in ("all", "speed"):
         speed(args.data, args.repeats)
     return 0

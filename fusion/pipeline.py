@@ -56,7 +56,10 @@ class ModeResult:
 def estimate_wls(trace: Trace, wls, opts: RunOptions) -> ModeResult:
     """The WLS baseline as a mode (WLS is already solved by :func:`run_modes`)."""
     return ModeResult(pos=wls.pos, valid=wls.valid.copy(), cov=wls.cov[:, :3, :3],
-                      info={"unsolved": int((~wls.valid).sum())})
+                      info={"unsolved": int((~wls.valid).sum()),
+                            # epochs loaded with < 4 measurements (CLI loads with min_sats=1 so the
+                            # fused modes can carry them; WLS cannot solve them)
+                            "lt4_sats": int((trace.n_sats < 4).sum())})
 
 
 #: mode name -> "module:function". Adding a mode is one line here.
@@ -186,7 +189,10 @@ def main(argv: list[str], prog: str = "gnssfuse run") -> int:
 
     args = build_parser(prog).parse_args(argv)
     opts = options_from_args(args)
-    trace = load_trace(args.trace_dir, signals=opts.signals, fix_truth_height=not args.no_truth_height_fix)
+    # min_sats=1: keep epochs with 1-3 satellites; WLS/dnn leave them unsolved (counted in info),
+    # the fused modes carry them with the prior and the motion model
+    trace = load_trace(args.trace_dir, signals=opts.signals, fix_truth_height=not args.no_truth_height_fix,
+                       min_sats=1)
     result = run_modes(trace, [args.mode], opts)[args.mode]
     record = write_outputs(args.out, trace, args.mode, result)
     print(f"{trace.name}: {record['epochs_solved']}/{trace.n_epochs} epochs solved in mode {args.mode}"

@@ -327,7 +327,8 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     evals, failures, taken = [], {}, set()
     for d in tqdm(trace_dirs, desc="traces", disable=not progress):
         try:
-            trace = load_trace(d, signals=opts.signals, fix_truth_height=fix_truth_height)
+            # min_sats=1: epochs with < 4 satellites reach the modes (the fused ones carry them)
+            trace = load_trace(d, signals=opts.signals, fix_truth_height=fix_truth_height, min_sats=1)
             if trace.n_epochs == 0:
                 raise DataError(f"{d}: no epochs with {', '.join(opts.signals)} measurements")
         except GnssfuseError as exc:

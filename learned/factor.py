@@ -22,6 +22,7 @@ import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
+from fusion.graph_build import robust_model
 from fusion.trace import Trace, empty_trace
 
 #: ``provider(trace, init_pos (E,3), valid (E,)) -> (mean_ecef (E,3), cov_ecef (E,3,3), valid (E,))``;
@@ -73,8 +74,18 @@ def learned_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray,
     return mean, cov
 
 
+def _noise(cov: np.ndarray, cov_scale: float, sigma_floor_m: float, robust: str, robust_k: float):
+    """(covariance used (3,3), noise model): inflated, floored, optionally robust (see GraphConfig)."""
+    if not (cov_scale > 0 and sigma_floor_m >= 0):
+        raise GeometryError(f"cov_scale must be > 0 and sigma_floor_m >= 0, got {cov_scale} and {sigma_floor_m}")
+    used = cov_scale * cov + sigma_floor_m ** 2 * np.eye(3)
+    return used, robust_model(robust, robust_k, gtsam.noiseModel.Gaussian.Covariance(used))
+
+
 def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
-                         init_pos: np.ndarray, key: int) -> tuple[gtsam.PriorFactorPoint3, np.ndarray, np.ndarray]:
+                         init_pos: np.ndarray, key: int, *, cov_scale: float = 1.0, sigma_floor_m: float = 0.0,
+                         robust: str = "none", robust_k: float = 1.0
+                         ) -> tuple[gtsam.PriorFactorPoint3, np.ndarray, np.ndarray]:
     """A ``PriorFactorPoint3`` on ``key`` at the DNN-corrected position of one epoch.
 
     corrector: a trained ``learned.infer.Corrector`` (or any position prior provider callable
@@ -85,14 +96,20 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
     init_pos:  (3,) ECEF initial guess [m] (e.g. WLS or the previous estimate; never the truth).
     key:       the GTSAM key of an ECEF ``Point3`` variable.
 
-    Returns ``(factor, mean_ecef (3,), cov_ecef (3,3))``: the factor's noise model is
-    ``noiseModel.Gaussian.Covariance(cov_ecef)``, the network's own predicted covariance. The receiver
-    clock is estimated inside the corrector from the pseudoranges, so the factor involves the
-    position only. Raises :class:`GeometryError` if the corrector cannot produce an estimate.
+    cov_scale, sigma_floor_m, robust, robust_k: the covariance used is
+        ``cov_scale * cov + sigma_floor_m**2 * I``, wrapped in a robust loss ("huber", "cauchy" or
+        "none") on the Mahalanobis distance (``robust_k`` in sigmas). The defaults use the network's
+        covariance as is; ``fusion.graph_build.GraphConfig`` documents the safer values our own graph
+        uses (16, 2 m, "cauchy", 1), which keep a confidently wrong output from dragging the solution.
+
+    Returns ``(factor, mean_ecef (3,), cov_ecef (3,3))``, ``cov_ecef`` being the covariance in the
+    factor's noise model. The receiver clock is estimated inside the corrector from the
+    pseudoranges, so the factor involves the position only. Raises :class:`GeometryError` if the
+    corrector cannot produce an estimate.
     """
     mean, cov = learned_prior(corrector, sat_pos, pr, mask, init_pos)
-    factor = gtsam.PriorFactorPoint3(key, mean, gtsam.noiseModel.Gaussian.Covariance(cov))
-    return factor, mean, cov
+    cov, model = _noise(cov, cov_scale, sigma_floor_m, robust, robust_k)
+    return gtsam.PriorFactorPoint3(key, mean, model), mean, cov
 
 
 def learned_pose_translation_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray,

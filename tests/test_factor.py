@@ -118,3 +118,20 @@ def test_example_04_runs(tiny_ckpt, shipped_trace_dir):
     assert out.returncode == 0, out.stderr[-2000:]
     assert "pose graph  horizontal error p50" in out.stdout
     assert "40 epochs" in out.stdout
+
+
+def test_factor_safety_options_inflate_floor_and_robustify():
+    tr = toy_trace(1, seed=2, n_sats=(6, 6))
+
+    def provider(trace, init_pos, valid):
+        return init_pos + 1.0, np.tile(np.eye(3), (1, 1, 1)), valid.copy()
+
+    key = gtsam.symbol("x", 0)
+    f, mean, cov = learned_prior_factor(provider, tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0], key,
+                                        cov_scale=4.0, sigma_floor_m=2.0, robust="huber", robust_k=1.0)
+    np.testing.assert_allclose(cov, 8.0 * np.eye(3))
+    v = gtsam.Values()
+    v.insert(key, mean + np.array([0.0, 0.0, 10 * np.sqrt(8.0)]))     # 10 sigma away
+    assert f.error(v) == pytest.approx(10.0 - 0.5, rel=1e-6)           # Huber: linear, not 50
+    with pytest.raises(GeometryError):
+        learned_prior_factor(provider, tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0], key, cov_scale=-1.0)

@@ -285,3 +285,97 @@ def test_provider_is_asked_at_the_configured_guess(trace, wls, prior_at):
         nodnn = fuse(trace, wls, RunOptions(), want_cov=False)
         np.testing.assert_allclose(seen["at"], nodnn.pos, atol=1e-6)
         assert np.median(h_err(trace, seen["at"], res.valid)) < np.median(h_err(trace, wls.pos, wls.valid))
+
+
+# ---------------------------------------------------------------------------- < 4 satellites, real data
+def _thinned_trace_dir(src, dst, n_epochs: int = 240, thin=(100, 106), keep_sats: int = 2):
+    """Copy the first ``n_epochs`` epochs of a real GSDC 2021 trace folder, keeping only
+    ``keep_sats`` satellites in the epochs ``thin[0]:thin[1]`` (an urban-canyon outage)."""
+    import pandas as pd
+
+    df = pd.read_csv(next(src.glob("*_derived.csv*")))
+    t = np.sort(df["millisSinceGpsEpoch"].unique())[:n_epochs]
+    df = df[df["millisSinceGpsEpoch"].isin(t)]
+    thin_t = t[thin[0]:thin[1]]
+    rank = df.groupby("millisSinceGpsEpoch").cumcount()
+    df = df[~df["millisSinceGpsEpoch"].isin(thin_t) | (rank < keep_sats)]
+    dst.mkdir(parents=True)
+    df.to_csv(dst / f"{src.name}_derived.csv", index=False)
+    (dst / "ground_truth.csv").write_bytes((src / "ground_truth.csv").read_bytes())
+    return thin_t
+
+
+def test_cli_keeps_and_fused_solves_two_satellite_epochs(shipped_trace_dir, tmp_path):
+    """``gnssfuse run`` loads with min_sats=1: WLS leaves 2-satellite epochs unsolved and counts them,
+    the graph carries them with motion + their two pseudoranges (fused-nodnn) and with the learned
+    prior where the network has one (fused: the corrector declines < 4 satellites, so motion too)."""
+    import json
+
+    import pandas as pd
+
+    from fusion.pipeline import main
+
+    if not shipped_trace_dir.is_dir():
+        pytest.skip("shipped trace not present")
+    d = tmp_path / "2021-04-28-US-MTV-1" / "Pixel4"
+    thin_t = _thinned_trace_dir(shipped_trace_dir, d)
+    out = {}
+    for mode in ("wls", "fused-nodnn", "fused"):
+        assert main([str(d), "--mode", mode, "--out", str(tmp_path / mode)]) == 0
+        est = pd.read_csv(tmp_path / mode / "estimates.csv")
+        rec = json.loads((tmp_path / mode / "metrics.json").read_text())
+        assert rec["epochs_total"] == 240 and "epochs_lt4_sats" not in rec["skipped"]
+        out[mode] = (est, rec)
+    est_w, rec_w = out["wls"]
+    assert rec_w["epochs_solved"] == 240 - len(thin_t) and rec_w["info"]["lt4_sats"] == len(thin_t)
+    from fusion.io_gsdc import load_trace
+
+    tr = load_trace(d, min_sats=1)
+    few = np.flatnonzero(tr.n_sats == 2)
+    assert few.size == len(thin_t)
+    for mode in ("fused-nodnn", "fused"):
+        est, rec = out[mode]
+        assert rec["epochs_solved"] == 240
+        pos = est[["x_m", "y_m", "z_m"]].to_numpy()
+        assert np.isin(tr.t_ms[few], est["gps_millis"]).all()
+        e = h_err(tr, pos, np.ones(len(pos), bool))
+        # the 6-s outage stays within a few metres of the solution around it
+        assert np.max(e[few]) < max(15.0, 3 * np.median(e)), (mode, e[few])
+
+
+# ---------------------------------------------------------------------------- a safe learned prior
+def test_prior_robust_loss_acts_on_the_mahalanobis_distance():
+    from fusion.graph_build import robust_model
+
+    model = robust_model("huber", 1.0, gtsam.noiseModel.Gaussian.Covariance(np.diag([100.0, 1.0, 1.0])))
+    f = gtsam.PriorFactorPoint3(X(0), np.zeros(3), model)
+
+    def err(off):
+        v = gtsam.Values()
+        v.insert(X(0), np.asarray(off, float))
+        return f.error(v)
+    assert err([5, 0, 0]) == pytest.approx(0.5 * 0.5 ** 2)      # 0.5 sigma: quadratic
+    assert err([0, 5, 0]) == pytest.approx(1.0 * 5 - 0.5)       # 5 sigma: Huber's linear branch
+    with pytest.raises(GeometryError, match="robust loss"):
+        robust_model("tukey", 1.0, model)
+
+
+def test_a_wrong_overconfident_prior_cannot_drag_the_solution(trace, wls):
+    """The network is sometimes confidently wrong: 60 m off with a claimed 1 m sigma for 10 s."""
+    def bad(tr, init_pos, valid):
+        mean, cov, ok = truth_prior(1.0)(tr, init_pos, valid)
+        mean = mean.copy()
+        mean[30:40] += ned2ecef_vec(np.array([60.0, 0.0, 0.0]), tr.truth[30])
+        return mean, cov, ok
+    safe = fuse(trace, wls, RunOptions(), provider=bad, want_cov=False)          # the defaults
+    naive = fuse(trace, wls, RunOptions(), provider=bad, want_cov=False,
+                 cfg=GraphConfig(prior_robust="none", prior_cov_scale=1.0, prior_sigma_floor_m=0.0))
+    nodnn = fuse(trace, wls, RunOptions(), want_cov=False)
+    e_safe, e_naive = h_err(trace, safe.pos, safe.valid), h_err(trace, naive.pos, naive.valid)
+    e_nodnn = h_err(trace, nodnn.pos, nodnn.valid)
+    assert np.max(e_naive[30:40]) > 20.0                      # an unprotected prior is dragged
+    assert np.max(e_safe[30:40]) < np.max(e_nodnn[30:40]) + 3.0
+    # and the good part of the prior still helps elsewhere
+    assert np.median(e_safe[50:]) < np.median(e_nodnn[50:])
+    with pytest.raises(GeometryError, match="prior_cov_scale"):
+        fuse(trace, wls, RunOptions(), provider=bad, cfg=GraphConfig(prior_cov_scale=0.0))
