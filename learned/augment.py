@@ -4,8 +4,14 @@ A new initial guess per sample: ``guess = truth + R_ned(truth)^T u`` with ``u ~ 
 box is axis-aligned in the **NED frame of the truth** (north, east, down half-widths all ``eta``). The paper
 states the box in ECEF; NED makes the box mean the same thing everywhere on the globe, which is what the
 NED-frame network is meant to be invariant to. Features and targets are then regenerated at the guess.
+
+The box alone teaches roughly a least-squares step, which is ~0 from the WLS solution the network starts
+from at inference. :func:`draw_mixed_guesses` therefore mixes the box with each sample's own WLS position
+(computed from its measurements only, :mod:`learned.data`) plus a small jitter: the inference distribution.
 """
 from __future__ import annotations
+
+import math
 
 import torch
 
@@ -28,3 +34,58 @@ def epoch_generator(seed: int, epoch: int, device: torch.device | str = "cpu") -
     g = torch.Generator(device=device)
     g.manual_seed((int(seed) * 1_000_003 + int(epoch) * 7_919 + 12_345) % (2**63))
     return g
+
+
+# ------------------------------------------------------------------------------------ realistic guesses
+#: Guess sources a mix may name: the paper's box around the truth, and the WLS solution (+ jitter).
+GUESS_SOURCES = ("box", "wls")
+
+
+def parse_guess_mix(text: str | dict) -> dict[str, float]:
+    """``"box=0.5,wls=0.5"`` (or a dict) -> normalised fractions ``{"box": .5, "wls": .5}``.
+
+    Raises ValueError naming the bad part (unknown source, not a number, negative, all zero).
+    """
+    if isinstance(text, dict):
+        items = list(text.items())
+    else:
+        items = []
+        for part in (p.strip() for p in str(text).split(",") if p.strip()):
+            if "=" not in part:
+                raise ValueError(f"guess mix {text!r}: {part!r} is not SOURCE=FRACTION")
+            k, v = part.split("=", 1)
+            try:
+                items.append((k.strip(), float(v)))
+            except ValueError:
+                raise ValueError(f"guess mix {text!r}: {v!r} is not a number") from None
+    mix = {k: 0.0 for k in GUESS_SOURCES}
+    for k, v in items:
+        if k not in GUESS_SOURCES:
+            raise ValueError(f"guess mix {text!r}: unknown source {k!r} (choose from {', '.join(GUESS_SOURCES)})")
+        if not (v >= 0 and math.isfinite(v)):
+            raise ValueError(f"guess mix {text!r}: fraction of {k!r} must be a finite number >= 0")
+        mix[k] += float(v)
+    total = sum(mix.values())
+    if total <= 0:
+        raise ValueError(f"guess mix {text!r}: fractions sum to zero")
+    return {k: v / total for k, v in mix.items()}
+
+
+def draw_mixed_guesses(truth: torch.Tensor, wls: torch.Tensor, usable: torch.Tensor, eta: float,
+                       box_frac: float, jitter: float, generator: torch.Generator
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per sample: with probability ``box_frac`` the paper's box guess (:func:`draw_guesses`), otherwise
+    the sample's own WLS position plus NED jitter U(-jitter, jitter) per axis.
+
+    truth, wls: (B,3) float64 ECEF; usable: (B,) bool, False where the sample has no (usable) WLS
+    position: those fall back to the box. Returns guesses (B,3) and ``is_box`` (B,) bool.
+    The WLS positions come from the measurements alone, so the WLS branch is exactly the inference-time
+    guess (up to the jitter, an augmentation); only the box branch is built from the truth.
+    """
+    box = draw_guesses(truth, eta, generator)
+    pick = torch.rand(truth.shape[0], generator=generator, device=truth.device, dtype=torch.float64)
+    u = (torch.rand(truth.shape, generator=generator, device=truth.device, dtype=torch.float64) * 2.0 - 1.0) * jitter
+    w = torch.where(usable[:, None], wls, truth)          # truth only as a placeholder, replaced below
+    near_wls = w + torch.einsum("bji,bj->bi", ned_rotation_torch(w), u)
+    is_box = (pick < box_frac) | ~usable
+    return torch.where(is_box[:, None], box, near_wls), is_box

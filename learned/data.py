@@ -4,7 +4,12 @@ Only epochs with truth are kept. Slots are masked with the same elevation mask W
 evaluated at the *truth* for training (the guess is not known until augmentation draws it), so the network
 sees the satellite sets it will see at inference; epochs left with < 4 satellites are dropped and counted.
 Real data is split by trace upstream (whole phone-traces are train or test); validation is a random subset of
-the training epochs (:func:`split_random`).
+the training epochs (:func:`split_random`) or of contiguous blocks of them (:func:`split_blocks`; neighbouring
+1 Hz epochs share multipath and geometry, so a random split validates on near-copies of training epochs).
+
+Each sample also carries the WLS position of *its own measurements* (``wls``, no truth involved: the same
+:func:`fusion.wls.solve_wls` call the pipeline makes at inference), computed once here, so training can draw
+initial guesses from the distribution the network meets at inference (:mod:`learned.augment`).
 """
 from __future__ import annotations
 
@@ -23,7 +28,11 @@ FORBIDDEN_TRACES = ("2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-SJC-1")
 
 @dataclass
 class Samples:
-    """sat_pos (N,S,3), pr (N,S), mask (N,S) bool, truth (N,3) ECEF, trace (N,) index into ``names``."""
+    """sat_pos (N,S,3), pr (N,S), mask (N,S) bool, truth (N,3) ECEF, trace (N,) index into ``names``.
+
+    wls:  (N,3) ECEF WLS position from the epoch's own measurements (NaN where WLS failed), or None.
+    real: (N,) bool, True for samples from real (phone) traces, or None (all simulated).
+    """
 
     sat_pos: np.ndarray
     pr: np.ndarray
@@ -32,17 +41,32 @@ class Samples:
     trace: np.ndarray
     names: list[str]
     skipped: dict[str, int] = field(default_factory=dict)
+    wls: np.ndarray | None = None
+    real: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.pr.shape[0])
 
+    def wls_or_nan(self) -> np.ndarray:
+        """(N,3) WLS positions, all-NaN when none were computed."""
+        return np.full((len(self), 3), np.nan) if self.wls is None else self.wls
+
+    def real_or_false(self) -> np.ndarray:
+        return np.zeros(len(self), bool) if self.real is None else self.real
+
     def subset(self, idx: np.ndarray) -> "Samples":
         return Samples(self.sat_pos[idx], self.pr[idx], self.mask[idx], self.truth[idx], self.trace[idx],
-                       list(self.names), dict(self.skipped))
+                       list(self.names), dict(self.skipped),
+                       None if self.wls is None else self.wls[idx], None if self.real is None else self.real[idx])
 
 
-def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0) -> Samples:
-    """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth)."""
+def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0, *, real: bool = False,
+                       with_wls: bool = True) -> Samples:
+    """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth).
+
+    ``with_wls``: also solve WLS on the whole trace (pipeline defaults: elevation weights, the same mask,
+    no truth) and keep each sample's position; ``real`` tags the samples as phone data.
+    """
     if trace.truth is None:
         raise DataError(f"{trace.name}: no ground truth, cannot be used for training")
     ok = np.isfinite(trace.truth).all(1)
@@ -60,7 +84,14 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     mask = np.take_along_axis(mask, order, 1)
     sat_pos = np.take_along_axis(trace.sat_pos[idx], order[..., None], 1) * mask[..., None]
     pr = np.take_along_axis(trace.pr[idx], order, 1) * mask
-    return Samples(sat_pos, pr, mask, truth, np.full(len(idx), index), [trace.name], skipped)
+    wls = None
+    if with_wls:
+        from fusion.wls import solve_wls  # imported late: another engineer's module
+        w = solve_wls(trace, elev_mask_deg=elev_mask_deg)
+        wls = np.where(w.valid[idx, None], w.pos[idx], np.nan)
+        skipped["wls_invalid"] = int((~np.isfinite(wls).all(1)).sum())
+    return Samples(sat_pos, pr, mask, truth, np.full(len(idx), index), [trace.name], skipped, wls,
+                   np.full(len(idx), bool(real)))
 
 
 def concat_samples(parts: list[Samples]) -> Samples:
@@ -80,9 +111,11 @@ def concat_samples(parts: list[Samples]) -> Samples:
         offset += len(p.names)
         for k, v in p.skipped.items():
             skipped[k] = skipped.get(k, 0) + v
+    wls = None if all(p.wls is None for p in parts) else np.concatenate([p.wls_or_nan() for p in parts])
+    real = None if all(p.real is None for p in parts) else np.concatenate([p.real_or_false() for p in parts])
     return Samples(np.concatenate([pad(p.sat_pos) for p in parts]), np.concatenate([pad(p.pr) for p in parts]),
                    np.concatenate([pad(p.mask) for p in parts]), np.concatenate([p.truth for p in parts]),
-                   np.concatenate(trace), names, skipped)
+                   np.concatenate(trace), names, skipped, wls, real)
 
 
 def split_random(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:
@@ -91,6 +124,24 @@ def split_random(samples: Samples, val_frac: float, rng: np.random.Generator) ->
     perm = rng.permutation(n)
     n_val = int(round(val_frac * n)) if n > 1 else 0
     return samples.subset(np.sort(perm[n_val:])), samples.subset(np.sort(perm[:n_val]))
+
+
+def split_blocks(samples: Samples, val_frac: float, rng: np.random.Generator,
+                 block: int = 60) -> tuple[Samples, Samples]:
+    """Validation = random whole blocks of ``block`` consecutive samples of one trace (about ``val_frac``
+    of the samples), so validation epochs are not next-second neighbours of training epochs."""
+    n = len(samples)
+    if n <= 1 or val_frac <= 0:
+        return split_random(samples, val_frac, rng)
+    # Block id: consecutive samples of the same trace, ``block`` at a time (samples are in trace order).
+    pos_in_trace = np.arange(n) - np.searchsorted(samples.trace, samples.trace, side="left")
+    key = samples.trace.astype(np.int64) * (n + 1) + pos_in_trace // block
+    blocks, bid = np.unique(key, return_inverse=True)
+    perm = rng.permutation(len(blocks))
+    sizes = np.bincount(bid)[perm]
+    n_blocks = int(np.argmin(np.abs(np.cumsum(sizes) - val_frac * n)) + 1)   # closest to val_frac * n
+    is_val = np.isin(bid, perm[:min(n_blocks, len(blocks) - 1)])
+    return samples.subset(np.flatnonzero(~is_val)), samples.subset(np.flatnonzero(is_val))
 
 
 def check_not_forbidden(path: Path) -> None:
@@ -128,5 +179,9 @@ def simulated_traces(n_traces: int, epochs_per_trace: int, *, seed: int, bias: b
     return out if isinstance(out, list) else [out]
 
 
-def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0) -> Samples:
-    return concat_samples([samples_from_trace(t, elev_mask_deg, i) for i, t in enumerate(traces)])
+def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0, real: list[bool] | None = None,
+                  with_wls: bool = True) -> Samples:
+    """Samples of every trace; ``real[i]`` tags trace i as phone data (default: none)."""
+    real = [False] * len(traces) if real is None else list(real)
+    return concat_samples([samples_from_trace(t, elev_mask_deg, i, real=r, with_wls=with_wls)
+                           for i, (t, r) in enumerate(zip(traces, real))])

@@ -42,9 +42,16 @@ class Correction:
 
 
 class Corrector:
-    """A loaded checkpoint. ``corrector(trace, init_pos, valid) -> (mean_ecef, cov_ecef, valid)``."""
+    """A loaded checkpoint. ``corrector(trace, init_pos, valid) -> (mean_ecef, cov_ecef, valid)``.
 
-    def __init__(self, model: torch.nn.Module, config: dict, device: str = "cpu", path: Path | None = None):
+    Variance calibration: when the checkpoint's config holds ``calibration.scale_ned`` (per-NED-axis sigma
+    scale fitted on validation WLS guesses by :func:`learned.train.fit_calibration`), predicted variances are
+    multiplied by its square (``calibrated=False`` gives the raw head, e.g. to report before/after).
+    Checkpoints without it (trained before calibration existed) load with scale 1.
+    """
+
+    def __init__(self, model: torch.nn.Module, config: dict, device: str = "cpu", path: Path | None = None,
+                 calibrated: bool = True):
         self.model = model.eval()
         self.config = config
         self.features = FeatureConfig.from_dict(config["features"])
@@ -55,15 +62,21 @@ class Corrector:
         if self.kind == "direct" and ref is None:
             raise CheckpointError(f"{path}: direct-position checkpoint without a reference point")
         self.reference = None if ref is None else np.asarray(ref, float)
+        scale = (config.get("calibration") or {}).get("scale_ned")
+        if scale is not None:
+            scale = np.asarray(scale, float)
+            if scale.shape != (3,) or not (np.isfinite(scale).all() and (scale > 0).all()):
+                raise CheckpointError(f"{path}: calibration scale_ned must be 3 positive numbers, got {scale.tolist()}")
+        self.var_scale = np.ones(3) if (scale is None or not calibrated) else scale ** 2
 
     @classmethod
-    def load(cls, path: str | Path | None = None, device: str = "cpu") -> "Corrector":
+    def load(cls, path: str | Path | None = None, device: str = "cpu", calibrated: bool = True) -> "Corrector":
         path = SHIPPED_WEIGHTS if path is None else Path(path)
         if not path.is_file():
             raise CheckpointError(f"{path}: checkpoint not found"
                                   + (" (shipped weights missing from learned/weights/)" if path == SHIPPED_WEIGHTS else ""))
         model, blob = load_model(path, map_location=device)
-        return cls(model, blob["config"], device=device, path=path)
+        return cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
 
     @torch.no_grad()
     def predict(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
@@ -116,7 +129,7 @@ class Corrector:
             outs.append(mu.double().cpu().numpy())
             vars_.append(torch.exp(logvar).double().cpu().numpy())
         s = self.features.out_scale
-        return np.concatenate(outs) * s, np.concatenate(vars_) * s * s
+        return np.concatenate(outs) * s, np.concatenate(vars_) * (s * s) * self.var_scale
 
     def __call__(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
         c = self.predict(trace, init_pos, valid)

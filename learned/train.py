@@ -4,7 +4,12 @@ Adam(lr 3e-4, betas (0.9, 0.99)), batch 64, MSE on the NED correction; after ``-
 MSE the per-axis log-variance head is trained with a Gaussian NLL on the *detached* mean, so the mean is
 fitted exactly as in the paper and the variance head only learns how large its errors are.
 Every epoch draws new initial guesses (geometry-based augmentation, :mod:`learned.augment`) unless
-``--no-augment``, in which case guesses are drawn once and kept (the paper's baseline). Validation uses
+``--no-augment``, in which case guesses are drawn once and kept (the paper's baseline). ``--guess-mix``
+chooses where guesses come from: the paper's box around the truth (``box``) and/or each sample's own WLS
+solution plus ``--wls-jitter`` (``wls``: the inference-time distribution; the network learns to undo what
+pulls WLS off, e.g. NLOS-biased satellites). After training, the variance head is calibrated on the
+validation split from WLS guesses (per-NED-axis scale, stored in the checkpoint, applied by
+:class:`learned.infer.Corrector`). Validation uses
 guesses drawn once, so its loss is comparable across epochs; the best validation MSE is saved to ``--out``
 and the last state (with optimizer) to ``<out>.last`` for ``--resume``.
 
@@ -26,9 +31,10 @@ import torch.nn.functional as F
 
 from fusion.errors import CheckpointError, DataError
 from fusion.geometry import ecef2geodetic, geodetic2ecef
-from learned.augment import draw_guesses, epoch_generator
+from learned.augment import draw_guesses, draw_mixed_guesses, epoch_generator, parse_guess_mix
 from learned.checkpoint import read_checkpoint, save_checkpoint
-from learned.data import Samples, build_samples, load_real_traces, simulated_traces, split_random
+from learned.data import (Samples, build_samples, load_real_traces, simulated_traces, split_blocks,
+                          split_random)
 from learned.features import FeatureConfig, features_torch, ned_rotation_torch, target_torch
 from learned.model import build_model, count_parameters
 
@@ -52,6 +58,12 @@ class TrainConfig:
     device: str = "cpu"
     features: FeatureConfig = field(default_factory=FeatureConfig)
     data: dict = field(default_factory=dict)  # description of the training data (for the checkpoint)
+    guess_mix: dict = field(default_factory=lambda: {"box": 1.0, "wls": 0.0})
+    wls_jitter: float = 2.0               # [m] per NED axis around the WLS guess
+    # Training only: samples whose WLS is farther than this from the truth get box guesses instead
+    # (a 200 m WLS blunder would dominate the MSE; the network's output scale is 10 m).
+    wls_max_err: float = 100.0
+    calibrate: bool = True                # fit the variance scale on validation WLS guesses after training
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
@@ -63,15 +75,34 @@ class TrainConfig:
             "eta": self.eta, "augment": self.augment, "seed": self.seed, "epochs": self.epochs,
             "batch": self.batch, "lr": self.lr, "betas": list(self.betas), "warmup_epochs": self.warmup(),
             "val_frac": self.val_frac, "data": self.data,
+            "guess_mix": parse_guess_mix(self.guess_mix), "wls_jitter": self.wls_jitter,
+            "wls_max_err": self.wls_max_err,
             # Direct-position model only: features and targets live at this fixed ECEF reference.
             "reference_ecef": None if reference_ecef is None else [float(v) for v in reference_ecef],
         }
 
 
-def _tensors(s: Samples, device: torch.device) -> dict[str, torch.Tensor]:
+def _tensors(s: Samples, device: torch.device, wls_max_err: float = math.inf) -> dict[str, torch.Tensor]:
+    """Sample arrays on ``device``; ``wls`` (NaN rows -> 0) with ``wls_ok`` (finite WLS) and ``wls_use``
+    (finite and within ``wls_max_err`` of the truth: the training-time filter for WLS guesses)."""
     f64 = dict(dtype=torch.float64, device=device)
+    wls = s.wls_or_nan()
+    ok = np.isfinite(wls).all(1)
+    use = ok & (np.linalg.norm(np.where(ok[:, None], wls - s.truth, 0.0), axis=1) <= wls_max_err)
     return {"sat_pos": torch.as_tensor(s.sat_pos, **f64), "pr": torch.as_tensor(s.pr, **f64),
-            "mask": torch.as_tensor(s.mask, device=device), "truth": torch.as_tensor(s.truth, **f64)}
+            "mask": torch.as_tensor(s.mask, device=device), "truth": torch.as_tensor(s.truth, **f64),
+            "wls": torch.as_tensor(np.where(ok[:, None], wls, 0.0), **f64),
+            "wls_ok": torch.as_tensor(ok, device=device), "wls_use": torch.as_tensor(use, device=device),
+            "real": torch.as_tensor(s.real_or_false(), device=device)}
+
+
+def guesses_for(t: dict[str, torch.Tensor], cfg: "TrainConfig", generator: torch.Generator) -> torch.Tensor:
+    """Initial guesses (N,3) for one epoch: the paper's box only (bit-identical to earlier versions),
+    or the configured box / WLS mix."""
+    box = parse_guess_mix(cfg.guess_mix)["box"]
+    if box >= 1.0:
+        return draw_guesses(t["truth"], cfg.eta, generator)
+    return draw_mixed_guesses(t["truth"], t["wls"], t["wls_use"], cfg.eta, box, cfg.wls_jitter, generator)[0]
 
 
 def make_inputs(t: dict[str, torch.Tensor], guess: torch.Tensor, fcfg: FeatureConfig
@@ -125,7 +156,7 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         if not last.is_file():
             raise CheckpointError(f"{last}: no checkpoint to resume from")
         blob = read_checkpoint(last, map_location=device)
-        for key in ("model", "eta", "augment", "seed", "features", "data"):
+        for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter"):
             if blob["config"].get(key) != ckpt_cfg.get(key):
                 raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
                                       f"({blob['config'].get(key)!r} in checkpoint vs {ckpt_cfg.get(key)!r} now)")
@@ -134,17 +165,21 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         start, history = blob["epoch"], list(blob["history"])
     best = min((h["val_mse"] for h in history), default=math.inf)
 
-    tr, va = _tensors(train_s, device), _tensors(val_s, device)
+    tr, va = _tensors(train_s, device, cfg.wls_max_err), _tensors(val_s, device, cfg.wls_max_err)
+    # Honest validation: guess = the sample's WLS position exactly (what inference sees), every WLS-valid sample.
+    vw = torch.nonzero(va["wls_ok"]).flatten()
+    xw, yw = (make_inputs({k: v[vw] for k, v in va.items()}, va["wls"][vw], fcfg) if len(vw) and not direct
+              else (None, None))
     ref_t = None if ref is None else torch.as_tensor(ref, dtype=torch.float64, device=device)[None]
     # Validation (and no-augmentation training) guesses: drawn once, from generators independent of epochs.
     if direct:
         xv, yv = make_inputs(va, ref_t, fcfg) if len(val_s) else (None, None)
         fixed_train = make_inputs(tr, ref_t, fcfg)
     else:
-        gv = draw_guesses(va["truth"], cfg.eta, epoch_generator(cfg.seed, -2, device))
+        gv = guesses_for(va, cfg, epoch_generator(cfg.seed, -2, device))
         xv, yv = make_inputs(va, gv, fcfg) if len(val_s) else (None, None)
         fixed_train = None if cfg.augment else make_inputs(
-            tr, draw_guesses(tr["truth"], cfg.eta, epoch_generator(cfg.seed, -1, device)), fcfg)
+            tr, guesses_for(tr, cfg, epoch_generator(cfg.seed, -1, device)), fcfg)
 
     n = len(train_s)
     bar = None
@@ -157,7 +192,7 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         if fixed_train is not None:
             x, y = fixed_train
         else:
-            x, y = make_inputs(tr, draw_guesses(tr["truth"], cfg.eta, gen), fcfg)
+            x, y = make_inputs(tr, guesses_for(tr, cfg, gen), fcfg)
         perm = torch.randperm(n, generator=gen, device=device)
         t_feat = time.perf_counter() - t0
         use_nll = epoch >= cfg.warmup()
@@ -181,6 +216,9 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
                "samples": n}
         rec.update(evaluate_arrays(model, xv, yv, va["mask"], fcfg) if xv is not None else
                    {"val_mse": rec["train_mse"]})
+        if xw is not None:
+            rec.update({"val_wls_" + k[4:]: v for k, v in
+                        evaluate_arrays(model, xw, yw, va["mask"][vw], fcfg).items()})
         history.append(rec)
         if rec["val_mse"] < best:
             best = rec["val_mse"]
@@ -194,7 +232,43 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         bar.close()
     if not out.is_file():  # zero epochs left to run (e.g. resume of a finished run) still leaves a model
         save_checkpoint(out, model, ckpt_cfg, epoch=start, history=history)
+    if cfg.calibrate and xw is not None:
+        blob = read_checkpoint(out, map_location=device)
+        model.load_state_dict(blob["model_state"])
+        real = va["real"][vw]
+        # Calibrate for phones when there are enough phone samples: simulated errors are not phone errors.
+        sub = real if int(real.sum()) >= CALIB_MIN_REAL else torch.ones_like(real)
+        cal = fit_calibration(model, xw[sub], yw[sub], va["mask"][vw][sub], fcfg)
+        cal["subset"] = "real validation samples" if sub is real else "all validation samples"
+        save_checkpoint(out, model, dict(blob["config"], calibration=cal), epoch=blob["epoch"],
+                        history=blob["history"])
     return history
+
+
+#: Fewest real validation samples (from WLS guesses) to calibrate on them alone.
+CALIB_MIN_REAL = 200
+
+
+@torch.no_grad()
+def fit_calibration(model, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, fcfg: FeatureConfig) -> dict:
+    """Per-NED-axis scale ``s`` for the predicted sigma (variance *= s^2) from guesses at WLS.
+
+    ``s_k = median(|err_k| / sigma_k) / 0.6745``: makes the 1-sigma interval hold 68.3 % of the errors;
+    a median, not the RMS of z, because a few WLS blunders (z of 50+) would otherwise set the scale for
+    all epochs. Both are stored (``scale_rms`` for information); coverages before/after on the same set.
+    """
+    model.eval()
+    mean, logvar = model(x, mask)
+    z = ((mean - y) * torch.exp(-0.5 * logvar)).double().abs()
+    s = (z.median(dim=0).values / 0.6744897501960817).clamp_min(1e-3)
+    rms = torch.sqrt((z ** 2).mean(0))
+
+    def cover(zz: torch.Tensor, k: float) -> list[float]:
+        return [float(v) for v in (zz <= k).double().mean(0)]
+
+    return {"method": "median", "scale_ned": [float(v) for v in s], "scale_rms": [float(v) for v in rms],
+            "n": int(x.shape[0]), "within_1sigma_before": cover(z, 1), "within_2sigma_before": cover(z, 2),
+            "within_1sigma_after": cover(z / s, 1), "within_2sigma_after": cover(z / s, 2)}
 
 
 @torch.no_grad()
@@ -233,7 +307,19 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--no-augment", action="store_true", help="draw guesses once and keep them (paper's baseline)")
     p.add_argument("--sim-traces", type=int, default=50)
     p.add_argument("--sim-epochs", type=int, default=200, help="epochs per simulated trace")
-    p.add_argument("--sim-bias", action="store_true", help="simulate with the Gaussian + bias scenario")
+    p.add_argument("--sim-bias", action="store_true",
+                   help="simulate 'sim' with the Gaussian + bias scenario ('sim-bias' in --data adds such traces "
+                        "next to Gaussian ones)")
+    p.add_argument("--sim-bias-traces", type=int, default=None, help="traces for 'sim-bias' (default --sim-traces)")
+    p.add_argument("--guess-mix", default="box=1",
+                   help="initial-guess sources and fractions, e.g. box=0.5,wls=0.5 (box: truth + U(+-eta) per NED "
+                        "axis, the paper's; wls: the sample's own WLS solution + U(+-wls-jitter))")
+    p.add_argument("--wls-jitter", type=float, default=2.0, help="[m] per NED axis around WLS guesses")
+    p.add_argument("--wls-max-err", type=float, default=100.0,
+                   help="[m] training samples whose WLS is farther from the truth get a box guess instead")
+    p.add_argument("--val-split", default="random", choices=("random", "blocks"),
+                   help="validation = random epochs, or random blocks of 60 consecutive epochs")
+    p.add_argument("--no-calibrate", action="store_true", help="do not fit the variance scale after training")
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--lr", type=float, default=3e-4)
     p.add_argument("--warmup-epochs", type=int, default=None, help="MSE-only epochs before the NLL term")
@@ -246,15 +332,23 @@ def _parser(prog: str) -> argparse.ArgumentParser:
 
 
 def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, sim_bias: bool, seed: int,
-                       elev_mask_deg: float) -> tuple[Samples, dict]:
-    traces, desc = [], {"sources": sources}
+                       elev_mask_deg: float, sim_bias_traces: int | None = None) -> tuple[Samples, dict]:
+    """``sim`` / ``toy``: simulated (Gaussian, or bias with ``sim_bias``); ``sim-bias`` / ``toy-bias``: the
+    Gaussian + NLOS-bias scenario (seed + 1, so not the same drives as ``sim``); anything else: real traces."""
+    traces, real, desc = [], [], {"sources": sources}
     for src in sources:
-        if src in ("sim", "toy"):
-            traces += simulated_traces(sim_traces, sim_epochs, seed=seed, bias=sim_bias, toy=src == "toy")
-            desc[src] = {"traces": sim_traces, "epochs_per_trace": sim_epochs, "bias": sim_bias, "seed": seed}
+        if src in ("sim", "toy", "sim-bias", "toy-bias"):
+            extra = src.endswith("-bias")
+            n = (sim_bias_traces if sim_bias_traces is not None else sim_traces) if extra else sim_traces
+            sd = seed + 1 if extra else seed
+            new = simulated_traces(n, sim_epochs, seed=sd, bias=extra or sim_bias, toy=src.startswith("toy"))
+            desc[src] = {"traces": n, "epochs_per_trace": sim_epochs, "bias": extra or sim_bias, "seed": sd}
+            real += [False] * len(new)
         else:
-            traces += load_real_traces([src])
-    samples = build_samples(traces, elev_mask_deg)
+            new = load_real_traces([src])
+            real += [True] * len(new)
+        traces += new
+    samples = build_samples(traces, elev_mask_deg, real=real)
     desc.update(traces=samples.names, n_samples=len(samples), skipped=samples.skipped)
     return samples, desc
 
@@ -263,17 +357,26 @@ def main(argv: list[str], prog: str = "gnssfuse train") -> int:
     args = _parser(prog).parse_args(argv)
     if args.epochs < 1 or args.batch < 1 or not (0 <= args.val_frac < 1) or args.eta <= 0:
         raise DataError("need --epochs >= 1, --batch >= 1, 0 <= --val-frac < 1, --eta > 0")
+    if args.wls_jitter < 0 or args.wls_max_err <= 0:
+        raise DataError("need --wls-jitter >= 0 and --wls-max-err > 0")
+    try:
+        mix = parse_guess_mix(args.guess_mix)
+    except ValueError as exc:
+        raise DataError(f"--guess-mix: {exc}") from None
     if args.threads:
         torch.set_num_threads(args.threads)
     sources = [s for item in args.data for s in item.split(",") if s]
     samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
-                                       sim_bias=args.sim_bias, seed=args.seed, elev_mask_deg=args.elev_mask)
-    train_s, val_s = split_random(samples, args.val_frac, np.random.default_rng(args.seed))
-    desc.update(n_train=len(train_s), n_val=len(val_s))
+                                       sim_bias=args.sim_bias, seed=args.seed, elev_mask_deg=args.elev_mask,
+                                       sim_bias_traces=args.sim_bias_traces)
+    split = split_blocks if args.val_split == "blocks" else split_random
+    train_s, val_s = split(samples, args.val_frac, np.random.default_rng(args.seed))
+    desc.update(n_train=len(train_s), n_val=len(val_s), val_split=args.val_split)
     cfg = TrainConfig(eta=args.eta, epochs=args.epochs, batch=args.batch, lr=args.lr, seed=args.seed,
                       model=args.model, augment=not args.no_augment, warmup_epochs=args.warmup_epochs,
                       val_frac=args.val_frac, device=args.device,
-                      features=FeatureConfig(elev_mask_deg=args.elev_mask), data=desc)
+                      features=FeatureConfig(elev_mask_deg=args.elev_mask), data=desc, guess_mix=mix,
+                      wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate)
     model_params = count_parameters(build_model(args.model))
     print(f"{prog}: {len(train_s)} training / {len(val_s)} validation samples from {len(samples.names)} traces; "
           f"model {args.model} ({model_params} parameters); skipped {samples.skipped}", file=sys.stderr)
@@ -281,5 +384,12 @@ def main(argv: list[str], prog: str = "gnssfuse train") -> int:
     if hist:
         h = min(hist, key=lambda r: r["val_mse"])
         print(f"best epoch {h['epoch']}: val MAE N/E/D [m] = "
-              + "/".join(f"{v:.2f}" for v in h.get("val_mae_ned_m", [float('nan')] * 3)) + f" -> {args.out}")
+              + "/".join(f"{v:.2f}" for v in h.get("val_mae_ned_m", [float('nan')] * 3))
+              + ("" if "val_wls_mae_ned_m" not in h else " (guess = WLS: "
+                 + "/".join(f"{v:.2f}" for v in h["val_wls_mae_ned_m"]) + ")") + f" -> {args.out}")
+        cal = read_checkpoint(args.out)["config"].get("calibration")
+        if cal:
+            print(f"variance scale N/E/D {'/'.join(f'{v:.2f}' for v in cal['scale_ned'])} ({cal['subset']}, "
+                  f"n={cal['n']}): within 1 sigma {'/'.join(f'{v:.2f}' for v in cal['within_1sigma_before'])}"
+                  f" -> {'/'.join(f'{v:.2f}' for v in cal['within_1sigma_after'])}")
     return 0

@@ -1,0 +1,184 @@
+"""Realistic initial guesses (box / WLS mix), block validation split, variance calibration, checkpoint fields."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from fusion.errors import CheckpointError, DataError
+from fusion.geometry import ecef2ned_vec
+from fusion.wls import solve_wls
+from learned.augment import draw_mixed_guesses, epoch_generator, parse_guess_mix
+from learned.checkpoint import read_checkpoint, save_checkpoint
+from learned.data import build_samples, samples_from_trace, split_blocks, split_random
+from learned.features import FeatureConfig
+from learned.infer import Corrector
+from learned.model import SetTransformer
+from learned.toy import toy_dataset, toy_trace
+from learned.train import TrainConfig, fit_calibration, main, train
+
+
+def test_parse_guess_mix_normalises_and_rejects_bad_text():
+    assert parse_guess_mix("box=1,wls=3") == {"box": 0.25, "wls": 0.75}
+    assert parse_guess_mix("wls=2") == {"box": 0.0, "wls": 1.0}
+    assert parse_guess_mix({"box": 0.5, "wls": 0.5}) == {"box": 0.5, "wls": 0.5}
+    for bad, msg in [("box=0.5,truth=0.5", "unknown source 'truth'"), ("box", "not SOURCE=FRACTION"),
+                     ("box=x", "not a number"), ("box=-1,wls=2", ">= 0"), ("box=0", "sum to zero")]:
+        with pytest.raises(ValueError, match=msg):
+            parse_guess_mix(bad)
+
+
+def _mix_inputs(n=20000, seed=0):
+    rng = np.random.default_rng(seed)
+    truth = torch.as_tensor(toy_trace(1, seed=seed).truth.repeat(n, 0) + rng.normal(0, 50, (n, 3)))
+    wls = truth + torch.as_tensor(rng.normal(0, 10, (n, 3)))
+    usable = torch.as_tensor(rng.random(n) > 0.1)
+    return truth, wls, usable
+
+
+def test_mixed_guesses_respect_fraction_jitter_and_seed():
+    truth, wls, usable = _mix_inputs()
+    g, is_box = draw_mixed_guesses(truth, wls, usable, 15.0, 0.3, 2.0, epoch_generator(1, 0))
+    # Box with probability 0.3 among usable samples; every unusable sample falls back to the box.
+    frac = is_box[usable].double().mean().item()
+    assert abs(frac - 0.3) < 0.015, frac
+    assert is_box[~usable].all()
+    d_wls = ecef2ned_vec((g - wls).numpy(), wls.numpy())
+    assert np.abs(d_wls[~is_box.numpy()]).max() <= 2.0 + 1e-6          # jitter box around the WLS position
+    assert np.abs(d_wls[~is_box.numpy()]).max() > 1.8                   # ... and it is actually used
+    d_truth = ecef2ned_vec((g - truth).numpy(), truth.numpy())
+    assert np.abs(d_truth[is_box.numpy()]).max() <= 15.0 + 1e-6
+    g2, b2 = draw_mixed_guesses(truth, wls, usable, 15.0, 0.3, 2.0, epoch_generator(1, 0))
+    assert torch.equal(g, g2) and torch.equal(is_box, b2)
+    g3, _ = draw_mixed_guesses(truth, wls, usable, 15.0, 0.3, 2.0, epoch_generator(1, 1))
+    assert not torch.equal(g, g3)
+    _, all_box = draw_mixed_guesses(truth, wls, usable, 15.0, 1.0, 2.0, epoch_generator(1, 0))
+    assert all_box.all()
+
+
+def test_wls_branch_needs_no_truth():
+    """Guesses of WLS-branch samples do not change when the truth does (same generator state)."""
+    truth, wls, usable = _mix_inputs(2000, seed=3)
+    g, is_box = draw_mixed_guesses(truth, wls, usable, 15.0, 0.5, 2.0, epoch_generator(0, 5))
+    g_other, is_box2 = draw_mixed_guesses(truth + 1234.0, wls, usable, 15.0, 0.5, 2.0, epoch_generator(0, 5))
+    assert torch.equal(is_box, is_box2)
+    assert torch.equal(g[~is_box], g_other[~is_box]) and not torch.equal(g[is_box], g_other[is_box])
+
+
+def test_sample_wls_is_the_truth_free_inference_solution():
+    tr = toy_trace(50, seed=4, bias=True)
+    s = samples_from_trace(tr, real=True)
+    blind = solve_wls(dataclasses.replace(tr, truth=None))       # what the pipeline computes at inference
+    ok = np.isfinite(tr.truth).all(1)
+    np.testing.assert_allclose(s.wls, blind.pos[ok], atol=1e-6)
+    assert s.real.all() and s.skipped["wls_invalid"] == 0
+    both = build_samples([tr, toy_trace(20, seed=5)], real=[True, False])
+    assert both.wls.shape == (70, 3) and both.real.sum() == 50
+    assert both.subset(np.array([0, 60])).real.tolist() == [True, False]
+
+
+def test_split_blocks_is_contiguous_and_disjoint():
+    s = build_samples(toy_dataset(3, 200, seed=2), with_wls=False)
+    tr, va = split_blocks(s, 0.2, np.random.default_rng(0), block=50)
+    assert len(tr) + len(va) == 600 and abs(len(va) - 120) <= 25
+    assert not set(map(tuple, tr.truth.round(3))) & set(map(tuple, va.truth.round(3)))
+    # Every validation block is whole: 50 consecutive samples of one trace (trace length 200 = 4 blocks).
+    assert len(va) % 50 == 0
+    tr2, va2 = split_blocks(s, 0.2, np.random.default_rng(0), block=50)
+    np.testing.assert_array_equal(va.truth, va2.truth)
+
+
+class ScaledErrNet(nn.Module):
+    """Predicts (0,0,0) with log-variance 0 (sigma = out_scale), whatever the input."""
+
+    def forward(self, x, mask):
+        B = x.shape[0]
+        return torch.zeros(B, 3), torch.zeros(B, 3)
+
+
+def test_fit_calibration_recovers_the_sigma_scale():
+    g = torch.Generator().manual_seed(0)
+    y = torch.randn(20000, 3, generator=g) * torch.tensor([2.0, 1.0, 0.5])   # true sigma / predicted sigma
+    x, mask = torch.zeros(20000, 4, 4), torch.ones(20000, 4, dtype=torch.bool)
+    cal = fit_calibration(ScaledErrNet(), x, y, mask, FeatureConfig())
+    np.testing.assert_allclose(cal["scale_ned"], [2.0, 1.0, 0.5], rtol=0.03)
+    np.testing.assert_allclose(cal["within_1sigma_after"], 0.683, atol=0.01)
+    assert cal["within_1sigma_before"][0] < 0.45 and cal["within_1sigma_before"][2] > 0.9
+
+
+class UnitNet(nn.Module):
+    def forward(self, x, mask):
+        B = x.shape[0]
+        return torch.ones(B, 3), torch.zeros(B, 3)
+
+
+def test_calibration_scale_applied_by_predict_and_old_configs_load():
+    tr = toy_trace(20, seed=1)
+    cfg = TrainConfig().to_checkpoint_config(None)
+    raw = Corrector(UnitNet(), cfg).predict(tr, tr.truth + 3.0, np.ones(20, bool))
+    cal = Corrector(UnitNet(), dict(cfg, calibration={"scale_ned": [2.0, 1.0, 0.5]}))
+    c = cal.predict(tr, tr.truth + 3.0, np.ones(20, bool))
+    np.testing.assert_allclose(c.mean_ecef, raw.mean_ecef)                  # means untouched
+    np.testing.assert_allclose(np.diagonal(c.cov_ned, axis1=1, axis2=2),
+                               np.diagonal(raw.cov_ned, axis1=1, axis2=2) * [4.0, 1.0, 0.25], rtol=1e-9)
+    off = Corrector(UnitNet(), dict(cfg, calibration={"scale_ned": [2.0, 1.0, 0.5]}), calibrated=False)
+    np.testing.assert_allclose(off.predict(tr, tr.truth + 3.0, np.ones(20, bool)).cov_ned, raw.cov_ned)
+    with pytest.raises(CheckpointError, match="scale_ned"):
+        Corrector(UnitNet(), dict(cfg, calibration={"scale_ned": [1.0, -1.0, 1.0]}))
+
+
+def test_old_checkpoint_without_new_fields_loads_with_defaults(tmp_path):
+    old_cfg = TrainConfig().to_checkpoint_config(None)
+    for k in ("guess_mix", "wls_jitter", "wls_max_err"):
+        old_cfg.pop(k)
+    path = save_checkpoint(tmp_path / "old.pt", SetTransformer(), old_cfg)
+    c = Corrector.load(path)
+    np.testing.assert_array_equal(c.var_scale, np.ones(3))
+    tr = toy_trace(10, seed=6)
+    assert c.predict(tr, tr.truth + 2.0, np.ones(10, bool)).valid.all()
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    torch.set_num_threads(1)
+    s = build_samples(toy_dataset(2, 80, seed=9, bias=True), real=[True, False])
+    return split_blocks(s, 0.25, np.random.default_rng(0), block=20)
+
+
+def test_checkpoint_round_trip_with_mix_and_calibration(tiny, tmp_path):
+    tr, va = tiny
+    cfg = TrainConfig(epochs=1, guess_mix={"box": 0.5, "wls": 0.5}, wls_jitter=1.5, wls_max_err=80.0)
+    hist = train(tr, va, cfg, tmp_path / "m.pt", progress=False)
+    assert "val_wls_mae_ned_m" in hist[0] and len(hist[0]["val_wls_within_1sigma"]) == 3
+    conf = read_checkpoint(tmp_path / "m.pt")["config"]
+    assert conf["guess_mix"] == {"box": 0.5, "wls": 0.5} and conf["wls_jitter"] == 1.5
+    assert conf["wls_max_err"] == 80.0
+    cal = conf["calibration"]
+    assert len(cal["scale_ned"]) == 3 and cal["n"] == len(va) and cal["subset"] == "all validation samples"
+    c = Corrector.load(tmp_path / "m.pt")
+    np.testing.assert_allclose(c.var_scale, np.square(cal["scale_ned"]))
+    assert "calibration" not in read_checkpoint(tmp_path / "m.pt.last")["config"]
+    # A box-only run and a mixed run see different guesses -> different first-epoch losses.
+    hist_box = train(tr, va, TrainConfig(epochs=1), tmp_path / "b.pt", progress=False)
+    assert hist_box[0]["train_mse"] != hist[0]["train_mse"]
+    with pytest.raises(CheckpointError, match="'guess_mix' differs"):
+        train(tr, va, dataclasses.replace(cfg, epochs=2, guess_mix={"box": 1.0}), tmp_path / "m.pt",
+              resume=True, progress=False)
+    train(tr, va, dataclasses.replace(cfg, calibrate=False), tmp_path / "nc.pt", progress=False)
+    assert "calibration" not in read_checkpoint(tmp_path / "nc.pt")["config"]
+
+
+def test_cli_guess_mix_and_bias_source(tmp_path, capsys):
+    out = tmp_path / "ck.pt"
+    assert main(["--data", "toy", "toy-bias", "--sim-traces", "1", "--sim-bias-traces", "1", "--sim-epochs", "60",
+                 "--epochs", "1", "--guess-mix", "box=0.25,wls=0.75", "--val-split", "blocks", "--out", str(out),
+                 "--quiet", "--threads", "1"]) == 0
+    conf = read_checkpoint(out)["config"]
+    assert conf["guess_mix"] == {"box": 0.25, "wls": 0.75} and conf["data"]["toy-bias"]["bias"]
+    assert conf["data"]["val_split"] == "blocks" and "calibration" in conf
+    assert "variance scale N/E/D" in capsys.readouterr().out
+    with pytest.raises(DataError, match="--guess-mix"):
+        main(["--data", "toy", "--guess-mix", "truth=1", "--out", str(tmp_path / "x.pt")])
