@@ -6,6 +6,7 @@
         # tuning, training traces only: GraphConfig variations for fused-nodnn on the three
         # training traces, then learned-prior settings on 2020-09-04-US-SF-2 with a checkpoint
         # trained WITHOUT that trace (LOO.pt, e.g. gnssfuse train --data sim <the other two> ...)
+    PYTHONPATH=. python benchmarks/bench_graph.py --part prior --weights LOO.pt   # learned prior only
 
 Accuracy: wls / dnn / fused / fused-nodnn on the test traces 2021-04-28-US-MTV-1/Pixel4 (GPS L1)
 and 2021-04-28-US-SJC-1/Pixel4 (multi-signal, 5 windows with gaps), identical inputs per trace
@@ -89,7 +90,7 @@ GRAPH_GRID = (
 #: learned-prior settings tried on the held-out training trace
 PRIOR_GRID = tuple(
     {"prior_cov_scale": sc, "prior_sigma_floor_m": fl, "prior_robust": rb, "prior_robust_k": k}
-    for sc in (1.0, 4.0, 16.0, 64.0) for fl in (0.0, 2.0)
+    for sc in (1.0, 2.0, 4.0, 16.0) for fl in (0.0, 2.0)
     for rb, k in (("none", 2.0), ("huber", 1.0), ("cauchy", 1.0)))
 
 
@@ -119,8 +120,9 @@ def _pv(res):
 def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-US-SF-2", grid=PRIOR_GRID) -> None:
     """fused vs fused-nodnn on one training trace, with a checkpoint trained WITHOUT that trace.
 
-    The network is asked once (at the no-prior graph solution, as ``fused`` does) and its output
-    reused for every prior setting, so the table isolates the effect of the settings.
+    The network is asked once per ``prior_at`` choice (at the no-prior graph solution, and at the
+    WLS positions) and its output reused for every prior setting, so the table isolates the effect
+    of the settings.
     """
     from fusion.io_gsdc import load_trace
     from fusion.graph import solve_batch
@@ -133,29 +135,30 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
     wls = solve_wls(trace)
     nodnn = fuse(trace, wls, RunOptions(), want_cov=False)
     corr = Corrector.load(weights)
-    c = corr.predict(trace, np.where(nodnn.valid[:, None], nodnn.pos, wls.pos), trace.n_sats >= 1)
-    ok = c.valid & np.isfinite(trace.truth).all(axis=1)
-    err = ned_errors(c.mean_ecef[ok], trace.truth[ok])
-    cal = calibration(err, c.cov_ned[ok])
-    out = (c.mean_ecef, c.cov_ecef, c.valid)
-
-    def cached(tr, at, valid):
-        return out
-
-    rows = {"wls": _score(trace, wls.pos, wls.valid), "fused-nodnn": _score(trace, *_pv(nodnn)),
-            "dnn@graph": _score(trace, c.mean_ecef, c.valid)}
+    ask = trace.n_sats >= 1
+    guesses = {"graph": np.where(nodnn.valid[:, None], nodnn.pos, wls.pos), "wls": wls.pos}
+    rows = {"wls": _score(trace, wls.pos, wls.valid), "fused-nodnn": _score(trace, *_pv(nodnn))}
+    outs, cals = {}, {}
+    for at, guess in guesses.items():
+        c = corr.predict(trace, guess, ask & np.isfinite(guess).all(axis=1))
+        ok = c.valid & np.isfinite(trace.truth).all(axis=1)
+        cals[at] = calibration(ned_errors(c.mean_ecef[ok], trace.truth[ok]), c.cov_ned[ok])
+        outs[at] = (c.mean_ecef, c.cov_ecef, c.valid)
+        rows[f"dnn@{at}"] = _score(trace, c.mean_ecef, c.valid)
     print(f"\n{trace.name} with {weights} (network never saw this trace)")
-    print(f"  DNN calibration at the graph guess: {cal}")
+    for at, cal in cals.items():
+        print(f"  DNN calibration at the {at} guess: {cal}")
     print(format_table(rows))
-    print(f"\n  {'cov scale':>9} {'floor m':>7} {'robust':>10}  {'h p50':>6} {'h p95':>6} {'score':>6}")
-    for change in grid:
-        cfg = GraphConfig(**change)
-        inp = prepare_inputs(trace, wls, cfg, 10.0, cached, prior_guess=nodnn.pos)
-        pos, valid, _, _ = solve_batch(trace, inp, cfg, use_prior=True, want_cov=False)
-        m = _score(trace, pos, valid)
-        rb = "none" if change["prior_robust"] == "none" else f"{change['prior_robust']}({change['prior_robust_k']:g})"
-        print(f"  {change['prior_cov_scale']:9g} {change['prior_sigma_floor_m']:7g} {rb:>10}  "
-              f"{m['h_p50']:6.2f} {m['h_p95']:6.2f} {m['gsdc_score']:6.2f}")
+    print(f"\n  {'prior at':>8} {'cov scale':>9} {'floor m':>7} {'robust':>10}  {'h p50':>6} {'h p95':>6} {'score':>6}")
+    for at, out in outs.items():
+        for change in grid:
+            cfg = GraphConfig(**change)
+            inp = prepare_inputs(trace, wls, cfg, 10.0, lambda tr, g, v: out, prior_guess=guesses[at])
+            pos, valid, _, _ = solve_batch(trace, inp, cfg, use_prior=True, want_cov=False)
+            m = _score(trace, pos, valid)
+            rb = "none" if change["prior_robust"] == "none" else f"{change['prior_robust']}({change['prior_robust_k']:g})"
+            print(f"  {at:>8} {change['prior_cov_scale']:9g} {change['prior_sigma_floor_m']:7g} {rb:>10}  "
+                  f"{m['h_p50']:6.2f} {m['h_p95']:6.2f} {m['gsdc_score']:6.2f}", flush=True)
 
 
 def tune(root: Path, weights: Path | None) -> None:
@@ -163,8 +166,14 @@ def tune(root: Path, weights: Path | None) -> None:
     tune_prior(root, weights)
 
 
-def speed(root: Path, repeats: int) -> None:
+REPO_TRACE = Path(__file__).resolve().parents[1] / "data" / "gsdc2021" / "train" / "2021-04-28-US-MTV-1" / "Pixel4"
+
+
+def speed(root: Path, repeats: int) -> list[dict]:
+    """Time the graph on 2021-04-28-US-MTV-1 (shared data, else the copy shipped in the repo, else a
+    synthetic 2,000-epoch trace); prints a table and returns benchmark records."""
     d = root / "2021-04-28-US-MTV-1" / "Pixel4"
+    d = d if d.is_dir() else REPO_TRACE
     if d.is_dir():
         from fusion.io_gsdc import load_trace
 
@@ -176,7 +185,8 @@ def speed(root: Path, repeats: int) -> None:
         trace = synth_trace(E=2000)
     wls = solve_wls(trace)
     cfg = GraphConfig()
-    print(f"\nspeed on {trace.name}: {trace.n_epochs} epochs, {int(trace.mask.sum())} measurements "
+    E = trace.n_epochs
+    print(f"\nspeed on {trace.name}: {E} epochs, {int(trace.mask.sum())} measurements "
           f"(best of {repeats}; 2 shared CPU cores)")
 
     def best(f):
@@ -193,21 +203,39 @@ def speed(root: Path, repeats: int) -> None:
     t_cov, res_c = best(lambda: fuse(trace, wls, RunOptions(), cfg=cfg, want_cov=True))
     t_inc, res_i = best(lambda: fuse(trace, wls, RunOptions(incremental=True), cfg=cfg))
     n_f = graph.size()
+    it = max(res.info["iterations"], 1)
+    us_iter = 1e6 * res.info["solve_s"] / n_f / it
     print(f"  inputs (vectorised)            {1000 * t_prep:8.1f} ms")
     print(f"  graph build ({n_f} factors)   {1000 * t_build:8.1f} ms  = {1e6 * t_build / n_f:.1f} us/factor")
     print(f"  batch total (prep+build+LM)    {t_batch:8.2f} s   ({res.info['iterations']} LM iterations, "
-          f"solve {res.info['solve_s']:.2f} s = {1e6 * res.info['solve_s'] / n_f / max(res.info['iterations'], 1):.1f} "
-          f"us/factor/iteration)")
+          f"solve {res.info['solve_s']:.2f} s = {us_iter:.1f} us/factor/iteration)")
     print(f"  batch + marginal covariances   {t_cov:8.2f} s   (marginals {res_c.info['cov_s']:.2f} s)")
     print(f"  incremental ISAM2              {res_i.info['ms_per_epoch']:8.2f} ms/epoch "
           f"(total {t_inc:.2f} s incl. prep)")
     gap = np.linalg.norm(res_i.pos - res.pos, axis=1)
     print(f"  ISAM2 vs batch position difference: median {np.nanmedian(gap):.3f} m, max {np.nanmax(gap):.3f} m")
+    note = f"{trace.name}, {E} epochs, {n_f} factors, fused-nodnn, best of {repeats}, CPU"
+    return [
+        {"name": "graph batch (prep+build+LM), per 2000 epochs", "value": t_batch * 2000 / E, "unit": "s", "note": note},
+        {"name": "graph batch + marginal covariances, per 2000 epochs", "value": t_cov * 2000 / E, "unit": "s",
+         "note": note},
+        {"name": "graph incremental ISAM2", "value": res_i.info["ms_per_epoch"], "unit": "ms/epoch", "note": note},
+        {"name": "graph build per factor", "value": 1e6 * t_build / n_f, "unit": "us", "note": note},
+        {"name": "graph LM per factor per iteration", "value": us_iter, "unit": "us",
+         "note": note + f", {res.info['iterations']} iterations"},
+        {"name": "graph ISAM2 vs batch position difference, median", "value": float(np.nanmedian(gap)), "unit": "m",
+         "note": note},
+    ]
+
+
+def run(quick: bool = False) -> list[dict]:
+    """Benchmark records for ``benchmarks/run_all.py``: the speed part (one repeat when quick)."""
+    return speed(DATA, repeats=1 if quick else 2)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--part", choices=("all", "accuracy", "speed", "tune"), default="all")
+    p.add_argument("--part", choices=("all", "accuracy", "speed", "tune", "prior"), default="all")
     p.add_argument("--data", type=Path, default=DATA, help="a GSDC 2021 train/ folder")
     p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
     p.add_argument("--repeats", type=int, default=2)
@@ -216,6 +244,8 @@ def main(argv: list[str] | None = None) -> int:
         accuracy(args.data, args.weights)
     if args.part == "tune":
         tune(args.data, args.weights)
+    if args.part == "prior":
+        tune_prior(args.data, args.weights)
     if args.part in ("all", "speed"):
         speed(args.data, args.repeats)
     return 0

@@ -20,10 +20,10 @@ import numpy as np
 
 from fusion.errors import GeometryError, GnssfuseError
 from fusion.geometry import C_LIGHT
-from fusion.graph_build import (B, EpochInputs, GraphConfig, MotionNoise, PriorProvider, X,
+from fusion.graph_build import (B, EpochInputs, GraphConfig, I, MotionNoise, PriorProvider, X,
                                 epoch_factors, prepare_inputs)
 from fusion.pipeline import ModeResult, RunOptions
-from fusion.trace import Trace
+from fusion.trace import SIGNALS, Trace
 
 __all__ = ["GraphConfig", "fuse", "estimate_fused", "estimate_fused_nodnn", "build_graph",
            "solve_batch", "solve_incremental"]
@@ -37,6 +37,11 @@ def _geometry_error(trace: Trace, exc: Exception) -> GeometryError:
     """Turn GTSAM's indeterminant-system exception into our error, naming the epoch."""
     msg = str(exc)
     m = re.search(r"Symbol: ([xbv])(\d+)", msg)
+    mi = re.search(r"Symbol: i(\d+)", msg)
+    if mi:
+        idx = int(mi.group(1))
+        return GeometryError(f"{trace.name}: the graph cannot determine the inter-system bias of signal group "
+                             f"{idx % 16} in motion component {idx // 16} (singular system)")
     if m:
         k = int(m.group(2))
         what = {"x": "position", "b": "receiver clock", "v": "velocity"}[m.group(1)]
@@ -53,6 +58,20 @@ def check_determined(trace: Trace, inp: EpochInputs) -> None:
         raise GeometryError(f"{_epoch_label(trace, k)}: {int(inp.sel[k].sum())} usable pseudoranges, no "
                             f"position prior, and no motion link to an epoch with >= 4 satellites or a prior; "
                             f"its position is undetermined")
+
+
+def isb_estimates(values: gtsam.Values, inp: EpochInputs) -> dict[str, float]:
+    """Estimated inter-system biases [m] (pseudorange minus the reference-clock model), keyed
+    ``"<signal>@<component>"``, for every bias state in ``values``."""
+    out = {}
+    if inp.isb_new is None:
+        return out
+    for g, sg in enumerate(inp.isb_groups):
+        for c in np.unique(inp.comp[inp.isb_new[:, g] & inp.keep]):
+            key = I(int(c), g)
+            if values.exists(key):
+                out[f"{SIGNALS[sg]}@{int(c)}"] = -float(values.atDouble(key))   # the key holds -ISB
+    return out
 
 
 def build_graph(trace: Trace, inp: EpochInputs, cfg: GraphConfig, use_prior: bool
@@ -99,7 +118,8 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, use_prior: boo
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt.iterations()),
-            "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2}
+            "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
+            "isb_m": isb_estimates(result, inp)}
     return pos, valid, cov, info
 
 
@@ -118,7 +138,7 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig, use_prio
     # The clock is in seconds: scalar thresholds meant for metres would never relinearise it or
     # propagate its updates (0.001 s = 300 km), so thresholds are per variable type, in their units.
     thr = gtsam.ISAM2ThresholdMap()
-    for sym, dim, scale in (("x", 3, 1.0), ("v", 3, 1.0), ("b", 1, 1.0 / C_LIGHT)):
+    for sym, dim, scale in (("x", 3, 1.0), ("v", 3, 1.0), ("b", 1, 1.0 / C_LIGHT), ("i", 1, 1.0)):
         thr.insert((sym, np.full(dim, cfg.isam_relin_threshold * scale)))
     params.setRelinearizeThreshold(thr)
     params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(cfg.isam_wildfire_m / C_LIGHT))
@@ -158,7 +178,7 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig, use_prio
     valid = inp.keep & np.isfinite(pos).all(axis=1)
     n = max(int(inp.keep.sum()), 1)
     return pos, valid, None, {"online_pos": online, "incremental_s": elapsed,
-                              "ms_per_epoch": 1000.0 * elapsed / n}
+                              "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp)}
 
 
 def fuse(trace: Trace, wls, opts: RunOptions | None = None, provider: PriorProvider | None = None,

@@ -8,10 +8,10 @@ import pytest
 from fusion.errors import GeometryError
 from fusion.geometry import C_LIGHT, geodetic2ecef, line_of_sight, ned2ecef_vec
 from fusion.graph import fuse
-from fusion.graph_build import B, GraphConfig, X, pseudorange_factor
+from fusion.graph_build import B, GraphConfig, I, X, prepare_inputs, pseudorange_factor
 from fusion.metrics import ned_errors
 from fusion.pipeline import RunOptions
-from fusion.trace import Trace, empty_trace
+from fusion.trace import SIGNALS, Trace, empty_trace
 from fusion.wls import solve_wls
 
 R_ORBIT = 26_560e3
@@ -379,3 +379,71 @@ def test_a_wrong_overconfident_prior_cannot_drag_the_solution(trace, wls):
     assert np.median(e_safe[50:]) < np.median(e_nodnn[50:])
     with pytest.raises(GeometryError, match="prior_cov_scale"):
         fuse(trace, wls, RunOptions(), provider=bad, cfg=GraphConfig(prior_cov_scale=0.0))
+
+
+# ---------------------------------------------------------------------------- inter-system biases
+def _two_system_trace(isb_m: float, seed: int = 0, E: int = 120, gap_at: int | None = None) -> Trace:
+    """synth_trace with its last 4 of 10 satellites relabelled GLONASS G1 and offset by ``isb_m``."""
+    tr = synth_trace(E=E, S=10, seed=seed, pr_noise_m=1.0)
+    glo = np.zeros(tr.n_slots, bool)
+    glo[6:] = True
+    tr.signal[:, glo] = SIGNALS.index("GLO_G1")
+    tr.sat_id[:, glo] = 3001 + np.arange(glo.sum())
+    tr.pr[:, glo] += isb_m
+    if gap_at is not None:                      # a 60 s gap: two motion components
+        tr.t_ms[gap_at:] += 60_000
+    return tr
+
+
+def test_differential_factor_carries_minus_the_bias():
+    tr = synth_trace(E=2, pr_noise_m=0.0)
+    rx, clock_m, isb = tr.truth[0] + np.array([5.0, -3.0, 2.0]), 800.0, 4.25
+    rng, _ = line_of_sight(tr.sat_pos[0], rx)
+    f = gtsam.DifferentialPseudorangeFactor(X(0), B(0), I(0, 0), float(tr.pr[0, 0]), tr.sat_pos[0, 0], 0.0,
+                                            gtsam.noiseModel.Isotropic.Sigma(1, 1.0))
+    v = gtsam.Values()
+    v.insert(X(0), rx)
+    v.insert(B(0), clock_m / C_LIGHT)
+    v.insert(I(0, 0), -isb)
+    assert f.unwhitenedError(v)[0] == pytest.approx(rng[0] + clock_m + isb - tr.pr[0, 0], abs=5e-3)
+
+
+@pytest.mark.parametrize("incremental", [False, True])
+def test_inter_system_bias_is_estimated_and_removes_the_error(incremental):
+    biased = _two_system_trace(isb_m=12.0, gap_at=70)
+    clean = _two_system_trace(isb_m=0.0, gap_at=70)
+    opts = RunOptions(incremental=incremental)
+    wls = solve_wls(biased)
+    on = fuse(biased, wls, opts, cfg=GraphConfig(isb="window"), want_cov=False)
+    off = fuse(biased, wls, opts, cfg=GraphConfig(isb="none"), want_cov=False)
+    ref = fuse(clean, solve_wls(clean), opts, cfg=GraphConfig(isb="window"), want_cov=False)
+    # one bias per component, each close to the simulated 12 m
+    assert sorted(on.info["isb_m"]) == ["GLO_G1@0", "GLO_G1@1"]
+    assert np.allclose(list(on.info["isb_m"].values()), 12.0, atol=1.0)
+    e_on, e_off, e_ref = (np.median(h_err(biased, r.pos, r.valid)) for r in (on, off, ref))
+    assert e_on < 0.5 * e_off
+    assert e_on == pytest.approx(e_ref, abs=0.3)   # as good as the trace without a bias
+
+
+def test_bias_states_start_where_a_group_first_appears_in_each_component():
+    tr = _two_system_trace(isb_m=5.0, gap_at=70)
+    tr.mask[:20, 6:] = False                    # GLONASS only from epoch 20 on in component 0
+    wls = solve_wls(tr)
+    inp = prepare_inputs(tr, wls, GraphConfig())
+    assert inp.isb_groups == (SIGNALS.index("GLO_G1"),)
+    assert np.flatnonzero(inp.isb_new[:, 0]).tolist() == [20, 70]
+    assert np.isfinite(inp.isb_init_m).all()   # a starting value only: WLS has absorbed part of the bias
+    assert (inp.isb_group[inp.sel & (tr.signal == 0)] == -1).all()
+
+
+def test_single_signal_traces_get_no_bias_state(trace, wls):
+    on = fuse(trace, wls, RunOptions(), cfg=GraphConfig(isb="window"), want_cov=False)
+    off = fuse(trace, wls, RunOptions(), cfg=GraphConfig(isb="none"), want_cov=False)
+    assert on.info["isb_m"] == {} and on.info["factors"] == off.info["factors"]
+    np.testing.assert_array_equal(on.pos, off.pos)
+
+
+def test_unknown_isb_model_is_rejected(trace, wls):
+    tr = _two_system_trace(isb_m=0.0)
+    with pytest.raises(GeometryError, match="isb"):
+        fuse(tr, solve_wls(tr), RunOptions(), cfg=GraphConfig(isb="perepoch"), want_cov=False)
