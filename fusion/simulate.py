@@ -328,14 +328,15 @@ def random_origins(n: int, rng: np.random.Generator, height_range: tuple[float, 
 def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarray | None = None,
                      seed: int | np.random.Generator | None = 0, rate_hz: float = 1.0,
                      nav: GpsNav | str | Path | None = None, config: SimConfig | None = None,
-                     start_range_ms: tuple[int, int] | None = None, concatenate: bool = False
-                     ) -> list[Trace] | Trace:
+                     start_range_ms: tuple[int, int] | None = None, concatenate: bool = False,
+                     results: bool = False) -> list[Trace] | Trace | list[SimResult] | SimResult:
     """Many short random drives at different origins and start times (training data).
 
     origins: (K, 2|3) lat, lon[, h]; trace i uses origins[i % K]; None = uniform over the Earth.
     start_range_ms: start times are uniform in it; default = the nav file's toe range.
     concatenate: return one Trace with the drives laid back to back in time (each marked by
     ``clock_reset``); they must then fit into ``start_range_ms`` one after the other.
+    results: return the :class:`SimResult` (trace + hidden true clock etc.) instead of the bare Trace.
     All epochs of all traces go through the simulator in one vectorised pass.
     """
     if n_traces < 1 or epochs_per_trace < 1:
@@ -380,12 +381,13 @@ def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarra
         res = _to_result(arrs, t_ms, rx, np.arange(t_ms.size), "sim/dataset")
         first = seg[arrs["keep"]]
         res.trace.clock_reset = first & (np.arange(first.size) > 0)
-        return res.trace
+        return res if results else res.trace
     traces = []
     for i in range(n_traces):  # slicing only; all maths above was vectorised
         sel = np.arange(i * epochs_per_trace, (i + 1) * epochs_per_trace)
         if arrs["keep"][sel].any():
-            traces.append(_to_result(arrs, t_ms, rx, sel, trajs[i].name).trace)
+            r = _to_result(arrs, t_ms, rx, sel, trajs[i].name)
+            traces.append(r if results else r.trace)
     if not traces:
         raise GeometryError("no simulated trace has an epoch with enough visible satellites")
     return traces

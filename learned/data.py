@@ -32,6 +32,8 @@ class Samples:
 
     wls:  (N,3) ECEF WLS position from the epoch's own measurements (NaN where WLS failed), or None.
     real: (N,) bool, True for samples from real (phone) traces, or None (all simulated).
+    clock: (N,) the simulator's TRUE receiver clock [m], or None. Experiment only (the paper's leaky
+        protocol, ``FeatureConfig(clock="given")``); never filled from phone data.
     """
 
     sat_pos: np.ndarray
@@ -43,6 +45,7 @@ class Samples:
     skipped: dict[str, int] = field(default_factory=dict)
     wls: np.ndarray | None = None
     real: np.ndarray | None = None
+    clock: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.pr.shape[0])
@@ -57,15 +60,17 @@ class Samples:
     def subset(self, idx: np.ndarray) -> "Samples":
         return Samples(self.sat_pos[idx], self.pr[idx], self.mask[idx], self.truth[idx], self.trace[idx],
                        list(self.names), dict(self.skipped),
-                       None if self.wls is None else self.wls[idx], None if self.real is None else self.real[idx])
+                       None if self.wls is None else self.wls[idx], None if self.real is None else self.real[idx],
+                       None if self.clock is None else self.clock[idx])
 
 
 def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0, *, real: bool = False,
-                       with_wls: bool = True) -> Samples:
+                       with_wls: bool = True, clock: np.ndarray | None = None) -> Samples:
     """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth).
 
     ``with_wls``: also solve WLS on the whole trace (pipeline defaults: elevation weights, the same mask,
     no truth) and keep each sample's position; ``real`` tags the samples as phone data.
+    ``clock``: (E,) true receiver clock of a simulated trace, kept per sample (experiment only).
     """
     if trace.truth is None:
         raise DataError(f"{trace.name}: no ground truth, cannot be used for training")
@@ -90,8 +95,10 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
         w = solve_wls(trace, elev_mask_deg=elev_mask_deg)
         wls = np.where(w.valid[idx, None], w.pos[idx], np.nan)
         skipped["wls_invalid"] = int((~np.isfinite(wls).all(1)).sum())
+    if clock is not None and np.shape(clock) != (trace.n_epochs,):
+        raise DataError(f"{trace.name}: clock must have shape ({trace.n_epochs},), got {np.shape(clock)}")
     return Samples(sat_pos, pr, mask, truth, np.full(len(idx), index), [trace.name], skipped, wls,
-                   np.full(len(idx), bool(real)))
+                   np.full(len(idx), bool(real)), None if clock is None else np.asarray(clock, float)[idx])
 
 
 def concat_samples(parts: list[Samples]) -> Samples:
@@ -113,9 +120,11 @@ def concat_samples(parts: list[Samples]) -> Samples:
             skipped[k] = skipped.get(k, 0) + v
     wls = None if all(p.wls is None for p in parts) else np.concatenate([p.wls_or_nan() for p in parts])
     real = None if all(p.real is None for p in parts) else np.concatenate([p.real_or_false() for p in parts])
+    # A true clock only when every part has one: a partial array would silently mix in NaN clocks.
+    clock = np.concatenate([p.clock for p in parts]) if all(p.clock is not None for p in parts) else None
     return Samples(np.concatenate([pad(p.sat_pos) for p in parts]), np.concatenate([pad(p.pr) for p in parts]),
                    np.concatenate([pad(p.mask) for p in parts]), np.concatenate([p.truth for p in parts]),
-                   np.concatenate(trace), names, skipped, wls, real)
+                   np.concatenate(trace), names, skipped, wls, real, clock)
 
 
 def split_random(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:
@@ -185,3 +194,16 @@ def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0, real: list[b
     real = [False] * len(traces) if real is None else list(real)
     return concat_samples([samples_from_trace(t, elev_mask_deg, i, real=r, with_wls=with_wls)
                            for i, (t, r) in enumerate(zip(traces, real))])
+
+
+def simulated_samples_with_clock(n_traces: int, epochs_per_trace: int, *, seed: int, bias: bool = False,
+                                 elev_mask_deg: float = 10.0) -> Samples:
+    """Simulated samples that also carry the simulator's TRUE receiver clock (``Samples.clock``).
+
+    EXPERIMENT ONLY: for reproducing the paper's leaky protocol (``FeatureConfig(clock="given")``). Same
+    traces as :func:`simulated_traces` with the same arguments.
+    """
+    from fusion.simulate import SimConfig, simulate_dataset
+    res = simulate_dataset(n_traces, epochs_per_trace, seed=seed, config=SimConfig(nlos=bias), results=True)
+    return concat_samples([samples_from_trace(r.trace, elev_mask_deg, i, clock=r.clock_m)
+                           for i, r in enumerate(res)])

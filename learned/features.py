@@ -35,6 +35,17 @@ FEATURE_VERSION = 1
 _WGS84_A = 6378137.0
 _WGS84_E2 = 6.69437999014e-3
 
+#: Receiver-clock handling in the features (see FeatureConfig.clock).
+CLOCK_MODES = ("median", "given")
+
+
+def _check_clock(cfg: "FeatureConfig", clock) -> None:
+    """A given clock only with ``clock="given"`` configs, and always with them (no silent fallback)."""
+    if cfg.clock == "given" and clock is None:
+        raise ValueError("FeatureConfig(clock='given') needs a per-sample clock array (experiment only)")
+    if cfg.clock == "median" and clock is not None:
+        raise ValueError("a clock array was passed but FeatureConfig.clock is 'median' (estimated)")
+
 
 @dataclass(frozen=True)
 class FeatureConfig:
@@ -44,19 +55,30 @@ class FeatureConfig:
     out_scale: targets / network outputs are in units of this [m].
     elev_mask_deg: slots below this elevation (at the truth when training, at the guess at
         inference, as WLS does) are masked out.
+    clock: how the receiver clock is removed from the raw residuals. ``"median"`` (the product): estimated
+        from the measurements. ``"given"``: EXPERIMENT ONLY, a per-sample clock array supplied by the caller
+        (the simulator's true clock), reproducing the paper's released code, which fed the true clock to
+        the network at evaluation (a ground-truth leak). :class:`learned.infer.Corrector` refuses
+        checkpoints with ``"given"``, so such a model can never run in the product.
     """
 
     version: int = FEATURE_VERSION
     res_scale: float = 10.0
     out_scale: float = 10.0
     elev_mask_deg: float = 10.0
+    clock: str = "median"
+
+    def __post_init__(self):
+        if self.clock not in CLOCK_MODES:
+            raise ValueError(f"FeatureConfig.clock must be one of {CLOCK_MODES}, got {self.clock!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "FeatureConfig":
-        return cls(**{k: d[k] for k in ("version", "res_scale", "out_scale", "elev_mask_deg") if k in d})
+        # Checkpoints written before ``clock`` existed used the median: the default.
+        return cls(**{k: d[k] for k in ("version", "res_scale", "out_scale", "elev_mask_deg", "clock") if k in d})
 
 
 # ---------------------------------------------------------------------------------------------- numpy
@@ -74,14 +96,17 @@ def masked_median_numpy(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def features_numpy(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, guess: np.ndarray,
-                   cfg: FeatureConfig = FeatureConfig()) -> tuple[np.ndarray, np.ndarray]:
-    """Reference features. sat_pos (B,S,3), pr (B,S), mask (B,S) bool, guess (B,3) ECEF.
+                   cfg: FeatureConfig = FeatureConfig(), clock: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Reference features. sat_pos (B,S,3), pr (B,S), mask (B,S) bool, guess (B,3) ECEF;
+    ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only).
 
-    Returns ``x`` (B,S,4) float32 (zeros in padded slots) and ``clock_hat`` (B,) [m].
+    Returns ``x`` (B,S,4) float32 (zeros in padded slots) and the clock used (B,) [m].
     """
+    _check_clock(cfg, clock)
     rng, los = line_of_sight(sat_pos, guess)
     raw = pr - rng
-    clock = masked_median_numpy(raw, mask)
+    clock = masked_median_numpy(raw, mask) if clock is None else np.asarray(clock, float)
     res = np.where(mask, (raw - clock[:, None]) / cfg.res_scale, 0.0)
     los_ned = ecef2ned_vec(los, guess[:, None, :]) * mask[..., None]
     return np.concatenate([res[..., None], los_ned], axis=-1).astype(np.float32), clock
@@ -129,13 +154,17 @@ def line_of_sight_torch(sat_pos: torch.Tensor, rx: torch.Tensor) -> tuple[torch.
 
 
 def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, guess: torch.Tensor,
-                   cfg: FeatureConfig = FeatureConfig()) -> tuple[torch.Tensor, torch.Tensor]:
+                   cfg: FeatureConfig = FeatureConfig(), clock: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched features on any device. Inputs float64: sat_pos (B,S,3), pr (B,S), mask (B,S) bool,
-    guess (B,3). Returns ``x`` (B,S,4) float32 and the NED rotation at the guess (B,3,3) float64."""
+    guess (B,3); ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only).
+    Returns ``x`` (B,S,4) float32 and the NED rotation at the guess (B,3,3) float64."""
+    _check_clock(cfg, clock)
     rng, los = line_of_sight_torch(sat_pos, guess)
     raw = pr - rng
-    # nanmedian returns the lower middle value for even counts (same as masked_median_numpy).
-    clock = torch.nan_to_num(raw.masked_fill(~mask, float("nan")).nanmedian(dim=1).values, nan=0.0)
+    if clock is None:
+        # nanmedian returns the lower middle value for even counts (same as masked_median_numpy).
+        clock = torch.nan_to_num(raw.masked_fill(~mask, float("nan")).nanmedian(dim=1).values, nan=0.0)
     res = ((raw - clock[:, None]) / cfg.res_scale).masked_fill(~mask, 0.0)
     R = ned_rotation_torch(guess)
     los_ned = torch.einsum("bij,bsj->bsi", R, los) * mask[..., None]

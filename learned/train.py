@@ -64,6 +64,9 @@ class TrainConfig:
     # (a 200 m WLS blunder would dominate the MSE; the network's output scale is 10 m).
     wls_max_err: float = 100.0
     calibrate: bool = True                # fit the variance scale on validation WLS guesses after training
+    # Signals the training traces were loaded with (real traces: load_real_traces' default; the simulator
+    # makes GPS L1); inference uses only these slots of a trace.
+    signals: tuple[str, ...] = ("GPS_L1",)
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
@@ -76,7 +79,7 @@ class TrainConfig:
             "batch": self.batch, "lr": self.lr, "betas": list(self.betas), "warmup_epochs": self.warmup(),
             "val_frac": self.val_frac, "data": self.data,
             "guess_mix": parse_guess_mix(self.guess_mix), "wls_jitter": self.wls_jitter,
-            "wls_max_err": self.wls_max_err,
+            "wls_max_err": self.wls_max_err, "signals": list(self.signals),
             # Direct-position model only: features and targets live at this fixed ECEF reference.
             "reference_ecef": None if reference_ecef is None else [float(v) for v in reference_ecef],
         }
@@ -93,7 +96,8 @@ def _tensors(s: Samples, device: torch.device, wls_max_err: float = math.inf) ->
             "mask": torch.as_tensor(s.mask, device=device), "truth": torch.as_tensor(s.truth, **f64),
             "wls": torch.as_tensor(np.where(ok[:, None], wls, 0.0), **f64),
             "wls_ok": torch.as_tensor(ok, device=device), "wls_use": torch.as_tensor(use, device=device),
-            "real": torch.as_tensor(s.real_or_false(), device=device)}
+            "real": torch.as_tensor(s.real_or_false(), device=device),
+            **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)})}
 
 
 def guesses_for(t: dict[str, torch.Tensor], cfg: "TrainConfig", generator: torch.Generator) -> torch.Tensor:
@@ -113,7 +117,9 @@ def make_inputs(t: dict[str, torch.Tensor], guess: torch.Tensor, fcfg: FeatureCo
     for a in range(0, n, CHUNK):
         sl = slice(a, min(a + CHUNK, n))
         g = guess[sl] if guess.shape[0] == n else guess.expand(sl.stop - sl.start, 3)
-        x, R = features_torch(t["sat_pos"][sl], t["pr"][sl], t["mask"][sl], g, fcfg)
+        # The true clock only for the paper-leak experiment (FeatureConfig.clock == "given").
+        clk = t["clock"][sl] if fcfg.clock == "given" else None
+        x, R = features_torch(t["sat_pos"][sl], t["pr"][sl], t["mask"][sl], g, fcfg, clk)
         xs.append(x)
         ys.append(target_torch(t["truth"][sl], g, R, fcfg))
     return torch.cat(xs), torch.cat(ys)
@@ -139,6 +145,9 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         raise DataError("--device cuda requested but CUDA is not available")
     if len(train_s) == 0:
         raise DataError("no training samples after filtering (truth present, >= 4 satellites)")
+    if cfg.features.clock == "given" and (train_s.clock is None or (len(val_s) and val_s.clock is None)):
+        raise DataError("FeatureConfig(clock='given') (paper-leak experiment) needs samples with a true clock "
+                        "(learned.data.simulated_samples_with_clock)")
     direct = cfg.model == "direct"
     ref = reference_point(train_s.truth) if direct else None
     if direct and cfg.features.out_scale < 100:
