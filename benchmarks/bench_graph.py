@@ -1,6 +1,6 @@
 """Factor-graph benchmark: accuracy of every mode side by side, and graph speed.
 
-    PYTHONPATH=. python benchmarks/bench_graph.py                  # both parts, /work/shared/data
+    PYTHONPATH=. python benchmarks/bench_graph.py                  # both parts, ../shared/data
     PYTHONPATH=. python benchmarks/bench_graph.py --part speed     # speed only (synthetic if no data)
     PYTHONPATH=. python benchmarks/bench_graph.py --part tune --weights LOO.pt
         # tuning, training traces only: GraphConfig variations for fused-nodnn on the three
@@ -19,6 +19,7 @@ marginal covariances), ISAM2 milliseconds per epoch, and the per-factor cost.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -32,7 +33,9 @@ from fusion.metrics import ned_errors, summarize
 from fusion.pipeline import RunOptions, format_table, get_mode
 from fusion.wls import solve_wls
 
-DATA = Path("/work/shared/data/gsdc2021/train")
+# The development data beside the checkout (../shared/data), or $GNSSFUSE_SHARED_DATA.
+DATA = Path(os.environ.get("GNSSFUSE_SHARED_DATA",
+                          Path(__file__).resolve().parents[2] / "shared" / "data")) / "gsdc2021" / "train"
 TEST = {"2021-04-28-US-MTV-1": ("GPS_L1",),
         "2021-04-28-US-SJC-1": ("GPS_L1", "GLO_G1", "GAL_E1", "BDS_B1I")}
 TRAIN = ("2020-05-14-US-MTV-1", "2020-06-05-US-MTV-1", "2020-09-04-US-SF-2")

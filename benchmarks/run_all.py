@@ -4,7 +4,7 @@
 
 1. Every ``benchmarks/bench_*.py`` runs in its own subprocess (a crash or a hang in one cannot take
    the others down) and reports records ``{name, value, unit, note}`` (convention: README.md here).
-2. Accuracy: every available mode on the shipped trace and, when ``/work/shared/data`` (or
+2. Accuracy: every available mode on the shipped trace and, when ``../shared/data`` (or
    ``$GNSSFUSE_SHARED_DATA``) is present, on its GSDC 2021 traces, via ``fusion.report.evaluate``.
 3. The goGPS WLS baseline (the paper's) scored with our metrics against its trace's truth, beside
    our WLS on the same trace.

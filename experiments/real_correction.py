@@ -13,7 +13,7 @@ method column names each checkpoint's mix.
 
     PYTHONPATH=. python experiments/real_correction.py [--ckpt noaug=/tmp/noaug.pt direct=/tmp/direct.pt]
     PYTHONPATH=. python experiments/real_correction.py --no-shipped --ckpt loo=/tmp/lt2/loo_sf2.pt \
-        --trace /work/shared/data/gsdc2021/train/2020-09-04-US-SF-2/Pixel4   # leave-one-trace-out
+        --trace ../shared/data/gsdc2021/train/2020-09-04-US-SF-2/Pixel4   # leave-one-trace-out
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ from fusion.wls import solve_wls
 from learned.augment import draw_guesses, epoch_generator
 from learned.infer import SHIPPED_WEIGHTS, Corrector, calibration
 
-TEST = Path("/work/shared/data/gsdc2021/train/2021-04-28-US-MTV-1/Pixel4")
+#: The held-out test trace, as shipped in the repository.
+TEST = Path(__file__).resolve().parents[1] / "data" / "gsdc2021" / "train" / "2021-04-28-US-MTV-1" / "Pixel4"
 
 
 def _cov(cal: dict | None) -> str:
