@@ -133,6 +133,11 @@ def available_modes(modes=ACCURACY_MODES) -> tuple[list[str], dict[str, str]]:
     return ok, why
 
 
+#: Traces with several constellations in their derived file, also scored with all of them.
+MULTI_SIGNAL = {"2021-04-28-US-SJC-1/Pixel4"}
+MULTI_SIGNALS = ("GPS_L1", "GLO_G1", "GAL_E1", "BDS_B1I")
+
+
 def accuracy_traces(shared: Path = SHARED_DATA) -> list[Path]:
     """The shipped trace plus every shared GSDC 2021 train trace with a derived file."""
     traces = [SHIPPED_TRACE] if SHIPPED_TRACE.is_dir() else []
@@ -150,14 +155,44 @@ def accuracy_traces(shared: Path = SHARED_DATA) -> list[Path]:
     return unique
 
 
-def run_accuracy(traces: list[Path], modes: list[str], out_dir: Path, max_epochs: int | None):
+def run_accuracy(traces: list[Path], modes: list[str], out_dir: Path, max_epochs: int | None,
+                 signals: tuple[str, ...] = ("GPS_L1",)):
     """fusion.report.evaluate over ``traces``; returns its metrics table (a DataFrame)."""
     from fusion.pipeline import RunOptions
     from fusion.report import evaluate
 
-    df, failures = evaluate(traces, modes, out_dir, RunOptions(), max_epochs=max_epochs, progress=False)
+    df, failures = evaluate(traces, modes, out_dir, RunOptions(signals=signals), max_epochs=max_epochs,
+                            progress=False)
     for path, msg in failures.items():
         print(f"accuracy: could not load {path}: {msg}", file=sys.stderr)
+    return df
+
+
+def trained_on(weights: Path | None = None) -> set[str]:
+    """``<collection>/<phone>`` names of the real traces the (shipped) network was trained on.
+
+    Read from the checkpoint's own record, so the table can never present in-sample rows as
+    held-out ones. Empty when the weights cannot be loaded (the dnn modes are then unavailable).
+    """
+    try:
+        from learned.infer import Corrector
+
+        names = Corrector.load(weights).config.get("data", {}).get("traces", [])
+    except Exception:  # noqa: BLE001 - any failure means "no DNN", reported elsewhere
+        return set()
+    return {n for n in names if not n.startswith("sim/")}
+
+
+def drop_failed_modes(df, modes: list[str], why: dict[str, str]):
+    """A mode that failed on every trace (e.g. no DNN weights yet) is unavailable, not a row."""
+    from fusion.report import ALL
+
+    for m in df[(df.trace == ALL) & (df.status == "failed on every trace")]["mode"]:
+        first = df[(df["mode"] == m) & (df.trace != ALL)].status.iloc[0]
+        why[m] = first.removeprefix("failed: ")
+        df = df[df["mode"] != m]
+        if m in modes:
+            modes.remove(m)
     return df
 
 
@@ -322,21 +357,26 @@ def main(argv: list[str] | None = None) -> int:
         traces = accuracy_traces()
         max_epochs = args.max_epochs or (300 if args.quick else None)
         if traces and modes:
-            print(f"accuracy: modes {','.join(modes)} on {len(traces)} trace(s) ...", flush=True)
-            from fusion.report import ALL
-
-            df = run_accuracy(traces, modes, args.out / "accuracy", max_epochs)
-            # A mode that failed on every trace (e.g. no DNN weights yet) is unavailable, not a row.
-            for m in df[(df.trace == ALL) & (df.status == "failed on every trace")]["mode"]:
-                first = df[(df["mode"] == m) & (df.trace != ALL)].status.iloc[0]
-                why[m] = first.removeprefix("failed: ")
-                df = df[df["mode"] != m]
-                modes.remove(m)
-            note = (f"Modes {', '.join(modes)}; initial guess from WLS, clock estimated "
-                    f"(honest protocol). " + (f"First {max_epochs} epochs per trace. " if max_epochs else "")
-                    + "".join(f"Mode {m} unavailable: {w}. " for m, w in why.items())
-                    + f"Figures: `{os.path.relpath(args.out / 'accuracy' / 'report.md', REPO)}`.")
-            sections.append(("Accuracy by mode", note + "\n\n" + accuracy_markdown(df)))
+            seen = trained_on()
+            name = lambda d: "/".join(d.parts[-2:])  # noqa: E731
+            held_out = [d for d in traces if name(d) not in seen]
+            in_sample = [d for d in traces if name(d) in seen]
+            multi = [d for d in held_out if name(d) in MULTI_SIGNAL]
+            groups = [("held-out traces (never trained or tuned on)", held_out, ("GPS_L1",), "held_out"),
+                      (f"held-out, multi-signal ({','.join(MULTI_SIGNALS)})", multi, MULTI_SIGNALS, "multi"),
+                      ("training traces (IN-SAMPLE for dnn and fused: the shipped network was trained on "
+                       "them and the graph tuned on them)", in_sample, ("GPS_L1",), "training")]
+            common = (f"Modes {', '.join(modes)}; initial guess from WLS, clock estimated "
+                      f"(honest protocol). " + (f"First {max_epochs} epochs per trace. " if max_epochs else ""))
+            for title, group, signals, slug in groups:
+                if not group:
+                    continue
+                print(f"accuracy: {slug}: modes {','.join(modes)} on {len(group)} trace(s) ...", flush=True)
+                df = drop_failed_modes(run_accuracy(group, list(modes), args.out / slug, max_epochs, signals),
+                                       modes, why)
+                note = (common + "".join(f"Mode {m} unavailable: {w}. " for m, w in why.items())
+                        + f"Figures: `{os.path.relpath(args.out / slug / 'report.md', REPO)}`.")
+                sections.append((f"Accuracy by mode: {title}", note + "\n\n" + accuracy_markdown(df)))
         else:
             sections.append(("Accuracy by mode", "No trace found (shipped trace missing, no shared data)."))
         gogps = gogps_comparison()
