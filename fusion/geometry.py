@@ -58,7 +58,8 @@ def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
     """Rotate transmit-time satellite ECEF positions into the ECEF frame at receive time.
 
     The Earth turns by ``OMEGA_E * tau`` during the signal's flight time ``tau`` (~70 ms), which
-    moves the satellite by up to ~30 m in the receive-time frame.
+    moves the satellite by ~100-140 m in the receive-time frame and changes the range by up to
+    ~30 m; the angle is taken from the transmit-time range, whose error here is second order.
 
     sat_pos: (..., S, 3) ECEF at transmit time. rx_pos: (..., 3) receiver ECEF guess.
     Returns (..., S, 3).

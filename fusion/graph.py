@@ -20,7 +20,7 @@ import numpy as np
 
 from fusion.errors import GeometryError, GnssfuseError
 from fusion.geometry import C_LIGHT
-from fusion.graph_build import (B, EpochInputs, GraphConfig, I, MotionNoise, PriorProvider, X,
+from fusion.graph_build import (ISB_STRIDE, EpochInputs, GraphConfig, I, MotionNoise, PriorProvider, X,
                                 epoch_factors, prepare_inputs)
 from fusion.pipeline import ModeResult, RunOptions
 from fusion.trace import SIGNALS, Trace
@@ -41,7 +41,7 @@ def _geometry_error(trace: Trace, exc: Exception) -> GeometryError:
     if mi:
         idx = int(mi.group(1))
         return GeometryError(f"{trace.name}: the graph cannot determine the inter-system bias of signal group "
-                             f"{idx % 16} in motion component {idx // 16} (singular system)")
+                             f"{idx % ISB_STRIDE} in motion component {idx // ISB_STRIDE} (singular system)")
     if m:
         k = int(m.group(2))
         what = {"x": "position", "b": "receiver clock", "v": "velocity"}[m.group(1)]
@@ -199,7 +199,9 @@ def fuse(trace: Trace, wls, opts: RunOptions | None = None, provider: PriorProvi
     guess = None
     if provider is not None and cfg.prior_at == "graph":
         first = fuse(trace, wls, opts, None, cfg, on_undetermined="drop", want_cov=False)
-        guess = first.info["online_pos"] if opts.incremental else first.pos
+        # a no-prior graph with nothing determinable solves no epoch and has no online estimates:
+        # its all-NaN positions then make the provider fall back to the initial positions
+        guess = first.info.get("online_pos", first.pos) if opts.incremental else first.pos
     elif provider is not None and cfg.prior_at != "wls":
         raise GnssfuseError(f"prior_at must be 'graph' or 'wls', got {cfg.prior_at!r}")
     inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, provider, prior_guess=guess)

@@ -60,16 +60,12 @@ def V(k: int) -> int:
 
 
 #: signal groups per component are packed into one key index: 16 > len(SIGNALS)
-_ISB_STRIDE = 16
+ISB_STRIDE = 16
 
 
 def I(comp: int, group: int) -> int:
     """Key of the (negated) inter-system bias [m] of signal ``group`` in motion component ``comp``."""
-    return gtsam.symbol("i", _ISB_STRIDE * comp + group)
-
-
-def epoch_of_key(key: int) -> int:
-    return int(gtsam.Symbol(key).index())
+    return gtsam.symbol("i", ISB_STRIDE * comp + group)
 
 
 @dataclass

@@ -255,7 +255,10 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
 
 def _retime_derived(rows: pd.DataFrame, received_ns: np.ndarray | None) -> tuple[np.ndarray, int]:
     """GSDC 2021 derived time -> true receive time [GPS ms] per row; also the count of rows that
-    were not stamped one epoch late (see module docstring, trap 1)."""
+    were not stamped one epoch late (see module docstring, trap 1).
+
+    The corrected pseudorange stands in for ``rawPrM``: they differ by the satellite clock and
+    delays (< 1 ms of light time), which cannot move a row to another whole second."""
     t = rows["t"].to_numpy(np.int64) - DERIVED_DELAY_MS
     if received_ns is None:
         return t, 0

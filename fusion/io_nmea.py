@@ -156,10 +156,14 @@ def _first_day_unix_ms(rmc_lines: pd.Series, first_tod: float, ref_gps_ms: int |
             if valid.any():
                 i = int(np.flatnonzero(valid.to_numpy())[0])
                 d_unix = dates[valid].iloc[0].value // 1_000_000
-                # An RMC after midnight dates a GGA from before it: step back a day if needed.
+                # The dating RMC and the first kept GGA may sit on either side of midnight (an
+                # RMC after it dates a GGA before it, or the GGA fixes before midnight had no
+                # fix): move the date by the day the times of day imply.
                 rmc_tod = _tod_ms(rmc[1].iloc[[i]])[0]
                 if np.isfinite(rmc_tod) and rmc_tod < first_tod - DAY_MS / 2:
                     d_unix -= DAY_MS
+                elif np.isfinite(rmc_tod) and rmc_tod > first_tod + DAY_MS / 2:
+                    d_unix += DAY_MS
                 if ref_gps_ms is not None:
                     ref_unix = float(gps_ms_to_unix_ms(np.int64(ref_gps_ms)))
                     if abs(d_unix + first_tod - ref_unix) > DAY_MS:

@@ -98,11 +98,11 @@ def sat_state(nav: GpsNav, idx: np.ndarray, t_ms: np.ndarray, dt_s: np.ndarray |
     if position_only:
         return {"pos": np.stack([x, y, z], axis=-1)}
 
-    # Analytic time derivatives of the same expressions.
-    e_dot = n / one_m_ecos
-    phi_dot = sq * e_dot / one_m_ecos
+    # Analytic time derivatives of the same expressions (ea_dot: eccentric anomaly rate).
+    ea_dot = n / one_m_ecos
+    phi_dot = sq * ea_dot / one_m_ecos
     u_dot = phi_dot * (1.0 + 2.0 * (p["cus"] * c2 - p["cuc"] * s2))
-    r_dot = a * e * sin_e * e_dot + 2.0 * phi_dot * (p["crs"] * c2 - p["crc"] * s2)
+    r_dot = a * e * sin_e * ea_dot + 2.0 * phi_dot * (p["crs"] * c2 - p["crc"] * s2)
     i_dot = p["idot"] + 2.0 * phi_dot * (p["cis"] * c2 - p["cic"] * s2)
     xp_dot = r_dot * np.cos(u) - yp * u_dot
     yp_dot = r_dot * np.sin(u) + xp * u_dot
@@ -112,7 +112,7 @@ def sat_state(nav: GpsNav, idx: np.ndarray, t_ms: np.ndarray, dt_s: np.ndarray |
 
     rel = F_REL * e * p["sqrt_a"] * sin_e
     clock = p["af0"] + p["af1"] * tc + p["af2"] * tc**2 + rel - p["tgd"]
-    drift = p["af1"] + 2.0 * p["af2"] * tc + F_REL * e * p["sqrt_a"] * cos_e * e_dot
+    drift = p["af1"] + 2.0 * p["af2"] * tc + F_REL * e * p["sqrt_a"] * cos_e * ea_dot
     return {
         "pos": np.stack([x, y, z], axis=-1), "vel": np.stack([vx, vy, vz], axis=-1),
         "clock_s": clock, "clock_rel_s": rel, "tgd_s": p["tgd"], "clock_drift": drift,

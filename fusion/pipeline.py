@@ -55,7 +55,8 @@ class ModeResult:
 
 def estimate_wls(trace: Trace, wls, opts: RunOptions) -> ModeResult:
     """The WLS baseline as a mode (WLS is already solved by :func:`run_modes`)."""
-    return ModeResult(pos=wls.pos, valid=wls.valid.copy(), cov=wls.cov[:, :3, :3],
+    # Copies: every mode receives the same WlsResult, so no mode's output may alias it.
+    return ModeResult(pos=wls.pos.copy(), valid=wls.valid.copy(), cov=wls.cov[:, :3, :3].copy(),
                       info={"unsolved": int((~wls.valid).sum()),
                             # epochs loaded with < 4 measurements (CLI loads with min_sats=1 so the
                             # fused modes can carry them; WLS cannot solve them)

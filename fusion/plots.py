@@ -16,6 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fusion.geometry import ecef2ned_vec  # noqa: E402
+from fusion.metrics import cdf  # noqa: E402
 
 AXES = ("north", "east", "down")
 #: Upper percentile shown on CDF x-axes; a few extreme outliers would otherwise squash the curves.
@@ -24,19 +25,6 @@ CDF_CLIP_PCT = 99.0
 
 def _finite_rows(a: np.ndarray) -> np.ndarray:
     return a[np.isfinite(a).all(axis=-1)] if a.ndim == 2 else a[np.isfinite(a)]
-
-
-def _ecdf(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sorted finite values and their empirical CDF in (0, 1]."""
-    try:  # the shared definition when fusion.metrics offers one
-        from fusion.metrics import cdf
-    except ImportError:  # pragma: no cover - metrics is part of the package
-        cdf = None
-    if cdf is not None:
-        x, p = cdf(values)
-        return np.asarray(x, float), np.asarray(p, float)
-    x = np.sort(values[np.isfinite(values)])
-    return x, np.arange(1, x.size + 1) / max(x.size, 1)
 
 
 def _break_gaps(t: np.ndarray | None, y: np.ndarray, max_gap: float) -> tuple[np.ndarray | None, np.ndarray]:
@@ -77,7 +65,7 @@ def plot_error_cdfs(errors: dict[str, np.ndarray], path: Path, title: str = "",
             _no_data(ax)
         for mode, v in vals.items():
             if v.size:
-                x, p = _ecdf(v)
+                x, p = cdf(v)
                 ax.step(x, p, where="post", label=f"{mode} (n={v.size})")
         if pooled.size:
             hi = float(np.percentile(pooled, clip_pct))
@@ -204,9 +192,11 @@ def plot_error_vs_time(t_s: np.ndarray, errors: dict[str, np.ndarray], path: Pat
                 ax.plot(t_b, v_b, lw=0.7, label=mode)
                 pooled.append(np.abs(v[ok]))
         if pooled:
-            hi = float(np.percentile(np.concatenate(pooled), clip_pct)) * 1.05 or 1.0
+            pooled = np.concatenate(pooled)
+            hi = float(np.percentile(pooled, clip_pct)) * 1.05 or 1.0
             ax.set_ylim((0, hi) if label.startswith("horizontal") else (-hi, hi))
-            ax.text(0.99, 0.97, f"y clipped at p{clip_pct:g} of |error|", transform=ax.transAxes,
+            n_out = int((pooled > hi).sum())
+            ax.text(0.99, 0.97, f"y clipped at p{clip_pct:g} of |error| ({n_out} pts beyond)", transform=ax.transAxes,
                     ha="right", va="top", fontsize=8, color="0.4")
             ax.legend(loc="upper left", fontsize=8)
         else:

@@ -204,14 +204,13 @@ def write_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, dict[str, 
     for ev in evals:
         f: dict[str, Path] = {}
         title = ev.trace.name
+        t_s = (ev.trace.t_ms - ev.trace.t_ms[0]) / 1000.0
         if ev.errors:
             f["cdf"] = plots.plot_error_cdfs(ev.errors, fig_dir / f"{ev.slug}_cdf.png", title)
             f["box"] = plots.plot_error_boxes(ev.errors, fig_dir / f"{ev.slug}_box.png", title)
-            t_s = (ev.trace.t_ms - ev.trace.t_ms[0]) / 1000.0
             f["time"] = plots.plot_error_vs_time(t_s, ev.errors, fig_dir / f"{ev.slug}_time.png", title)
         positions = {m: np.where(r.valid[:, None], r.pos, np.nan) for m, r in ev.results.items()}
         truth = ev.trace.truth if ev.trace.has_truth else None
-        t_s = (ev.trace.t_ms - ev.trace.t_ms[0]) / 1000.0
         f["traj"] = plots.plot_trajectories(positions, truth, fig_dir / f"{ev.slug}_traj.png", title, t_s=t_s)
         figs[ev.slug] = f
     pooled = {}

@@ -510,7 +510,8 @@ def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
         traj = load_gsdc_trajectory(args.trajectory, height_error_m=args.trajectory_height_error)
         traj = traj.retimed(args.start)
         if args.epochs is not None and args.epochs < len(traj):
-            traj = Trajectory(traj.t_ms[:args.epochs], traj.ecef[:args.epochs], traj.name)
+            traj = Trajectory(traj.t_ms[:args.epochs], traj.ecef[:args.epochs], traj.name,
+                              dict(traj.skipped))
         res = simulate_trajectory(traj, nav=nav, config=cfg, seed=rng)
     else:
         try:

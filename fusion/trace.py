@@ -112,12 +112,21 @@ class Trace:
         return self.truth is not None and bool(np.isfinite(self.truth).all(axis=1).any())
 
     def select(self, epochs: np.ndarray) -> "Trace":
-        """A new Trace with only the given epochs (bool mask (E,) or integer indices).
+        """A new Trace with only the given epochs (bool mask (E,) or ascending integer indices).
 
-        Slot padding is trimmed to the widest remaining epoch. ``clock_reset`` is kept as is:
-        dropping epochs does not invent or hide clock jumps.
+        Slot padding is trimmed to the widest remaining epoch. A clock jump flagged on a dropped
+        epoch moves to the next kept one: the receiver clock still jumped between the two kept
+        epochs, and an estimator that missed it would chain the clock across the jump.
         """
-        idx = np.arange(self.n_epochs)[epochs]
+        try:
+            idx = np.arange(self.n_epochs)[epochs]
+        except IndexError as exc:
+            raise DataError(f"{self.name}: cannot select epochs of a {self.n_epochs}-epoch trace "
+                            f"({exc})") from None
+        reset = self.clock_reset[idx].copy()
+        if idx.size > 1:
+            jumps = np.cumsum(self.clock_reset)
+            reset[1:] = jumps[idx[1:]] - jumps[idx[:-1]] > 0
         mask = self.mask[idx]
         S = max(int(mask.sum(axis=1).max(initial=0)), 1)
         # Compact real slots to the front so trimming to S loses nothing.
@@ -133,7 +142,7 @@ class Trace:
             self,
             t_ms=self.t_ms[idx], sat_pos=take(self.sat_pos), sat_vel=take(self.sat_vel),
             pr=take(self.pr), pr_sigma=take(self.pr_sigma), sat_id=take(self.sat_id),
-            signal=take(self.signal), mask=take(self.mask), clock_reset=self.clock_reset[idx],
+            signal=take(self.signal), mask=take(self.mask), clock_reset=reset,
             truth=None if self.truth is None else self.truth[idx], skipped=dict(self.skipped),
         )
 

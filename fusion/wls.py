@@ -94,7 +94,8 @@ class WlsResult:
     n_used:    (E,)      int, ``used.sum(1)``.
     resid:     (E, S)    pr - range - clock at the solution for every real slot (used or not);
                          0 on padding and on invalid epochs.
-    elev_deg:  (E, S)    elevation at the coarse position [deg]; 0 on padding.
+    elev_deg:  (E, S)    elevation at the coarse position [deg]; 0 on padding and on epochs
+                         that failed before the mask stage (few_sats, coarse divergence).
     status:    (E,)      int8 code into :data:`STATUS_NAMES`.
     n_iter:    (E,)      int, Gauss-Newton iterations spent (all stages).
     reasons:   epoch counts per failure status name (only non-zero ones).

@@ -89,6 +89,10 @@ def test_declined_epoch_and_bad_inputs_raise_geometry_error(tiny_ckpt, epoch):
         learned_prior_factor(corr, sat_pos[:, :2], pr, mask, guess, 1)
     with pytest.raises(GeometryError, match="init_pos"):
         learned_prior_factor(corr, sat_pos, pr, mask, np.array([np.nan, 0, 0]), 1)
+    with pytest.raises(GeometryError, match=r"pr_sigma must have shape"):
+        one_epoch_trace(sat_pos, pr, mask, pr_sigma=np.ones(len(pr) + 1))
+    with pytest.raises(GeometryError, match=r"signal must have shape"):
+        one_epoch_trace(sat_pos, pr, mask, signal=np.zeros((1, len(pr))))
 
     def singular(trace, init_pos, valid):
         return init_pos, np.zeros((1, 3, 3)), valid

@@ -447,3 +447,16 @@ def test_unknown_isb_model_is_rejected(trace, wls):
     tr = _two_system_trace(isb_m=0.0)
     with pytest.raises(GeometryError, match="isb"):
         fuse(tr, solve_wls(tr), RunOptions(), cfg=GraphConfig(isb="perepoch"), want_cov=False)
+
+
+@pytest.mark.parametrize("incremental", [False, True])
+def test_prior_alone_solves_when_the_no_prior_graph_determines_nothing(trace, wls, incremental):
+    """WLS solved but none of its satellites is usable: the no-prior graph (the default guess for the
+    provider) solves nothing, so the provider is asked at the initial positions. Incremental mode used
+    to crash with KeyError('online_pos') here."""
+    import dataclasses
+
+    nothing = dataclasses.replace(wls, used=np.zeros_like(wls.used))
+    res = fuse(trace, nothing, RunOptions(incremental=incremental), provider=truth_prior(1.0), want_cov=False)
+    assert res.valid.all() and res.info["priors_used"] == trace.n_epochs
+    assert np.median(h_err(trace, res.pos, res.valid)) < 2.0

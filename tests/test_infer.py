@@ -144,3 +144,41 @@ def test_shipped_weights_on_held_out_trace(shared_data):
     step = np.linalg.norm(r.pos[r.valid] - wls.pos[r.valid], axis=1)
     assert np.median(step) < 30.0                # corrections are metre-level, not wild
     assert read_checkpoint(SHIPPED_WEIGHTS)["config"]["features"]["version"] >= 1
+
+
+def test_predict_rejects_bad_shapes_with_our_error():
+    from fusion.errors import GeometryError
+
+    tr = toy_trace(5, seed=3)
+    with pytest.raises(GeometryError, match=r"init_pos must be \(5, 3\)"):
+        Corrector(ConstantNet(), _config()).predict(tr, tr.truth[:4], np.ones(5, bool))
+
+
+def test_shipped_weights_load_run_and_match_training_md(shipped_trace_dir):
+    """The shipped checkpoint loads without /work/shared, is a product (median-clock) model, corrects
+    the shipped trace from WLS, and its stored config is the recipe learned/weights/TRAINING.md states."""
+    from fusion.io_gsdc import load_trace
+    from fusion.wls import solve_wls
+    from learned.model import count_parameters
+
+    corr = Corrector.load()
+    cfg = corr.config
+    assert corr.features.clock == "median" and corr.signals == ("GPS_L1",)
+    doc = (SHIPPED_WEIGHTS.parent / "TRAINING.md").read_text()
+    assert f"{count_parameters(corr.model):,} parameters" in doc
+    mix = ",".join(f"{k}={v:g}" for k, v in cfg["guess_mix"].items())
+    command = " ".join(doc.replace("\\\n", " ").split())
+    for flag in (f"--epochs {cfg['epochs']}", f"--eta {cfg['eta']:g}", f"--guess-mix {mix}",
+                 f"--wls-jitter {cfg['wls_jitter']:g}", f"--val-split {cfg['data']['val_split']}",
+                 f"--seed {cfg['seed']}", f"--sim-traces {cfg['data']['sim']['traces']}",
+                 f"--sim-bias-traces {cfg['data']['sim-bias']['traces']}",
+                 f"--sim-epochs {cfg['data']['sim']['epochs_per_trace']}"):
+        assert f" {flag} " in command, flag
+    best = read_checkpoint(SHIPPED_WEIGHTS)["epoch"]
+    assert f"**{best} of {cfg['epochs']}**" in doc
+    assert f"{cfg['data']['n_train']:,} train / {cfg['data']['n_val']:,} validation" in doc
+    tr = load_trace(shipped_trace_dir).select(np.arange(60))
+    wls = solve_wls(tr)
+    c = corr.predict(tr, wls.pos, wls.valid)
+    assert c.valid.sum() >= 0.9 * wls.valid.sum()
+    assert np.median(np.linalg.norm(c.corr_ned[c.valid], axis=1)) < 30.0

@@ -281,6 +281,10 @@ def test_read_span_nmea(tmp_path):
         read_span_nmea(p2)
     with pytest.raises(DataError, match="more than a day"):
         read_span_nmea(p, ref_gps_ms=int(expect0) + 10 * 86_400_000)
+    # the RMC dates 23:59:59.8 but the first GGA with a fix is after midnight: the next day
+    p3 = tmp_path / "rmc_before_midnight.nmea"
+    p3.write_text("\n".join([lines[0], lines[2], lines[3]]) + "\n")
+    assert read_span_nmea(p3)["t_ms"].iat[0] == int(round(expect0)) + 200
 
 
 def test_gpstime_roundtrip():

@@ -53,3 +53,21 @@ def test_times_must_increase():
     kw["t_ms"] = np.array([5, 5])
     with pytest.raises(DataError, match="strictly increasing"):
         Trace(**kw)
+
+
+def test_select_carries_a_dropped_clock_reset_to_the_next_kept_epoch():
+    kw = empty_trace(6, 1, name="jumps")
+    kw["t_ms"] = np.arange(6, dtype=np.int64) * 1000
+    kw["clock_reset"][[2, 5]] = True
+    tr = Trace(**kw)
+    # Epoch 2 (a jump) is dropped: the clock still jumped between kept epochs 1 and 3.
+    np.testing.assert_array_equal(tr.select(np.array([0, 1, 3, 4])).clock_reset,
+                                  [False, False, True, False])
+    np.testing.assert_array_equal(tr.select(np.array([0, 1, 2, 5])).clock_reset,
+                                  [False, False, True, True])
+    assert not tr.select(np.array([3, 4])).clock_reset.any()
+
+
+def test_select_with_a_wrong_length_mask_names_the_trace():
+    with pytest.raises(DataError, match="t: cannot select epochs of a 3-epoch trace"):
+        _trace().select(np.array([True, False]))

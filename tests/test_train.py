@@ -92,3 +92,22 @@ def test_forbidden_traces_and_bad_args_rejected(tmp_path):
         main(["--data", "toy", "--epochs", "0", "--out", str(tmp_path / "x.pt")])
     with pytest.raises(DataError, match="does not exist"):
         main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "x.pt"), "--quiet"])
+
+
+def test_direct_model_keeps_the_given_clock_mode(tmp_path):
+    """The direct model rescales its features; it used to rebuild FeatureConfig and silently drop
+    ``clock="given"``, so a paper-leak experiment would have trained on the median clock instead."""
+    from dataclasses import replace
+
+    from learned.data import samples_from_trace
+    from learned.features import FeatureConfig
+    from learned.toy import toy_trace
+
+    torch.set_num_threads(1)
+    tr = toy_trace(40, seed=5)
+    s = samples_from_trace(tr, clock=np.zeros(tr.n_epochs), with_wls=False)
+    s = replace(s, clock=np.full(len(s), 123.0))
+    train(s, s.subset(np.arange(0)), TrainConfig(epochs=1, model="direct", features=FeatureConfig(clock="given")),
+          tmp_path / "leak.pt", progress=False)
+    f = read_checkpoint(tmp_path / "leak.pt")["config"]["features"]
+    assert f["clock"] == "given" and f["res_scale"] == 1000.0 and f["out_scale"] == 1000.0
