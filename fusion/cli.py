@@ -38,8 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[cmd][0])
     try:
         return int(module.main(rest, prog=f"gnssfuse {cmd}") or 0)
-    except (GnssfuseError, FileNotFoundError) as exc:
-        # One line, no traceback: the message already names the file/epoch and the problem.
+    except (GnssfuseError, OSError) as exc:
+        # One line, no traceback: the message already names the file/epoch and the problem
+        # (OSError: a missing input, an unwritable --out folder).
         print(f"gnssfuse {cmd}: error: {exc}", file=sys.stderr)
         return 2
 

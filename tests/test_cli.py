@@ -23,3 +23,11 @@ def test_run_on_missing_folder_is_one_line_error(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "error" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_unwritable_output_is_one_line_error(shipped_trace_dir, tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--out", str(blocker / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "error" in err and err.strip().count("\n") == 0
