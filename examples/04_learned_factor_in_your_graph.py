@@ -6,7 +6,9 @@ into a position estimate with a covariance, added as a ``PoseTranslationPrior3D`
 translation. No pseudorange factors: the network already digested them.
 
 The odometry is *simulated* from the ground truth plus noise (a stand-in for wheel odometry or
-VIO, since the phone data set has none); the truth is used for nothing else but the final error.
+VIO, since the phone data set has none), and each pose's level orientation is the local NED frame
+at the truth (a stand-in for a phone IMU's attitude); the truth is used for nothing else but the
+final error. The learned factors themselves see only the pseudoranges and the WLS guesses.
 
     python examples/04_learned_factor_in_your_graph.py [--trace DIR] [--weights CKPT] [--epochs 60]
 """
@@ -60,6 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     truth_ok = np.isfinite(trace.truth).all(axis=1)
     if not truth_ok.all():
         raise GeometryError(f"{trace.name}: the simulated odometry needs truth at every epoch of the demo")
+    if not wls.valid.any():
+        raise GeometryError(f"{trace.name}: WLS solved none of the first {E} epochs: no initial positions")
 
     # Each pose's rotation is the local NED frame (a level vehicle); only the translation is used.
     rot = [gtsam.Rot3(R.T) for R in ned_rotation(trace.truth)]

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fusion.errors import CheckpointError
 from fusion.geometry import ecef2ned_vec, ned_rotation
 from learned.augment import draw_guesses, epoch_generator, parse_guess_mix
 from learned.checkpoint import load_model
@@ -43,7 +44,9 @@ def predict_given_clock(ckpt: Path, samples, guess: np.ndarray) -> tuple[np.ndar
     Returns mean_ecef (N,3), cov_ned (N,3,3) in the NED frame of the guess, valid (N,)."""
     model, blob = load_model(ckpt)
     fcfg = FeatureConfig.from_dict(blob["config"]["features"])
-    assert fcfg.clock == "given" and samples.clock is not None
+    if fcfg.clock != "given" or samples.clock is None:
+        raise CheckpointError(f"{ckpt}: predict_given_clock needs a clock='given' checkpoint (got "
+                              f"{fcfg.clock!r}) and samples with a true clock")
     mask = elevation_mask(samples.sat_pos, samples.mask, guess, fcfg.elev_mask_deg)
     valid = mask.sum(1) >= 4
     f64 = dict(dtype=torch.float64)

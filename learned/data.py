@@ -20,7 +20,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.trace import Trace
-from learned.features import elevation_mask
+from learned.features import compact_slots, elevation_mask
 
 #: Held-out traces that must never be trained on (test of the DNN, and of the fused pipeline).
 FORBIDDEN_TRACES = ("2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-SJC-1")
@@ -82,13 +82,9 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     enough = mask.sum(1) >= 4
     skipped["lt4_sats"] = int((~enough).sum())
     idx, mask, truth = idx[enough], mask[enough], truth[enough]
-    # Compact real slots to the front and trim the padding.
-    order = np.argsort(~mask, axis=1, kind="stable")
-    S = max(int(mask.sum(1).max(initial=0)), 1)
-    order = order[:, :S]
-    mask = np.take_along_axis(mask, order, 1)
-    sat_pos = np.take_along_axis(trace.sat_pos[idx], order[..., None], 1) * mask[..., None]
-    pr = np.take_along_axis(trace.pr[idx], order, 1) * mask
+    # Real slots first, padding trimmed; padded slots zeroed so no stale measurement lingers there.
+    sat_pos, pr, mask = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask)
+    sat_pos, pr = sat_pos * mask[..., None], pr * mask
     wls = None
     if with_wls:
         from fusion.wls import solve_wls  # imported late: another engineer's module

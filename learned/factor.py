@@ -45,6 +45,9 @@ def one_epoch_trace(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, pr_si
     # padded slots get finite filler, as the Trace contract requires
     kw.update(t_ms=np.array([t_ms], np.int64), sat_pos=np.where(mask[:, None], sat_pos, 0.0)[None],
               pr=np.where(mask, pr, 0.0)[None], mask=mask[None])
+    for label, extra in (("pr_sigma", pr_sigma), ("signal", signal)):
+        if extra is not None and np.shape(extra) != (S,):
+            raise GeometryError(f"{name}: {label} must have shape ({S},) like pr, got {np.shape(extra)}")
     if pr_sigma is not None:
         kw["pr_sigma"] = np.where(mask, np.asarray(pr_sigma, float), 1.0)[None]
     if signal is not None:

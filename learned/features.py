@@ -177,6 +177,22 @@ def target_torch(truth: torch.Tensor, guess: torch.Tensor, R: torch.Tensor,
     return torch.einsum("bij,bj->bi", R, truth - guess).float() / cfg.out_scale
 
 
+def compact_slots(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Move each epoch's real slots to the front and drop the all-padding tail: (N,S',3), (N,S'), (N,S').
+
+    sat_pos (N,S,3), pr (N,S), mask (N,S) bool; S' = the most real slots of any epoch (>= 1); padded slots
+    keep whatever the inputs held there. The network's output does not depend on slot order or padding,
+    but its cost grows with S: traces are padded to the most slots of any epoch *before* the elevation
+    mask (measured on the shipped trace: S 10 -> 8, about 20 % less network time).
+    """
+    order = np.argsort(~mask, axis=1, kind="stable")
+    S = max(int(mask.sum(1).max(initial=0)), 1)
+    order = order[:, :S]
+    return (np.take_along_axis(sat_pos, order[..., None], 1), np.take_along_axis(pr, order, 1),
+            np.take_along_axis(mask, order, 1))
+
+
 def elevation_mask(sat_pos: np.ndarray, mask: np.ndarray, at: np.ndarray, min_deg: float) -> np.ndarray:
     """``mask`` & (elevation seen from ``at`` (B,3) >= min_deg): (B,S) bool. Same test WLS applies."""
     _, los = line_of_sight(sat_pos, at)

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fusion.errors import CheckpointError
+from fusion.errors import CheckpointError, GeometryError
 from fusion.geometry import ned_rotation
 from fusion.trace import SIGNALS, Trace
 from learned.checkpoint import load_model
-from learned.features import FeatureConfig, elevation_mask, features_torch
+from learned.features import FeatureConfig, compact_slots, elevation_mask, features_torch
 
 #: Weights shipped with the package (see learned/weights/TRAINING.md).
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.pt"
@@ -41,21 +41,6 @@ class Correction:
     cov_ned: np.ndarray
     valid: np.ndarray
     n_too_few: int = 0
-
-
-def compact_slots(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Move each epoch's real slots to the front and drop the all-padding tail: (N,S',3), (N,S'), (N,S').
-
-    The network's output does not depend on slot order or padding, but its cost grows with S: traces are
-    padded to the most slots of any epoch *before* the elevation mask (measured on the shipped trace:
-    S 10 -> 8, about 20 % less network time).
-    """
-    order = np.argsort(~mask, axis=1, kind="stable")
-    S = max(int(mask.sum(1).max(initial=0)), 1)
-    order = order[:, :S]
-    return (np.take_along_axis(sat_pos, order[..., None], 1), np.take_along_axis(pr, order, 1),
-            np.take_along_axis(mask, order, 1))
 
 
 class Corrector:
@@ -121,7 +106,7 @@ class Corrector:
         E = trace.n_epochs
         init_pos = np.asarray(init_pos, float)
         if init_pos.shape != (E, 3) or np.shape(valid) != (E,):
-            raise ValueError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
+            raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
                              f"got {init_pos.shape} and {np.shape(valid)}")
         elev = self.features.elev_mask_deg if elev_mask_deg is None else elev_mask_deg
         ok = np.asarray(valid, bool) & np.isfinite(init_pos).all(1)

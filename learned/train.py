@@ -19,6 +19,7 @@ per-epoch generators are derived from (seed, epoch), so a resumed run draws what
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import sys
 import time
@@ -152,7 +153,7 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
     ref = reference_point(train_s.truth) if direct else None
     if direct and cfg.features.out_scale < 100:
         # Residuals and targets at a fixed reference are km-sized: scale them to O(1) like the others.
-        cfg.features = FeatureConfig(res_scale=1000.0, out_scale=1000.0, elev_mask_deg=cfg.features.elev_mask_deg)
+        cfg.features = dataclasses.replace(cfg.features, res_scale=1000.0, out_scale=1000.0)
     ckpt_cfg = cfg.to_checkpoint_config(ref)
     fcfg = cfg.features
 
