@@ -8,6 +8,8 @@ NED-frame network is meant to be invariant to. Features and targets are then reg
 The box alone teaches roughly a least-squares step, which is ~0 from the WLS solution the network starts
 from at inference. :func:`draw_mixed_guesses` therefore mixes the box with each sample's own WLS position
 (computed from its measurements only, :mod:`learned.data`) plus a small jitter: the inference distribution.
+A third source, ``graph``, is each sample's own solution of the factor graph *without* the learned prior
+(``fused-nodnn``, also measurement-only): where the fused mode asks the network (``prior_at="graph"``).
 """
 from __future__ import annotations
 
@@ -37,12 +39,18 @@ def epoch_generator(seed: int, epoch: int, device: torch.device | str = "cpu") -
 
 
 # ------------------------------------------------------------------------------------ realistic guesses
-#: Guess sources a mix may name: the paper's box around the truth, and the WLS solution (+ jitter).
-GUESS_SOURCES = ("box", "wls")
+#: Guess sources a mix may name: the paper's box around the truth, the WLS solution (+ jitter), and the
+#: no-prior factor-graph solution (+ the same jitter).
+GUESS_SOURCES = ("box", "wls", "graph")
+#: Sources always present in a parsed mix; the others appear only when their fraction is > 0, so mixes
+#: written before ``graph`` existed parse (and are stored in checkpoints) exactly as before.
+_ALWAYS = ("box", "wls")
 
 
 def parse_guess_mix(text: str | dict) -> dict[str, float]:
     """``"box=0.5,wls=0.5"`` (or a dict) -> normalised fractions ``{"box": .5, "wls": .5}``.
+
+    ``box`` and ``wls`` are always in the result; ``graph`` only when its fraction is > 0.
 
     Raises ValueError naming the bad part (unknown source, not a number, negative, all zero).
     """
@@ -68,12 +76,13 @@ def parse_guess_mix(text: str | dict) -> dict[str, float]:
     total = sum(mix.values())
     if total <= 0:
         raise ValueError(f"guess mix {text!r}: fractions sum to zero")
-    return {k: v / total for k, v in mix.items()}
+    return {k: v / total for k, v in mix.items() if k in _ALWAYS or v > 0}
 
 
 def draw_mixed_guesses(truth: torch.Tensor, wls: torch.Tensor, usable: torch.Tensor, eta: float,
-                       box_frac: float, jitter: float, generator: torch.Generator
-                       ) -> tuple[torch.Tensor, torch.Tensor]:
+                       box_frac: float, jitter: float, generator: torch.Generator,
+                       graph: torch.Tensor | None = None, graph_usable: torch.Tensor | None = None,
+                       graph_frac: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """Per sample: with probability ``box_frac`` the paper's box guess (:func:`draw_guesses`), otherwise
     the sample's own WLS position plus NED jitter U(-jitter, jitter) per axis.
 
@@ -81,10 +90,19 @@ def draw_mixed_guesses(truth: torch.Tensor, wls: torch.Tensor, usable: torch.Ten
     position: those fall back to the box. Returns guesses (B,3) and ``is_box`` (B,) bool.
     The WLS positions come from the measurements alone, so the WLS branch is exactly the inference-time
     guess (up to the jitter, an augmentation); only the box branch is built from the truth.
+
+    graph, graph_usable: (B,3) no-prior graph positions and (B,) bool; with ``graph_frac`` > 0 a sample
+    whose draw falls in [box_frac, box_frac + graph_frac) takes its graph position + the same jitter
+    (falling back to WLS, then the box, where unusable). The draws are the same random numbers as
+    without a graph, so ``graph_frac=0`` reproduces the two-source mix bit for bit.
     """
     box = draw_guesses(truth, eta, generator)
     pick = torch.rand(truth.shape[0], generator=generator, device=truth.device, dtype=torch.float64)
     u = (torch.rand(truth.shape, generator=generator, device=truth.device, dtype=torch.float64) * 2.0 - 1.0) * jitter
+    if graph is not None and graph_frac > 0:
+        take = (pick >= box_frac) & (pick < box_frac + graph_frac) & graph_usable
+        wls = torch.where(take[:, None], graph, wls)
+        usable = usable | take
     w = torch.where(usable[:, None], wls, truth)          # truth only as a placeholder, replaced below
     near_wls = w + torch.einsum("bji,bj->bi", ned_rotation_torch(w), u)
     is_box = (pick < box_frac) | ~usable

@@ -10,6 +10,9 @@ the training epochs (:func:`split_random`) or of contiguous blocks of them (:fun
 Each sample also carries the WLS position of *its own measurements* (``wls``, no truth involved: the same
 :func:`fusion.wls.solve_wls` call the pipeline makes at inference), computed once here, so training can draw
 initial guesses from the distribution the network meets at inference (:mod:`learned.augment`).
+With ``with_graph`` it also carries the solution of the factor graph without the learned prior
+(``graph``: :func:`fusion.graph.fuse` with no provider, i.e. the ``fused-nodnn`` mode, measurements only),
+solved once per trace: the point where the fused mode asks the network.
 """
 from __future__ import annotations
 
@@ -34,6 +37,8 @@ class Samples:
     real: (N,) bool, True for samples from real (phone) traces, or None (all simulated).
     clock: (N,) the simulator's TRUE receiver clock [m], or None. Experiment only (the paper's leaky
         protocol, ``FeatureConfig(clock="given")``); never filled from phone data.
+    graph: (N,3) ECEF no-prior factor-graph (fused-nodnn) position of the sample's trace (NaN where the
+        graph left the epoch unsolved), or None.
     """
 
     sat_pos: np.ndarray
@@ -46,6 +51,7 @@ class Samples:
     wls: np.ndarray | None = None
     real: np.ndarray | None = None
     clock: np.ndarray | None = None
+    graph: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.pr.shape[0])
@@ -54,6 +60,10 @@ class Samples:
         """(N,3) WLS positions, all-NaN when none were computed."""
         return np.full((len(self), 3), np.nan) if self.wls is None else self.wls
 
+    def graph_or_nan(self) -> np.ndarray:
+        """(N,3) graph positions, all-NaN when none were computed."""
+        return np.full((len(self), 3), np.nan) if self.graph is None else self.graph
+
     def real_or_false(self) -> np.ndarray:
         return np.zeros(len(self), bool) if self.real is None else self.real
 
@@ -61,16 +71,21 @@ class Samples:
         return Samples(self.sat_pos[idx], self.pr[idx], self.mask[idx], self.truth[idx], self.trace[idx],
                        list(self.names), dict(self.skipped),
                        None if self.wls is None else self.wls[idx], None if self.real is None else self.real[idx],
-                       None if self.clock is None else self.clock[idx])
+                       None if self.clock is None else self.clock[idx],
+                       None if self.graph is None else self.graph[idx])
 
 
 def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0, *, real: bool = False,
-                       with_wls: bool = True, clock: np.ndarray | None = None) -> Samples:
+                       with_wls: bool = True, clock: np.ndarray | None = None, with_graph: bool = False
+                       ) -> Samples:
     """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth).
 
     ``with_wls``: also solve WLS on the whole trace (pipeline defaults: elevation weights, the same mask,
     no truth) and keep each sample's position; ``real`` tags the samples as phone data.
     ``clock``: (E,) true receiver clock of a simulated trace, kept per sample (experiment only).
+    ``with_graph``: also solve the no-prior factor graph on the whole trace (:func:`graph_positions`);
+    samples without a graph position (unsolved epoch, or a trace the graph cannot solve) are counted in
+    ``skipped["graph_invalid"]`` and keep NaN there.
     """
     if trace.truth is None:
         raise DataError(f"{trace.name}: no ground truth, cannot be used for training")
@@ -85,16 +100,40 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     # Real slots first, padding trimmed; padded slots zeroed so no stale measurement lingers there.
     sat_pos, pr, mask = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask)
     sat_pos, pr = sat_pos * mask[..., None], pr * mask
-    wls = None
-    if with_wls:
+    wls = graph = None
+    if with_wls or with_graph:
         from fusion.wls import solve_wls  # imported late: another engineer's module
         w = solve_wls(trace, elev_mask_deg=elev_mask_deg)
+    if with_wls:
         wls = np.where(w.valid[idx, None], w.pos[idx], np.nan)
         skipped["wls_invalid"] = int((~np.isfinite(wls).all(1)).sum())
+    if with_graph:
+        g = graph_positions(trace, w, elev_mask_deg)
+        graph = g[idx]
+        skipped["graph_invalid"] = int((~np.isfinite(graph).all(1)).sum())
     if clock is not None and np.shape(clock) != (trace.n_epochs,):
         raise DataError(f"{trace.name}: clock must have shape ({trace.n_epochs},), got {np.shape(clock)}")
     return Samples(sat_pos, pr, mask, truth, np.full(len(idx), index), [trace.name], skipped, wls,
-                   np.full(len(idx), bool(real)), None if clock is None else np.asarray(clock, float)[idx])
+                   np.full(len(idx), bool(real)), None if clock is None else np.asarray(clock, float)[idx], graph)
+
+
+def graph_positions(trace: Trace, wls, elev_mask_deg: float = 10.0) -> np.ndarray:
+    """(E,3) ECEF positions of the factor graph without the learned prior (the ``fused-nodnn`` mode at
+    the GraphConfig defaults, fed the trace's WLS as the pipeline does), NaN where unsolved.
+
+    Uses the measurements only (``fuse`` never reads ``trace.truth``). A trace the graph cannot solve
+    at all (a :class:`~fusion.errors.GnssfuseError`) gives all-NaN rows: those samples fall back to
+    other guess sources instead of stopping a training run.
+    """
+    from fusion.errors import GnssfuseError
+    from fusion.graph import fuse  # imported late: another engineer's module (and gtsam)
+    from fusion.pipeline import RunOptions
+
+    try:
+        res = fuse(trace, wls, RunOptions(elev_mask_deg=elev_mask_deg), provider=None, want_cov=False)
+    except GnssfuseError:
+        return np.full((trace.n_epochs, 3), np.nan)
+    return np.where(res.valid[:, None], res.pos, np.nan)
 
 
 def concat_samples(parts: list[Samples]) -> Samples:
@@ -118,9 +157,10 @@ def concat_samples(parts: list[Samples]) -> Samples:
     real = None if all(p.real is None for p in parts) else np.concatenate([p.real_or_false() for p in parts])
     # A true clock only when every part has one: a partial array would silently mix in NaN clocks.
     clock = np.concatenate([p.clock for p in parts]) if all(p.clock is not None for p in parts) else None
+    graph = None if all(p.graph is None for p in parts) else np.concatenate([p.graph_or_nan() for p in parts])
     return Samples(np.concatenate([pad(p.sat_pos) for p in parts]), np.concatenate([pad(p.pr) for p in parts]),
                    np.concatenate([pad(p.mask) for p in parts]), np.concatenate([p.truth for p in parts]),
-                   np.concatenate(trace), names, skipped, wls, real, clock)
+                   np.concatenate(trace), names, skipped, wls, real, clock, graph)
 
 
 def split_random(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:
@@ -185,10 +225,12 @@ def simulated_traces(n_traces: int, epochs_per_trace: int, *, seed: int, bias: b
 
 
 def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0, real: list[bool] | None = None,
-                  with_wls: bool = True) -> Samples:
-    """Samples of every trace; ``real[i]`` tags trace i as phone data (default: none)."""
+                  with_wls: bool = True, with_graph: bool = False) -> Samples:
+    """Samples of every trace; ``real[i]`` tags trace i as phone data (default: none); ``with_graph``
+    also solves each trace's no-prior factor graph (``Samples.graph``)."""
     real = [False] * len(traces) if real is None else list(real)
-    return concat_samples([samples_from_trace(t, elev_mask_deg, i, real=r, with_wls=with_wls)
+    return concat_samples([samples_from_trace(t, elev_mask_deg, i, real=r, with_wls=with_wls,
+                                              with_graph=with_graph)
                            for i, (t, r) in enumerate(zip(traces, real))])
 
 

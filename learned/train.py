@@ -7,8 +7,10 @@ Every epoch draws new initial guesses (geometry-based augmentation, :mod:`learne
 ``--no-augment``, in which case guesses are drawn once and kept (the paper's baseline). ``--guess-mix``
 chooses where guesses come from: the paper's box around the truth (``box``) and/or each sample's own WLS
 solution plus ``--wls-jitter`` (``wls``: the inference-time distribution; the network learns to undo what
-pulls WLS off, e.g. NLOS-biased satellites). After training, the variance head is calibrated on the
-validation split from WLS guesses (per-NED-axis scale, stored in the checkpoint, applied by
+pulls WLS off, e.g. NLOS-biased satellites); ``graph``: each sample's own no-prior factor-graph
+solution plus the same jitter (where the fused mode asks the network). After training, the variance
+head is calibrated on the validation split from WLS guesses, or from graph guesses when the mix uses
+``graph`` (per-NED-axis scale, stored in the checkpoint, applied by
 :class:`learned.infer.Corrector`). Validation uses
 guesses drawn once, so its loss is comparable across epochs; the best validation MSE is saved to ``--out``
 and the last state (with optimizer) to ``<out>.last`` for ``--resume``.
@@ -93,21 +95,32 @@ def _tensors(s: Samples, device: torch.device, wls_max_err: float = math.inf) ->
     wls = s.wls_or_nan()
     ok = np.isfinite(wls).all(1)
     use = ok & (np.linalg.norm(np.where(ok[:, None], wls - s.truth, 0.0), axis=1) <= wls_max_err)
+    graph = {}
+    if s.graph is not None:
+        gok = np.isfinite(s.graph).all(1)
+        guse = gok & (np.linalg.norm(np.where(gok[:, None], s.graph - s.truth, 0.0), axis=1) <= wls_max_err)
+        graph = {"graph": torch.as_tensor(np.where(gok[:, None], s.graph, 0.0), **f64),
+                 "graph_ok": torch.as_tensor(gok, device=device), "graph_use": torch.as_tensor(guse, device=device)}
     return {"sat_pos": torch.as_tensor(s.sat_pos, **f64), "pr": torch.as_tensor(s.pr, **f64),
             "mask": torch.as_tensor(s.mask, device=device), "truth": torch.as_tensor(s.truth, **f64),
             "wls": torch.as_tensor(np.where(ok[:, None], wls, 0.0), **f64),
             "wls_ok": torch.as_tensor(ok, device=device), "wls_use": torch.as_tensor(use, device=device),
             "real": torch.as_tensor(s.real_or_false(), device=device),
-            **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)})}
+            **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)}), **graph}
 
 
 def guesses_for(t: dict[str, torch.Tensor], cfg: "TrainConfig", generator: torch.Generator) -> torch.Tensor:
     """Initial guesses (N,3) for one epoch: the paper's box only (bit-identical to earlier versions),
-    or the configured box / WLS mix."""
-    box = parse_guess_mix(cfg.guess_mix)["box"]
+    or the configured box / WLS / graph mix (graph: needs samples built ``with_graph``)."""
+    mix = parse_guess_mix(cfg.guess_mix)
+    box, gf = mix["box"], mix.get("graph", 0.0)
     if box >= 1.0:
         return draw_guesses(t["truth"], cfg.eta, generator)
-    return draw_mixed_guesses(t["truth"], t["wls"], t["wls_use"], cfg.eta, box, cfg.wls_jitter, generator)[0]
+    if gf > 0 and "graph" not in t:
+        raise DataError("guess mix uses 'graph' but the samples carry no graph positions "
+                        "(build them with with_graph=True)")
+    return draw_mixed_guesses(t["truth"], t["wls"], t["wls_use"], cfg.eta, box, cfg.wls_jitter, generator,
+                              t.get("graph"), t.get("graph_use"), gf)[0]
 
 
 def make_inputs(t: dict[str, torch.Tensor], guess: torch.Tensor, fcfg: FeatureConfig
@@ -180,6 +193,15 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
     vw = torch.nonzero(va["wls_ok"]).flatten()
     xw, yw = (make_inputs({k: v[vw] for k, v in va.items()}, va["wls"][vw], fcfg) if len(vw) and not direct
               else (None, None))
+    # With a graph source: also validate (and calibrate) at each sample's no-prior graph solution exactly,
+    # the point where the fused mode asks the network.
+    use_graph = parse_guess_mix(cfg.guess_mix).get("graph", 0.0) > 0 and not direct
+    if use_graph and not ("graph" in tr and "graph" in va):
+        raise DataError("guess mix uses 'graph' but the samples carry no graph positions "
+                        "(build them with with_graph=True)")
+    vg = torch.nonzero(va["graph_ok"]).flatten() if use_graph else torch.zeros(0, dtype=torch.long)
+    xg, yg = (make_inputs({k: v[vg] for k, v in va.items()}, va["graph"][vg], fcfg) if len(vg)
+              else (None, None))
     ref_t = None if ref is None else torch.as_tensor(ref, dtype=torch.float64, device=device)[None]
     # Validation (and no-augmentation training) guesses: drawn once, from generators independent of epochs.
     if direct:
@@ -229,6 +251,9 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         if xw is not None:
             rec.update({"val_wls_" + k[4:]: v for k, v in
                         evaluate_arrays(model, xw, yw, va["mask"][vw], fcfg).items()})
+        if xg is not None:
+            rec.update({"val_graph_" + k[4:]: v for k, v in
+                        evaluate_arrays(model, xg, yg, va["mask"][vg], fcfg).items()})
         history.append(rec)
         if rec["val_mse"] < best:
             best = rec["val_mse"]
@@ -242,14 +267,18 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         bar.close()
     if not out.is_file():  # zero epochs left to run (e.g. resume of a finished run) still leaves a model
         save_checkpoint(out, model, ckpt_cfg, epoch=start, history=history)
-    if cfg.calibrate and xw is not None:
+    # Calibrate where the network will be asked: graph guesses when the mix uses them, else WLS guesses.
+    cx, cy, ci, at = (xg, yg, vg, "graph") if xg is not None else (xw, yw, vw, "wls")
+    if cfg.calibrate and cx is not None:
         blob = read_checkpoint(out, map_location=device)
         model.load_state_dict(blob["model_state"])
-        real = va["real"][vw]
+        real = va["real"][ci]
         # Calibrate for phones when there are enough phone samples: simulated errors are not phone errors.
         sub = real if int(real.sum()) >= CALIB_MIN_REAL else torch.ones_like(real)
-        cal = fit_calibration(model, xw[sub], yw[sub], va["mask"][vw][sub], fcfg)
+        cal = fit_calibration(model, cx[sub], cy[sub], va["mask"][ci][sub], fcfg)
         cal["subset"] = "real validation samples" if sub is real else "all validation samples"
+        if at == "graph":     # key only for the new source: older checkpoints (WLS guesses) stay as they were
+            cal["guess"] = "graph"
         save_checkpoint(out, model, dict(blob["config"], calibration=cal), epoch=blob["epoch"],
                         history=blob["history"])
     return history
@@ -323,7 +352,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--sim-bias-traces", type=int, default=None, help="traces for 'sim-bias' (default --sim-traces)")
     p.add_argument("--guess-mix", default="box=1",
                    help="initial-guess sources and fractions, e.g. box=0.5,wls=0.5 (box: truth + U(+-eta) per NED "
-                        "axis, the paper's; wls: the sample's own WLS solution + U(+-wls-jitter))")
+                        "axis, the paper's; wls: the sample's own WLS solution + U(+-wls-jitter); graph: the "
+                        "sample's own no-prior factor-graph (fused-nodnn) solution + U(+-wls-jitter))")
     p.add_argument("--wls-jitter", type=float, default=2.0, help="[m] per NED axis around WLS guesses")
     p.add_argument("--wls-max-err", type=float, default=100.0,
                    help="[m] training samples whose WLS is farther from the truth get a box guess instead")
@@ -342,7 +372,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
 
 
 def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, sim_bias: bool, seed: int,
-                       elev_mask_deg: float, sim_bias_traces: int | None = None) -> tuple[Samples, dict]:
+                       elev_mask_deg: float, sim_bias_traces: int | None = None, with_graph: bool = False
+                       ) -> tuple[Samples, dict]:
     """``sim`` / ``toy``: simulated (Gaussian, or bias with ``sim_bias``); ``sim-bias`` / ``toy-bias``: the
     Gaussian + NLOS-bias scenario (seed + 1, so not the same drives as ``sim``); anything else: real traces."""
     traces, real, desc = [], [], {"sources": sources}
@@ -358,7 +389,7 @@ def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, 
             new = load_real_traces([src])
             real += [True] * len(new)
         traces += new
-    samples = build_samples(traces, elev_mask_deg, real=real)
+    samples = build_samples(traces, elev_mask_deg, real=real, with_graph=with_graph)
     desc.update(traces=samples.names, n_samples=len(samples), skipped=samples.skipped)
     return samples, desc
 
@@ -378,7 +409,8 @@ def main(argv: list[str], prog: str = "gnssfuse train") -> int:
     sources = [s for item in args.data for s in item.split(",") if s]
     samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
                                        sim_bias=args.sim_bias, seed=args.seed, elev_mask_deg=args.elev_mask,
-                                       sim_bias_traces=args.sim_bias_traces)
+                                       sim_bias_traces=args.sim_bias_traces,
+                                       with_graph=mix.get("graph", 0.0) > 0)
     split = split_blocks if args.val_split == "blocks" else split_random
     train_s, val_s = split(samples, args.val_frac, np.random.default_rng(args.seed))
     desc.update(n_train=len(train_s), n_val=len(val_s), val_split=args.val_split)
@@ -396,7 +428,9 @@ def main(argv: list[str], prog: str = "gnssfuse train") -> int:
         print(f"best epoch {h['epoch']}: val MAE N/E/D [m] = "
               + "/".join(f"{v:.2f}" for v in h.get("val_mae_ned_m", [float('nan')] * 3))
               + ("" if "val_wls_mae_ned_m" not in h else " (guess = WLS: "
-                 + "/".join(f"{v:.2f}" for v in h["val_wls_mae_ned_m"]) + ")") + f" -> {args.out}")
+                 + "/".join(f"{v:.2f}" for v in h["val_wls_mae_ned_m"]) + ")")
+              + ("" if "val_graph_mae_ned_m" not in h else " (guess = graph: "
+                 + "/".join(f"{v:.2f}" for v in h["val_graph_mae_ned_m"]) + ")") + f" -> {args.out}")
         cal = read_checkpoint(args.out)["config"].get("calibration")
         if cal:
             print(f"variance scale N/E/D {'/'.join(f'{v:.2f}' for v in cal['scale_ned'])} ({cal['subset']}, "

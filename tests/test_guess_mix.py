@@ -182,3 +182,78 @@ def test_cli_guess_mix_and_bias_source(tmp_path, capsys):
     assert "variance scale N/E/D" in capsys.readouterr().out
     with pytest.raises(DataError, match="--guess-mix"):
         main(["--data", "toy", "--guess-mix", "truth=1", "--out", str(tmp_path / "x.pt")])
+
+
+# ------------------------------------------------------------------ graph guesses (no-prior graph solution)
+def test_parse_guess_mix_graph_source_is_additive():
+    assert parse_guess_mix("box=1,wls=1,graph=2") == {"box": 0.25, "wls": 0.25, "graph": 0.5}
+    assert parse_guess_mix("box=1,graph=0") == {"box": 1.0, "wls": 0.0}       # old mixes parse as before
+    with pytest.raises(ValueError, match="fraction of 'graph'"):
+        parse_guess_mix("box=1,graph=-1")
+
+
+def test_graph_branch_fraction_fallback_and_bit_identity():
+    truth, wls, usable = _mix_inputs(20000, seed=1)
+    graph = truth + 300.0                                                       # far from box and WLS
+    g_use = torch.as_tensor(np.random.default_rng(2).random(len(truth)) > 0.2)
+    gen = lambda: epoch_generator(4, 0)                                         # noqa: E731
+    g, is_box = draw_mixed_guesses(truth, wls, usable, 15.0, 0.25, 2.0, gen(), graph, g_use, 0.5)
+    old, old_box = draw_mixed_guesses(truth, wls, usable, 15.0, 0.25, 2.0, gen())
+    # graph_frac = 0 (or no graph) reproduces the two-source draw bit for bit
+    g0, b0 = draw_mixed_guesses(truth, wls, usable, 15.0, 0.25, 2.0, gen(), graph, g_use, 0.0)
+    assert torch.equal(g0, old) and torch.equal(b0, old_box)
+    near_graph = np.abs(ecef2ned_vec((g - graph).numpy(), graph.numpy())).max(1) <= 2.0 + 1e-6
+    near_wls = np.abs(ecef2ned_vec((g - wls).numpy(), wls.numpy())).max(1) <= 2.0 + 1e-6
+    both = usable.numpy() & g_use.numpy()
+    assert abs(near_graph[both].mean() - 0.5) < 0.015, near_graph[both].mean()
+    assert abs(is_box[both].double().mean().item() - 0.25) < 0.015
+    assert not near_graph[~g_use.numpy()].any()                                # unusable graph: never used
+    # Samples that would have taken the graph but have none fall back to WLS (or the box without WLS).
+    rest = (~g_use).numpy() & usable.numpy() & ~is_box.numpy()
+    assert near_wls[rest].all() and rest.sum() > 0.75 * 0.2 * 0.9 * 20000 * 0.8
+
+
+def test_sample_graph_is_the_truth_free_nodnn_solution():
+    from fusion.graph import estimate_fused_nodnn
+    from fusion.pipeline import RunOptions
+
+    tr = toy_trace(60, seed=4, bias=True)
+    s = samples_from_trace(tr, real=True, with_graph=True)
+    blind_tr = dataclasses.replace(tr, truth=None)
+    nodnn = estimate_fused_nodnn(blind_tr, solve_wls(blind_tr), RunOptions())   # the pipeline's mode
+    ok = np.isfinite(tr.truth).all(1)
+    np.testing.assert_allclose(s.graph, nodnn.pos[ok], atol=1e-6)
+    assert s.skipped["graph_invalid"] == 0
+    assert np.linalg.norm(s.graph - s.wls, axis=1).max() > 0.1                 # not just the WLS again
+    assert samples_from_trace(tr).graph is None                                 # off by default
+    both = build_samples([tr, toy_trace(20, seed=5)], with_graph=True)
+    assert both.graph.shape == (80, 3) and both.subset(np.array([1, 70])).graph.shape == (2, 3)
+
+
+def test_train_with_graph_mix_validates_and_calibrates_at_the_graph(tmp_path):
+    torch.set_num_threads(1)
+    s = build_samples(toy_dataset(2, 80, seed=9, bias=True), real=[True, False], with_graph=True)
+    tr, va = split_blocks(s, 0.25, np.random.default_rng(0), block=20)
+    cfg = TrainConfig(epochs=1, guess_mix="box=0.25,wls=0.25,graph=0.5")
+    hist = train(tr, va, cfg, tmp_path / "g.pt", progress=False)
+    assert "val_graph_mae_ned_m" in hist[0] and "val_wls_mae_ned_m" in hist[0]
+    assert hist[0]["val_graph_mae_ned_m"] != hist[0]["val_wls_mae_ned_m"]
+    conf = read_checkpoint(tmp_path / "g.pt")["config"]
+    assert conf["guess_mix"] == {"box": 0.25, "wls": 0.25, "graph": 0.5}
+    assert conf["calibration"]["guess"] == "graph" and conf["calibration"]["n"] == len(va)
+    # A two-source mix keeps its WLS calibration (no "guess" key) and its history keys.
+    h2 = train(tr, va, TrainConfig(epochs=1, guess_mix="box=0.25,wls=0.75"), tmp_path / "w.pt", progress=False)
+    assert "val_graph_mae_ned_m" not in h2[0] and "guess" not in read_checkpoint(tmp_path / "w.pt")["config"]["calibration"]
+    tr_nog, va_nog = split_blocks(build_samples(toy_dataset(2, 80, seed=9)), 0.25, np.random.default_rng(0), block=20)
+    with pytest.raises(DataError, match="no graph positions"):
+        train(tr_nog, va_nog, cfg, tmp_path / "x.pt", progress=False)
+
+
+def test_cli_graph_mix(tmp_path, capsys):
+    out = tmp_path / "cg.pt"
+    assert main(["--data", "toy", "--sim-traces", "2", "--sim-epochs", "60", "--epochs", "1",
+                 "--guess-mix", "box=0.25,wls=0.25,graph=0.5", "--val-split", "blocks", "--out", str(out),
+                 "--quiet", "--threads", "1"]) == 0
+    conf = read_checkpoint(out)["config"]
+    assert conf["guess_mix"]["graph"] == 0.5 and conf["data"]["skipped"]["graph_invalid"] == 0
+    assert "guess = graph:" in capsys.readouterr().out
