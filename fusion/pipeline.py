@@ -154,7 +154,9 @@ def write_outputs(out_dir: Path, trace: Trace, mode: str, result: ModeResult) ->
 def add_run_options(p: argparse.ArgumentParser) -> None:
     """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
     p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
-    p.add_argument("--signals", default="GPS_L1", help=f"comma-separated, from {','.join(SIGNALS)}")
+    p.add_argument("--signals", default="GPS_L1",
+                   help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
+                        "too), or all")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
@@ -174,10 +176,11 @@ def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
 
 
 def options_from_args(args: argparse.Namespace) -> RunOptions:
-    signals = tuple(s.strip() for s in args.signals.split(",") if s.strip())
-    unknown = [s for s in signals if s not in SIGNALS]
-    if unknown:
-        raise GnssfuseError(f"unknown signal(s) {unknown}; choose from {', '.join(SIGNALS)}")
+    from fusion.io_gsdc import resolve_signals
+
+    # The loader's vocabulary: our names, GSDC 2023 spellings (GPS_L1_CA, ...) or "all".
+    names = [s.strip() for s in args.signals.split(",") if s.strip()]
+    signals = tuple(SIGNALS[i] for i in resolve_signals(names[0] if names == ["all"] else names))
     if args.dnn_passes < 1:
         raise GnssfuseError("--dnn-passes must be >= 1")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,

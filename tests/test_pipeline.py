@@ -57,3 +57,12 @@ def test_missing_column_exits_2_naming_it(shipped_trace_dir, tmp_path, capsys):
     shutil.copy(shipped_trace_dir / "ground_truth.csv", bad / "ground_truth.csv")
     assert main(["run", str(bad), "--mode", "wls", "--out", str(tmp_path / "o")]) == 2
     assert "rawPrM" in capsys.readouterr().err
+
+
+def test_signal_names_accept_2023_spellings_and_all():
+    from fusion.pipeline import build_parser, options_from_args
+    from fusion.trace import SIGNALS
+
+    parse = lambda s: options_from_args(build_parser().parse_args(["x", "--out", "o", "--signals", s]))  # noqa: E731
+    assert parse("GPS_L1_CA,GAL_E1").signals == ("GPS_L1", "GAL_E1")
+    assert parse("all").signals == SIGNALS
