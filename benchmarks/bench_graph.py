@@ -108,7 +108,7 @@ def tune_graph(root: Path, grid=GRAPH_GRID) -> None:
         data.append((trace, wls))
         w = _score(trace, wls.pos, wls.valid)
         print(f"{trace.name}: wls h_p50 {w['h_p50']:.2f} h_p95 {w['h_p95']:.2f} score {w['gsdc_score']:.2f}")
-    print(f"\nfused-nodnn, GSDC score per training trace and mean (variation of the defaults)")
+    print("\nfused-nodnn, GSDC score per training trace and mean (variation of the defaults)")
     for change in grid:
         cfg = GraphConfig(**change)
         sc = [_score(tr, *_pv(fuse(tr, wl, RunOptions(), cfg=cfg, want_cov=False)))["gsdc_score"]

@@ -219,17 +219,12 @@ def load_gogps(csv: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def interp_truth(truth_t_ms: np.ndarray, truth_ecef: np.ndarray, t_ms: np.ndarray,
                  max_gap_ms: float = 1500.0) -> np.ndarray:
-    """Truth linearly interpolated to ``t_ms`` (N, 3); NaN outside the truth span or across gaps."""
+    """Truth linearly interpolated to ``t_ms`` (N, 3); NaN outside the truth span or across gaps
+    (epochs without truth count as gaps)."""
+    from fusion.io_gsdc import interp_gapped
+
     ok = np.isfinite(truth_ecef).all(1)
-    tt, xyz = truth_t_ms[ok].astype(float), truth_ecef[ok]
-    out = np.full((t_ms.size, 3), np.nan)
-    if tt.size < 2:
-        return out
-    j = np.searchsorted(tt, t_ms, side="right").clip(1, tt.size - 1)
-    inside = (t_ms >= tt[0]) & (t_ms <= tt[-1]) & (tt[j] - tt[j - 1] <= max_gap_ms)
-    w = ((t_ms - tt[j - 1]) / (tt[j] - tt[j - 1]))[:, None]
-    out[inside] = ((1 - w) * xyz[j - 1] + w * xyz[j])[inside]
-    return out
+    return interp_gapped(np.asarray(t_ms), truth_t_ms[ok], truth_ecef[ok], max_gap_ms)
 
 
 def gogps_comparison(shared: Path = SHARED_DATA) -> list[dict] | None:

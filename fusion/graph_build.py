@@ -243,7 +243,7 @@ def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 1
     default the initial positions (WLS, interpolated where it failed).
     Raises :class:`GeometryError` when no epoch has any usable initial position.
     """
-    E, S = trace.n_epochs, trace.n_slots
+    E = trace.n_epochs
     t = trace.t_ms.astype(float) / 1000.0
     wls_ok = np.asarray(wls.valid, bool) & np.isfinite(wls.pos).all(axis=1)
     dropped: dict[str, int] = {}

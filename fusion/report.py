@@ -27,7 +27,7 @@ from tqdm import tqdm
 from fusion.errors import DataError, GnssfuseError
 from fusion.pipeline import (MODES, ModeResult, RunOptions, add_run_options, options_from_args, run_modes,
                              solve_initial, write_outputs)
-from fusion.trace import SIGNALS, Trace
+from fusion.trace import Trace
 
 #: Name of the pooled rows (all traces' epochs together) in the tables.
 ALL = "ALL"

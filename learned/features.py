@@ -26,7 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-from fusion.geometry import C_LIGHT, OMEGA_E, ecef2ned_vec, line_of_sight, ned_rotation
+from fusion.geometry import C_LIGHT, OMEGA_E, ecef2ned_vec, elevation_azimuth, line_of_sight
 
 #: Bump when the meaning or scaling of the inputs changes; checkpoints record it.
 FEATURE_VERSION = 1
@@ -196,5 +196,5 @@ def compact_slots(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray
 def elevation_mask(sat_pos: np.ndarray, mask: np.ndarray, at: np.ndarray, min_deg: float) -> np.ndarray:
     """``mask`` & (elevation seen from ``at`` (B,3) >= min_deg): (B,S) bool. Same test WLS applies."""
     _, los = line_of_sight(sat_pos, at)
-    up = -np.einsum("bj,bsj->bs", ned_rotation(at)[:, 2, :], los)
-    return mask & (up >= np.sin(np.radians(min_deg)))
+    el, _ = elevation_azimuth(los, at)
+    return mask & (el >= min_deg)

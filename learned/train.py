@@ -38,7 +38,7 @@ from learned.augment import draw_guesses, draw_mixed_guesses, epoch_generator, p
 from learned.checkpoint import read_checkpoint, save_checkpoint
 from learned.data import (Samples, build_samples, load_real_traces, simulated_traces, split_blocks,
                           split_random)
-from learned.features import FeatureConfig, features_torch, ned_rotation_torch, target_torch
+from learned.features import FeatureConfig, features_torch, target_torch
 from learned.model import build_model, count_parameters
 
 #: Feature chunk size when regenerating a whole epoch's inputs (bounded memory on any device).

@@ -13,7 +13,7 @@ from fusion.geometry import ecef2ned_vec
 from fusion.wls import solve_wls
 from learned.augment import draw_mixed_guesses, epoch_generator, parse_guess_mix
 from learned.checkpoint import read_checkpoint, save_checkpoint
-from learned.data import build_samples, samples_from_trace, split_blocks, split_random
+from learned.data import build_samples, samples_from_trace, split_blocks
 from learned.features import FeatureConfig
 from learned.infer import Corrector
 from learned.model import SetTransformer
