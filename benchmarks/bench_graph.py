@@ -9,8 +9,9 @@
     PYTHONPATH=. python benchmarks/bench_graph.py --part prior --weights LOO.pt   # learned prior only
 
 Accuracy: wls / dnn / fused / fused-nodnn on the test traces 2021-04-28-US-MTV-1/Pixel4 (GPS L1)
-and 2021-04-28-US-SJC-1/Pixel4 (multi-signal, 5 windows with gaps), identical inputs per trace
-(one WLS solve fed to every mode, as ``gnssfuse run``). Graph settings (``GraphConfig`` defaults)
+and 2021-04-28-US-SJC-1/Pixel4 (multi-signal, 5 windows with gaps), identical inputs per trace:
+loaded with ``min_sats=1`` and one ``fusion.pipeline.solve_initial`` WLS solve fed to every mode, as
+``gnssfuse run`` / ``evaluate`` do, scored with ``fusion.pipeline.mode_metrics``. Graph settings (``GraphConfig`` defaults)
 were tuned on the training traces only (``--part tune`` prints them).
 
 Speed: batch build + Levenberg-Marquardt solve of a ~2,000-epoch trace (with and without the
@@ -29,8 +30,8 @@ import numpy as np
 from fusion.errors import GnssfuseError
 from fusion.graph import build_graph, fuse
 from fusion.graph_build import GraphConfig, prepare_inputs
-from fusion.metrics import ned_errors, summarize
-from fusion.pipeline import RunOptions, format_table, get_mode
+from fusion.metrics import ned_errors
+from fusion.pipeline import ModeResult, RunOptions, format_table, get_mode, mode_metrics, solve_initial
 from fusion.wls import solve_wls
 
 # The development data beside the checkout (../shared/data), or $GNSSFUSE_SHARED_DATA.
@@ -42,10 +43,6 @@ TRAIN = ("2020-05-14-US-MTV-1", "2020-06-05-US-MTV-1", "2020-09-04-US-SF-2")
 MODES = ("wls", "dnn", "fused", "fused-nodnn")
 
 
-def metrics(trace, res) -> dict:
-    return summarize(ned_errors(np.where(res.valid[:, None], res.pos, np.nan), trace.truth))
-
-
 def accuracy(root: Path, weights: Path | None) -> None:
     from fusion.io_gsdc import load_trace
 
@@ -55,8 +52,8 @@ def accuracy(root: Path, weights: Path | None) -> None:
             print(f"{name}: not found under {root}, skipped")
             continue
         opts = RunOptions(weights=weights, signals=signals)
-        trace = load_trace(d, signals=signals)
-        wls = solve_wls(trace, elev_mask_deg=opts.elev_mask_deg, weighting=opts.wls_weighting)
+        trace = load_trace(d, signals=signals, min_sats=1)   # as gnssfuse run / evaluate
+        wls = solve_initial(trace, opts)
         rows, notes = {}, []
         for mode in MODES:
             t0 = time.perf_counter()
@@ -65,7 +62,7 @@ def accuracy(root: Path, weights: Path | None) -> None:
             except (GnssfuseError, ImportError) as exc:
                 notes.append(f"  {mode}: unavailable ({str(exc).splitlines()[0][:150]})")
                 continue
-            rows[mode] = metrics(trace, res)
+            rows[mode] = mode_metrics(trace, res)
             notes.append(f"  {mode}: {time.perf_counter() - t0:.2f} s, solved {int(res.valid.sum())}/{trace.n_epochs}"
                          + (f", info {_short(res.info)}" if mode.startswith("fused") else ""))
         print(f"\n{trace.name}  signals={','.join(signals)}  epochs={trace.n_epochs}  skipped={trace.skipped}")
@@ -76,10 +73,6 @@ def accuracy(root: Path, weights: Path | None) -> None:
 def _short(info: dict) -> dict:
     return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in info.items()
             if isinstance(v, (int, float)) and not k.endswith("_s")}
-
-
-def _score(trace, pos, valid) -> dict:
-    return summarize(ned_errors(np.where(valid[:, None], pos, np.nan), trace.truth))
 
 
 #: one-parameter-at-a-time variations around the defaults for the graph without the prior
@@ -106,18 +99,14 @@ def tune_graph(root: Path, grid=GRAPH_GRID) -> None:
         trace = load_trace(root / name / "Pixel4", min_sats=1)
         wls = solve_wls(trace)
         data.append((trace, wls))
-        w = _score(trace, wls.pos, wls.valid)
+        w = mode_metrics(trace, wls)
         print(f"{trace.name}: wls h_p50 {w['h_p50']:.2f} h_p95 {w['h_p95']:.2f} score {w['gsdc_score']:.2f}")
     print("\nfused-nodnn, GSDC score per training trace and mean (variation of the defaults)")
     for change in grid:
         cfg = GraphConfig(**change)
-        sc = [_score(tr, *_pv(fuse(tr, wl, RunOptions(), cfg=cfg, want_cov=False)))["gsdc_score"]
+        sc = [mode_metrics(tr, fuse(tr, wl, RunOptions(), cfg=cfg, want_cov=False))["gsdc_score"]
               for tr, wl in data]
         print(f"  {str(change or 'defaults'):<48} " + " ".join(f"{x:6.2f}" for x in sc) + f"   mean {np.mean(sc):.3f}")
-
-
-def _pv(res):
-    return res.pos, res.valid
 
 
 def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-US-SF-2", grid=PRIOR_GRID) -> None:
@@ -140,14 +129,14 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
     corr = Corrector.load(weights)
     ask = trace.n_sats >= 1
     guesses = {"graph": np.where(nodnn.valid[:, None], nodnn.pos, wls.pos), "wls": wls.pos}
-    rows = {"wls": _score(trace, wls.pos, wls.valid), "fused-nodnn": _score(trace, *_pv(nodnn))}
+    rows = {"wls": mode_metrics(trace, wls), "fused-nodnn": mode_metrics(trace, nodnn)}
     outs, cals = {}, {}
     for at, guess in guesses.items():
         c = corr.predict(trace, guess, ask & np.isfinite(guess).all(axis=1))
         ok = c.valid & np.isfinite(trace.truth).all(axis=1)
         cals[at] = calibration(ned_errors(c.mean_ecef[ok], trace.truth[ok]), c.cov_ned[ok])
         outs[at] = (c.mean_ecef, c.cov_ecef, c.valid)
-        rows[f"dnn@{at}"] = _score(trace, c.mean_ecef, c.valid)
+        rows[f"dnn@{at}"] = mode_metrics(trace, ModeResult(pos=c.mean_ecef, valid=c.valid))
     print(f"\n{trace.name} with {weights} (network never saw this trace)")
     for at, cal in cals.items():
         print(f"  DNN calibration at the {at} guess: {cal}")
@@ -158,7 +147,7 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
             cfg = GraphConfig(**change)
             inp = prepare_inputs(trace, wls, cfg, 10.0, lambda tr, g, v: out, prior_guess=guesses[at])
             pos, valid, _, _ = solve_batch(trace, inp, cfg, use_prior=True, want_cov=False)
-            m = _score(trace, pos, valid)
+            m = mode_metrics(trace, ModeResult(pos=pos, valid=valid))
             rb = "none" if change["prior_robust"] == "none" else f"{change['prior_robust']}({change['prior_robust_k']:g})"
             print(f"  {at:>8} {change['prior_cov_scale']:9g} {change['prior_sigma_floor_m']:7g} {rb:>10}  "
                   f"{m['h_p50']:6.2f} {m['h_p95']:6.2f} {m['gsdc_score']:6.2f}", flush=True)
@@ -182,15 +171,14 @@ def speed(root: Path, repeats: int) -> list[dict]:
 
         trace = load_trace(d)
     else:
-        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-        from test_graph import synth_trace
+        from fusion.simulate import simulate
 
-        trace = synth_trace(E=2000)
+        trace = simulate(n_epochs=2000, seed=0, name="synthetic").trace
     wls = solve_wls(trace)
     cfg = GraphConfig()
     E = trace.n_epochs
     print(f"\nspeed on {trace.name}: {E} epochs, {int(trace.mask.sum())} measurements "
-          f"(best of {repeats}; 2 shared CPU cores)")
+          f"(best of {repeats}; {os.cpu_count()} CPU cores)")
 
     def best(f):
         ts = []

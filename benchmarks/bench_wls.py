@@ -36,7 +36,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
+from benchmarks.run_all import JSON_PREFIX, parse_records  # noqa: E402  (imports only numpy at top)
 from fusion.geometry import geodetic2ecef  # noqa: E402
+from fusion.io_gsdc import match_nearest, read_truth_csv  # noqa: E402
 from fusion.metrics import ned_errors, summarize  # noqa: E402
 from fusion.trace import pack_rows  # noqa: E402
 from fusion.wls import solve_wls_arrays  # noqa: E402
@@ -47,19 +49,15 @@ SHIPPED_TRACE = REPO / "data" / "gsdc2021" / "train" / "2021-04-28-US-MTV-1" / "
 DEFAULT_TRACE = SHARED_TRACE if SHARED_TRACE.is_dir() else SHIPPED_TRACE
 #: Interpreter with gnss_lib_py, used to re-run this script when the current one lacks it.
 GLP_PYTHON_ENV = "GNSSFUSE_GLP_PYTHON"
-JSON_PREFIX = "BENCH_JSON "
 NO_GLP = "gnss_lib_py not installed: ours only"
 
 
 def truth_at(folder: Path, t_ms: np.ndarray) -> np.ndarray:
-    """(E, 3) ECEF truth at receive times t_ms (nearest ground-truth row within 10 ms, else NaN)."""
-    import pandas as pd
-    gt = pd.read_csv(folder / "ground_truth.csv").sort_values("millisSinceGpsEpoch")
-    gt_t = gt["millisSinceGpsEpoch"].to_numpy()
-    j = np.clip(np.searchsorted(gt_t, t_ms), 1, len(gt_t) - 1)
-    j = np.where(np.abs(gt_t[j - 1] - t_ms) < np.abs(gt_t[j] - t_ms), j - 1, j)
-    llh = gt[["latDeg", "lngDeg", "heightAboveWgs84EllipsoidM"]].to_numpy()[j]
-    return np.where((np.abs(gt_t[j] - t_ms) <= 10)[:, None], geodetic2ecef(llh), np.nan)
+    """(E, 3) ECEF truth at receive times t_ms (nearest ground-truth row within 10 ms, else NaN).
+    Heights as in the file: only horizontal errors are reported here."""
+    gt = read_truth_csv(folder / "ground_truth.csv")
+    llh = gt[["lat_deg", "lon_deg", "height_m"]].to_numpy(float)
+    return match_nearest(np.asarray(t_ms), gt["t_ms"].to_numpy(np.int64), geodetic2ecef(llh), tol_ms=10)
 
 
 def accuracy(pos: np.ndarray, truth: np.ndarray) -> tuple[str, dict]:
@@ -181,17 +179,18 @@ def _rerun_elsewhere(python: str, trace: Path, repeat: int) -> list[dict]:
         proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO)
     except OSError as exc:
         raise RuntimeError(f"${GLP_PYTHON_ENV}={python}: {exc}") from exc
-    recs = None
     for line in proc.stdout.splitlines():
-        if line.startswith(JSON_PREFIX):
-            recs = json.loads(line[len(JSON_PREFIX):])
-        else:
+        if not line.startswith(JSON_PREFIX):
             print(line)
+    try:
+        recs = parse_records(proc.stdout)
+    except ValueError as exc:  # json.JSONDecodeError included
+        raise RuntimeError(f"${GLP_PYTHON_ENV}={python}: bad {JSON_PREFIX.strip()} line: {exc}") from exc
     if proc.returncode != 0 or recs is None:
         tail = (proc.stderr.strip().splitlines() or ["(no stderr)"])[-1]
         raise RuntimeError(f"${GLP_PYTHON_ENV}={python} exited {proc.returncode}: {tail}")
     print(f"(gnss_lib_py comparison run under {python})")
-    return [dict(r, note=f"{r.get('note', '')}; run under ${GLP_PYTHON_ENV}={python}") for r in recs]
+    return [dict(r, note=f"{r['note']}; run under ${GLP_PYTHON_ENV}={python}") for r in recs]
 
 
 def bench(trace: Path = DEFAULT_TRACE, repeat: int = 10) -> list[dict]:

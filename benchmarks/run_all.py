@@ -71,15 +71,13 @@ def normalise(rec: dict) -> dict:
 
 def _child(script: Path, quick: bool) -> int:
     """Run inside the subprocess: call ``run(quick=...)`` if the script has one, else run it as
-    ``__main__`` (it must then print its own ``BENCH_JSON`` line)."""
+    ``__main__`` (it must then print its own ``BENCH_JSON`` line). Any exception in ``run`` fails
+    the script (a quick run is never silently retried at full size)."""
     spec = importlib.util.spec_from_file_location(script.stem, script)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     if hasattr(mod, "run"):
-        try:
-            recs = mod.run(quick=quick)
-        except TypeError:  # a run() without the quick flag
-            recs = mod.run()
+        recs = mod.run(quick=quick)
         print(JSON_PREFIX + json.dumps([normalise(r) for r in recs], default=float))
         return 0
     # No run(): the script's own __main__ with no arguments (it may not know --quick).
@@ -183,17 +181,22 @@ def trained_on(weights: Path | None = None) -> set[str]:
     return {n for n in names if not n.startswith("sim/")}
 
 
-def drop_failed_modes(df, modes: list[str], why: dict[str, str]):
-    """A mode that failed on every trace (e.g. no DNN weights yet) is unavailable, not a row."""
+def drop_failed_modes(df, modes: list[str], why: dict[str, str]) -> tuple:
+    """A mode that failed on every trace (e.g. no DNN weights yet) is unavailable, not a row.
+
+    Returns new ``(df, modes, why)``: ``df`` without those modes' rows, ``modes`` without them and
+    ``why`` plus their first failure message. The arguments are left unchanged, so one group's
+    failures do not leak into the next group's modes or note."""
     from fusion.report import ALL
 
+    modes, why = list(modes), dict(why)
     for m in df[(df.trace == ALL) & (df.status == "failed on every trace")]["mode"]:
         first = df[(df["mode"] == m) & (df.trace != ALL)].status.iloc[0]
         why[m] = first.removeprefix("failed: ")
         df = df[df["mode"] != m]
         if m in modes:
             modes.remove(m)
-    return df
+    return df, modes, why
 
 
 def load_gogps(csv: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -231,21 +234,23 @@ def gogps_comparison(shared: Path = SHARED_DATA) -> list[dict] | None:
     """goGPS WLS and our WLS on the goGPS trace, both scored with fusion.metrics. None if absent."""
     from fusion.io_gsdc import load_trace
     from fusion.metrics import ned_errors, summarize
-    from fusion.wls import solve_wls
+    from fusion.pipeline import RunOptions, estimate_wls, mode_metrics, solve_initial
 
     csv, trace_dir = shared / GOGPS_CSV, shared / GOGPS_TRACE
     if not (csv.is_file() and trace_dir.is_dir()):
         return None
-    trace = load_trace(trace_dir)
+    # min_sats=1 as gnssfuse run / evaluate load: the epoch counts match the accuracy tables.
+    trace = load_trace(trace_dir, min_sats=1)
     t_ms, est = load_gogps(csv)
     truth_at_gogps = interp_truth(trace.t_ms, trace.truth, t_ms)
     rows = [{"method": "goGPS WLS (paper's baseline, its own epochs, truth interpolated)",
              "total": int(t_ms.size), **summarize(ned_errors(est, truth_at_gogps))}]
-    ours = solve_wls(trace)
+    opts = RunOptions()
+    ours = estimate_wls(trace, solve_initial(trace, opts), opts)
     skips = ", ".join(f"{k}={v}" for k, v in trace.skipped.items())
-    rows.append({"method": "gnssfuse WLS (elevation weights, 10 deg mask)"
+    rows.append({"method": f"gnssfuse WLS ({opts.wls_weighting} weights, {opts.elev_mask_deg:g} deg mask)"
                  + (f"; loader skipped {skips}" if skips else ""), "total": trace.n_epochs,
-                 **summarize(ned_errors(np.where(ours.valid[:, None], ours.pos, np.nan), trace.truth))})
+                 **mode_metrics(trace, ours)})
     return rows
 
 
@@ -367,9 +372,9 @@ def main(argv: list[str] | None = None) -> int:
                 if not group:
                     continue
                 print(f"accuracy: {slug}: modes {','.join(modes)} on {len(group)} trace(s) ...", flush=True)
-                df = drop_failed_modes(run_accuracy(group, list(modes), args.out / slug, max_epochs, signals),
-                                       modes, why)
-                note = (common + "".join(f"Mode {m} unavailable: {w}. " for m, w in why.items())
+                df, _, group_why = drop_failed_modes(
+                    run_accuracy(group, list(modes), args.out / slug, max_epochs, signals), modes, why)
+                note = (common + "".join(f"Mode {m} unavailable: {w}. " for m, w in group_why.items())
                         + f"Figures: `{os.path.relpath(args.out / slug / 'report.md', REPO)}`.")
                 sections.append((f"Accuracy by mode: {title}", note + "\n\n" + accuracy_markdown(df)))
         else:

@@ -42,10 +42,8 @@ def _cov(cal: dict | None) -> str:
 
 def row(name: str, est: np.ndarray, truth: np.ndarray, ok: np.ndarray, cal: dict | None = None,
         cal2: dict | None = None) -> str:
-    e = ned_errors(est[ok], truth[ok])
-    s = summarize(e)
-    mae = np.abs(e).mean(0)
-    return (f"| {name} | {int(ok.sum())} | {mae[0]:.2f} / {mae[1]:.2f} / {mae[2]:.2f} | "
+    s = summarize(ned_errors(est[ok], truth[ok]))
+    return (f"| {name} | {int(ok.sum())} | {s['mae_n']:.2f} / {s['mae_e']:.2f} / {s['mae_d']:.2f} | "
             f"{s['h_p50']:.2f} | {s['h_p95']:.2f} | {_cov(cal)} | {_cov(cal2)} |")
 
 

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from fusion.errors import CheckpointError
-from fusion.geometry import ecef2ned_vec, ned_rotation
+from fusion.geometry import ned_rotation
+from fusion.metrics import ned_errors
 from learned.augment import draw_guesses, epoch_generator, parse_guess_mix
 from learned.checkpoint import load_model
 from learned.data import simulated_samples_with_clock, split_random
@@ -65,7 +66,7 @@ def predict_given_clock(ckpt: Path, samples, guess: np.ndarray) -> tuple[np.ndar
 
 
 def evaluate(ckpt: Path, samples, eta: float, seed: int, honest: bool = False, leak: bool = False) -> dict:
-    """Held-out samples: MAE before/after per NED axis, coverage. Paper protocol (guess = truth + box) or,
+    """Held-out samples: MAE before/after per NED axis over the epochs the network corrected, coverage. Paper protocol (guess = truth + box) or,
     with ``honest``, guess = the sample's WLS position (epochs where WLS failed are left out)."""
     truth = torch.as_tensor(samples.truth)
     if honest:
@@ -83,9 +84,10 @@ def evaluate(ckpt: Path, samples, eta: float, seed: int, honest: bool = False, l
                   t_ms=np.arange(len(samples), dtype=np.int64))
         c = Corrector.load(ckpt).predict(Trace(**kw), guess, np.ones(len(samples), bool))
         mean, cov_ned, valid = c.mean_ecef, c.cov_ned, c.valid
-    before = np.abs(ecef2ned_vec(guess - samples.truth, samples.truth))
-    err = ecef2ned_vec(mean - samples.truth, samples.truth)
-    return {"before": before, "after": np.abs(err[valid]), "cal": calibration(err, cov_ned)}
+    # Before and after over the same epochs: those the network corrected (``valid``).
+    before = np.abs(ned_errors(guess, samples.truth))
+    err = ned_errors(mean, samples.truth)
+    return {"before": before[valid], "after": np.abs(err[valid]), "cal": calibration(err, cov_ned)}
 
 
 def fmt(a: np.ndarray) -> str:

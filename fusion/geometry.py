@@ -83,9 +83,15 @@ def line_of_sight(sat_pos: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, 
     return rng, d / np.maximum(rng, 1.0)[..., None]
 
 
-def elevation_azimuth(los_ecef: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Elevation and azimuth [deg] of unit LOS vectors (..., S, 3) seen from ``rx_pos`` (..., 3)."""
-    R = ned_rotation(rx_pos)
+def elevation_azimuth(los_ecef: np.ndarray, rx_pos: np.ndarray,
+                      R: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation and azimuth [deg] of unit LOS vectors (..., S, 3) seen from ``rx_pos`` (..., 3).
+
+    R: optional (..., 3, 3) ``ned_rotation(rx_pos)`` already computed by the caller (saves the
+    geodetic conversion); ``rx_pos`` is then not used.
+    """
+    if R is None:
+        R = ned_rotation(rx_pos)
     ned = np.einsum("...ij,...sj->...si", R, los_ecef)
     el = np.degrees(np.arcsin(np.clip(-ned[..., 2], -1.0, 1.0)))
     az = np.degrees(np.arctan2(ned[..., 1], ned[..., 0])) % 360.0

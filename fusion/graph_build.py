@@ -80,8 +80,9 @@ class GraphConfig:
     (huber, pr_sigma_scale 0.5/2, cv_accel_h 0.5/2, cv_pos_sigma 0.2/1, clock_rw 2/20, motion rw: 3.93-4.75).
 
     Learned prior, round 3 (weights trained on a 75% WLS-based / 25% paper-box guess mix with
-    per-axis variance calibration; tuned on 2020-09-04-US-SF-2 with /tmp/lt2/loo_sf2_v2.pt, the
-    same recipe trained without that trace; ``bench_graph.py --part prior --weights CKPT``). There:
+    per-axis variance calibration; tuned on 2020-09-04-US-SF-2 with a leave-one-out model: the
+    recipe of ``learned/weights/TRAINING.md`` (same data, options and seed) trained without
+    2020-09-04-US-SF-2; ``bench_graph.py --part prior --weights CKPT``). There:
     wls h p50 5.17 / p95 13.83 / score 9.50 m; fused-nodnn 2.80 / 5.98 / 4.39; the network alone
     asked at the graph solution 4.61 / 10.97 / 7.79, at WLS 4.62 / 12.25 / 8.43. The network output
     is computed once per guess and reused for every row. GSDC score [m] (h p95 in brackets):
@@ -107,8 +108,9 @@ class GraphConfig:
     chosen graph / 1 / 2 m / cauchy(1), 4.36 m, 0.01 m from the best row (floor 0), kept for
     safety against over-confident outputs on unseen data. The gain over fused-nodnn on this
     held-out trace is small (0.03 m score, p95 5.98 -> 5.92); without the robust loss the prior
-    still costs up to 0.19 m. Round 2 (older weights, /tmp/lt2/loo_sf2.pt): best 16 / 2 m /
-    cauchy(1) at 4.42, prior never beat fused-nodnn (4.39).
+    still costs up to 0.19 m. Round 2 (older box-only weights, their recipe likewise trained
+    without 2020-09-04-US-SF-2): best 16 / 2 m / cauchy(1) at 4.42, prior never beat fused-nodnn
+    (4.39).
         """
 
     # Pseudorange sigma [m]: sqrt((pr_sigma_scale * pr_sigma)^2 + (pr_sigma_zenith_m / sin(el))^2).
@@ -173,8 +175,10 @@ class EpochInputs:
     """Everything the factor loop needs, precomputed without Python loops.
 
     E epochs, S slots.
-    init_pos (E,3), init_clock_m (E,) (NaN where no satellite), sel (E,S) bool satellites used,
-    sigma (E,S) [m], pos_link (E,) bool (epoch k linked by motion to k-1), clock_link (E,) int
+    init_pos (E,3), init_clock_m (E,) (NaN where no satellite), init_vel (E,3) ECEF [m/s] initial
+    velocities (central differences of init_pos within a motion component, 0 for isolated epochs),
+    sel (E,S) bool satellites used, sigma (E,S) [m], dt (E,) [s] time since the previous epoch
+    (0 for the first), pos_link (E,) bool (epoch k linked by motion to k-1), clock_link (E,) int
     (index of the epoch whose clock k's clock is chained to, -1 for none), clock_mean_m (E,) the
     expected clock change along that link, clock_sigma_m (E,), prior_mean (E,3), prior_cov (E,3,3),
     prior_ok (E,) bool, keep (E,) bool (epoch in a determinable component), comp (E,) component id,
@@ -201,7 +205,7 @@ class EpochInputs:
     keep: np.ndarray
     comp: np.ndarray
     dropped: dict
-    isb_group: np.ndarray | None = None
+    isb_group: np.ndarray
     isb_new: np.ndarray | None = None
     isb_init_m: np.ndarray | None = None
     isb_groups: tuple = ()
@@ -234,13 +238,59 @@ def _ned_cov_to_ecef(ref: np.ndarray, var_n: np.ndarray, var_e: np.ndarray, var_
     return np.einsum("eji,ej,ejk->eik", R, D, R)
 
 
+#: smallest eigenvalue [m^2] a provider's covariance needs to be used as a prior
+PRIOR_MIN_EIG = 1e-6
+
+
+@dataclass
+class Priors:
+    """A provider's output made safe for the graph (see :func:`clean_priors`), E epochs.
+
+    mean (E,3) ECEF (0 where not ok); cov (E,3,3) the covariance used (identity where not ok);
+    ok (E,) bool usable; finite (E,) bool mean and covariance finite; spd (E,) bool covariance
+    positive definite (smallest eigenvalue > ``PRIOR_MIN_EIG``, identity where not finite).
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    ok: np.ndarray
+    finite: np.ndarray
+    spd: np.ndarray
+
+
+def clean_priors(mean: np.ndarray, cov: np.ndarray, valid: np.ndarray, scale: float, floor_m: float,
+                 what: str = "cov_scale / sigma_floor_m") -> Priors:
+    """The one rule turning a provider's (mean (E,3), cov (E,3,3), valid (E,)) into priors.
+
+    A prior is used where the provider said valid, mean and covariance are finite and the
+    symmetrised covariance is positive definite; the covariance used is then
+    ``scale * cov + floor_m**2 * I`` (inflation: the network's covariance ignores that its errors
+    are correlated from epoch to epoch; floor: see the GraphConfig table). ``what`` names the
+    options in the error raised when scale <= 0 or floor_m < 0.
+    """
+    if not (scale > 0 and floor_m >= 0):
+        raise GeometryError(f"{what}: the covariance scale must be > 0 and the sigma floor >= 0, got "
+                            f"{scale} and {floor_m}")
+    mean, cov, valid = np.asarray(mean, float), np.asarray(cov, float), np.asarray(valid, bool)
+    finite = np.isfinite(mean).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
+    cov_safe = np.where(finite[:, None, None], 0.5 * (cov + cov.transpose(0, 2, 1)), np.eye(3))
+    # a singular / indefinite covariance from the provider is a defect: reject it before the
+    # floor below would hide it
+    spd = np.linalg.eigvalsh(cov_safe)[:, 0] > PRIOR_MIN_EIG
+    ok = valid & finite & spd
+    used = scale * cov_safe + floor_m ** 2 * np.eye(3)
+    return Priors(mean=np.where(ok[:, None], mean, 0.0), cov=np.where(ok[:, None, None], used, np.eye(3)),
+                  ok=ok, finite=finite, spd=spd)
+
+
 def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 10.0,
                    provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None) -> EpochInputs:
     """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
 
     wls: a ``fusion.wls.WlsResult`` (pos (E,3), clock_m (E,), valid (E,), used (E,S)).
     prior_guess: (E,3) positions at which to ask the provider (NaN rows: the initial position);
-    default the initial positions (WLS, interpolated where it failed).
+    None = the initial positions (WLS, interpolated where it failed). ``fusion.graph.fuse`` passes
+    the no-prior graph solution under ``prior_at="graph"`` and None under ``prior_at="wls"``.
     Raises :class:`GeometryError` when no epoch has any usable initial position.
     """
     E = trace.n_epochs
@@ -253,7 +303,7 @@ def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 1
         raise GeometryError(f"{trace.name}: WLS solved no epoch, so the graph has no initial position")
     init_pos = _interp_rows(t, np.asarray(wls.pos, float), wls_ok)
 
-    # --- the learned prior, asked at the same initial positions every mode sees
+    # --- the learned prior, asked at prior_guess (else at the initial positions every mode sees)
     prior_mean = np.zeros((E, 3))
     prior_cov = np.tile(np.eye(3), (E, 1, 1))
     prior_ok = np.zeros(E, bool)
@@ -267,21 +317,10 @@ def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 1
         if pm.shape != (E, 3) or pc.shape != (E, 3, 3) or pv.shape != (E,):
             raise GeometryError(f"{trace.name}: prior provider returned shapes {pm.shape}, {pc.shape}, "
                                 f"{pv.shape}; expected {(E, 3)}, {(E, 3, 3)}, {(E,)}")
-        if not (cfg.prior_cov_scale > 0 and cfg.prior_sigma_floor_m >= 0):
-            raise GeometryError(f"GraphConfig: prior_cov_scale must be > 0 and prior_sigma_floor_m >= 0, got "
-                                f"{cfg.prior_cov_scale} and {cfg.prior_sigma_floor_m}")
-        finite = np.isfinite(pm).all(axis=1) & np.isfinite(pc).all(axis=(1, 2))
-        pc_safe = np.where(finite[:, None, None], 0.5 * (pc + pc.transpose(0, 2, 1)), np.eye(3))
-        # a singular / indefinite covariance from the provider is a defect: reject it before the
-        # floor below would hide it
-        spd = np.linalg.eigvalsh(pc_safe)[:, 0] > 1e-6
-        prior_ok = pv & finite & spd
-        dropped["prior_rejected"] = int((pv & ~(finite & spd)).sum())
-        prior_mean = np.where(prior_ok[:, None], pm, 0.0)
-        # inflation (the network's covariance ignores that its errors are correlated from epoch to
-        # epoch) and a floor, see the GraphConfig table
-        pc_used = cfg.prior_cov_scale * pc_safe + cfg.prior_sigma_floor_m ** 2 * np.eye(3)
-        prior_cov = np.where(prior_ok[:, None, None], pc_used, np.eye(3))
+        pri = clean_priors(pm, pc, pv, cfg.prior_cov_scale, cfg.prior_sigma_floor_m,
+                           what="GraphConfig: prior_cov_scale / prior_sigma_floor_m")
+        prior_mean, prior_cov, prior_ok = pri.mean, pri.cov, pri.ok
+        dropped["prior_rejected"] = int((pv & ~(pri.finite & pri.spd)).sum())
 
     # --- satellite selection and sigmas at the initial position
     rng, los = line_of_sight(trace.sat_pos, init_pos)
@@ -353,18 +392,19 @@ def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 1
     inp = EpochInputs(init_pos=init_pos, init_clock_m=init_clock, init_vel=init_vel, sel=sel, sigma=sigma,
                       dt=dt, pos_link=pos_link, clock_link=clock_link, clock_mean_m=clock_mean,
                       clock_sigma_m=clock_sig, prior_mean=prior_mean, prior_cov=prior_cov,
-                      prior_ok=prior_ok, keep=keep, comp=comp, dropped=dropped)
+                      prior_ok=prior_ok, keep=keep, comp=comp, dropped=dropped,
+                      isb_group=np.full(trace.mask.shape, -1, np.int64))
     _isb_inputs(trace, inp, resid, cfg)
     return inp
 
 
 def _isb_inputs(trace: Trace, inp: EpochInputs, resid: np.ndarray, cfg: GraphConfig) -> None:
-    """Signal groups, first-use epochs and initial values of the inter-system biases (in place).
+    """Signal groups, first-use epochs and initial values of the inter-system biases (in place;
+    ``inp.isb_group`` comes in all -1).
 
     resid (E,S): pseudorange minus range at the initial position (NaN where not selected).
     """
-    E, S = inp.sel.shape
-    inp.isb_group = np.full((E, S), -1, np.int64)
+    E = inp.sel.shape[0]
     if cfg.isb == "none":
         return
     if cfg.isb != "window":
@@ -409,6 +449,12 @@ def robust_model(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.nois
     else:
         raise GeometryError(f"unknown robust loss {kind!r}; choose huber, cauchy or none")
     return gtsam.noiseModel.Robust.Create(est, base)
+
+
+def prior_noise_model(cov: np.ndarray, robust: str = "none", robust_k: float = 1.0) -> gtsam.noiseModel.Base:
+    """Noise model of one position prior: Gaussian with ``cov`` (3,3) (already cleaned by
+    :func:`clean_priors`), wrapped in ``robust`` ("huber", "cauchy", "none") at ``robust_k`` sigmas."""
+    return robust_model(robust, robust_k, gtsam.noiseModel.Gaussian.Covariance(cov))
 
 
 def _robust(cfg: GraphConfig, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
@@ -472,7 +518,7 @@ def epoch_factors(k: int, trace: Trace, inp: EpochInputs, noise: MotionNoise, cf
     c_sel = np.flatnonzero(inp.sel[k])
     if c_sel.size:
         vals.insert(B(k), float(inp.init_clock_m[k] / C_LIGHT))
-        grp = inp.isb_group[k] if inp.isb_group is not None else np.full(inp.sel.shape[1], -1)
+        grp = inp.isb_group[k]
         comp = int(inp.comp[k])
         if inp.isb_new is not None:
             for g in np.flatnonzero(inp.isb_new[k]):   # bias first used here: value + prior
@@ -493,8 +539,7 @@ def epoch_factors(k: int, trace: Trace, inp: EpochInputs, noise: MotionNoise, cf
                 B(j), B(k), float(inp.clock_mean_m[k] / C_LIGHT),
                 gtsam.noiseModel.Isotropic.Sigma(1, float(inp.clock_sigma_m[k] / C_LIGHT))))
     if use_prior and inp.prior_ok[k]:
-        model = robust_model(cfg.prior_robust, cfg.prior_robust_k,
-                             gtsam.noiseModel.Gaussian.Covariance(inp.prior_cov[k]))
+        model = prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k)
         factors.append(gtsam.PriorFactorPoint3(X(k), inp.prior_mean[k], model))
     if cfg.motion == "cv":
         vals.insert(V(k), inp.init_vel[k])

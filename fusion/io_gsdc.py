@@ -40,7 +40,7 @@ from fusion.errors import DataError, GnssfuseError
 from fusion.geometry import C_LIGHT, geodetic2ecef
 from fusion.gpstime import unix_ms_to_gps_ms
 from fusion.io_nmea import read_span_nmea
-from fusion.trace import SIGNALS, Trace, pack_rows
+from fusion.trace import SIGNALS, Trace, count_skip, pack_rows
 
 log = logging.getLogger(__name__)
 
@@ -97,12 +97,13 @@ def signal_index(names: Sequence[str] | pd.Series) -> np.ndarray:
 def resolve_signals(signals: Sequence[str] | str | None) -> np.ndarray:
     """User signal selection -> sorted unique indices into :data:`SIGNALS`.
 
-    ``None`` or ``"all"`` selects every known signal; names may use 2023 spellings.
+    ``None``, ``"all"`` or a sequence containing ``"all"`` (any case) selects every known signal;
+    names may use 2023 spellings.
     """
-    if signals is None or (isinstance(signals, str) and signals.lower() == "all"):
-        return np.arange(len(SIGNALS))
     if isinstance(signals, str):
         signals = [signals]
+    if signals is None or any(str(s).strip().lower() == "all" for s in signals):
+        return np.arange(len(SIGNALS))
     idx = signal_index(list(signals))
     unknown = [s for s, i in zip(signals, idx) if i < 0]
     if unknown or len(idx) == 0:
@@ -149,7 +150,7 @@ def _drop_nan_rows(df: pd.DataFrame, cols: Sequence[str], path: Path, what: str,
     bad = df[list(cols)].isna().any(axis=1).to_numpy()
     if bad.all():
         raise DataError(f"{path}: every {what} row has a missing value in {', '.join(cols)}")
-    _count(skipped, key, bad.sum())
+    count_skip(skipped, key, bad.sum())
     return df[~bad]
 
 
@@ -162,11 +163,6 @@ def _check_increasing(t: np.ndarray, row: np.ndarray, path: Path, what: str) -> 
         i = int(back[0])
         raise DataError(f"{path}: {what} times are not increasing: data row {row[i + 1]} has time "
                         f"{t[i + 1]} after {t[i]} (data row {row[i]})")
-
-
-def _count(skipped: dict[str, int], key: str, n) -> None:
-    if int(n):
-        skipped[key] = skipped.get(key, 0) + int(n)
 
 
 # ---------------------------------------------------------------------------- measurements
@@ -198,10 +194,10 @@ def _standard_rows(df: pd.DataFrame, cols: dict[str, str], vel_cols: Sequence[st
 
 
 def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sats: int,
-                   skipped: dict[str, int], clock_count: np.ndarray | None = None) -> tuple[dict, pd.DataFrame]:
+                   skipped: dict[str, int], clock_count: np.ndarray | None = None) -> dict:
     """Filter, de-duplicate and pack standard rows (``t`` already integer true GPS ms).
 
-    Returns Trace keyword arguments (without truth) and the kept rows.
+    Returns Trace keyword arguments (without truth).
     """
     sel = resolve_signals(signals)
     rows = rows.assign(signal=signal_index(rows["signal_name"]))
@@ -215,17 +211,17 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
     pr, sig = rows["pr"].to_numpy(), rows["pr_sigma"].to_numpy()
     good = ((r > _SAT_RADIUS_M[0]) & (r < _SAT_RADIUS_M[1]) & (pr > _PR_RANGE_M[0]) & (pr < _PR_RANGE_M[1])
             & np.isfinite(sig) & (sig > 0))
-    _count(skipped, "rows_bad_values", (~good).sum())
+    count_skip(skipped, "rows_bad_values", (~good).sum())
     rows = rows[good]
 
     rows = rows.sort_values(["t", "const", "svid", "signal"], kind="stable")
     dup = rows.duplicated(["t", "const", "svid", "signal"]).to_numpy()
-    _count(skipped, "duplicate_rows", dup.sum())
+    count_skip(skipped, "duplicate_rows", dup.sum())
     rows = rows[~dup]
 
     t_unique, epoch, counts = np.unique(rows["t"].to_numpy(np.int64), return_inverse=True, return_counts=True)
     keep_epoch = counts >= min_sats
-    _count(skipped, f"epochs_lt{min_sats}_sats", (~keep_epoch).sum())
+    count_skip(skipped, f"epochs_lt{min_sats}_sats", (~keep_epoch).sum())
     if not keep_epoch.any():
         raise DataError(f"{path}: no epoch has >= {min_sats} satellites of the selected signal(s) "
                         f"({', '.join(SIGNALS[i] for i in sel)}); largest has {int(counts.max(initial=0))}")
@@ -249,8 +245,7 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
         per_epoch = np.full(E, -1, np.int64)
         np.maximum.at(per_epoch, epoch, rows["clk_count"].to_numpy(np.int64))
         clock_reset[1:] = np.diff(per_epoch) != 0
-    kwargs = dict(t_ms=t_ms.astype(np.int64), clock_reset=clock_reset, name=name, **packed)
-    return kwargs, rows
+    return dict(t_ms=t_ms.astype(np.int64), clock_reset=clock_reset, name=name, **packed)
 
 
 def _retime_derived(rows: pd.DataFrame, received_ns: np.ndarray | None) -> tuple[np.ndarray, int]:
@@ -309,7 +304,7 @@ def read_truth_csv(path: str | Path, skipped: dict[str, int] | None = None) -> p
     out = pd.DataFrame({"t_ms": t, "lat_deg": df[cols[1]].to_numpy(float),
                         "lon_deg": df[cols[2]].to_numpy(float), "height_m": df[cols[3]].to_numpy(float)})
     dup = out.duplicated("t_ms").to_numpy()
-    _count(skipped, "truth_duplicate_rows", dup.sum())
+    count_skip(skipped, "truth_duplicate_rows", dup.sum())
     return out[~dup].reset_index(drop=True)
 
 
@@ -384,14 +379,15 @@ def load_derived_2021(derived: str | Path, truth_csv: str | Path | None = None, 
     truth_csv:        ``ground_truth.csv``; matched to epochs by nearest time within ``truth_tol_ms``.
     nmea:             SPAN NMEA log; when given (and ``fix_truth_height``) it is the truth, interpolated
                       to the epoch times, with the height-fixed CSV filling epochs it does not cover.
-    fix_truth_height: remove the 63.1 m CSV height error (False: CSV heights as published, no NMEA).
+    fix_truth_height: remove the 63.1 m CSV height error (False: CSV heights as published, and the
+                      NMEA log is used only when there is no ``truth_csv``).
     min_sats:         epochs with fewer measurements are skipped and counted (0 keeps every epoch).
     """
     derived = Path(derived)
     skipped: dict[str, int] = {}
     rows = _read_derived_rows(derived, skipped)
-    kwargs, _ = _rows_to_trace(rows, name=name or derived.stem, path=derived, signals=signals,
-                               min_sats=min_sats, skipped=skipped)
+    kwargs = _rows_to_trace(rows, name=name or derived.stem, path=derived, signals=signals,
+                            min_sats=min_sats, skipped=skipped)
     t_ms = kwargs["t_ms"]
     truth = None
     if truth_csv is not None:
@@ -440,8 +436,8 @@ def load_device_gnss(device_csv: str | Path, truth_csv: str | Path | None = None
     if has_clk:
         clk = df.set_index("_row")["HardwareClockDiscontinuityCount"].reindex(rows["row"]).to_numpy(float)
         clk = np.nan_to_num(clk, nan=-1).astype(np.int64)
-    kwargs, _ = _rows_to_trace(rows, name=name or device_csv.stem, path=device_csv, signals=signals,
-                               min_sats=min_sats, skipped=skipped, clock_count=clk)
+    kwargs = _rows_to_trace(rows, name=name or device_csv.stem, path=device_csv, signals=signals,
+                            min_sats=min_sats, skipped=skipped, clock_count=clk)
     truth = None
     if truth_csv is not None:
         truth_csv = Path(truth_csv)
@@ -494,7 +490,8 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
     Format is detected from the files (``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
     -> GSDC 2022/23). ``truth``: ``"auto"`` (SPAN NMEA when present for 2021, else
     ``ground_truth.csv``, else none), ``"csv"`` (ignore NMEA), ``"nmea"`` (require it), ``"none"``.
-    The trace is named ``<collection>/<phone>`` after its folder.
+    The trace is named ``<collection>/<phone>`` after its folder, or ``<folder>/<stem>`` when that
+    folder holds several measurement files (e.g. ``samples/Pixel4_derived``).
     """
     path = Path(path)
     if truth not in ("auto", "csv", "nmea", "none"):

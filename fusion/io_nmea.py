@@ -18,6 +18,7 @@ import pandas as pd
 
 from fusion.errors import DataError
 from fusion.gpstime import DAY_MS, gps_ms_to_unix_ms, unix_ms_to_gps_ms
+from fusion.trace import count_skip
 
 #: Columns of :func:`read_span_nmea`'s result.
 NMEA_COLUMNS = ("t_ms", "lat_deg", "lon_deg", "height_m", "alt_msl_m", "geoid_sep_m", "quality", "n_sats")
@@ -97,8 +98,7 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     # GSDC 2021 SPAN logs has a wrong checksum (their GGA ones are right). The date is instead
     # cross-checked against ``ref_gps_ms`` when given.
     bad_sum = int((is_gga & ~ok).sum())
-    if bad_sum:
-        skipped["nmea_bad_checksum"] = skipped.get("nmea_bad_checksum", 0) + bad_sum
+    count_skip(skipped, "nmea_bad_checksum", bad_sum)
     gga = lines[is_gga & ok].str.split("*").str[0].str.split(",", expand=True)
     if gga.empty or gga.shape[1] < 12:
         raise DataError(f"{path}: no valid GGA sentences")
@@ -113,10 +113,8 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     good = np.isfinite(tod) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt) & np.isfinite(sep)
     n_bad = int((~good).sum())
     no_fix = good & ~(quality > 0)
-    if n_bad:
-        skipped["nmea_bad_fields"] = skipped.get("nmea_bad_fields", 0) + n_bad
-    if no_fix.any():
-        skipped["nmea_no_fix"] = skipped.get("nmea_no_fix", 0) + int(no_fix.sum())
+    count_skip(skipped, "nmea_bad_fields", n_bad)
+    count_skip(skipped, "nmea_no_fix", no_fix)
     keep = good & (quality > 0)
     if not keep.any():
         raise DataError(f"{path}: no GGA sentence with a valid fix")
@@ -135,7 +133,7 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     })
     dup = df.duplicated("t_ms")
     if dup.any():
-        skipped["nmea_duplicate_times"] = skipped.get("nmea_duplicate_times", 0) + int(dup.sum())
+        count_skip(skipped, "nmea_duplicate_times", dup.to_numpy())
         df = df[~dup]
     back = np.flatnonzero(np.diff(df["t_ms"].to_numpy()) < 0)
     if back.size:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.errors import DataError
-from fusion.geometry import C_LIGHT, OMEGA_E, sagnac_rotate
+from fusion.geometry import C_LIGHT, OMEGA_E, line_of_sight
 from fusion.rinex_nav import GpsNav
 
 #: WGS-84 gravitational constant used by GPS [m^3/s^2] (IS-GPS-200).
@@ -64,7 +64,7 @@ def sat_state(nav: GpsNav, idx: np.ndarray, t_ms: np.ndarray, dt_s: np.ndarray |
     Returns dict with ``pos`` (..., 3) [m] and ``vel`` (..., 3) [m/s] in the ECEF frame *at
     that time*, ``clock_s`` (...) satellite clock offset dt_sv [s] (af0/af1/af2 + relativistic
     - TGD, i.e. the L1 C/A correction), ``clock_rel_s`` (...) the relativistic part alone,
-    ``tgd_s`` (...), ``clock_drift`` (...) [s/s], ``ecc_anomaly`` (...).
+    ``clock_drift`` (...) [s/s]. With ``position_only`` only ``pos`` is computed.
     """
     idx = np.asarray(idx)
     if np.any(idx < 0):
@@ -115,8 +115,7 @@ def sat_state(nav: GpsNav, idx: np.ndarray, t_ms: np.ndarray, dt_s: np.ndarray |
     drift = p["af1"] + 2.0 * p["af2"] * tc + F_REL * e * p["sqrt_a"] * cos_e * ea_dot
     return {
         "pos": np.stack([x, y, z], axis=-1), "vel": np.stack([vx, vy, vz], axis=-1),
-        "clock_s": clock, "clock_rel_s": rel, "tgd_s": p["tgd"], "clock_drift": drift,
-        "ecc_anomaly": ea,
+        "clock_s": clock, "clock_rel_s": rel, "clock_drift": drift,
     }
 
 
@@ -137,6 +136,5 @@ def transmit_states(nav: GpsNav, idx: np.ndarray, rx_ecef: np.ndarray, t_rx_ms: 
     tau = np.broadcast_to(np.asarray(tau0, float), np.shape(idx))
     for _ in range(n_iter):
         st = sat_state(nav, idx, t, -tau, position_only=True)
-        rng = np.linalg.norm(sagnac_rotate(st["pos"][:, None, :], rx_ecef)[:, 0] - rx_ecef, axis=-1)
-        tau = rng / C_LIGHT
+        tau = line_of_sight(st["pos"][:, None, :], rx_ecef)[0][:, 0] / C_LIGHT
     return sat_state(nav, idx, t, -tau), tau

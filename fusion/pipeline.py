@@ -73,10 +73,17 @@ MODES: dict[str, str] = {
 
 
 def get_mode(name: str) -> Callable[..., ModeResult]:
+    """The estimator of mode ``name``; :class:`GnssfuseError` when unknown or not importable."""
     if name not in MODES:
         raise GnssfuseError(f"unknown mode {name!r}; choose from {', '.join(MODES)}")
     module, func = MODES[name].split(":")
-    return getattr(importlib.import_module(module), func)
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        raise GnssfuseError(f"mode {name!r} is unavailable: cannot import {module} ({exc})") from exc
+    if not hasattr(mod, func):
+        raise GnssfuseError(f"mode {name!r} is unavailable: {module} has no {func}()")
+    return getattr(mod, func)
 
 
 def solve_initial(trace: Trace, opts: RunOptions):
@@ -111,14 +118,25 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     })
 
 
-def mode_metrics(trace: Trace, result: ModeResult) -> dict | None:
-    """Accuracy against truth (None when the trace has none). Truth is used here only."""
+def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:
+    """(E, 3) NED error [m] of a mode's estimates w.r.t. the truth (NaN rows where the epoch is
+    unsolved or has no truth), or None when the trace has no truth. Truth is used here only."""
     if not trace.has_truth:
         return None
-    from fusion.metrics import ned_errors, summarize
+    from fusion.metrics import ned_errors
 
     est = np.where(result.valid[:, None], result.pos, np.nan)
-    return summarize(ned_errors(est, trace.truth))
+    return ned_errors(est, trace.truth)
+
+
+def mode_metrics(trace: Trace, result: ModeResult) -> dict | None:
+    """Accuracy against truth (None when the trace has none): ``summarize(trace_errors(...))``."""
+    err = trace_errors(trace, result)
+    if err is None:
+        return None
+    from fusion.metrics import summarize
+
+    return summarize(err)
 
 
 def format_table(rows: dict[str, dict | None]) -> str:
@@ -180,7 +198,7 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
 
     # The loader's vocabulary: our names, GSDC 2023 spellings (GPS_L1_CA, ...) or "all".
     names = [s.strip() for s in args.signals.split(",") if s.strip()]
-    signals = tuple(SIGNALS[i] for i in resolve_signals(names[0] if names == ["all"] else names))
+    signals = tuple(SIGNALS[i] for i in resolve_signals(names))
     if args.dnn_passes < 1:
         raise GnssfuseError("--dnn-passes must be >= 1")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,

@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fusion.geometry import ecef2ned_vec  # noqa: E402
-from fusion.metrics import cdf  # noqa: E402
+from fusion.metrics import cdf, horizontal  # noqa: E402
 
 AXES = ("north", "east", "down")
 #: Upper percentile shown on CDF x-axes; a few extreme outliers would otherwise squash the curves.
@@ -57,7 +57,7 @@ def plot_error_cdfs(errors: dict[str, np.ndarray], path: Path, title: str = "",
     """
     fig, axs = plt.subplots(1, 4, figsize=(16, 3.8), layout="constrained")
     panels = [(f"|{a}| error [m]", lambda e, i=i: np.abs(e[:, i])) for i, a in enumerate(AXES)]
-    panels.append(("horizontal error [m]", lambda e: np.hypot(e[:, 0], e[:, 1])))
+    panels.append(("horizontal error [m]", horizontal))
     for ax, (label, fn) in zip(axs, panels):
         vals = {m: fn(_finite_rows(e)) for m, e in errors.items()}
         pooled = np.concatenate([v for v in vals.values()] + [np.zeros(0)])
@@ -180,7 +180,7 @@ def plot_error_vs_time(t_s: np.ndarray, errors: dict[str, np.ndarray], path: Pat
     gaps longer than ``max_gap_s`` (unsolved single epochs are bridged).
     """
     fig, axs = plt.subplots(2, 1, figsize=(12, 6), sharex=True, layout="constrained")
-    series = [("horizontal error [m]", lambda e: np.hypot(e[:, 0], e[:, 1])),
+    series = [("horizontal error [m]", horizontal),
               ("down error [m]", lambda e: e[:, 2])]
     for ax, (label, fn) in zip(axs, series):
         pooled = []

@@ -1,7 +1,8 @@
 """``gnssfuse evaluate``: compare modes on one or more traces and write a report folder.
 
-Every mode of :data:`fusion.pipeline.MODES` is run on the same trace and the same WLS solution
-(:func:`fusion.pipeline.run_modes`), so a new mode appears here with no change to this file.
+Every requested mode (``--modes``, any name in :data:`fusion.pipeline.MODES`) is run on the same trace
+and the same WLS solution (:func:`fusion.pipeline.run_modes`), so a new mode can be requested here with
+no change to this file.
 Truth is used only to score: never passed to a mode.
 
 Output layout (``--out REPORT_DIR``)::
@@ -14,7 +15,6 @@ Output layout (``--out REPORT_DIR``)::
 from __future__ import annotations
 
 import argparse
-import importlib
 import re
 import sys
 from dataclasses import dataclass, field
@@ -25,8 +25,8 @@ import pandas as pd
 from tqdm import tqdm
 
 from fusion.errors import DataError, GnssfuseError
-from fusion.pipeline import (MODES, ModeResult, RunOptions, add_run_options, options_from_args, run_modes,
-                             solve_initial, write_outputs)
+from fusion.pipeline import (MODES, ModeResult, RunOptions, add_run_options, get_mode, options_from_args,
+                             run_modes, solve_initial, write_outputs)
 from fusion.trace import Trace
 
 #: Name of the pooled rows (all traces' epochs together) in the tables.
@@ -57,28 +57,18 @@ class TraceEval:
 def check_modes(modes: list[str]) -> None:
     """Fail before any work when a mode is unknown or its module cannot be imported."""
     for m in modes:
-        if m not in MODES:
-            raise GnssfuseError(f"unknown mode {m!r}; choose from {', '.join(MODES)}")
-        module, func = MODES[m].split(":")
-        try:
-            mod = importlib.import_module(module)
-        except ImportError as exc:
-            raise GnssfuseError(f"mode {m!r} is unavailable: cannot import {module} ({exc})") from exc
-        if not hasattr(mod, func):
-            raise GnssfuseError(f"mode {m!r} is unavailable: {module} has no {func}()")
+        get_mode(m)
 
 
 def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:
     """(E, 3) NED error of a mode's estimates w.r.t. the truth, or None without truth.
 
-    Same definition as :func:`fusion.pipeline.mode_metrics`: unsolved epochs become NaN rows.
+    The one definition is :func:`fusion.pipeline.trace_errors` (unsolved epochs become NaN rows),
+    which :func:`fusion.pipeline.mode_metrics` summarises too.
     """
-    if not trace.has_truth:
-        return None
-    from fusion.metrics import ned_errors
+    from fusion.pipeline import trace_errors as pipeline_trace_errors
 
-    est = np.where(result.valid[:, None], result.pos, np.nan)
-    return ned_errors(est, trace.truth)
+    return pipeline_trace_errors(trace, result)
 
 
 def _slug(name: str, taken: set[str]) -> str:
@@ -282,9 +272,11 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
         lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
         for kind, p in figs.get(ev.slug, {}).items():
             lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
-    lines += ["CDF x-axes and error-vs-time y-axes stop at the 99th percentile of the pooled errors "
-              "(the curves use every epoch; each panel states how many points lie beyond). Box plots: "
-              "box Q1–Q3 with the median, whiskers at 1.5×IQR, outliers as dots; outliers beyond the "
+    from fusion.plots import CDF_CLIP_PCT
+
+    lines += [f"CDF x-axes and error-vs-time y-axes stop at the {CDF_CLIP_PCT:g}th percentile of the "
+              "pooled errors (the curves use every epoch; each panel states how many points lie beyond). "
+              "Box plots: box Q1–Q3 with the median, whiskers at 1.5×IQR, outliers as dots; outliers beyond the "
               "plotted range are counted in the panel title.", ""]
     path = out_dir / "report.md"
     path.write_text("\n".join(lines))

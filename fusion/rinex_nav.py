@@ -11,15 +11,13 @@ some writers store it modulo 1024.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
 
 from fusion.errors import DataError
-
-GPS_EPOCH = datetime(1980, 1, 6)
-WEEK_S = 604_800
+from fusion.gpstime import WEEK_S, gps_ms_from_calendar
+from fusion.trace import count_skip
 #: Fit interval used when a record leaves it blank or zero (IS-GPS-200: 4 hours).
 DEFAULT_FIT_H = 4.0
 
@@ -62,13 +60,6 @@ class GpsNav:
     def __len__(self) -> int:
         return int(self.prn.shape[0])
 
-    def __getattr__(self, name: str) -> np.ndarray:
-        # Convenience: nav.sqrt_a etc. (only reached when normal lookup fails).
-        params = self.__dict__.get("params", {})
-        if name in params:
-            return params[name]
-        raise AttributeError(name)
-
     @property
     def valid_from_ms(self) -> np.ndarray:
         """(N,) start of each record's fit interval [GPS ms]."""
@@ -82,13 +73,6 @@ class GpsNav:
     def span_ms(self) -> tuple[int, int]:
         """Earliest and latest instant covered by any record's fit interval [GPS ms]."""
         return int(self.valid_from_ms.min()), int(self.valid_to_ms.max())
-
-
-def gps_ms_from_calendar(year: int, month: int, day: int, hour: int, minute: int, sec: float) -> int:
-    """Calendar date in GPS time -> GPS milliseconds since 1980-01-06 (no leap seconds)."""
-    whole = int(sec)
-    dt = datetime(year, month, day, hour, minute, whole) - GPS_EPOCH
-    return int(dt.days) * 86_400_000 + int(dt.seconds) * 1000 + int(round((sec - whole) * 1000))
 
 
 def _num(text: str, path: Path, line_no: int) -> float:
@@ -200,21 +184,18 @@ def read_rinex_nav(path: str | Path) -> GpsNav:
     toe_ms = (week * WEEK_S * 1000).astype(np.int64) + np.round(toe_sow * 1000).astype(np.int64)
 
     skipped: dict[str, int] = {}
-    if skipped_other:
-        skipped["non_gps_records"] = skipped_other
+    count_skip(skipped, "non_gps_records", skipped_other)
     keep = params["health"] == 0
     bad_prn = (prn < 1) | (prn > 32)
     keep &= ~bad_prn
-    if (~keep).sum():
-        skipped["unhealthy_or_bad_prn"] = int((~keep).sum())
+    count_skip(skipped, "unhealthy_or_bad_prn", ~keep)
     # Duplicates (same PRN and toe, re-broadcast) carry the same orbit: keep the first.
     key = prn.astype(np.int64) * 10**13 + toe_ms
     order = np.lexsort((np.arange(len(prn)), key))
     first = np.zeros(len(prn), bool)
     k_sorted = key[order]
     first[order[np.r_[True, k_sorted[1:] != k_sorted[:-1]]]] = True
-    if (~first & keep).sum():
-        skipped["duplicate_records"] = int((~first & keep).sum())
+    count_skip(skipped, "duplicate_records", ~first & keep)
     keep &= first
     if not keep.any():
         raise DataError(f"{path}: no healthy GPS records in navigation file")

@@ -19,7 +19,7 @@ Truth heights in the written ``ground_truth.csv`` carry the GSDC 2021 +63.1 m er
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
 
@@ -27,12 +27,14 @@ import numpy as np
 import pandas as pd
 
 from fusion.errors import DataError, GeometryError
-from fusion.geometry import C_LIGHT, ecef2geodetic, ned_rotation, sagnac_rotate
+from fusion.geometry import (C_LIGHT, ecef2geodetic, ecef2ned_vec, elevation_azimuth, line_of_sight, ned_rotation,
+                             sagnac_rotate)
 from fusion.orbits import sat_state, select_ephemeris, transmit_states
-from fusion.rinex_nav import GPS_EPOCH, GpsNav, default_nav_path, gps_ms_from_calendar, read_rinex_nav
+from fusion.gpstime import format_gps_ms, gps_ms_from_calendar
+from fusion.rinex_nav import GpsNav, default_nav_path, read_rinex_nav
 from fusion.trace import SIGNALS, Trace
-from fusion.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, load_gsdc_trajectory,
-                               random_trajectories, random_trajectory)
+from fusion.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_rate, load_gsdc_trajectory,
+                               parse_origins, random_trajectories, random_trajectory)
 
 #: Default start: 2021-04-28 20:00:00 GPS time, inside the shipped nav file (2021 day 118).
 DEFAULT_START_MS = gps_ms_from_calendar(2021, 4, 28, 20, 0, 0.0)
@@ -114,7 +116,6 @@ class SimResult:
     flight_s: np.ndarray
     iono_m: np.ndarray
     tropo_m: np.ndarray
-    skipped: dict[str, int] = field(default_factory=dict)
 
 
 def _check_coverage(nav: GpsNav, prns: np.ndarray, t_ms: np.ndarray, min_sats: int) -> np.ndarray:
@@ -126,14 +127,10 @@ def _check_coverage(nav: GpsNav, prns: np.ndarray, t_ms: np.ndarray, min_sats: i
         lo, hi = nav.span_ms()
         k = bad[0]
         raise DataError(
-            f"{nav.source}: epoch {k} (GPS ms {int(t_ms[k])}, {_fmt_gps(int(t_ms[k]))}) is outside the "
+            f"{nav.source}: epoch {k} (GPS ms {int(t_ms[k])}, {format_gps_ms(int(t_ms[k]))}) is outside the "
             f"validity of the navigation file (only {int(n_valid[k])} GPS ephemerides valid; file "
-            f"covers {_fmt_gps(lo)} .. {_fmt_gps(hi)} GPS time); {bad.size} epoch(s) affected")
+            f"covers {format_gps_ms(lo)} .. {format_gps_ms(hi)} GPS time); {bad.size} epoch(s) affected")
     return idx
-
-
-def _fmt_gps(t_ms: int) -> str:
-    return str(GPS_EPOCH + pd.Timedelta(milliseconds=int(t_ms)).to_pytimedelta())
 
 
 def _receiver_clock(t_ms: np.ndarray, seg_start: np.ndarray, cfg: SimConfig,
@@ -194,10 +191,9 @@ def _simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, na
     ce, cp = np.nonzero((idx >= 0) & maybe_up[samp_of])
     st, ta = transmit_states(nav, idx[ce, cp], rx[ce], t_ms[ce], tau_s[samp_of[ce], cp],
                              n_iter=_TAU_ITER)
-    d = sagnac_rotate(st["pos"][:, None, :], rx[ce])[:, 0] - rx[ce]
-    ned = np.einsum("nij,nj->ni", R[ce], d) / np.linalg.norm(d, axis=-1, keepdims=True)
-    e_ = np.degrees(np.arcsin(np.clip(-ned[:, 2], -1.0, 1.0)))
-    z_ = np.degrees(np.arctan2(ned[:, 1], ned[:, 0])) % 360.0
+    d = sagnac_rotate(st["pos"][:, None, :], rx[ce]) - rx[ce][:, None, :]          # (N, 1, 3)
+    e_, z_ = elevation_azimuth(d / np.linalg.norm(d, axis=-1, keepdims=True), rx[ce], R=R[ce])
+    e_, z_ = e_[:, 0], z_[:, 0]
     pos = np.zeros((E, P, 3)); vel = np.zeros((E, P, 3)); el = np.full((E, P), -90.0)
     az = np.zeros((E, P)); clk = np.zeros((E, P)); drift = np.zeros((E, P)); tau = np.zeros((E, P))
     pos[ce, cp], vel[ce, cp], el[ce, cp], az[ce, cp] = st["pos"], st["vel"], e_, z_
@@ -231,7 +227,7 @@ def _simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, na
         hit = rank < n_bad[:, None]
         bias = np.where(hit, rng.uniform(*cfg.nlos_bias_m, (E, K)), 0.0)
     # Exactly the model a solver inverts (fusion.geometry.line_of_sight).
-    rng_m = np.linalg.norm(sagnac_rotate(sat_pos, rx) - rx[:, None, :], axis=-1)
+    rng_m = line_of_sight(sat_pos, rx)[0]
     pr = rng_m + clock[:, None] + noise + bias
 
     # Plausible delays for the raw pseudorange of the derived file (they cancel when corrected).
@@ -270,7 +266,7 @@ def _to_result(arrs: dict[str, np.ndarray], t_ms: np.ndarray, rx: np.ndarray, se
         trace=trace, clock_m=cut["clock"], bias_m=cut["bias"], noise_m=cut["noise"],
         elev_deg=cut["el"], az_deg=cut["az"], sat_clock_m=cut["sat_clock_m"],
         sat_clock_drift_mps=cut["sat_clock_drift_mps"], flight_s=cut["flight_s"],
-        iono_m=cut["iono"], tropo_m=cut["tropo"], skipped=dict(trace.skipped),
+        iono_m=cut["iono"], tropo_m=cut["tropo"],
     )
 
 
@@ -301,7 +297,7 @@ def simulate_trajectory(traj: Trajectory, *, nav: GpsNav | str | Path | None = N
         llh = ecef2geodetic(traj.ecef[0])
         raise GeometryError(
             f"{traj.name}: fewer than {cfg.min_sats} GPS satellites above {cfg.elev_mask_deg} deg "
-            f"at every epoch (first epoch {_fmt_gps(int(traj.t_ms[0]))} at lat {llh[0]:.4f}, "
+            f"at every epoch (first epoch {format_gps_ms(int(traj.t_ms[0]))} at lat {llh[0]:.4f}, "
             f"lon {llh[1]:.4f}, h {llh[2]:.1f} m); nothing to simulate")
     return _to_result(arrs, traj.t_ms, traj.ecef, np.arange(len(traj)), traj.name)
 
@@ -344,20 +340,11 @@ def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarra
     rng = _rng(seed)
     nav = _nav(nav)
     cfg = config or SimConfig()
-    step = int(round(1000.0 / rate_hz))
+    step = check_rate(rate_hz)  # before any use: rate 0 must be a ValueError, not a ZeroDivisionError
     dur = step * (epochs_per_trace - 1)
     lo, hi = start_range_ms or (int(nav.toe_ms.min()), int(nav.toe_ms.max()))
-    if origins is None:
-        org = random_origins(n_traces, rng)
-    else:
-        rows = [origins] if np.ndim(origins[0]) == 0 else list(origins)
-        try:
-            org = np.array([[float(v) for v in o] + [0.0] * (3 - len(o)) for o in rows])
-        except (TypeError, ValueError):
-            raise ValueError("origins must be (lat, lon[, h]) rows") from None
-        if org.shape[1] != 3 or np.any(np.abs(org[:, 0]) > 90):
-            raise ValueError(f"origins must be (lat, lon[, h]) rows with |lat| <= 90, got shape {org.shape}")
-        org = org[np.arange(n_traces) % org.shape[0]]
+    org = random_origins(n_traces, rng) if origins is None else parse_origins(origins)
+    org = org[np.arange(n_traces) % org.shape[0]]
     if concatenate:
         gap = 10 * step
         total = n_traces * (dur + gap)
@@ -433,7 +420,7 @@ def write_gsdc2021(result: SimResult, out_dir: str | Path, collection: str, phon
 
     llh = ecef2geodetic(tr.truth)
     v = np.gradient(tr.truth, tr.t_ms * 1e-3, axis=0) if tr.n_epochs > 1 else np.zeros((1, 3))
-    v_ned = np.einsum("eij,ej->ei", ned_rotation(tr.truth), v)
+    v_ned = ecef2ned_vec(v, tr.truth)
     gt = pd.DataFrame({
         "collectionName": collection, "phoneName": phone, "millisSinceGpsEpoch": tr.t_ms,
         "latDeg": np.round(llh[:, 0], 10), "lngDeg": np.round(llh[:, 1], 10),
@@ -519,7 +506,7 @@ def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
         except ValueError as exc:
             ap.error(str(exc))
         res = simulate_trajectory(traj, nav=nav, config=cfg, seed=rng)
-    collection = args.collection or f"{_fmt_gps(args.start)[:10]}-US-SIM-{args.seed}"
+    collection = args.collection or f"{format_gps_ms(args.start)[:10]}-US-SIM-{args.seed}"
     d_path, g_path = write_gsdc2021(res, args.out, collection, args.phone)
     tr = res.trace
     print(f"simulated {tr.n_epochs} epochs, {tr.n_sats.mean():.1f} satellites/epoch "

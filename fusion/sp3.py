@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import DataError
-from fusion.rinex_nav import gps_ms_from_calendar
+from fusion.gpstime import gps_ms_from_calendar
 
 
 @dataclass

@@ -26,8 +26,6 @@ from fusion.errors import DataError
 SIGNALS: tuple[str, ...] = (
     "GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A", "BDS_B1I", "QZS_J1", "QZS_J5",
 )
-#: Constellation names, indexed by the Android ``constellationType`` code.
-CONSTELLATIONS: dict[int, str] = {1: "GPS", 2: "SBAS", 3: "GLONASS", 4: "QZSS", 5: "BEIDOU", 6: "GALILEO"}
 
 
 @dataclass
@@ -150,9 +148,16 @@ class Trace:
         """A new Trace whose mask is ``mask & keep`` (keep: (E,S) bool), e.g. a signal filter."""
         return replace(self, mask=self.mask & keep).select(np.ones(self.n_epochs, bool))
 
-    def count_skip(self, reason: str, n: int) -> None:
-        if n:
-            self.skipped[reason] = self.skipped.get(reason, 0) + int(n)
+    def count_skip(self, reason: str, n) -> None:
+        count_skip(self.skipped, reason, n)
+
+
+def count_skip(skipped: dict[str, int], key: str, n) -> None:
+    """Add ``n`` (a count, or a bool selection whose True entries are counted) to
+    ``skipped[key]``; zero adds no key, so reports list only reasons that happened."""
+    n = int(np.sum(n))
+    if n:
+        skipped[key] = skipped.get(key, 0) + n
 
 
 def empty_trace(E: int, S: int, name: str = "trace", with_truth: bool = False) -> dict:

@@ -140,11 +140,27 @@ def random_ne_path(duration_s: float, rate_hz: float, rng: np.random.Generator, 
     return ne, np.linalg.norm(v, axis=1)
 
 
-def _check_rate(rate_hz: float) -> int:
+def check_rate(rate_hz: float) -> int:
     """Milliseconds per epoch; ValueError unless the rate gives a whole number of them."""
     if rate_hz <= 0 or 1000.0 / rate_hz != round(1000.0 / rate_hz):
         raise ValueError(f"rate_hz must give a whole number of milliseconds per epoch, got {rate_hz}")
     return int(round(1000.0 / rate_hz))
+
+
+def parse_origins(origins_llh) -> np.ndarray:
+    """One (lat, lon[, h]) row or a sequence of them (lengths may differ; h defaults to 0)
+    -> (K, 3) float array; ValueError unless every row is finite with |lat| <= 90."""
+    try:
+        rows = [origins_llh] if np.ndim(origins_llh[0]) == 0 else list(origins_llh)
+        if any(len(o) not in (2, 3) for o in rows):
+            raise ValueError
+        org = np.array([[float(v) for v in o] + [0.0] * (3 - len(o)) for o in rows])
+    except (TypeError, ValueError, IndexError):
+        raise ValueError(f"origins must be (lat, lon[, h]) rows, got {origins_llh!r}") from None
+    if org.ndim != 2 or org.shape[0] == 0 or org.shape[1] != 3 or np.any(np.abs(org[:, 0]) > 90) \
+            or not np.isfinite(org).all():
+        raise ValueError(f"origins must be valid (lat, lon[, h]) rows, got {origins_llh!r}")
+    return org
 
 
 def ne_to_ecef(ne: np.ndarray, origin_llh: np.ndarray) -> np.ndarray:
@@ -177,12 +193,8 @@ def random_trajectories(origins_llh: np.ndarray, n_epochs: int, start_ms: np.nda
     """
     if n_epochs < 1:
         raise ValueError(f"n_epochs must be >= 1, got {n_epochs}")
-    step = _check_rate(rate_hz)
-    org = np.atleast_2d(np.asarray(origins_llh, float))
-    if org.shape[1] == 2:
-        org = np.hstack([org, np.zeros((org.shape[0], 1))])
-    if org.shape[1] != 3 or np.any(np.abs(org[:, 0]) > 90) or not np.isfinite(org).all():
-        raise ValueError(f"origins must be valid (lat, lon[, h]) rows, got {origins_llh!r}")
+    step = check_rate(rate_hz)
+    org = parse_origins(origins_llh)
     K = org.shape[0]
     ne = np.concatenate([random_ne_path((n_epochs - 1) / rate_hz, rate_hz, rng, speed_range=speed_range)[0]
                          for _ in range(K)])

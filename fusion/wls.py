@@ -63,6 +63,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
+from fusion.trace import count_skip
 
 #: goGPS default a-priori code standard deviation (``STD_CODE``) [m].
 SIGMA0_M = 3.0
@@ -170,11 +171,11 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
 
     # Slots we cannot use at all: counted, never silently.
     finite = np.isfinite(pr) & np.isfinite(sat_pos).all(-1)
-    _count(dropped, "nonfinite_input", mask & ~finite)
+    count_skip(dropped, "nonfinite_input", mask & ~finite)
     real = mask & finite
     if weighting == "uncertainty":
         good_sigma = np.isfinite(sigma) & (sigma > 0)
-        _count(dropped, "bad_sigma", real & ~good_sigma)
+        count_skip(dropped, "bad_sigma", real & ~good_sigma)
         real &= good_sigma
     # Padding gets harmless finite values so the vectorised maths never meets NaN.
     sat_pos = np.where(real[..., None], sat_pos, 0.0)
@@ -201,7 +202,7 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     el, _ = elevation_azimuth(los, x[:, :3])
     el = np.where(real & alive[:, None], el, 0.0)
     used = real & (el >= elev_mask_deg)
-    _count(dropped, "below_mask", real & ~used & alive[:, None])
+    count_skip(dropped, "below_mask", real & ~used & alive[:, None])
     status[alive & (used.sum(1) < 4)] = FEW_SATS_AFTER_MASK
     used &= (status == OK)[:, None]
     sig = _sigmas(weighting, el, sigma, sigma0)
@@ -249,7 +250,7 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     resid = np.where(real & valid[:, None], r, 0.0)
     reasons = {STATUS_NAMES[k]: int(np.sum(status == k)) for k in range(1, len(STATUS_NAMES))}
     return WlsResult(
-        pos=pos, clock_m=clock, cov=cov, valid=valid, converged=conv & (status != FEW_SATS),
+        pos=pos, clock_m=clock, cov=cov, valid=valid, converged=conv,
         used=used, n_used=used.sum(1), resid=resid, elev_deg=el, status=status, n_iter=n_iter,
         reasons={k: v for k, v in reasons.items() if v}, dropped=dropped,
     )
@@ -355,7 +356,7 @@ def _exclude_outliers(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runawa
             break
         idx = np.flatnonzero(drop)
         used[idx, worst[idx]] = False
-        dropped["outlier"] = dropped.get("outlier", 0) + int(idx.size)
+        count_skip(dropped, "outlier", idx.size)
         w = np.where(used, w_prior, 0.0)
         x_cur, c2, b2, r2 = _gauss_newton(sat_pos, pr, w, x_cur, drop, max_iter, tol, max_cond,
                                           n_iter)
@@ -422,12 +423,6 @@ def _plausible(x):
         h = ecef2geodetic(x[ok, :3])[:, 2]
         out[ok] = (h > _H_MIN) & (h < _H_MAX)
     return out
-
-
-def _count(d: dict[str, int], key: str, sel: np.ndarray) -> None:
-    n = int(np.sum(sel))
-    if n:
-        d[key] = d.get(key, 0) + n
 
 
 def _robust_mode(robust) -> str:

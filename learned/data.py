@@ -7,8 +7,9 @@ Real data is split by trace upstream (whole phone-traces are train or test); val
 the training epochs (:func:`split_random`) or of contiguous blocks of them (:func:`split_blocks`; neighbouring
 1 Hz epochs share multipath and geometry, so a random split validates on near-copies of training epochs).
 
-Each sample also carries the WLS position of *its own measurements* (``wls``, no truth involved: the same
-:func:`fusion.wls.solve_wls` call the pipeline makes at inference), computed once here, so training can draw
+Each sample also carries the WLS position of *its own measurements* (``wls``, no truth involved: the
+pipeline's own :func:`fusion.pipeline.solve_initial`, so training WLS is inference WLS by construction),
+computed once here, so training can draw
 initial guesses from the distribution the network meets at inference (:mod:`learned.augment`).
 With ``with_graph`` it also carries the solution of the factor graph without the learned prior
 (``graph``: :func:`fusion.graph.fuse` with no provider, i.e. the ``fused-nodnn`` mode, measurements only),
@@ -80,8 +81,8 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
                        ) -> Samples:
     """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth).
 
-    ``with_wls``: also solve WLS on the whole trace (pipeline defaults: elevation weights, the same mask,
-    no truth) and keep each sample's position; ``real`` tags the samples as phone data.
+    ``with_wls``: also solve WLS on the whole trace (``fusion.pipeline.solve_initial`` with
+    ``RunOptions(elev_mask_deg=...)``: the inference WLS, no truth) and keep each sample's position; ``real`` tags the samples as phone data.
     ``clock``: (E,) true receiver clock of a simulated trace, kept per sample (experiment only).
     ``with_graph``: also solve the no-prior factor graph on the whole trace (:func:`graph_positions`);
     samples without a graph position (unsolved epoch, or a trace the graph cannot solve) are counted in
@@ -102,13 +103,14 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     sat_pos, pr = sat_pos * mask[..., None], pr * mask
     wls = graph = None
     if with_wls or with_graph:
-        from fusion.wls import solve_wls  # imported late: another engineer's module
-        w = solve_wls(trace, elev_mask_deg=elev_mask_deg)
+        from fusion.pipeline import RunOptions, solve_initial  # imported late: another engineer's module
+        opts = RunOptions(elev_mask_deg=elev_mask_deg)
+        w = solve_initial(trace, opts)
     if with_wls:
         wls = np.where(w.valid[idx, None], w.pos[idx], np.nan)
         skipped["wls_invalid"] = int((~np.isfinite(wls).all(1)).sum())
     if with_graph:
-        g = graph_positions(trace, w, elev_mask_deg)
+        g = graph_positions(trace, w, opts)
         graph = g[idx]
         skipped["graph_invalid"] = int((~np.isfinite(graph).all(1)).sum())
     if clock is not None and np.shape(clock) != (trace.n_epochs,):
@@ -117,9 +119,11 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
                    np.full(len(idx), bool(real)), None if clock is None else np.asarray(clock, float)[idx], graph)
 
 
-def graph_positions(trace: Trace, wls, elev_mask_deg: float = 10.0) -> np.ndarray:
+def graph_positions(trace: Trace, wls, opts=None) -> np.ndarray:
     """(E,3) ECEF positions of the factor graph without the learned prior (the ``fused-nodnn`` mode at
     the GraphConfig defaults, fed the trace's WLS as the pipeline does), NaN where unsolved.
+
+    opts: the ``fusion.pipeline.RunOptions`` ``wls`` was solved with (None: the defaults).
 
     Uses the measurements only (``fuse`` never reads ``trace.truth``). A trace the graph cannot solve
     at all (a :class:`~fusion.errors.GnssfuseError`) gives all-NaN rows: those samples fall back to
@@ -130,7 +134,7 @@ def graph_positions(trace: Trace, wls, elev_mask_deg: float = 10.0) -> np.ndarra
     from fusion.pipeline import RunOptions
 
     try:
-        res = fuse(trace, wls, RunOptions(elev_mask_deg=elev_mask_deg), provider=None, want_cov=False)
+        res = fuse(trace, wls, opts or RunOptions(), provider=None, want_cov=False)
     except GnssfuseError:
         return np.full((trace.n_epochs, 3), np.nan)
     return np.where(res.valid[:, None], res.pos, np.nan)

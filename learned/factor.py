@@ -16,18 +16,12 @@ trace in one network pass (much faster than one call per epoch).
 """
 from __future__ import annotations
 
-from typing import Callable
-
 import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
-from fusion.graph_build import robust_model
+from fusion.graph_build import PRIOR_MIN_EIG, PriorProvider, Priors, clean_priors, prior_noise_model
 from fusion.trace import Trace, empty_trace
-
-#: ``provider(trace, init_pos (E,3), valid (E,)) -> (mean_ecef (E,3), cov_ecef (E,3,3), valid (E,))``;
-#: ``learned.infer.Corrector`` instances are providers.
-PriorProvider = Callable[[Trace, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 
 def one_epoch_trace(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, pr_sigma: np.ndarray | None = None,
@@ -55,34 +49,50 @@ def one_epoch_trace(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, pr_si
     return Trace(**kw)
 
 
-def learned_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
-                  init_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The learned position estimate for one epoch: (mean_ecef (3,), cov_ecef (3,3)).
+def _batch_priors(corrector: PriorProvider, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
+                  cov_scale: float, sigma_floor_m: float) -> Priors:
+    """One corrector call for every epoch of ``trace``, cleaned by the graph's own rule
+    (:func:`fusion.graph_build.clean_priors`). init_pos (E,3) ECEF, valid (E,) bool epochs to try."""
+    E = trace.n_epochs
+    init_pos, valid = np.asarray(init_pos, float), np.asarray(valid, bool)
+    if init_pos.shape != (E, 3) or valid.shape != (E,):
+        raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},); got "
+                            f"{init_pos.shape} and {valid.shape}")
+    valid = valid & np.isfinite(init_pos).all(axis=1)
+    mean, cov, ok = corrector(trace, np.where(valid[:, None], init_pos, 0.0), valid)
+    mean, cov, ok = np.asarray(mean, float), np.asarray(cov, float), np.asarray(ok, bool)
+    if mean.shape != (E, 3) or cov.shape != (E, 3, 3) or ok.shape != (E,):
+        raise GeometryError(f"{trace.name}: prior provider returned shapes {mean.shape}, {cov.shape}, "
+                            f"{ok.shape}; expected {(E, 3)}, {(E, 3, 3)}, {(E,)}")
+    return clean_priors(mean, cov, ok & valid, cov_scale, sigma_floor_m, what="cov_scale / sigma_floor_m")
 
-    Raises :class:`GeometryError` when the corrector declines the epoch (e.g. fewer than 4
-    satellites above its elevation mask at ``init_pos``) or returns a non-positive-definite covariance.
-    """
+
+def _epoch_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
+                 init_pos: np.ndarray, cov_scale: float, sigma_floor_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """One epoch through :func:`_batch_priors`: (mean (3,), covariance used (3,3)), or GeometryError."""
     init_pos = np.asarray(init_pos, float)
     if init_pos.shape != (3,) or not np.isfinite(init_pos).all():
         raise GeometryError(f"init_pos must be a finite ECEF (3,) vector, got {init_pos!r}")
     trace = one_epoch_trace(sat_pos, pr, mask)
-    mean, cov, valid = corrector(trace, init_pos[None], np.ones(1, bool))
-    mean, cov = np.asarray(mean, float)[0], np.asarray(cov, float)[0]
-    if not bool(np.asarray(valid)[0]) or not (np.isfinite(mean).all() and np.isfinite(cov).all()):
+    pri = _batch_priors(corrector, trace, init_pos[None], np.ones(1, bool), cov_scale, sigma_floor_m)
+    if not pri.ok[0]:
+        if pri.finite[0] and not pri.spd[0]:
+            raise GeometryError(f"the learned covariance is not positive definite (smallest eigenvalue "
+                                f"<= {PRIOR_MIN_EIG} m^2)")
         raise GeometryError(f"the learned corrector gave no estimate for this epoch ({int(np.sum(mask))} "
                             f"satellites; it needs >= 4 above its elevation mask at the initial position)")
-    cov = 0.5 * (cov + cov.T)
-    if np.linalg.eigvalsh(cov)[0] <= 0:
-        raise GeometryError(f"the learned covariance is not positive definite: {cov.tolist()}")
-    return mean, cov
+    return pri.mean[0], pri.cov[0]
 
 
-def _noise(cov: np.ndarray, cov_scale: float, sigma_floor_m: float, robust: str, robust_k: float):
-    """(covariance used (3,3), noise model): inflated, floored, optionally robust (see GraphConfig)."""
-    if not (cov_scale > 0 and sigma_floor_m >= 0):
-        raise GeometryError(f"cov_scale must be > 0 and sigma_floor_m >= 0, got {cov_scale} and {sigma_floor_m}")
-    used = cov_scale * cov + sigma_floor_m ** 2 * np.eye(3)
-    return used, robust_model(robust, robust_k, gtsam.noiseModel.Gaussian.Covariance(used))
+def learned_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
+                  init_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The learned position estimate for one epoch: (mean_ecef (3,), cov_ecef (3,3) symmetrised).
+
+    Raises :class:`GeometryError` when the corrector declines the epoch (e.g. fewer than 4
+    satellites above its elevation mask at ``init_pos``) or returns a covariance that is not
+    positive definite (smallest eigenvalue <= ``fusion.graph_build.PRIOR_MIN_EIG``, the graph's rule).
+    """
+    return _epoch_prior(corrector, sat_pos, pr, mask, init_pos, 1.0, 0.0)
 
 
 def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
@@ -102,53 +112,49 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
     cov_scale, sigma_floor_m, robust, robust_k: the covariance used is
         ``cov_scale * cov + sigma_floor_m**2 * I``, wrapped in a robust loss ("huber", "cauchy" or
         "none") on the Mahalanobis distance (``robust_k`` in sigmas). The defaults use the network's
-        covariance as is; ``fusion.graph_build.GraphConfig`` documents the safer values our own graph
-        uses (16, 2 m, "cauchy", 1), which keep a confidently wrong output from dragging the solution.
+        covariance as is; our own graph uses ``fusion.graph_build.GraphConfig``'s prior_cov_scale,
+        prior_sigma_floor_m, prior_robust, prior_robust_k (1, 2 m, "cauchy", 1; tuning table in its
+        docstring), which keep a confidently wrong output from dragging the solution.
 
     Returns ``(factor, mean_ecef (3,), cov_ecef (3,3))``, ``cov_ecef`` being the covariance in the
     factor's noise model. The receiver clock is estimated inside the corrector from the
     pseudoranges, so the factor involves the position only. Raises :class:`GeometryError` if the
     corrector cannot produce an estimate.
     """
-    mean, cov = learned_prior(corrector, sat_pos, pr, mask, init_pos)
-    cov, model = _noise(cov, cov_scale, sigma_floor_m, robust, robust_k)
-    return gtsam.PriorFactorPoint3(key, mean, model), mean, cov
+    mean, cov = _epoch_prior(corrector, sat_pos, pr, mask, init_pos, cov_scale, sigma_floor_m)
+    return gtsam.PriorFactorPoint3(key, mean, prior_noise_model(cov, robust, robust_k)), mean, cov
 
 
 def learned_pose_translation_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray,
-                                    mask: np.ndarray, init_pos: np.ndarray, key: int
+                                    mask: np.ndarray, init_pos: np.ndarray, key: int, *, cov_scale: float = 1.0,
+                                    sigma_floor_m: float = 0.0, robust: str = "none", robust_k: float = 1.0
                                     ) -> tuple[gtsam.PoseTranslationPrior3D, np.ndarray, np.ndarray]:
-    """Like :func:`learned_prior_factor` for a ``Pose3`` variable whose translation is ECEF.
+    """Like :func:`learned_prior_factor` (same options) for a ``Pose3`` variable whose translation is ECEF.
 
     ``PoseTranslationPrior3D``'s error is ``translation - measured`` in the *world* frame (checked
     in ``tests/test_factor.py``), so the ECEF covariance is used as is, whatever the pose's rotation.
     """
-    mean, cov = learned_prior(corrector, sat_pos, pr, mask, init_pos)
-    factor = gtsam.PoseTranslationPrior3D(key, mean, gtsam.noiseModel.Gaussian.Covariance(cov))
-    return factor, mean, cov
+    mean, cov = _epoch_prior(corrector, sat_pos, pr, mask, init_pos, cov_scale, sigma_floor_m)
+    return gtsam.PoseTranslationPrior3D(key, mean, prior_noise_model(cov, robust, robust_k)), mean, cov
 
 
 def learned_prior_factors(corrector: PriorProvider, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
-                          keys: list[int], on_pose: bool = False) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
+                          keys: list[int], on_pose: bool = False, *, cov_scale: float = 1.0,
+                          sigma_floor_m: float = 0.0, robust: str = "none", robust_k: float = 1.0
+                          ) -> tuple[list, np.ndarray, np.ndarray, np.ndarray]:
     """Learned priors for every epoch of a trace in one batched corrector call.
 
     init_pos (E,3) ECEF guesses, valid (E,) bool epochs to try, keys: E GTSAM keys.
     on_pose: ``PoseTranslationPrior3D`` on ``Pose3`` keys instead of ``PriorFactorPoint3``.
-    Returns ``(factors, mean (E,3), cov (E,3,3), ok (E,))``; ``factors[k]`` is None where
-    ``ok[k]`` is False (declined by the corrector, non-finite, or covariance not positive definite).
+    cov_scale, sigma_floor_m, robust, robust_k: as for :func:`learned_prior_factor`.
+    Returns ``(factors, mean (E,3), cov (E,3,3), ok (E,))``, ``cov`` the covariances in the noise
+    models; ``factors[k]`` is None where ``ok[k]`` is False (declined by the corrector, non-finite,
+    or covariance not positive definite), and there ``mean[k]`` is 0 and ``cov[k]`` the identity.
     """
-    E = trace.n_epochs
-    init_pos, valid = np.asarray(init_pos, float), np.asarray(valid, bool)
-    if init_pos.shape != (E, 3) or valid.shape != (E,) or len(keys) != E:
-        raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3), valid ({E},) and {E} keys; got "
-                            f"{init_pos.shape}, {valid.shape}, {len(keys)}")
-    valid = valid & np.isfinite(init_pos).all(axis=1)
-    mean, cov, ok = corrector(trace, np.where(valid[:, None], init_pos, 0.0), valid)
-    mean, cov, ok = np.asarray(mean, float), np.asarray(cov, float), np.asarray(ok, bool) & valid
-    ok &= np.isfinite(mean).all(axis=1) & np.isfinite(cov).all(axis=(1, 2))
-    cov = np.where(ok[:, None, None], 0.5 * (cov + cov.transpose(0, 2, 1)), np.eye(3))
-    ok &= np.linalg.eigvalsh(cov)[:, 0] > 0
+    if len(keys) != trace.n_epochs:
+        raise GeometryError(f"{trace.name}: {trace.n_epochs} keys needed, got {len(keys)}")
+    pri = _batch_priors(corrector, trace, init_pos, valid, cov_scale, sigma_floor_m)
     make = gtsam.PoseTranslationPrior3D if on_pose else gtsam.PriorFactorPoint3
-    factors = [make(keys[k], mean[k], gtsam.noiseModel.Gaussian.Covariance(cov[k])) if ok[k] else None
-               for k in range(E)]
-    return factors, mean, cov, ok
+    factors = [make(keys[k], pri.mean[k], prior_noise_model(pri.cov[k], robust, robust_k)) if pri.ok[k] else None
+               for k in range(trace.n_epochs)]
+    return factors, pri.mean, pri.cov, pri.ok

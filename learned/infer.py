@@ -47,7 +47,8 @@ class Corrector:
     """A loaded checkpoint. ``corrector(trace, init_pos, valid) -> (mean_ecef, cov_ecef, valid)``.
 
     Variance calibration: when the checkpoint's config holds ``calibration.scale_ned`` (per-NED-axis sigma
-    scale fitted on validation WLS guesses by :func:`learned.train.fit_calibration`), predicted variances are
+    scale fitted on validation guesses at WLS, or at the no-prior graph solution when the training mix used
+    graph guesses (``calibration.guess``), by :func:`learned.train.fit_calibration`), predicted variances are
     multiplied by its square (``calibrated=False`` gives the raw head, e.g. to report before/after).
     Checkpoints without it (trained before calibration existed) load with scale 1.
 
@@ -130,7 +131,8 @@ class Corrector:
             R_at = ned_rotation(at)                               # (N,3,3) ECEF -> NED at feature point
             m_ecef = at + np.einsum("nji,nj->ni", R_at, out)
             c_ecef = np.einsum("nji,nj,njk->nik", R_at, var, R_at)
-            R_g = ned_rotation(guess)
+            # a correcting (non-direct) model is evaluated at the guess itself: same rotation
+            R_g = R_at if self.reference is None else ned_rotation(guess)
             mean[idx], cov[idx] = m_ecef, c_ecef
             corr[idx] = np.einsum("nij,nj->ni", R_g, m_ecef - guess)
             cov_n[idx] = np.einsum("nij,njk,nlk->nil", R_g, c_ecef, R_g)

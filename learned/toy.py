@@ -52,10 +52,10 @@ def toy_trace(n_epochs: int = 200, *, seed: int | np.random.Generator = 0, n_sat
         np.put_along_axis(hit, order, np.arange(S)[None, :] < k[:, None], axis=1)
         pr = pr + hit * rng.uniform(50, 200, (E, S))
     kw = empty_trace(E, S, name=name, with_truth=True)
-    kw.update(t_ms=np.arange(E, dtype=np.int64) * 1000 + 1_300_000_000_000, sat_pos=sat_pos,
+    kw.update(t_ms=np.arange(E, dtype=np.int64) * 1000 + 1_300_000_000_000,
+              sat_pos=np.where(mask[..., None], sat_pos, 0.0),
               pr=np.where(mask, pr, 0.0), pr_sigma=np.full((E, S), sigma), mask=mask, truth=truth,
               sat_id=np.where(mask, 1001 + np.arange(S)[None, :], 0).astype(np.int32))
-    kw["sat_pos"] = np.where(mask[..., None], sat_pos, 0.0)
     return Trace(**kw)
 
 

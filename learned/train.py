@@ -63,10 +63,13 @@ class TrainConfig:
     data: dict = field(default_factory=dict)  # description of the training data (for the checkpoint)
     guess_mix: dict = field(default_factory=lambda: {"box": 1.0, "wls": 0.0})
     wls_jitter: float = 2.0               # [m] per NED axis around the WLS guess
-    # Training only: samples whose WLS is farther than this from the truth get box guesses instead
-    # (a 200 m WLS blunder would dominate the MSE; the network's output scale is 10 m).
+    # Training only: a sample whose WLS (for a wls guess) or no-prior graph solution (for a graph guess)
+    # is farther than this from the truth gets a box guess instead (a 200 m blunder would dominate the
+    # MSE; the network's output scale is 10 m).
     wls_max_err: float = 100.0
-    calibrate: bool = True                # fit the variance scale on validation WLS guesses after training
+    # after training, fit the variance scale on validation guesses at WLS (at the graph solution when
+    # the mix uses graph guesses)
+    calibrate: bool = True
     # Signals the training traces were loaded with (real traces: load_real_traces' default; the simulator
     # makes GPS L1); inference uses only these slots of a trace.
     signals: tuple[str, ...] = ("GPS_L1",)
@@ -88,25 +91,33 @@ class TrainConfig:
         }
 
 
+def _guess_source(name: str, pos: np.ndarray, truth: np.ndarray, max_err: float, device: torch.device
+                  ) -> dict[str, torch.Tensor]:
+    """``name`` (N,3) positions (NaN rows -> 0), ``name_ok`` (finite) and ``name_use`` (finite and within
+    ``max_err`` of the truth: the training-time filter for guesses from this source)."""
+    ok = np.isfinite(pos).all(1)
+    use = ok & (np.linalg.norm(np.where(ok[:, None], pos - truth, 0.0), axis=1) <= max_err)
+    return {name: torch.as_tensor(np.where(ok[:, None], pos, 0.0), dtype=torch.float64, device=device),
+            f"{name}_ok": torch.as_tensor(ok, device=device), f"{name}_use": torch.as_tensor(use, device=device)}
+
+
 def _tensors(s: Samples, device: torch.device, wls_max_err: float = math.inf) -> dict[str, torch.Tensor]:
-    """Sample arrays on ``device``; ``wls`` (NaN rows -> 0) with ``wls_ok`` (finite WLS) and ``wls_use``
-    (finite and within ``wls_max_err`` of the truth: the training-time filter for WLS guesses)."""
+    """Sample arrays on ``device``, with the guess sources of :func:`_guess_source`: ``wls`` always,
+    ``graph`` when the samples carry graph positions."""
     f64 = dict(dtype=torch.float64, device=device)
-    wls = s.wls_or_nan()
-    ok = np.isfinite(wls).all(1)
-    use = ok & (np.linalg.norm(np.where(ok[:, None], wls - s.truth, 0.0), axis=1) <= wls_max_err)
-    graph = {}
-    if s.graph is not None:
-        gok = np.isfinite(s.graph).all(1)
-        guse = gok & (np.linalg.norm(np.where(gok[:, None], s.graph - s.truth, 0.0), axis=1) <= wls_max_err)
-        graph = {"graph": torch.as_tensor(np.where(gok[:, None], s.graph, 0.0), **f64),
-                 "graph_ok": torch.as_tensor(gok, device=device), "graph_use": torch.as_tensor(guse, device=device)}
+    graph = {} if s.graph is None else _guess_source("graph", s.graph, s.truth, wls_max_err, device)
     return {"sat_pos": torch.as_tensor(s.sat_pos, **f64), "pr": torch.as_tensor(s.pr, **f64),
             "mask": torch.as_tensor(s.mask, device=device), "truth": torch.as_tensor(s.truth, **f64),
-            "wls": torch.as_tensor(np.where(ok[:, None], wls, 0.0), **f64),
-            "wls_ok": torch.as_tensor(ok, device=device), "wls_use": torch.as_tensor(use, device=device),
+            **_guess_source("wls", s.wls_or_nan(), s.truth, wls_max_err, device),
             "real": torch.as_tensor(s.real_or_false(), device=device),
             **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)}), **graph}
+
+
+def _require_graph(*ts: dict[str, torch.Tensor]) -> None:
+    """DataError unless every sample set carries graph positions (a mix with 'graph' guesses)."""
+    if not all("graph" in t for t in ts):
+        raise DataError("guess mix uses 'graph' but the samples carry no graph positions "
+                        "(build them with with_graph=True)")
 
 
 def guesses_for(t: dict[str, torch.Tensor], cfg: "TrainConfig", generator: torch.Generator) -> torch.Tensor:
@@ -116,9 +127,8 @@ def guesses_for(t: dict[str, torch.Tensor], cfg: "TrainConfig", generator: torch
     box, gf = mix["box"], mix.get("graph", 0.0)
     if box >= 1.0:
         return draw_guesses(t["truth"], cfg.eta, generator)
-    if gf > 0 and "graph" not in t:
-        raise DataError("guess mix uses 'graph' but the samples carry no graph positions "
-                        "(build them with with_graph=True)")
+    if gf > 0:
+        _require_graph(t)
     return draw_mixed_guesses(t["truth"], t["wls"], t["wls_use"], cfg.eta, box, cfg.wls_jitter, generator,
                               t.get("graph"), t.get("graph_use"), gf)[0]
 
@@ -196,9 +206,8 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
     # With a graph source: also validate (and calibrate) at each sample's no-prior graph solution exactly,
     # the point where the fused mode asks the network.
     use_graph = parse_guess_mix(cfg.guess_mix).get("graph", 0.0) > 0 and not direct
-    if use_graph and not ("graph" in tr and "graph" in va):
-        raise DataError("guess mix uses 'graph' but the samples carry no graph positions "
-                        "(build them with with_graph=True)")
+    if use_graph:
+        _require_graph(tr, va)
     vg = torch.nonzero(va["graph_ok"]).flatten() if use_graph else torch.zeros(0, dtype=torch.long)
     xg, yg = (make_inputs({k: v[vg] for k, v in va.items()}, va["graph"][vg], fcfg) if len(vg)
               else (None, None))
@@ -229,7 +238,8 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
         t_feat = time.perf_counter() - t0
         use_nll = epoch >= cfg.warmup()
         model.train()
-        sums = torch.zeros(2, dtype=torch.float64)
+        # summed on the device and read once per epoch: an .item() per batch would sync the GPU every step
+        sums = torch.zeros(2, dtype=torch.float64, device=device)
         t_model = 0.0
         for a in range(0, n, cfg.batch):
             idx = perm[a:a + cfg.batch]
@@ -242,7 +252,8 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
             loss.backward()
             opt.step()
             t_model += time.perf_counter() - tm
-            sums += torch.tensor([mse.item() * len(idx), loss.item() * len(idx)], dtype=torch.float64)
+            sums += torch.stack([mse.detach(), loss.detach()]).double() * len(idx)
+        sums = sums.cpu()
         rec = {"epoch": epoch + 1, "train_mse": float(sums[0] / n), "train_loss": float(sums[1] / n),
                "nll": use_nll, "time_s": time.perf_counter() - t0, "feature_s": t_feat, "model_s": t_model,
                "samples": n}
@@ -284,16 +295,17 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
     return history
 
 
-#: Fewest real validation samples (from WLS guesses) to calibrate on them alone.
+#: Fewest real validation samples (at the calibration guesses: WLS, or graph) to calibrate on them alone.
 CALIB_MIN_REAL = 200
 
 
 @torch.no_grad()
 def fit_calibration(model, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, fcfg: FeatureConfig) -> dict:
-    """Per-NED-axis scale ``s`` for the predicted sigma (variance *= s^2) from guesses at WLS.
+    """Per-NED-axis scale ``s`` for the predicted sigma (variance *= s^2) from features ``x`` built at
+    the guesses the network will be asked at (each sample's WLS, or its no-prior graph solution).
 
     ``s_k = median(|err_k| / sigma_k) / 0.6745``: makes the 1-sigma interval hold 68.3 % of the errors;
-    a median, not the RMS of z, because a few WLS blunders (z of 50+) would otherwise set the scale for
+    a median, not the RMS of z, because a few guess blunders (z of 50+) would otherwise set the scale for
     all epochs. Both are stored (``scale_rms`` for information); coverages before/after on the same set.
     """
     model.eval()
@@ -356,7 +368,8 @@ def _parser(prog: str) -> argparse.ArgumentParser:
                         "sample's own no-prior factor-graph (fused-nodnn) solution + U(+-wls-jitter))")
     p.add_argument("--wls-jitter", type=float, default=2.0, help="[m] per NED axis around WLS guesses")
     p.add_argument("--wls-max-err", type=float, default=100.0,
-                   help="[m] training samples whose WLS is farther from the truth get a box guess instead")
+                   help="[m] a training sample whose WLS (wls guesses) or graph solution (graph guesses) is "
+                        "farther from the truth gets a box guess instead")
     p.add_argument("--val-split", default="random", choices=("random", "blocks"),
                    help="validation = random epochs, or random blocks of 60 consecutive epochs")
     p.add_argument("--no-calibrate", action="store_true", help="do not fit the variance scale after training")

@@ -97,3 +97,21 @@ def test_example03_simulates_and_trains(tmp_path, capsys):
     for mode in ("wls", "dnn"):
         row = _table_row(out, mode)
         assert row is not None and row[-1] > 0, out
+
+
+def test_sim_correction_before_and_after_cover_the_same_epochs():
+    """experiments/sim_correction.evaluate scores 'before' and 'after' over the same (corrected) epochs:
+    epochs left with < 4 satellites are uncorrected and must drop out of both columns."""
+    from learned.data import simulated_samples_with_clock
+    from learned.infer import SHIPPED_WEIGHTS
+    if not Path(SHIPPED_WEIGHTS).is_file():
+        pytest.skip("shipped weights missing")
+    spec = importlib.util.spec_from_file_location("sim_correction", REPO / "experiments" / "sim_correction.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    s = simulated_samples_with_clock(1, 12, seed=3)
+    s.mask[:4] = False
+    s.mask[:4, :3] = True                          # 3 satellites: the network cannot correct these 4 epochs
+    r = mod.evaluate(Path(SHIPPED_WEIGHTS), s, eta=15.0, seed=0)
+    assert r["before"].shape == r["after"].shape == (len(s.pr) - 4, 3)
+    assert np.isfinite(r["before"]).all() and np.isfinite(r["after"]).all()

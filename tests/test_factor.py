@@ -139,3 +139,42 @@ def test_factor_safety_options_inflate_floor_and_robustify():
     assert f.error(v) == pytest.approx(10.0 - 0.5, rel=1e-6)           # Huber: linear, not 50
     with pytest.raises(GeometryError):
         learned_prior_factor(provider, tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0], key, cov_scale=-1.0)
+
+
+def test_one_prior_rule_for_factor_and_graph():
+    """The factor helpers and the graph clean a provider's output with the same rule (it had drifted:
+    the factors accepted any eigenvalue > 0, the graph needs > 1e-6 m^2)."""
+    from fusion.graph_build import GraphConfig, prepare_inputs
+    from fusion.wls import solve_wls
+    from learned.factor import learned_prior_factors
+
+    tr = toy_trace(3, seed=5, n_sats=(8, 8))
+    near_singular = np.diag([1e-7, 1.0, 1.0])
+
+    def provider(trace, init_pos, valid):
+        cov = np.tile(np.diag([4.0, 9.0, 16.0]), (trace.n_epochs, 1, 1))
+        if trace.n_epochs == 3:
+            cov[1] = near_singular
+        return init_pos + 1.0, cov, valid.copy()
+
+    with pytest.raises(GeometryError, match="not positive definite"):
+        learned_prior_factor(lambda t, p, v: (p, near_singular[None], v), tr.sat_pos[0], tr.pr[0], tr.mask[0],
+                             tr.truth[0], 1)
+    keys = [gtsam.symbol("x", k) for k in range(3)]
+    factors, mean, cov, ok = learned_prior_factors(provider, tr, tr.truth, np.ones(3, bool), keys,
+                                                   cov_scale=4.0, sigma_floor_m=2.0, robust="huber")
+    assert ok.tolist() == [True, False, True] and factors[1] is None
+    np.testing.assert_allclose(cov[0], 4.0 * np.diag([4.0, 9.0, 16.0]) + 4.0 * np.eye(3))
+    # the batched factor equals the one-epoch factor with the same options (huber: linear far out)
+    f1, m1, c1 = learned_prior_factor(provider, tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0], keys[0],
+                                      cov_scale=4.0, sigma_floor_m=2.0, robust="huber")
+    np.testing.assert_allclose(m1, mean[0])
+    np.testing.assert_allclose(c1, cov[0])
+    v = gtsam.Values()
+    v.insert(keys[0], mean[0] + np.array([0.0, 0.0, 300.0]))
+    assert factors[0].error(v) == pytest.approx(f1.error(v), rel=1e-12)
+    assert factors[0].error(v) < 0.5 * 300.0 ** 2 / cov[0][2, 2]         # robust, not quadratic
+    # the graph rejects the same epoch
+    inp = prepare_inputs(tr, solve_wls(tr), GraphConfig(), provider=provider)
+    assert inp.prior_ok.tolist() == ok.tolist() and inp.dropped["prior_rejected"] == 1
+    np.testing.assert_allclose(inp.prior_cov[0], np.diag([4.0, 9.0, 16.0]) + 4.0 * np.eye(3))

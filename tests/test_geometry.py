@@ -45,3 +45,14 @@ def test_line_of_sight_and_elevation():
     assert rng[0] == pytest.approx(20_200e3, abs=50.0)  # Sagnac moves it by tens of metres only
     el, _ = elevation_azimuth(los, rx)
     assert el[0] > 89.9
+
+
+def test_elevation_azimuth_with_precomputed_rotation():
+    rng = np.random.default_rng(4)
+    rx = geodetic2ecef(np.array([[37.4, -122.1, 10.0], [-33.9, 151.2, 50.0]]))
+    los = rng.normal(size=(2, 5, 3))
+    los /= np.linalg.norm(los, axis=-1, keepdims=True)
+    el, az = elevation_azimuth(los, rx)
+    el2, az2 = elevation_azimuth(los, None, R=ned_rotation(rx))
+    np.testing.assert_array_equal(el, el2)
+    np.testing.assert_array_equal(az, az2)

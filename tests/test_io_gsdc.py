@@ -406,3 +406,16 @@ def test_find_traces_and_load_dataset(tmp_path, shipped_trace_dir):
     with pytest.warns(UserWarning, match="skipping trace"):
         names = [t.name for t in load_dataset(tmp_path / "train", on_error="skip")]
     assert names == ["c1/Pixel4", "c2/Pixel7"]
+
+
+def test_resolve_signals_all_any_case():
+    """Regression: "ALL", "All" or "all" among other names selects every signal."""
+    from fusion.io_gsdc import resolve_signals
+
+    every = np.arange(len(SIGNALS))
+    for sel in ("all", "ALL", ["All"], ("GPS_L1", " all "), None):
+        np.testing.assert_array_equal(resolve_signals(sel), every)
+    np.testing.assert_array_equal(resolve_signals(["GAL_E1_C_P", "GPS_L1"]),
+                                  [SIGNALS.index("GPS_L1"), SIGNALS.index("GAL_E1")])
+    with pytest.raises(GnssfuseError, match="unknown signal"):
+        resolve_signals(["GPS_L1", "allx"])

@@ -36,9 +36,23 @@ def test_run_wls_writes_contract_files(shipped_trace_dir, tmp_path, capsys):
     assert "h p50" in capsys.readouterr().out
 
 
-def test_all_modes_share_one_wls(shipped_trace_dir):
+def test_all_modes_share_one_wls(shipped_trace_dir, monkeypatch):
+    import fusion.pipeline as pl
+
     trace = load_trace(shipped_trace_dir).select(np.arange(50))
-    res = run_modes(trace, ["wls"], RunOptions())
+    calls, given = [], []
+    real = pl.solve_initial
+    monkeypatch.setattr(pl, "solve_initial", lambda *a, **k: calls.append(1) or real(*a, **k))
+
+    def spy_mode(tr, wls, opts):
+        given.append(wls)
+        return pl.estimate_wls(tr, wls, opts)
+
+    monkeypatch.setattr(pl, "spy_mode", spy_mode, raising=False)
+    monkeypatch.setitem(pl.MODES, "spy", "fusion.pipeline:spy_mode")
+    res = run_modes(trace, ["wls", "spy"], RunOptions())
+    assert len(calls) == 1 and len(given) == 1
+    np.testing.assert_array_equal(res["wls"].pos, res["spy"].pos)
     assert res["wls"].pos.shape == (50, 3)
 
 
@@ -66,3 +80,17 @@ def test_signal_names_accept_2023_spellings_and_all():
     parse = lambda s: options_from_args(build_parser().parse_args(["x", "--out", "o", "--signals", s]))  # noqa: E731
     assert parse("GPS_L1_CA,GAL_E1").signals == ("GPS_L1", "GAL_E1")
     assert parse("all").signals == SIGNALS
+
+
+def test_signals_all_any_case():
+    """Regression: ``--signals ALL`` (or "all" among other names) used to be an unknown signal."""
+    from fusion.errors import GnssfuseError
+    from fusion.pipeline import build_parser, options_from_args
+    from fusion.trace import SIGNALS
+
+    parse = lambda s: options_from_args(build_parser().parse_args(["x", "--out", "o", "--signals", s]))  # noqa: E731
+    assert parse("ALL").signals == SIGNALS
+    assert parse("All").signals == SIGNALS
+    assert parse("GPS_L1, all").signals == SIGNALS
+    with pytest.raises(GnssfuseError, match="unknown signal"):
+        parse("GPS_L9")

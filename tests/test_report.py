@@ -190,9 +190,10 @@ def test_plots_handle_outliers_and_empty_input(tmp_path):
     lo, hi = plots.box_limits([e[np.isfinite(e[:, 0]), 0] for e in errors.values()])
     assert -20 < lo < -5 and 5 < hi < 20           # whiskers of N(0, 2) at ~ +-2.7 sigma, plus margin
     p = plots.plot_error_cdfs(errors, tmp_path / "cdf.png")
-    assert p.is_file()
-    assert plots.plot_error_cdfs({}, tmp_path / "empty_cdf.png").is_file()
-    assert plots.plot_trajectories({"a": np.full((3, 3), np.nan)}, None, tmp_path / "t.png").is_file()
+    assert p.read_bytes()[:8] == PNG_MAGIC
+    assert plots.plot_error_cdfs({}, tmp_path / "empty_cdf.png").read_bytes()[:8] == PNG_MAGIC
+    traj = plots.plot_trajectories({"a": np.full((3, 3), np.nan)}, None, tmp_path / "t.png")
+    assert traj.read_bytes()[:8] == PNG_MAGIC
     en = plots.local_east_north(geodetic2ecef(np.array([[37.0, -122.0, 0.0], [37.001, -122.0, 0.0]])),
                                 geodetic2ecef(np.array([37.0, -122.0, 0.0])))
     assert en[1, 0] == pytest.approx(0.0, abs=1e-3) and en[1, 1] == pytest.approx(110.96, abs=0.5)
@@ -227,6 +228,9 @@ BENCHES = {
                      "'unit': 'm', 'note': 'n=5'}]))\n",
     "bench_text.py": "print('WLS took 0.01 s')\n",
     "bench_crash.py": "raise RuntimeError('boom')\n",
+    # A TypeError inside a quick run must fail the script, not silently rerun it at full size.
+    "bench_typeerr.py": "def run(quick=False):\n    if quick:\n        raise TypeError('bad quick')\n"
+                        "    return [{'name': 'full', 'value': 9, 'unit': 's'}]\n",
 }
 
 
@@ -248,8 +252,24 @@ def test_run_all_collects_records_and_survives_bad_scripts(tmp_path):
     assert re.search(r"\| bench_text.py \| \*\*no records\*\* .*BENCH_JSON", md)
     assert "WLS took 0.01 s" in md                                     # its printed figure is kept
     assert re.search(r"\| bench_crash.py \| \*\*no records\*\* .*exit 1: RuntimeError: boom", md)
+    assert re.search(r"\| bench_typeerr.py \| \*\*no records\*\* .*exit 1: TypeError: bad quick", md)
+    assert "| bench_typeerr.py | full |" not in md
     assert "| bench_fn.py | speed | 2.5 | s |" in readme.read_text()
     assert ra.discover(bdir, only=["fn", "bench_line"]) == [bdir / "bench_fn.py", bdir / "bench_line.py"]
+
+
+def test_drop_failed_modes_returns_new_values_and_leaves_its_arguments():
+    ra = _run_all()
+    from fusion.report import ALL
+
+    df = pd.DataFrame({"trace": ["t1", ALL, "t1", ALL], "mode": ["wls", "wls", "dnn", "dnn"],
+                       "status": ["ok", "ok", "failed: no weights", "failed on every trace"]})
+    modes, why = ["wls", "dnn"], {"fused": "no gtsam"}
+    out, modes2, why2 = ra.drop_failed_modes(df, modes, why)
+    assert set(out["mode"]) == {"wls"} and modes2 == ["wls"]
+    assert why2 == {"fused": "no gtsam", "dnn": "no weights"}
+    assert modes == ["wls", "dnn"] and why == {"fused": "no gtsam"}   # the next group starts afresh
+    assert len(df) == 4
 
 
 def test_interp_truth_and_gogps_loader(tmp_path):

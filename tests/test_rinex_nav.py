@@ -10,7 +10,8 @@ import pytest
 from fusion.errors import DataError
 from fusion.geometry import C_LIGHT
 from fusion.orbits import sat_state, select_ephemeris, transmit_states
-from fusion.rinex_nav import default_nav_path, gps_ms_from_calendar, read_rinex_nav
+from fusion.gpstime import gps_ms_from_calendar
+from fusion.rinex_nav import default_nav_path, read_rinex_nav
 
 DAY118_MS = gps_ms_from_calendar(2021, 4, 28, 0, 0, 0.0)
 

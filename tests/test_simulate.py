@@ -7,7 +7,8 @@ import pytest
 
 from fusion.errors import DataError, GeometryError
 from fusion.geometry import ecef2geodetic, ecef2ned_vec, line_of_sight
-from fusion.rinex_nav import default_nav_path, gps_ms_from_calendar, read_rinex_nav
+from fusion.gpstime import gps_ms_from_calendar
+from fusion.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.simulate import (DEFAULT_START_MS, SimConfig, main, simulate, simulate_dataset,
                              simulate_trajectory, write_gsdc2021)
 from fusion.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, load_gsdc_trajectory,
@@ -233,6 +234,14 @@ def test_bad_config():
         SimConfig(sigma_m=-1).validate()
     with pytest.raises(ValueError):
         SimConfig(max_sats=3).validate()
+
+
+
+def test_dataset_bad_rate_is_a_value_error(nav):
+    """Regression: rate_hz=0 raised ZeroDivisionError before the rate was validated."""
+    for rate in (0, 0.0, -1.0, 3.0):   # 3 Hz: 333.33 ms per epoch is not a whole number
+        with pytest.raises(ValueError, match="rate_hz"):
+            simulate_dataset(2, 5, seed=0, nav=nav, rate_hz=rate)
 
 
 # ------------------------------------------------------------------------------ output + CLI

@@ -65,6 +65,29 @@ def test_training_learns_and_no_augment_differs(tmp_path):
     assert hist2[0]["train_mse"] != hist[0]["train_mse"]
 
 
+def test_augmentation_redraws_guesses_each_epoch_and_no_augment_keeps_them(tmp_path, monkeypatch):
+    import learned.train as lt
+
+    s = build_samples(toy_dataset(2, 60, seed=3, sigma=1.0))
+    tr, va = split_random(s, 0.2, np.random.default_rng(0))
+    seen = []
+    real = lt.make_inputs
+
+    def spy(t, guess, fcfg):
+        if guess.shape[0] == len(tr):  # the training set's guesses (validation is smaller)
+            seen.append(guess.clone())
+        return real(t, guess, fcfg)
+
+    monkeypatch.setattr(lt, "make_inputs", spy)
+    for augment, expect_sets in ((True, 3), (False, 1)):
+        seen.clear()
+        train(tr, va, TrainConfig(epochs=3, eta=15.0, batch=32, augment=augment), tmp_path / f"{augment}.pt",
+              progress=False)
+        assert len(seen) == expect_sets
+        # Each epoch's draw differs from every other one.
+        assert all(not torch.equal(a, b) for i, a in enumerate(seen) for b in seen[i + 1:])
+
+
 def test_cli_writes_checkpoint_with_config(tmp_path, capsys):
     out = tmp_path / "ck.pt"
     assert main(["--data", "toy", "--sim-traces", "2", "--sim-epochs", "40", "--epochs", "1", "--eta", "20",
