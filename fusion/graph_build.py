@@ -369,11 +369,16 @@ def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 1
     drift = _rolling_nanmedian(rate, cfg.drift_window)
     drift = np.nan_to_num(_interp_rows(t, drift[:, None], np.isfinite(drift))[:, 0]) if np.isfinite(drift).any() \
         else np.zeros(E)
-    # resets: flagged by the loader, or the WLS clock stepping far from the drift
-    step = np.full(E, np.nan)
-    step[1:] = np.diff(cw) - drift[1:] * dt[1:]
-    jumped = np.abs(np.nan_to_num(step)) > cfg.clock_jump_m
-    reset = np.asarray(trace.clock_reset, bool) | jumped
+    # resets: flagged by the loader, or the WLS clock stepping far from the drift between consecutive
+    # WLS-solved epochs. A step seen across WLS-failed epochs may have happened at any of them, so
+    # every epoch from the one after the last solved clock up to the detection is marked.
+    reset = np.asarray(trace.clock_reset, bool).copy()
+    solved = np.flatnonzero(np.isfinite(cw))
+    if len(solved) > 1:
+        a, b = solved[:-1], solved[1:]
+        step = cw[b] - cw[a] - drift[b] * (t[b] - t[a])
+        for lo, hi in zip(a[np.abs(step) > cfg.clock_jump_m] + 1, b[np.abs(step) > cfg.clock_jump_m] + 1):
+            reset[lo:hi] = True
     # any reset (or chain break) in (prev_clock, k] breaks the clock link
     breaks = np.cumsum(reset | ~pos_link)
     safe_prev = np.maximum(prev_clock, 0)

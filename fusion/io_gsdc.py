@@ -168,7 +168,8 @@ def _check_increasing(t: np.ndarray, row: np.ndarray, path: Path, what: str) -> 
 # ---------------------------------------------------------------------------- measurements
 def _standard_rows(df: pd.DataFrame, cols: dict[str, str], vel_cols: Sequence[str], path: Path,
                    skipped: dict[str, int]) -> pd.DataFrame:
-    """Source columns -> one standard row table, dropping (and counting) rows with missing values.
+    """Source columns -> one standard row table, dropping (and counting) rows with missing values
+    (a missing satellite velocity alone becomes zeros, the Trace's "unknown").
 
     Returns columns t, const, svid, signal_name, x, y, z, vx, vy, vz, pr, pr_sigma plus ``row``
     (1-based data row in the file, for messages).
@@ -178,8 +179,11 @@ def _standard_rows(df: pd.DataFrame, cols: dict[str, str], vel_cols: Sequence[st
     _to_numeric(df, numeric + vel, path)
     if "_row" not in df.columns:
         df = df.assign(_row=np.arange(1, len(df) + 1))
-    df = _drop_nan_rows(df, numeric + [cols["signal"]] + vel, path, "measurement", skipped,
-                        "rows_missing_values")
+    # Satellite velocity feeds no estimator here, so a row missing only it keeps its pseudorange and
+    # gets the Trace's "unknown" velocity (zeros) instead of being dropped.
+    df = _drop_nan_rows(df, numeric + [cols["signal"]], path, "measurement", skipped, "rows_missing_values")
+    if vel:
+        df = df.assign(**{c: df[c].fillna(0.0) for c in vel})
     c = cols
     pr = df[c["raw"]] + df[c["clk"]] - df[c["isrb"]] - df[c["iono"]] - df[c["tropo"]]
     out = pd.DataFrame({

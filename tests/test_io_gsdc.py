@@ -338,6 +338,12 @@ def test_nan_rows_dropped_and_counted(tmp_path):
     df.loc[[0, 8], "ionoDelayM"] = np.nan
     tr = load_trace(_write(tmp_path, df))
     assert tr.skipped["rows_missing_values"] == 2 and tr.n_epochs == 3 and tr.mask.sum() == 16
+    # a row missing only the satellite velocity (used by no estimator) keeps its pseudorange
+    vel = _derived_rows(n_epochs=3, n_sats=6)
+    vel.loc[[2], ["xSatVelMps", "ySatVelMps"]] = np.nan
+    tv = load_trace(_write(tmp_path, vel, folder="v/Pixel4"))
+    assert "rows_missing_values" not in tv.skipped and tv.mask.sum() == 18
+    assert (tv.sat_vel[tv.mask][:, 2] == 300.0).all() and (tv.sat_vel[tv.mask][:, 0] == 0.0).sum() == 1
     df["rawPrM"] = np.nan
     with pytest.raises(DataError, match="every measurement row"):
         load_trace(_write(tmp_path, df))
