@@ -34,7 +34,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", default=",".join(MODES))
     args = ap.parse_args(argv)
 
-    trace = load_trace(args.trace)
+    # min_sats=1, as `gnssfuse run` loads: epochs with 1-3 satellites reach the modes; WLS and dnn leave
+    # them unsolved, the fused modes carry them on motion (and the prior)
+    trace = load_trace(args.trace, min_sats=1)
     if args.max_epochs:
         trace = trace.select(np.arange(min(args.max_epochs, trace.n_epochs)))
     opts = RunOptions(weights=args.weights)
