@@ -7,6 +7,8 @@
         # training traces, then learned-prior settings on 2020-09-04-US-SF-2 with a checkpoint
         # trained WITHOUT that trace (LOO.pt, e.g. gnssfuse train --data sim <the other two> ...)
     PYTHONPATH=. python benchmarks/bench_graph.py --part prior --weights LOO.pt   # learned prior only
+    PYTHONPATH=. python benchmarks/bench_graph.py --part prior --weights LOO2.pt --trace 2020-05-14-US-MTV-1
+        # the same on another training trace (LOO2.pt trained without it)
 
 Accuracy: wls / dnn / fused / fused-nodnn on the test traces 2021-04-28-US-MTV-1/Pixel4 (GPS L1)
 and 2021-04-28-US-SJC-1/Pixel4 (multi-signal, 5 windows with gaps), identical inputs per trace:
@@ -230,13 +232,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, default=DATA, help="a GSDC 2021 train/ folder")
     p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
     p.add_argument("--repeats", type=int, default=2)
+    p.add_argument("--trace", default="2020-09-04-US-SF-2", choices=TRAIN,
+                   help="--part prior: the training collection to tune on (the checkpoint must not have seen it)")
     args = p.parse_args(argv)
     if args.part in ("all", "accuracy"):
         accuracy(args.data, args.weights)
     if args.part == "tune":
         tune(args.data, args.weights)
     if args.part == "prior":
-        tune_prior(args.data, args.weights)
+        tune_prior(args.data, args.weights, args.trace)
     if args.part in ("all", "speed"):
         speed(args.data, args.repeats)
     return 0
