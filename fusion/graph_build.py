@@ -376,8 +376,8 @@ def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 1
     solved = np.flatnonzero(np.isfinite(cw))
     if len(solved) > 1:
         a, b = solved[:-1], solved[1:]
-        step = cw[b] - cw[a] - drift[b] * (t[b] - t[a])
-        for lo, hi in zip(a[np.abs(step) > cfg.clock_jump_m] + 1, b[np.abs(step) > cfg.clock_jump_m] + 1):
+        big = np.abs(cw[b] - cw[a] - drift[b] * (t[b] - t[a])) > cfg.clock_jump_m
+        for lo, hi in zip(a[big] + 1, b[big] + 1):
             reset[lo:hi] = True
     # any reset (or chain break) in (prev_clock, k] breaks the clock link
     breaks = np.cumsum(reset | ~pos_link)
