@@ -220,12 +220,13 @@ def fuse(trace: Trace, wls, opts: RunOptions | None = None, provider: PriorProvi
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
-def _corrector(opts: RunOptions):
+def _learned_provider(opts: RunOptions) -> PriorProvider:
+    """The checkpoint's corrector as a prior provider, under the run's elevation mask (as ``dnn``)."""
     try:
         from learned.infer import Corrector
     except ImportError as exc:  # the learned package is optional for every other mode
         raise GnssfuseError(f"mode 'fused' needs learned.infer (torch): {exc}") from None
-    return Corrector.load(opts.weights, device=opts.device)
+    return Corrector.load(opts.weights, device=opts.device).provider(opts.elev_mask_deg)
 
 
 def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
@@ -245,7 +246,7 @@ def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
 
 def estimate_fused(trace: Trace, wls, opts: RunOptions) -> ModeResult:
     """Pseudoranges + learned position prior + motion (the paper's correction inside a graph)."""
-    return fuse(trace, wls, opts, provider=iterated(_corrector(opts), int(opts.dnn_passes)))
+    return fuse(trace, wls, opts, provider=iterated(_learned_provider(opts), int(opts.dnn_passes)))
 
 
 def estimate_fused_nodnn(trace: Trace, wls, opts: RunOptions) -> ModeResult:

@@ -158,8 +158,16 @@ class Corrector:
         return np.concatenate(outs) * s, np.concatenate(vars_) * (s * s) * self.var_scale
 
     def __call__(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
-        c = self.predict(trace, init_pos, valid)
-        return c.mean_ecef, c.cov_ecef, c.valid
+        return self.provider()(trace, init_pos, valid)
+
+    def provider(self, elev_mask_deg: float | None = None):
+        """This corrector as a graph prior provider ``(trace, init_pos, valid) -> (mean_ecef, cov_ecef,
+        valid)`` with the elevation mask fixed (None: the checkpoint's), so that the ``fused`` mode
+        feeds the network what ``dnn`` does under the same ``--elev-mask``."""
+        def ask(trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
+            c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
+            return c.mean_ecef, c.cov_ecef, c.valid
+        return ask
 
 
 def calibration(err_ned: np.ndarray, cov_ned: np.ndarray) -> dict:

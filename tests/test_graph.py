@@ -474,3 +474,25 @@ def test_clock_jump_at_an_epoch_wls_cannot_solve_still_breaks_the_chain(trace):
     assert res.info["clock_resets"] >= 1
     e = h_err(tr, res.pos, res.valid)
     assert res.valid.all() and np.max(e[65:75]) < 15.0
+
+
+def test_fused_feeds_the_network_the_runs_elevation_mask(trace, wls, tmp_path, monkeypatch):
+    pytest.importorskip("torch")
+    from learned.checkpoint import save_checkpoint
+    from learned.features import FeatureConfig
+    from learned.infer import Corrector
+    from learned.model import build_model
+    from fusion.pipeline import run_modes
+
+    hp = dict(d_model=16, n_heads=2, dim_feedforward=16, n_encoder=1, n_decoder=1)
+    ckpt = save_checkpoint(tmp_path / "tiny.pt", build_model("set", **hp),
+                           {"model": {"kind": "set", "hparams": hp}, "features": FeatureConfig().to_dict()})
+    seen = []
+    real = Corrector.predict
+
+    def spy(self, trace, init_pos, valid, elev_mask_deg=None):
+        seen.append(elev_mask_deg)
+        return real(self, trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
+    monkeypatch.setattr(Corrector, "predict", spy)
+    run_modes(trace, ["dnn", "fused"], RunOptions(weights=ckpt, elev_mask_deg=17.0), wls=wls)
+    assert seen and set(seen) == {17.0}      # dnn and fused: the same network input
