@@ -386,7 +386,8 @@ def prepare_inputs(trace: Trace, wls, cfg: GraphConfig, elev_mask_deg: float = 1
     clock_link = np.where(has_clock & (prev_clock >= 0) & (breaks == breaks[safe_prev]), prev_clock, -1)
     clock_mean = drift * span
     clock_sig = cfg.clock_sigma_m + cfg.clock_rw_m * np.sqrt(np.maximum(span, 0.0))
-    dropped["clock_resets"] = int(reset.sum())
+    # one jump seen across n WLS-failed epochs marks n epochs but is one reset
+    dropped["clock_resets"] = int((reset & ~np.r_[False, reset[:-1]]).sum())
 
     # --- determinability: a motion component needs an anchor (an epoch with >= 4 pseudoranges or a
     # prior); the clocks are then fixed by their pseudoranges. Others are dropped and counted.

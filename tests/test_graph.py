@@ -466,12 +466,12 @@ def test_clock_jump_at_an_epoch_wls_cannot_solve_still_breaks_the_chain(trace):
     pr = trace.pr.copy()
     pr[70:] += 150_000.0                    # the step lands on an epoch with 3 satellites...
     mask = trace.mask.copy()
-    mask[70, 3:] = False                    # ...so WLS has no clock there to see it by
+    mask[70:72, 3:] = False                 # ...so WLS has no clock there to see it by
     tr = Trace(**{**trace.__dict__, "pr": pr, "mask": mask})
     w = solve_wls(tr)
-    assert not w.valid[70] and w.valid[69] and w.valid[71]
+    assert not w.valid[70:72].any() and w.valid[69] and w.valid[72]
     res = fuse(tr, w, RunOptions(), want_cov=False)
-    assert res.info["clock_resets"] >= 1
+    assert res.info["clock_resets"] == 1     # one jump, though two epochs are marked
     e = h_err(tr, res.pos, res.valid)
     assert res.valid.all() and np.max(e[65:75]) < 15.0
 
