@@ -366,8 +366,9 @@ def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarra
     arrs = _simulate_arrays(t_ms, rx, seg, nav, cfg, rng)
     if concatenate:
         res = _to_result(arrs, t_ms, rx, np.arange(t_ms.size), "sim/dataset")
-        first = seg[arrs["keep"]]
-        res.trace.clock_reset = first & (np.arange(first.size) > 0)
+        # a new trace starts a new receiver clock even when its first epochs were dropped
+        sid = (np.cumsum(seg) - 1)[arrs["keep"]]
+        res.trace.clock_reset = np.r_[False, np.diff(sid) != 0]
         return res if results else res.trace
     traces = []
     for i in range(n_traces):  # slicing only; all maths above was vectorised

@@ -200,6 +200,12 @@ def test_dataset_many_origins(nav):
     np.testing.assert_allclose(ecef2geodetic(fixed[2].truth[0])[:2], [10.0, 20.0], atol=1e-9)
     one = simulate_dataset(4, 10, seed=2, nav=nav, concatenate=True)
     assert one.n_epochs == 40 and one.clock_reset.sum() == 3 and np.all(np.diff(one.t_ms) > 0)
+    # a trace boundary stays flagged when that trace's first epochs are dropped (too few satellites)
+    from fusion.simulate import SimConfig
+    high = simulate_dataset(6, 60, seed=12, nav=nav, config=SimConfig(elev_mask_deg=38), concatenate=True)
+    clock = high.pr[:, 0] - np.linalg.norm(high.sat_pos[:, 0] - high.truth, axis=1)   # ~ receiver clock
+    jumps = np.abs(np.diff(clock)) > 500.0
+    assert jumps.any() and np.all(high.clock_reset[1:][jumps])
 
 
 # ------------------------------------------------------------------------------ bad input
