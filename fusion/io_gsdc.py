@@ -263,7 +263,9 @@ def _retime_derived(rows: pd.DataFrame, received_ns: np.ndarray | None) -> tuple
         return t, 0
     rx_ms = received_ns / 1e6 + rows["pr"].to_numpy() / C_LIGHT * 1e3
     k = np.round((rx_ms - t) / 1000.0)
-    k = np.where(np.isfinite(k), k, 0).astype(np.int64)
+    # the files are at most one epoch off; a larger shift means a bad receivedSvTimeInGpsNanos
+    # (0, time of week only, ...), which must not move the row to another day: keep the 1000 ms rule
+    k = np.where(np.isfinite(k) & (np.abs(k) <= 1), k, 0).astype(np.int64)
     return t + 1000 * k, int(np.count_nonzero(k))
 
 
@@ -273,7 +275,8 @@ def _read_derived_rows(path: Path, skipped: dict[str, int]) -> pd.DataFrame:
     _check_increasing(rows["t"].to_numpy(), rows["row"].to_numpy(), path, "millisSinceGpsEpoch")
     received = None
     if "receivedSvTimeInGpsNanos" in df.columns:
-        # Optional column, used only to place rows in time; unparsable values fall back to 1000 ms.
+        # Optional column, used only to place rows in time; unparsable or implausible values fall
+        # back to 1000 ms.
         rec = pd.to_numeric(df["receivedSvTimeInGpsNanos"], errors="coerce")
         received = rec.to_numpy(float)[rows["row"].to_numpy() - 1]
     t_true, n_moved = _retime_derived(rows, received)

@@ -235,7 +235,7 @@ def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0, real: list[b
     real = [False] * len(traces) if real is None else list(real)
     return concat_samples([samples_from_trace(t, elev_mask_deg, i, real=r, with_wls=with_wls,
                                               with_graph=with_graph)
-                           for i, (t, r) in enumerate(zip(traces, real))])
+                           for i, (t, r) in enumerate(zip(traces, real, strict=True))])
 
 
 def simulated_samples_with_clock(n_traces: int, epochs_per_trace: int, *, seed: int, bias: bool = False,

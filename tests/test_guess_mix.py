@@ -78,6 +78,8 @@ def test_sample_wls_is_the_truth_free_inference_solution():
     both = build_samples([tr, toy_trace(20, seed=5)], real=[True, False])
     assert both.wls.shape == (70, 3) and both.real.sum() == 50
     assert both.subset(np.array([0, 60])).real.tolist() == [True, False]
+    with pytest.raises(ValueError):                      # one tag per trace, never silently fewer traces
+        build_samples([tr, toy_trace(20, seed=5)], real=[True])
 
 
 def test_split_blocks_is_contiguous_and_disjoint():

@@ -249,6 +249,11 @@ def test_retime_synthetic(tmp_path):
     tr = load_derived_2021(_write(tmp_path, df) / "Pixel4_derived.csv")
     t0 = 1_303_683_549_433 - 1000
     np.testing.assert_array_equal(tr.t_ms, [t0, t0 + 1000, t0 + 3000])
+    # a bad receive time (0) must not move its row to 1980: it keeps the files' one-epoch rule
+    df.loc[0, "receivedSvTimeInGpsNanos"] = 0
+    tr = load_derived_2021(_write(tmp_path, df, folder="bad/Pixel4") / "Pixel4_derived.csv", min_sats=1)
+    np.testing.assert_array_equal(tr.t_ms, [t0, t0 + 1000, t0 + 3000])
+    assert tr.n_sats.tolist() == [5, 5, 5]
 
 
 def test_read_span_nmea(tmp_path):
