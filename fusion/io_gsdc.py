@@ -348,7 +348,8 @@ def interp_gapped(t_ms: np.ndarray, ref_t: np.ndarray, ref_val: np.ndarray,
     lo = hi - 1
     span = (ref_t[hi] - ref_t[lo]).astype(float)
     w = (t_ms - ref_t[lo]) / span
-    ok = (t_ms >= ref_t[0]) & (t_ms <= ref_t[-1]) & (span <= max_gap_ms)
+    # a time exactly on a reference fix is that fix, whatever gap follows or precedes it
+    ok = (t_ms >= ref_t[0]) & (t_ms <= ref_t[-1]) & ((span <= max_gap_ms) | (w == 0) | (w == 1))
     out[ok] = ref_val[lo[ok]] + w[ok, None] * (ref_val[hi[ok]] - ref_val[lo[ok]])
     return out
 

@@ -430,3 +430,12 @@ def test_resolve_signals_all_any_case():
                                   [SIGNALS.index("GPS_L1"), SIGNALS.index("GAL_E1")])
     with pytest.raises(GnssfuseError, match="unknown signal"):
         resolve_signals(["GPS_L1", "allx"])
+
+
+def test_interp_gapped_keeps_exact_fixes_next_to_a_gap():
+    ref_t = np.array([0, 1000, 5000, 5100])
+    val = np.arange(4.0)[:, None] * np.array([[1.0, 2.0]])
+    out = interp_gapped(np.array([0, 500, 1000, 3000, 5000, 5050, 5100]), ref_t, val, max_gap_ms=250)
+    np.testing.assert_allclose(out[[0, 2, 4, 6], 0], [0, 1, 2, 3])     # on fixes, even beside the gap
+    assert np.isnan(out[[1, 3]]).all()                                 # inside gaps > 250 ms
+    np.testing.assert_allclose(out[5], [2.5, 5.0])
