@@ -18,7 +18,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
-from fusion.errors import CheckpointError, GnssfuseError  # noqa: E402
+from fusion.errors import CheckpointError, GnssfuseError, ModeUnavailableError  # noqa: E402
 from fusion.io_gsdc import load_trace  # noqa: E402
 from fusion.pipeline import RunOptions, format_table, mode_metrics, run_modes, solve_initial  # noqa: E402
 
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     for mode in args.modes.split(","):
         try:
             result = run_modes(trace, [mode], opts, wls=wls)[mode]
-        except (ImportError, CheckpointError) as exc:  # module not written yet / no weights
+        except (ModeUnavailableError, CheckpointError) as exc:  # no torch / no weights
             unavailable[mode] = f"{type(exc).__name__}: {exc}"
             continue
         except GnssfuseError as exc:                   # a real failure on this trace

@@ -21,5 +21,10 @@ class GeometryError(GnssfuseError):
     """A solve cannot proceed: too few satellites, singular geometry, divergence."""
 
 
+class ModeUnavailableError(GnssfuseError):
+    """A mode cannot run in this installation (its module or a dependency such as torch is missing):
+    "unavailable", as opposed to a mode that ran and failed on the input."""
+
+
 class CheckpointError(GnssfuseError):
     """A model checkpoint is corrupt, truncated or does not match the code that loads it."""

@@ -18,7 +18,7 @@ import time
 import gtsam
 import numpy as np
 
-from fusion.errors import GeometryError, GnssfuseError
+from fusion.errors import GeometryError, GnssfuseError, ModeUnavailableError
 from fusion.geometry import C_LIGHT
 from fusion.graph_build import (ISB_STRIDE, EpochInputs, GraphConfig, I, MotionNoise, PriorProvider, X,
                                 epoch_factors, prepare_inputs)
@@ -225,7 +225,7 @@ def _learned_provider(opts: RunOptions) -> PriorProvider:
     try:
         from learned.infer import Corrector
     except ImportError as exc:  # the learned package is optional for every other mode
-        raise GnssfuseError(f"mode 'fused' needs learned.infer (torch): {exc}") from None
+        raise ModeUnavailableError(f"mode 'fused' needs learned.infer (torch): {exc}") from None
     return Corrector.load(opts.weights, device=opts.device).provider(opts.elev_mask_deg)
 
 

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from fusion.errors import GnssfuseError
+from fusion.errors import GnssfuseError, ModeUnavailableError
 from fusion.geometry import ecef2geodetic
 from fusion.trace import SIGNALS, Trace
 
@@ -73,16 +73,17 @@ MODES: dict[str, str] = {
 
 
 def get_mode(name: str) -> Callable[..., ModeResult]:
-    """The estimator of mode ``name``; :class:`GnssfuseError` when unknown or not importable."""
+    """The estimator of mode ``name``; :class:`GnssfuseError` when unknown, :class:`ModeUnavailableError`
+    when its module or function cannot be imported."""
     if name not in MODES:
         raise GnssfuseError(f"unknown mode {name!r}; choose from {', '.join(MODES)}")
     module, func = MODES[name].split(":")
     try:
         mod = importlib.import_module(module)
     except ImportError as exc:
-        raise GnssfuseError(f"mode {name!r} is unavailable: cannot import {module} ({exc})") from exc
+        raise ModeUnavailableError(f"mode {name!r} is unavailable: cannot import {module} ({exc})") from exc
     if not hasattr(mod, func):
-        raise GnssfuseError(f"mode {name!r} is unavailable: {module} has no {func}()")
+        raise ModeUnavailableError(f"mode {name!r} is unavailable: {module} has no {func}()")
     return getattr(mod, func)
 
 

@@ -94,3 +94,17 @@ def test_signals_all_any_case():
     assert parse("GPS_L1, all").signals == SIGNALS
     with pytest.raises(GnssfuseError, match="unknown signal"):
         parse("GPS_L9")
+
+
+def test_a_mode_that_cannot_import_is_unavailable_not_failed(monkeypatch):
+    from fusion import pipeline
+    from fusion.errors import GnssfuseError, ModeUnavailableError
+
+    monkeypatch.setitem(pipeline.MODES, "ghost", "fusion.no_such_module:estimate")
+    monkeypatch.setitem(pipeline.MODES, "hollow", "fusion.pipeline:no_such_function")
+    for name in ("ghost", "hollow"):
+        with pytest.raises(ModeUnavailableError, match=f"mode '{name}' is unavailable"):
+            pipeline.get_mode(name)
+    with pytest.raises(GnssfuseError, match="unknown mode") as exc:
+        pipeline.get_mode("nope")
+    assert not isinstance(exc.value, ModeUnavailableError)
