@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 from fusion.errors import GeometryError  # noqa: E402
 from fusion.geometry import ned_rotation  # noqa: E402
 from fusion.io_gsdc import load_trace  # noqa: E402
-from fusion.metrics import ned_errors  # noqa: E402
+from fusion.metrics import horizontal, ned_errors  # noqa: E402
 from fusion.wls import solve_wls  # noqa: E402
 from learned.factor import learned_prior_factors  # noqa: E402
 from learned.infer import Corrector  # noqa: E402
@@ -91,15 +91,11 @@ def main(argv: list[str] | None = None) -> int:
     result = gtsam.LevenbergMarquardtOptimizer(graph, init).optimize()
     fused = np.array([result.atPose3(x(k)).translation() for k in range(E)])
 
-    def h(est):
-        e = ned_errors(est, trace.truth)
-        return np.hypot(e[:, 0], e[:, 1])
-
     print(f"{trace.name}: {E} epochs, {int(np.isfinite(dnn).all(1).sum())} learned factors, "
           f"odometry simulated from truth + {args.odo_sigma} m noise")
     for name, est in (("wls", np.where(wls.valid[:, None], wls.pos, np.nan)), ("dnn", dnn),
                       ("pose graph", fused)):
-        e = h(est)
+        e = horizontal(ned_errors(est, trace.truth))
         print(f"  {name:<11} horizontal error p50 {np.nanpercentile(e, 50):6.2f} m   p95 {np.nanpercentile(e, 95):6.2f} m")
     print(f"done in {time.perf_counter() - t0:.1f} s")
     return 0

@@ -113,10 +113,8 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     ok = result.valid & np.isfinite(result.pos).all(axis=1)
     pos = result.pos[ok]
     llh = ecef2geodetic(pos) if len(pos) else np.zeros((0, 3))
-    return pd.DataFrame({
-        "gps_millis": trace.t_ms[ok], "lat_deg": llh[:, 0], "lon_deg": llh[:, 1],
-        "height_m": llh[:, 2], "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
-    })
+    cols = (trace.t_ms[ok], llh[:, 0], llh[:, 1], llh[:, 2], pos[:, 0], pos[:, 1], pos[:, 2])
+    return pd.DataFrame(dict(zip(ESTIMATE_COLUMNS, cols, strict=True)))
 
 
 def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:

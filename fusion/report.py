@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from fusion.errors import DataError, GnssfuseError
 from fusion.pipeline import (MODES, ModeResult, RunOptions, add_run_options, get_mode, options_from_args,
-                             run_modes, solve_initial, write_outputs)
+                             run_modes, solve_initial, trace_errors, write_outputs)
 from fusion.trace import Trace
 
 #: Name of the pooled rows (all traces' epochs together) in the tables.
@@ -58,17 +58,6 @@ def check_modes(modes: list[str]) -> None:
     """Fail before any work when a mode is unknown or its module cannot be imported."""
     for m in modes:
         get_mode(m)
-
-
-def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:
-    """(E, 3) NED error of a mode's estimates w.r.t. the truth, or None without truth.
-
-    The one definition is :func:`fusion.pipeline.trace_errors` (unsolved epochs become NaN rows),
-    which :func:`fusion.pipeline.mode_metrics` summarises too.
-    """
-    from fusion.pipeline import trace_errors as pipeline_trace_errors
-
-    return pipeline_trace_errors(trace, result)
 
 
 def _slug(name: str, taken: set[str]) -> str:
