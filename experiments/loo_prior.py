@@ -21,10 +21,10 @@ from fusion.graph import solve_batch
 from fusion.graph_build import GraphConfig, prepare_inputs
 from fusion.io_gsdc import load_trace
 from fusion.pipeline import ModeResult, RunOptions, mode_metrics, run_modes, solve_initial
+from learned.data import check_not_forbidden
 from learned.infer import Corrector
 
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-HELD_OUT = ("2021-04-28-US-MTV-1", "2021-04-28-US-SJC-1")
 
 
 def down_inflated(cov_ned: np.ndarray, factor: float | None) -> np.ndarray:
@@ -45,9 +45,9 @@ def main() -> None:
     ap.add_argument("trace", help="training collection name, e.g. 2020-09-04-US-SF-2 (its Pixel4 folder is used)")
     ap.add_argument("weights", type=Path, help="checkpoint trained without that trace")
     args = ap.parse_args()
-    if args.trace in HELD_OUT:
-        raise SystemExit(f"{args.trace} is a held-out test trace: tune on training traces only")
-    trace = load_trace(SHARED / "gsdc2021" / "train" / args.trace / "Pixel4", min_sats=1)
+    folder = SHARED / "gsdc2021" / "train" / args.trace / "Pixel4"
+    check_not_forbidden(folder)                                # tune on training traces only
+    trace = load_trace(folder, min_sats=1)
     opts = RunOptions(weights=args.weights)
     wls = solve_initial(trace, opts)
     out = run_modes(trace, ["wls", "fused-nodnn", "fused"], opts, wls=wls)
