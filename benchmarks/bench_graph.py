@@ -12,8 +12,8 @@
 
 Accuracy: wls / dnn / fused / fused-nodnn on the test traces 2021-04-28-US-MTV-1/Pixel4 (GPS L1)
 and 2021-04-28-US-SJC-1/Pixel4 (multi-signal, 5 windows with gaps), identical inputs per trace:
-loaded with ``min_sats=1`` and one ``fusion.pipeline.solve_initial`` WLS solve fed to every mode, as
-``gnssfuse run`` / ``evaluate`` do, scored with ``fusion.pipeline.mode_metrics``. Graph settings (``GraphConfig`` defaults)
+loaded with ``min_sats=1`` and one ``fusion.modes.solve_initial`` WLS solve fed to every mode, as
+``gnssfuse run`` / ``evaluate`` do, scored with ``fusion.eval.metrics.mode_metrics``. Graph settings (``GraphConfig`` defaults)
 were tuned on the training traces only (``--part tune`` prints them).
 
 Speed: batch build + Levenberg-Marquardt solve of a ~2,000-epoch trace (with and without the
@@ -30,11 +30,15 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import CheckpointError, ModeUnavailableError
-from fusion.graph import build_graph, fuse
-from fusion.graph_build import GraphConfig, prepare_inputs
-from fusion.metrics import ned_errors
-from fusion.pipeline import ModeResult, RunOptions, format_table, get_mode, mode_metrics, solve_initial
-from fusion.wls import solve_wls
+from fusion.estimate.graph.build import build_graph
+from fusion.estimate.graph.fuse import fuse
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.eval.metrics import ned_errors
+from fusion.eval.metrics import format_table, mode_metrics
+from fusion.modes import get_mode, solve_initial
+from fusion.run_types import ModeResult, RunOptions
+from fusion.estimate.wls import solve_wls
 
 # The development data beside the checkout (../shared/data), or $GNSSFUSE_SHARED_DATA.
 DATA = Path(os.environ.get("GNSSFUSE_SHARED_DATA",
@@ -46,7 +50,7 @@ MODES = ("wls", "dnn", "fused", "fused-nodnn")
 
 
 def accuracy(root: Path, weights: Path | None) -> None:
-    from fusion.io_gsdc import load_trace
+    from fusion.io.load import load_trace
 
     for name, signals in TEST.items():
         d = root / name / "Pixel4"
@@ -94,7 +98,7 @@ PRIOR_GRID = tuple(
 
 def tune_graph(root: Path, grid=GRAPH_GRID) -> None:
     """fused-nodnn on the three training traces for each variation of GraphConfig (defaults first)."""
-    from fusion.io_gsdc import load_trace
+    from fusion.io.load import load_trace
 
     data = []
     for name in TRAIN:
@@ -118,8 +122,8 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
     WLS positions) and its output reused for every prior setting, so the table isolates the effect
     of the settings.
     """
-    from fusion.io_gsdc import load_trace
-    from fusion.graph import solve_batch
+    from fusion.io.load import load_trace
+    from fusion.estimate.graph.batch import solve_batch
     from learned.infer import Corrector, calibration
 
     if weights is None:
@@ -148,7 +152,7 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
         for change in grid:
             cfg = GraphConfig(**change)
             inp = prepare_inputs(trace, wls, cfg, 10.0, lambda tr, g, v: out, prior_guess=guesses[at])
-            pos, valid, _, _ = solve_batch(trace, inp, cfg, use_prior=True, want_cov=False)
+            pos, valid, _, _ = solve_batch(trace, inp, cfg, want_cov=False)
             m = mode_metrics(trace, ModeResult(pos=pos, valid=valid))
             rb = "none" if change["prior_robust"] == "none" else f"{change['prior_robust']}({change['prior_robust_k']:g})"
             print(f"  {at:>8} {change['prior_cov_scale']:9g} {change['prior_sigma_floor_m']:7g} {rb:>10}  "
@@ -169,11 +173,11 @@ def speed(root: Path, repeats: int) -> list[dict]:
     d = root / "2021-04-28-US-MTV-1" / "Pixel4"
     d = d if d.is_dir() else REPO_TRACE
     if d.is_dir():
-        from fusion.io_gsdc import load_trace
+        from fusion.io.load import load_trace
 
         trace = load_trace(d)
     else:
-        from fusion.simulate import simulate
+        from fusion.sim.simulate import simulate
 
         trace = simulate(n_epochs=2000, seed=0, name="synthetic").trace
     wls = solve_wls(trace)

@@ -19,8 +19,8 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from fusion.rinex_nav import default_nav_path, read_rinex_nav  # noqa: E402
-from fusion.simulate import SimConfig, simulate_dataset  # noqa: E402
+from fusion.io.rinex_nav import default_nav_path, read_rinex_nav  # noqa: E402
+from fusion.sim.simulate import SimConfig, simulate_dataset  # noqa: E402
 
 QUICK_EPOCHS = 20_000
 

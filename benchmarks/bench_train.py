@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fusion.wls import solve_wls
+from fusion.estimate.wls import solve_wls
 from learned.data import build_samples, split_random
 from learned.infer import Corrector
 from learned.toy import toy_dataset, toy_trace

@@ -5,7 +5,7 @@
 1. Every ``benchmarks/bench_*.py`` runs in its own subprocess (a crash or a hang in one cannot take
    the others down) and reports records ``{name, value, unit, note}`` (convention: README.md here).
 2. Accuracy: every available mode on the shipped trace and, when ``../shared/data`` (or
-   ``$GNSSFUSE_SHARED_DATA``) is present, on its GSDC 2021 traces, via ``fusion.report.evaluate``.
+   ``$GNSSFUSE_SHARED_DATA``) is present, on its GSDC 2021 traces, via ``fusion.evaluate.evaluate``.
 3. The goGPS WLS baseline (the paper's) scored with our metrics against its trace's truth, beside
    our WLS on the same trace.
 4. ``--update-readme`` replaces the README text between ``<!-- results:start -->`` and
@@ -119,7 +119,7 @@ def run_script(script: Path, quick: bool, timeout_s: float) -> tuple[list[dict],
 def available_modes(modes=ACCURACY_MODES) -> tuple[list[str], dict[str, str]]:
     """Modes whose module imports, and why the others are unavailable."""
     from fusion.errors import GnssfuseError
-    from fusion.report import check_modes
+    from fusion.evaluate import check_modes
 
     ok, why = [], {}
     for m in modes:
@@ -155,9 +155,9 @@ def accuracy_traces(shared: Path = SHARED_DATA) -> list[Path]:
 
 def run_accuracy(traces: list[Path], modes: list[str], out_dir: Path, max_epochs: int | None,
                  signals: tuple[str, ...] = ("GPS_L1",)):
-    """fusion.report.evaluate over ``traces``; returns its metrics table (a DataFrame)."""
-    from fusion.pipeline import RunOptions
-    from fusion.report import evaluate
+    """fusion.evaluate.evaluate over ``traces``; returns its metrics table (a DataFrame)."""
+    from fusion.run_types import RunOptions
+    from fusion.evaluate import evaluate
 
     df, failures = evaluate(traces, modes, out_dir, RunOptions(signals=signals), max_epochs=max_epochs,
                             progress=False)
@@ -187,7 +187,7 @@ def drop_failed_modes(df, modes: list[str], why: dict[str, str]) -> tuple:
     Returns new ``(df, modes, why)``: ``df`` without those modes' rows, ``modes`` without them and
     ``why`` plus their first failure message. The arguments are left unchanged, so one group's
     failures do not leak into the next group's modes or note."""
-    from fusion.report import ALL
+    from fusion.eval.report import ALL
 
     modes, why = list(modes), dict(why)
     for m in df[(df.trace == ALL) & (df.status == "failed on every trace")]["mode"]:
@@ -224,17 +224,20 @@ def interp_truth(truth_t_ms: np.ndarray, truth_ecef: np.ndarray, t_ms: np.ndarra
                  max_gap_ms: float = 1500.0) -> np.ndarray:
     """Truth linearly interpolated to ``t_ms`` (N, 3); NaN outside the truth span or across gaps
     (epochs without truth count as gaps)."""
-    from fusion.io_gsdc import interp_gapped
+    from fusion.io.truth import interp_gapped
 
     ok = np.isfinite(truth_ecef).all(1)
     return interp_gapped(np.asarray(t_ms), truth_t_ms[ok], truth_ecef[ok], max_gap_ms)
 
 
 def gogps_comparison(shared: Path = SHARED_DATA) -> list[dict] | None:
-    """goGPS WLS and our WLS on the goGPS trace, both scored with fusion.metrics. None if absent."""
-    from fusion.io_gsdc import load_trace
-    from fusion.metrics import ned_errors, summarize
-    from fusion.pipeline import RunOptions, estimate_wls, mode_metrics, solve_initial
+    """goGPS WLS and our WLS on the goGPS trace, both scored with fusion.eval.metrics. None if absent."""
+    from fusion.io.load import load_trace
+    from fusion.eval.metrics import ned_errors, summarize
+    from fusion.estimate.wls import estimate_wls
+    from fusion.eval.metrics import mode_metrics
+    from fusion.modes import solve_initial
+    from fusion.run_types import RunOptions
 
     csv, trace_dir = shared / GOGPS_CSV, shared / GOGPS_TRACE
     if not (csv.is_file() and trace_dir.is_dir()):
@@ -281,7 +284,7 @@ def bench_markdown(results: dict[str, tuple[list[dict], str, str]], tail_lines: 
 
 
 def accuracy_markdown(df) -> str:
-    from fusion.report import markdown_table
+    from fusion.eval.report import markdown_table
 
     return markdown_table(df)
 
@@ -382,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
         gogps = gogps_comparison()
         if gogps is not None:
             sections.append(("goGPS WLS baseline vs gnssfuse WLS (2020-05-14-US-MTV-1 Pixel4)",
-                             "Both scored with `fusion.metrics` against the truth `fusion.io_gsdc` "
+                             "Both scored with `fusion.eval.metrics` against the truth `fusion.io.load` "
                              "loads for the trace (SPAN NMEA where present, else ground_truth.csv with "
                              "the 63 m height fix). goGPS reports at whole GPS seconds; its truth "
                              "is interpolated to those times.\n\n" + gogps_markdown(gogps)))

@@ -19,8 +19,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 from fusion.errors import CheckpointError, GnssfuseError, ModeUnavailableError  # noqa: E402
-from fusion.io_gsdc import load_trace  # noqa: E402
-from fusion.pipeline import RunOptions, format_table, mode_metrics, run_modes, solve_initial  # noqa: E402
+from fusion.io.load import load_trace  # noqa: E402
+from fusion.eval.metrics import format_table, mode_metrics  # noqa: E402
+from fusion.modes import run_modes, solve_initial
+from fusion.run_types import RunOptions
 
 SHIPPED = REPO / "data" / "gsdc2021" / "train" / "2021-04-28-US-MTV-1" / "Pixel4"
 MODES = ("wls", "dnn", "fused-nodnn", "fused")

@@ -19,8 +19,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
-from fusion.io_gsdc import find_traces, load_trace  # noqa: E402
-from fusion.pipeline import RunOptions, format_table, mode_metrics, run_modes  # noqa: E402
+from fusion.io.load import find_traces, load_trace  # noqa: E402
+from fusion.eval.metrics import format_table, mode_metrics  # noqa: E402
+from fusion.modes import run_modes
+from fusion.run_types import RunOptions
 from learned.data import FORBIDDEN_TRACES, build_samples, load_real_traces, split_random  # noqa: E402
 from learned.train import TrainConfig, train  # noqa: E402
 

@@ -4,7 +4,7 @@
     python examples/03_simulate_and_train.py --quick               # a minute-sized smoke run
     python examples/03_simulate_and_train.py --bias-scenario       # multipath/NLOS biases, as the paper
 
-Simulated drives come from :func:`fusion.simulate.simulate_dataset` (broadcast GPS orbits, random
+Simulated drives come from :func:`fusion.sim.simulate.simulate_dataset` (broadcast GPS orbits, random
 origins and start times); the test drive uses a different seed, so it is not in the training data.
 Both WLS and the trained DNN start from the same WLS solution with the clock estimated.
 """
@@ -19,8 +19,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
-from fusion.pipeline import RunOptions, format_table, mode_metrics, run_modes  # noqa: E402
-from fusion.simulate import SimConfig, simulate, simulate_dataset  # noqa: E402
+from fusion.eval.metrics import format_table, mode_metrics  # noqa: E402
+from fusion.modes import run_modes
+from fusion.run_types import RunOptions
+from fusion.sim.simulate import SimConfig, simulate, simulate_dataset  # noqa: E402
 from learned.data import build_samples, split_random  # noqa: E402
 from learned.train import TrainConfig, train  # noqa: E402
 

@@ -27,9 +27,9 @@ sys.path.insert(0, str(REPO))
 
 from fusion.errors import GeometryError  # noqa: E402
 from fusion.geometry import ned_rotation  # noqa: E402
-from fusion.io_gsdc import load_trace  # noqa: E402
-from fusion.metrics import horizontal, ned_errors  # noqa: E402
-from fusion.wls import solve_wls  # noqa: E402
+from fusion.io.load import load_trace  # noqa: E402
+from fusion.eval.metrics import horizontal, ned_errors  # noqa: E402
+from fusion.estimate.wls import solve_wls  # noqa: E402
 from learned.factor import learned_prior_factors  # noqa: E402
 from learned.infer import Corrector  # noqa: E402
 

@@ -9,7 +9,7 @@ import os
 from pathlib import Path
 
 import numpy as np
-from fusion.metrics import ned_errors
+from fusion.eval.metrics import ned_errors
 from learned.data import split_blocks
 from learned.train import load_training_data
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))

@@ -17,10 +17,13 @@ from pathlib import Path
 import numpy as np
 
 from fusion.geometry import ned_rotation
-from fusion.graph import solve_batch
-from fusion.graph_build import GraphConfig, prepare_inputs
-from fusion.io_gsdc import load_trace
-from fusion.pipeline import ModeResult, RunOptions, mode_metrics, run_modes, solve_initial
+from fusion.estimate.graph.batch import solve_batch
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.io.load import load_trace
+from fusion.eval.metrics import mode_metrics
+from fusion.modes import run_modes, solve_initial
+from fusion.run_types import ModeResult, RunOptions
 from learned.data import check_not_forbidden
 from learned.infer import Corrector
 
@@ -64,7 +67,7 @@ def main() -> None:
         cov_ecef = np.einsum("eji,ejk,ekl->eil", R, down_inflated(c.cov_ned, factor), R)
         prior = (c.mean_ecef, cov_ecef, c.valid)
         inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, lambda *_: prior, prior_guess=guess)
-        pos, valid, _, _ = solve_batch(trace, inp, cfg, use_prior=True, want_cov=False)
+        pos, valid, _, _ = solve_batch(trace, inp, cfg, want_cov=False)
         rows[label] = ModeResult(pos=pos, valid=valid)
 
     print(f"{trace.name}, network {args.weights} (never trained on this trace)")

@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fusion.io_gsdc import load_trace
-from fusion.metrics import ned_errors, summarize
-from fusion.wls import solve_wls
+from fusion.io.load import load_trace
+from fusion.eval.metrics import ned_errors, summarize
+from fusion.estimate.wls import solve_wls
 from learned.augment import draw_guesses, epoch_generator
 from learned.infer import SHIPPED_WEIGHTS, Corrector, calibration
 

@@ -1,6 +1,6 @@
 """Experiment 1 (paper Sec. 5.1): simulated data, initial guess = truth + U(-eta, eta) per NED axis.
 
-Trains one network per row on simulated traces (fusion.simulate, Gaussian sigma 6 m, optionally the
+Trains one network per row on simulated traces (fusion.sim.simulate, Gaussian sigma 6 m, optionally the
 Gaussian + bias scenario) and tests it on *other* simulated traces (different seed) with fresh guesses
 from the same box. Prints MAE (+- std of |error|) N/E/D before (initial guess) and after correction,
 and the variance head's 1/2-sigma coverage. A second table tests the same networks under the honest
@@ -27,7 +27,7 @@ import torch
 
 from fusion.errors import CheckpointError
 from fusion.geometry import ned_rotation
-from fusion.metrics import ned_errors
+from fusion.eval.metrics import ned_errors
 from learned.augment import draw_guesses, epoch_generator, parse_guess_mix
 from learned.checkpoint import load_model
 from learned.data import simulated_samples_with_clock, split_random

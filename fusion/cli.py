@@ -1,23 +1,87 @@
-"""``gnssfuse`` command line: a thin dispatcher.
+"""``gnssfuse`` command line: the dispatcher and the ``run`` subcommand.
 
-Each subcommand lives in the module that owns the work and exposes ``main(argv, prog) -> int``.
-Modules are imported only when their subcommand runs, so ``gnssfuse run --mode wls`` never
-imports torch.
+Each other subcommand lives with the work it does and exposes ``main(argv, prog) -> int``; the
+dispatcher names it by a ``"module:function"`` string and imports it only when that subcommand
+runs, so ``gnssfuse run --mode wls`` never imports torch.
 """
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
+from pathlib import Path
 
 from fusion.errors import GnssfuseError
+from fusion.run_types import RunOptions
+from fusion.trace import SIGNALS, resolve_signals
 
-#: subcommand -> (module, one-line help)
+#: subcommand -> ("module:function", one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "run": ("fusion.pipeline", "solve one trace in one mode (wls, dnn, fused, fused-nodnn)"),
-    "evaluate": ("fusion.report", "compare modes on traces: tables, CDFs, box plots, report.md"),
-    "simulate": ("fusion.simulate", "simulate a GNSS trace (GSDC 2021 derived format + truth)"),
-    "train": ("learned.train", "train the set-transformer correction network"),
+    "run": ("fusion.cli:run_main", "solve one trace in one mode (wls, dnn, fused, fused-nodnn)"),
+    "evaluate": ("fusion.evaluate:main", "compare modes on traces: tables, CDFs, box plots, report.md"),
+    "simulate": ("fusion.sim.simulate:main", "simulate a GNSS trace (GSDC 2021 derived format + truth)"),
+    "train": ("learned.train:main", "train the set-transformer correction network"),
 }
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
+    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
+    p.add_argument("--signals", default="GPS_L1",
+                   help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
+                        "too), or all")
+    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
+    p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
+    p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
+    p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-truth-height-fix", action="store_true",
+                   help="keep GSDC 2021 truth heights as published (~63 m too high)")
+
+
+def options_from_args(args: argparse.Namespace) -> RunOptions:
+    """The :class:`RunOptions` of parsed :func:`add_run_options` arguments."""
+    # The loader's vocabulary: our names, GSDC 2023 spellings (GPS_L1_CA, ...) or "all".
+    names = [s.strip() for s in args.signals.split(",") if s.strip()]
+    signals = tuple(SIGNALS[i] for i in resolve_signals(names))
+    if args.dnn_passes < 1:
+        raise GnssfuseError("--dnn-passes must be >= 1")
+    return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
+                      dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
+                      wls_robust=args.robust_wls)
+
+
+def build_run_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
+    from fusion.modes import MODES
+
+    p = argparse.ArgumentParser(prog=prog, description="Solve one trace in one mode and write estimates.csv.")
+    p.add_argument("trace_dir", type=Path, help="a <collection>/<phone> folder (GSDC 2021 derived or 2022/23 device_gnss)")
+    p.add_argument("--mode", default="wls", choices=list(MODES))
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    add_run_options(p)
+    return p
+
+
+def run_main(argv: list[str], prog: str = "gnssfuse run") -> int:
+    """``gnssfuse run``: one trace, one mode -> estimates.csv (+ metrics.json with truth)."""
+    from fusion.eval.metrics import format_table, mode_metrics
+    from fusion.io.estimates import write_outputs
+    from fusion.io.load import load_trace
+    from fusion.modes import run_modes
+
+    args = build_run_parser(prog).parse_args(argv)
+    opts = options_from_args(args)
+    # min_sats=1: keep epochs with 1-3 satellites; WLS/dnn leave them unsolved (counted in info),
+    # the fused modes carry them with the prior and the motion model
+    trace = load_trace(args.trace_dir, signals=opts.signals, fix_truth_height=not args.no_truth_height_fix,
+                       min_sats=1)
+    result = run_modes(trace, [args.mode], opts)[args.mode]
+    record = write_outputs(args.out, trace, args.mode, result, mode_metrics(trace, result))
+    print(f"{trace.name}: {record['epochs_solved']}/{trace.n_epochs} epochs solved in mode {args.mode}"
+          + (f"; skipped while loading: {record['skipped']}" if record["skipped"] else ""))
+    print(format_table({args.mode: record["metrics"]}))
+    print(f"wrote {args.out / 'estimates.csv'}" + (" and metrics.json" if record["metrics"] else ""))
+    return 0
 
 
 def _usage() -> str:
@@ -35,9 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     if cmd not in COMMANDS:
         print(f"gnssfuse: unknown command {cmd!r}\n\n{_usage()}", file=sys.stderr)
         return 2
-    module = importlib.import_module(COMMANDS[cmd][0])
+    module, func = COMMANDS[cmd][0].split(":")
+    entry = getattr(importlib.import_module(module), func)
     try:
-        return int(module.main(rest, prog=f"gnssfuse {cmd}") or 0)
+        return int(entry(rest, prog=f"gnssfuse {cmd}") or 0)
     except (GnssfuseError, OSError) as exc:
         # One line, no traceback: the message already names the file/epoch and the problem
         # (OSError: a missing input, an unwritable --out folder).

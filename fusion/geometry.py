@@ -54,6 +54,22 @@ def ned2ecef_vec(v_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
     return np.einsum("...ji,...j->...i", ned_rotation(ref_ecef), v_ned)
 
 
+def ecef2ned_cov(cov_ecef: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
+    """Rotate ECEF covariances (..., 3, 3) into the NED frame at ``ref_ecef`` (..., 3): R C R^T."""
+    R = ned_rotation(ref_ecef)
+    return R @ cov_ecef @ np.swapaxes(R, -1, -2)
+
+
+def ned2ecef_cov(cov_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
+    """NED covariances (..., 3, 3) at ``ref_ecef`` (..., 3) -> ECEF: R^T C R (inverse of
+    :func:`ecef2ned_cov`). A diagonal NED covariance may be passed as its (..., 3) variances."""
+    cov_ned = np.asarray(cov_ned, float)
+    if cov_ned.shape[-2:] != (3, 3):
+        cov_ned = cov_ned[..., :, None] * np.eye(3)
+    R = ned_rotation(ref_ecef)
+    return np.swapaxes(R, -1, -2) @ cov_ned @ R
+
+
 def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
     """Rotate transmit-time satellite ECEF positions into the ECEF frame at receive time.
 

@@ -18,14 +18,50 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-import numpy as np
+from collections.abc import Sequence
 
-from fusion.errors import DataError
+import numpy as np
+import pandas as pd
+
+from fusion.errors import DataError, GnssfuseError
 
 #: Signal names in the GSDC vocabulary; ``Trace.signal`` stores indices into this tuple.
 SIGNALS: tuple[str, ...] = (
     "GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A", "BDS_B1I", "QZS_J1", "QZS_J5",
 )
+
+
+def signal_index(names: Sequence[str] | pd.Series) -> np.ndarray:
+    """Map GSDC signal names onto indices into :data:`SIGNALS` (int8, -1 where unknown).
+
+    2021/2022 names are ours already (``GPS_L1``); 2023 adds a code suffix (``GPS_L1_CA``,
+    ``GAL_E1_C_P``, ``GAL_E5A_Q``), which is dropped: the first two ``_`` tokens name the signal.
+    """
+    s = pd.Series(names, dtype=object)
+    lookup = {}
+    for name in s.dropna().unique():
+        key = str(name).strip().upper()
+        short = "_".join(key.split("_")[:2])
+        lookup[name] = SIGNALS.index(key) if key in SIGNALS else (
+            SIGNALS.index(short) if short in SIGNALS else -1)
+    return s.map(lookup).fillna(-1).to_numpy(np.int8)
+
+
+def resolve_signals(signals: Sequence[str] | str | None) -> np.ndarray:
+    """User signal selection -> sorted unique indices into :data:`SIGNALS`.
+
+    ``None``, ``"all"`` or a sequence containing ``"all"`` (any case) selects every known signal;
+    names may use 2023 spellings.
+    """
+    if isinstance(signals, str):
+        signals = [signals]
+    if signals is None or any(str(s).strip().lower() == "all" for s in signals):
+        return np.arange(len(SIGNALS))
+    idx = signal_index(list(signals))
+    unknown = [s for s, i in zip(signals, idx) if i < 0]
+    if unknown or len(idx) == 0:
+        raise GnssfuseError(f"unknown signal name(s) {unknown or list(signals)}; known: {', '.join(SIGNALS)}")
+    return np.unique(idx)
 
 
 @dataclass

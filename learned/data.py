@@ -8,11 +8,11 @@ the training epochs (:func:`split_random`) or of contiguous blocks of them (:fun
 1 Hz epochs share multipath and geometry, so a random split validates on near-copies of training epochs).
 
 Each sample also carries the WLS position of *its own measurements* (``wls``, no truth involved: the
-pipeline's own :func:`fusion.pipeline.solve_initial`, so training WLS is inference WLS by construction),
+pipeline's own :func:`fusion.modes.solve_initial`, so training WLS is inference WLS by construction),
 computed once here, so training can draw
 initial guesses from the distribution the network meets at inference (:mod:`learned.augment`).
 With ``with_graph`` it also carries the solution of the factor graph without the learned prior
-(``graph``: :func:`fusion.graph.fuse` with no provider, i.e. the ``fused-nodnn`` mode, measurements only),
+(``graph``: :func:`fusion.estimate.graph.fuse.fuse` with no provider, i.e. the ``fused-nodnn`` mode, measurements only),
 solved once per trace: the point where the fused mode asks the network.
 """
 from __future__ import annotations
@@ -22,9 +22,15 @@ from pathlib import Path
 
 import numpy as np
 
-from fusion.errors import DataError
+from fusion.errors import DataError, GnssfuseError
+from fusion.estimate.graph.fuse import fuse
+from fusion.io.load import find_traces, load_trace
+from fusion.modes import solve_initial
+from fusion.run_types import RunOptions
+from fusion.sim.simulate import SimConfig, simulate_dataset
 from fusion.trace import Trace
 from learned.features import compact_slots, elevation_mask
+from learned.toy import toy_dataset
 
 #: Held-out traces that must never be trained on (test of the DNN, and of the fused pipeline).
 FORBIDDEN_TRACES = ("2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-SJC-1")
@@ -81,7 +87,7 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
                        ) -> Samples:
     """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth).
 
-    ``with_wls``: also solve WLS on the whole trace (``fusion.pipeline.solve_initial`` with
+    ``with_wls``: also solve WLS on the whole trace (``fusion.modes.solve_initial`` with
     ``RunOptions(elev_mask_deg=...)``: the inference WLS, no truth) and keep each sample's position; ``real`` tags the samples as phone data.
     ``clock``: (E,) true receiver clock of a simulated trace, kept per sample (experiment only).
     ``with_graph``: also solve the no-prior factor graph on the whole trace (:func:`graph_positions`);
@@ -103,7 +109,6 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     sat_pos, pr = sat_pos * mask[..., None], pr * mask
     wls = graph = None
     if with_wls or with_graph:
-        from fusion.pipeline import RunOptions, solve_initial  # imported late: another engineer's module
         opts = RunOptions(elev_mask_deg=elev_mask_deg)
         w = solve_initial(trace, opts)
     if with_wls:
@@ -123,16 +128,12 @@ def graph_positions(trace: Trace, wls, opts=None) -> np.ndarray:
     """(E,3) ECEF positions of the factor graph without the learned prior (the ``fused-nodnn`` mode at
     the GraphConfig defaults, fed the trace's WLS as the pipeline does), NaN where unsolved.
 
-    opts: the ``fusion.pipeline.RunOptions`` ``wls`` was solved with (None: the defaults).
+    opts: the ``fusion.run_types.RunOptions`` ``wls`` was solved with (None: the defaults).
 
     Uses the measurements only (``fuse`` never reads ``trace.truth``). A trace the graph cannot solve
     at all (a :class:`~fusion.errors.GnssfuseError`) gives all-NaN rows: those samples fall back to
     other guess sources instead of stopping a training run.
     """
-    from fusion.errors import GnssfuseError
-    from fusion.graph import fuse  # imported late: another engineer's module (and gtsam)
-    from fusion.pipeline import RunOptions
-
     try:
         res = fuse(trace, wls, opts or RunOptions(), provider=None, want_cov=False)
     except GnssfuseError:
@@ -201,9 +202,7 @@ def check_not_forbidden(path: Path) -> None:
 
 
 def load_real_traces(paths: list[str | Path], signals=("GPS_L1",)) -> list[Trace]:
-    """Every ``<collection>/<phone>`` folder at or under ``paths`` (via :mod:`fusion.io_gsdc`)."""
-    from fusion.io_gsdc import find_traces, load_trace  # imported late: another engineer's module
-
+    """Every ``<collection>/<phone>`` folder at or under ``paths`` (via :mod:`fusion.io.load`)."""
     traces = []
     for p in paths:
         p = Path(p)
@@ -218,11 +217,9 @@ def load_real_traces(paths: list[str | Path], signals=("GPS_L1",)) -> list[Trace
 
 def simulated_traces(n_traces: int, epochs_per_trace: int, *, seed: int, bias: bool = False,
                      toy: bool = False) -> list[Trace]:
-    """Simulated training traces: :func:`fusion.simulate.simulate_dataset`, or the toy generator."""
+    """Simulated training traces: :func:`fusion.sim.simulate.simulate_dataset`, or the toy generator."""
     if toy:
-        from learned.toy import toy_dataset
         return toy_dataset(n_traces, epochs_per_trace, seed=seed, bias=bias)
-    from fusion.simulate import SimConfig, simulate_dataset
     # Paper's scenarios: Gaussian sigma 6 m; "bias" adds Poisson(1) satellites with +U(50, 200) m.
     out = simulate_dataset(n_traces, epochs_per_trace, seed=seed, config=SimConfig(nlos=bias))
     return out if isinstance(out, list) else [out]
@@ -245,7 +242,6 @@ def simulated_samples_with_clock(n_traces: int, epochs_per_trace: int, *, seed: 
     EXPERIMENT ONLY: for reproducing the paper's leaky protocol (``FeatureConfig(clock="given")``). Same
     traces as :func:`simulated_traces` with the same arguments.
     """
-    from fusion.simulate import SimConfig, simulate_dataset
     res = simulate_dataset(n_traces, epochs_per_trace, seed=seed, config=SimConfig(nlos=bias), results=True)
     return concat_samples([samples_from_trace(r.trace, elev_mask_deg, i, clock=r.clock_m)
                            for i, r in enumerate(res)])

@@ -20,7 +20,8 @@ import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
-from fusion.graph_build import PRIOR_MIN_EIG, PriorProvider, Priors, clean_priors, prior_noise_model
+from fusion.estimate.graph.factors import prior_noise_model
+from fusion.estimate.graph.priors import PRIOR_MIN_EIG, PriorProvider, Priors, ask_provider, clean_priors
 from fusion.trace import Trace, empty_trace
 
 
@@ -52,18 +53,14 @@ def one_epoch_trace(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, pr_si
 def _batch_priors(corrector: PriorProvider, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
                   cov_scale: float, sigma_floor_m: float) -> Priors:
     """One corrector call for every epoch of ``trace``, cleaned by the graph's own rule
-    (:func:`fusion.graph_build.clean_priors`). init_pos (E,3) ECEF, valid (E,) bool epochs to try."""
+    (:func:`fusion.estimate.graph.priors.clean_priors`). init_pos (E,3) ECEF, valid (E,) bool epochs to try."""
     E = trace.n_epochs
     init_pos, valid = np.asarray(init_pos, float), np.asarray(valid, bool)
     if init_pos.shape != (E, 3) or valid.shape != (E,):
         raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},); got "
                             f"{init_pos.shape} and {valid.shape}")
     valid = valid & np.isfinite(init_pos).all(axis=1)
-    mean, cov, ok = corrector(trace, np.where(valid[:, None], init_pos, 0.0), valid)
-    mean, cov, ok = np.asarray(mean, float), np.asarray(cov, float), np.asarray(ok, bool)
-    if mean.shape != (E, 3) or cov.shape != (E, 3, 3) or ok.shape != (E,):
-        raise GeometryError(f"{trace.name}: prior provider returned shapes {mean.shape}, {cov.shape}, "
-                            f"{ok.shape}; expected {(E, 3)}, {(E, 3, 3)}, {(E,)}")
+    mean, cov, ok = ask_provider(corrector, trace, np.where(valid[:, None], init_pos, 0.0), valid)
     return clean_priors(mean, cov, ok & valid, cov_scale, sigma_floor_m, what="cov_scale / sigma_floor_m")
 
 
@@ -90,7 +87,7 @@ def learned_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray,
 
     Raises :class:`GeometryError` when the corrector declines the epoch (e.g. fewer than 4
     satellites above its elevation mask at ``init_pos``) or returns a covariance that is not
-    positive definite (smallest eigenvalue <= ``fusion.graph_build.PRIOR_MIN_EIG``, the graph's rule).
+    positive definite (smallest eigenvalue <= ``fusion.estimate.graph.priors.PRIOR_MIN_EIG``, the graph's rule).
     """
     return _epoch_prior(corrector, sat_pos, pr, mask, init_pos, 1.0, 0.0)
 
@@ -112,7 +109,7 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
     cov_scale, sigma_floor_m, robust, robust_k: the covariance used is
         ``cov_scale * cov + sigma_floor_m**2 * I``, wrapped in a robust loss ("huber", "cauchy" or
         "none") on the Mahalanobis distance (``robust_k`` in sigmas). The defaults use the network's
-        covariance as is; our own graph uses ``fusion.graph_build.GraphConfig``'s prior_cov_scale,
+        covariance as is; our own graph uses ``fusion.estimate.graph.config.GraphConfig``'s prior_cov_scale,
         prior_sigma_floor_m, prior_robust, prior_robust_k (1, 2 m, "cauchy", 1; tuning table in its
         docstring), which keep a confidently wrong output from dragging the solution.
 

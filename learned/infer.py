@@ -182,19 +182,3 @@ def calibration(err_ned: np.ndarray, cov_ned: np.ndarray) -> dict:
             "within_2sigma": (z <= 2).mean(0).tolist() if ok.any() else [np.nan] * 3}
 
 
-def estimate_dnn(trace: Trace, wls, opts):
-    """Pipeline mode ``dnn``: WLS position as the guess, ``opts.dnn_passes`` corrections (features
-    recomputed at each corrected position). Epochs with invalid WLS or < 4 satellites: not solved."""
-    from fusion.pipeline import ModeResult
-
-    corrector = Corrector.load(opts.weights, device=opts.device)
-    pos, valid = np.asarray(wls.pos, float), np.asarray(wls.valid, bool)
-    cov, too_few = None, 0
-    for _ in range(max(1, int(opts.dnn_passes))):
-        c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg)
-        too_few += c.n_too_few
-        pos, valid, cov = c.mean_ecef, c.valid, c.cov_ecef
-    info = {"passes": int(max(1, opts.dnn_passes)), "unsolved": int((~valid).sum()),
-            "unsolved_wls": int((~np.asarray(wls.valid, bool)).sum()), "too_few_sats": too_few,
-            "weights": str(corrector.path)}
-    return ModeResult(pos=pos, valid=valid, cov=cov, info=info)

@@ -1,6 +1,6 @@
 """A tiny open-sky snapshot generator for unit tests and smoke runs (no orbits, no nav files).
 
-Not the project simulator (that is :mod:`fusion.simulate`): satellites are placed at random azimuth /
+Not the project simulator (that is :mod:`fusion.sim.simulate`): satellites are placed at random azimuth /
 elevation on the GPS orbit sphere around each receiver, independently per epoch. Pseudoranges follow the
 same transmit-time / Sagnac model as real data, so :func:`fusion.geometry.line_of_sight` at the truth
 recovers the simulated range to well under a millimetre.

@@ -346,7 +346,7 @@ def evaluate_arrays(model, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor,
 def _parser(prog: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     p.add_argument("--data", nargs="+", required=True,
-                   help="'sim' (fusion.simulate), 'toy' (learned.toy), and/or trace folders / Kaggle roots "
+                   help="'sim' (fusion.sim.simulate), 'toy' (learned.toy), and/or trace folders / Kaggle roots "
                         "(comma-separated also accepted)")
     p.add_argument("--eta", type=float, default=15.0, help="augmentation half-width per NED axis [m]")
     p.add_argument("--epochs", type=int, default=200)

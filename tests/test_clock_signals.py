@@ -10,7 +10,8 @@ from fusion.geometry import line_of_sight
 from fusion.trace import SIGNALS
 from learned.checkpoint import save_checkpoint
 from learned.features import FeatureConfig, features_numpy, features_torch
-from learned.infer import Corrector, estimate_dnn
+from learned.infer import Corrector
+from learned.modes import estimate_dnn
 from learned.model import build_model
 from learned.toy import toy_trace
 from learned.train import TrainConfig, train
@@ -55,8 +56,8 @@ def test_clock_mode_errors_and_config_round_trip():
 
 
 def test_product_refuses_leaky_checkpoints(tmp_path):
-    from fusion.pipeline import RunOptions
-    from fusion.wls import solve_wls
+    from fusion.run_types import RunOptions
+    from fusion.estimate.wls import solve_wls
     cfg = TrainConfig(features=FeatureConfig(clock="given")).to_checkpoint_config(None)
     with pytest.raises(CheckpointError, match="true-clock leak"):
         Corrector(build_model("set"), cfg)
@@ -68,7 +69,7 @@ def test_product_refuses_leaky_checkpoints(tmp_path):
 
 def test_simulated_samples_carry_true_clock_and_training_needs_it(tmp_path):
     from learned.data import build_samples, simulated_samples_with_clock, split_random
-    from fusion.simulate import SimConfig, simulate_dataset
+    from fusion.sim.simulate import SimConfig, simulate_dataset
     s = simulated_samples_with_clock(2, 8, seed=5)
     res = simulate_dataset(2, 8, seed=5, config=SimConfig(), results=True)
     assert s.clock is not None and s.clock.shape == (len(s),)

@@ -144,8 +144,9 @@ def test_factor_safety_options_inflate_floor_and_robustify():
 def test_one_prior_rule_for_factor_and_graph():
     """The factor helpers and the graph clean a provider's output with the same rule (it had drifted:
     the factors accepted any eigenvalue > 0, the graph needs > 1e-6 m^2)."""
-    from fusion.graph_build import GraphConfig, prepare_inputs
-    from fusion.wls import solve_wls
+    from fusion.estimate.graph.config import GraphConfig
+    from fusion.estimate.graph.inputs import prepare_inputs
+    from fusion.estimate.wls import solve_wls
     from learned.factor import learned_prior_factors
 
     tr = toy_trace(3, seed=5, n_sats=(8, 8))

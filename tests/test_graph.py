@@ -7,12 +7,15 @@ import pytest
 
 from fusion.errors import GeometryError
 from fusion.geometry import C_LIGHT, geodetic2ecef, line_of_sight, ned2ecef_vec
-from fusion.graph import fuse
-from fusion.graph_build import B, GraphConfig, I, X, prepare_inputs, pseudorange_factor
-from fusion.metrics import ned_errors
-from fusion.pipeline import RunOptions
+from fusion.estimate.graph.fuse import fuse
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.factors import pseudorange_factor_xc
+from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.estimate.graph.keys import clock_key, isb_key, pos_key
+from fusion.eval.metrics import ned_errors
+from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, Trace, empty_trace
-from fusion.wls import solve_wls
+from fusion.estimate.wls import solve_wls
 
 R_ORBIT = 26_560e3
 
@@ -73,7 +76,7 @@ def test_pseudorange_factor_matches_our_model_including_sagnac():
     clock_m = 1234.5
     rng, _ = line_of_sight(tr.sat_pos[0], rx)
     for s in range(tr.n_slots):
-        f = pseudorange_factor(X(0), B(0), tr.pr[0, s], tr.sat_pos[0, s], 1.0, GraphConfig(robust="none"))
+        f = pseudorange_factor_xc(0, tr.pr[0, s], tr.sat_pos[0, s], gtsam.noiseModel.Isotropic.Sigma(1, 1.0))
         got = f.evaluateError(rx, clock_m / C_LIGHT)[0]
         ours = rng[s] + clock_m - tr.pr[0, s]                    # predicted - measured
         assert got == pytest.approx(ours, abs=5e-3)
@@ -87,13 +90,13 @@ def test_single_epoch_graph_equals_wls():
     wls = solve_wls(tr, weighting="elevation")
     g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
     for s in range(tr.n_slots):
-        g.add(pseudorange_factor(X(0), B(0), tr.pr[0, s], tr.sat_pos[0, s], 1.0, GraphConfig(robust="none")))
-    v.insert(X(0), wls.pos[0] + 50.0)
-    v.insert(B(0), 0.0)
+        g.add(pseudorange_factor_xc(0, tr.pr[0, s], tr.sat_pos[0, s], gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
+    v.insert(pos_key(0), wls.pos[0] + 50.0)
+    v.insert(clock_key(0), 0.0)
     res = gtsam.LevenbergMarquardtOptimizer(g, v).optimize()
     # unweighted graph vs elevation-weighted WLS differ slightly; both near truth, clock in seconds works
-    assert np.linalg.norm(res.atPoint3(X(0)) - tr.truth[0]) < 15.0
-    assert res.atDouble(B(0)) * C_LIGHT == pytest.approx(wls.clock_m[0], abs=15.0)
+    assert np.linalg.norm(res.atPoint3(pos_key(0)) - tr.truth[0]) < 15.0
+    assert res.atDouble(clock_key(0)) * C_LIGHT == pytest.approx(wls.clock_m[0], abs=15.0)
 
 
 # ---------------------------------------------------------------------------- batch and incremental
@@ -216,7 +219,7 @@ def test_fused_modes_run_through_the_pipeline_registry(trace, wls, tmp_path):
     from learned.checkpoint import save_checkpoint
     from learned.features import FeatureConfig
     from learned.model import build_model
-    from fusion.pipeline import run_modes
+    from fusion.modes import run_modes
 
     torch.manual_seed(0)
     hp = dict(d_model=16, n_heads=2, dim_feedforward=16, n_encoder=1, n_decoder=1)
@@ -229,7 +232,7 @@ def test_fused_modes_run_through_the_pipeline_registry(trace, wls, tmp_path):
 
 
 def test_iterated_provider_feeds_each_pass_the_previous_mean(trace):
-    from fusion.graph import iterated
+    from learned.modes import iterated
 
     calls = []
 
@@ -258,7 +261,7 @@ def test_loader_flagged_clock_reset_breaks_the_clock_chain(trace):
 def test_real_trace_graph_beats_wls(shipped_trace_dir):
     if not shipped_trace_dir.is_dir():
         pytest.skip("shipped trace not present")
-    from fusion.io_gsdc import load_trace
+    from fusion.io.load import load_trace
 
     tr = load_trace(shipped_trace_dir).select(np.arange(300, 700))
     w = solve_wls(tr)
@@ -313,7 +316,7 @@ def test_cli_keeps_and_fused_solves_two_satellite_epochs(shipped_trace_dir, tmp_
 
     import pandas as pd
 
-    from fusion.pipeline import main
+    from fusion.cli import run_main as main
 
     if not shipped_trace_dir.is_dir():
         pytest.skip("shipped trace not present")
@@ -328,7 +331,7 @@ def test_cli_keeps_and_fused_solves_two_satellite_epochs(shipped_trace_dir, tmp_
         out[mode] = (est, rec)
     est_w, rec_w = out["wls"]
     assert rec_w["epochs_solved"] == 240 - len(thin_t) and rec_w["info"]["lt4_sats"] == len(thin_t)
-    from fusion.io_gsdc import load_trace
+    from fusion.io.load import load_trace
 
     tr = load_trace(d, min_sats=1)
     few = np.flatnonzero(tr.n_sats == 2)
@@ -345,14 +348,14 @@ def test_cli_keeps_and_fused_solves_two_satellite_epochs(shipped_trace_dir, tmp_
 
 # ---------------------------------------------------------------------------- a safe learned prior
 def test_prior_robust_loss_acts_on_the_mahalanobis_distance():
-    from fusion.graph_build import robust_model
+    from fusion.estimate.graph.factors import robust_model
 
     model = robust_model("huber", 1.0, gtsam.noiseModel.Gaussian.Covariance(np.diag([100.0, 1.0, 1.0])))
-    f = gtsam.PriorFactorPoint3(X(0), np.zeros(3), model)
+    f = gtsam.PriorFactorPoint3(pos_key(0), np.zeros(3), model)
 
     def err(off):
         v = gtsam.Values()
-        v.insert(X(0), np.asarray(off, float))
+        v.insert(pos_key(0), np.asarray(off, float))
         return f.error(v)
     assert err([5, 0, 0]) == pytest.approx(0.5 * 0.5 ** 2)      # 0.5 sigma: quadratic
     assert err([0, 5, 0]) == pytest.approx(1.0 * 5 - 0.5)       # 5 sigma: Huber's linear branch
@@ -399,12 +402,12 @@ def test_differential_factor_carries_minus_the_bias():
     tr = synth_trace(E=2, pr_noise_m=0.0)
     rx, clock_m, isb = tr.truth[0] + np.array([5.0, -3.0, 2.0]), 800.0, 4.25
     rng, _ = line_of_sight(tr.sat_pos[0], rx)
-    f = gtsam.DifferentialPseudorangeFactor(X(0), B(0), I(0, 0), float(tr.pr[0, 0]), tr.sat_pos[0, 0], 0.0,
+    f = gtsam.DifferentialPseudorangeFactor(pos_key(0), clock_key(0), isb_key(0, 0), float(tr.pr[0, 0]), tr.sat_pos[0, 0], 0.0,
                                             gtsam.noiseModel.Isotropic.Sigma(1, 1.0))
     v = gtsam.Values()
-    v.insert(X(0), rx)
-    v.insert(B(0), clock_m / C_LIGHT)
-    v.insert(I(0, 0), -isb)
+    v.insert(pos_key(0), rx)
+    v.insert(clock_key(0), clock_m / C_LIGHT)
+    v.insert(isb_key(0, 0), -isb)
     assert f.unwhitenedError(v)[0] == pytest.approx(rng[0] + clock_m + isb - tr.pr[0, 0], abs=5e-3)
 
 
@@ -430,10 +433,10 @@ def test_bias_states_start_where_a_group_first_appears_in_each_component():
     tr.mask[:20, 6:] = False                    # GLONASS only from epoch 20 on in component 0
     wls = solve_wls(tr)
     inp = prepare_inputs(tr, wls, GraphConfig())
-    assert inp.isb_groups == (SIGNALS.index("GLO_G1"),)
-    assert np.flatnonzero(inp.isb_new[:, 0]).tolist() == [20, 70]
-    assert np.isfinite(inp.isb_init_m).all()   # a starting value only: WLS has absorbed part of the bias
-    assert (inp.isb_group[inp.sel & (tr.signal == 0)] == -1).all()
+    assert inp.isb.groups == (SIGNALS.index("GLO_G1"),)
+    assert np.flatnonzero(inp.isb.new[:, 0]).tolist() == [20, 70]
+    assert np.isfinite(inp.isb.init_m).all()   # a starting value only: WLS has absorbed part of the bias
+    assert (inp.isb.group[inp.sel & (tr.signal == 0)] == -1).all()
 
 
 def test_single_signal_traces_get_no_bias_state(trace, wls):
@@ -482,7 +485,7 @@ def test_fused_feeds_the_network_the_runs_elevation_mask(trace, wls, tmp_path, m
     from learned.features import FeatureConfig
     from learned.infer import Corrector
     from learned.model import build_model
-    from fusion.pipeline import run_modes
+    from fusion.modes import run_modes
 
     hp = dict(d_model=16, n_heads=2, dim_feedforward=16, n_encoder=1, n_decoder=1)
     ckpt = save_checkpoint(tmp_path / "tiny.pt", build_model("set", **hp),

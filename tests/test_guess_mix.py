@@ -10,7 +10,7 @@ from torch import nn
 
 from fusion.errors import CheckpointError, DataError
 from fusion.geometry import ecef2ned_vec
-from fusion.wls import solve_wls
+from fusion.estimate.wls import solve_wls
 from learned.augment import draw_mixed_guesses, epoch_generator, parse_guess_mix
 from learned.checkpoint import read_checkpoint, save_checkpoint
 from learned.data import build_samples, samples_from_trace, split_blocks
@@ -216,8 +216,8 @@ def test_graph_branch_fraction_fallback_and_bit_identity():
 
 
 def test_sample_graph_is_the_truth_free_nodnn_solution():
-    from fusion.graph import estimate_fused_nodnn
-    from fusion.pipeline import RunOptions
+    from fusion.estimate.graph.fuse import estimate_fused_nodnn
+    from fusion.run_types import RunOptions
 
     tr = toy_trace(60, seed=4, bias=True)
     s = samples_from_trace(tr, real=True, with_graph=True)

@@ -10,7 +10,8 @@ from fusion.errors import CheckpointError
 from fusion.geometry import ned2ecef_vec, ned_rotation
 from learned.checkpoint import load_model, read_checkpoint, save_checkpoint
 from learned.features import FeatureConfig
-from learned.infer import SHIPPED_WEIGHTS, Corrector, calibration, estimate_dnn
+from learned.infer import SHIPPED_WEIGHTS, Corrector, calibration
+from learned.modes import estimate_dnn
 from learned.model import DeepSets, SetTransformer
 from learned.toy import toy_trace
 from learned.train import TrainConfig
@@ -81,8 +82,8 @@ def tiny_ckpt(tmp_path_factory):
 
 
 def test_estimate_dnn_from_wls_with_passes(tiny_ckpt):
-    from fusion.pipeline import RunOptions
-    from fusion.wls import solve_wls
+    from fusion.run_types import RunOptions
+    from fusion.estimate.wls import solve_wls
     tr = toy_trace(40, seed=9)
     wls = solve_wls(tr)
     wls.valid[5] = False
@@ -134,9 +135,9 @@ def test_shipped_weights_on_held_out_trace(shared_data):
     """The shipped network, from WLS, on the held-out real trace: runs, solves every usable epoch."""
     if not SHIPPED_WEIGHTS.is_file():
         pytest.skip("no shipped weights yet")
-    from fusion.io_gsdc import load_trace
-    from fusion.pipeline import RunOptions
-    from fusion.wls import solve_wls
+    from fusion.io.load import load_trace
+    from fusion.run_types import RunOptions
+    from fusion.estimate.wls import solve_wls
     tr = load_trace(shared_data / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel4")
     wls = solve_wls(tr)
     r = estimate_dnn(tr, wls, RunOptions())
@@ -157,8 +158,8 @@ def test_predict_rejects_bad_shapes_with_our_error():
 def test_shipped_weights_load_run_and_match_training_md(shipped_trace_dir):
     """The shipped checkpoint loads without /work/shared, is a product (median-clock) model, corrects
     the shipped trace from WLS, and its stored config is the recipe learned/weights/TRAINING.md states."""
-    from fusion.io_gsdc import load_trace
-    from fusion.wls import solve_wls
+    from fusion.io.load import load_trace
+    from fusion.estimate.wls import solve_wls
     from learned.model import count_parameters
 
     corr = Corrector.load()

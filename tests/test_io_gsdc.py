@@ -12,11 +12,10 @@ import pytest
 from fusion.errors import DataError, GnssfuseError
 from fusion.geometry import C_LIGHT, ecef2geodetic, ecef2ned_vec, geodetic2ecef
 from fusion.gpstime import GPS_EPOCH_UNIX_MS, gps_ms_to_unix_ms, unix_ms_to_gps_ms
-from fusion.io_gsdc import (
-    GSDC2021_TRUTH_HEIGHT_ERROR_M, find_traces, gsdc2021_height_offsets, interp_gapped, load_dataset,
-    load_derived_2021, load_device_gnss, load_trace, read_truth_csv,
-)
-from fusion.io_nmea import read_span_nmea
+from fusion.io.gsdc import load_derived_2021, load_device_gnss
+from fusion.io.load import find_traces, load_dataset, load_trace
+from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, gsdc2021_height_offsets, interp_gapped, read_truth_csv)
+from fusion.io.nmea import read_span_nmea
 from fusion.trace import SIGNALS
 
 SJC = "gsdc2021/train/2021-04-28-US-SJC-1/Pixel4"
@@ -421,7 +420,7 @@ def test_find_traces_and_load_dataset(tmp_path, shipped_trace_dir):
 
 def test_resolve_signals_all_any_case():
     """Regression: "ALL", "All" or "all" among other names selects every signal."""
-    from fusion.io_gsdc import resolve_signals
+    from fusion.trace import resolve_signals
 
     every = np.arange(len(SIGNALS))
     for sel in ("all", "ALL", ["All"], ("GPS_L1", " all "), None):

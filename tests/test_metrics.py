@@ -6,7 +6,7 @@ import pytest
 
 from fusion.errors import DataError
 from fusion.geometry import geodetic2ecef
-from fusion.metrics import cdf, format_summary, ned_errors, summarize
+from fusion.eval.metrics import cdf, format_summary, ned_errors, summarize
 
 
 def test_ned_errors_at_equator_and_pole():

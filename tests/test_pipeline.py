@@ -9,9 +9,11 @@ import pytest
 
 from fusion.cli import main
 from fusion.geometry import geodetic2ecef
-from fusion.io_gsdc import load_trace
-from fusion.metrics import ned_errors, summarize
-from fusion.pipeline import ESTIMATE_COLUMNS, RunOptions, run_modes
+from fusion.io.load import load_trace
+from fusion.eval.metrics import ned_errors, summarize
+from fusion.io.estimates import ESTIMATE_COLUMNS
+from fusion.modes import run_modes
+from fusion.run_types import RunOptions
 
 
 def test_run_wls_writes_contract_files(shipped_trace_dir, tmp_path, capsys):
@@ -37,7 +39,8 @@ def test_run_wls_writes_contract_files(shipped_trace_dir, tmp_path, capsys):
 
 
 def test_all_modes_share_one_wls(shipped_trace_dir, monkeypatch):
-    import fusion.pipeline as pl
+    import fusion.modes as pl
+    from fusion.estimate.wls import estimate_wls
 
     trace = load_trace(shipped_trace_dir).select(np.arange(50))
     calls, given = [], []
@@ -46,10 +49,10 @@ def test_all_modes_share_one_wls(shipped_trace_dir, monkeypatch):
 
     def spy_mode(tr, wls, opts):
         given.append(wls)
-        return pl.estimate_wls(tr, wls, opts)
+        return estimate_wls(tr, wls, opts)
 
     monkeypatch.setattr(pl, "spy_mode", spy_mode, raising=False)
-    monkeypatch.setitem(pl.MODES, "spy", "fusion.pipeline:spy_mode")
+    monkeypatch.setitem(pl.MODES, "spy", "fusion.modes:spy_mode")
     res = run_modes(trace, ["wls", "spy"], RunOptions())
     assert len(calls) == 1 and len(given) == 1
     np.testing.assert_array_equal(res["wls"].pos, res["spy"].pos)
@@ -74,7 +77,7 @@ def test_missing_column_exits_2_naming_it(shipped_trace_dir, tmp_path, capsys):
 
 
 def test_signal_names_accept_2023_spellings_and_all():
-    from fusion.pipeline import build_parser, options_from_args
+    from fusion.cli import build_run_parser as build_parser, options_from_args
     from fusion.trace import SIGNALS
 
     parse = lambda s: options_from_args(build_parser().parse_args(["x", "--out", "o", "--signals", s]))  # noqa: E731
@@ -85,7 +88,7 @@ def test_signal_names_accept_2023_spellings_and_all():
 def test_signals_all_any_case():
     """Regression: ``--signals ALL`` (or "all" among other names) used to be an unknown signal."""
     from fusion.errors import GnssfuseError
-    from fusion.pipeline import build_parser, options_from_args
+    from fusion.cli import build_run_parser as build_parser, options_from_args
     from fusion.trace import SIGNALS
 
     parse = lambda s: options_from_args(build_parser().parse_args(["x", "--out", "o", "--signals", s]))  # noqa: E731
@@ -97,11 +100,11 @@ def test_signals_all_any_case():
 
 
 def test_a_mode_that_cannot_import_is_unavailable_not_failed(monkeypatch):
-    from fusion import pipeline
+    from fusion import modes as pipeline
     from fusion.errors import GnssfuseError, ModeUnavailableError
 
     monkeypatch.setitem(pipeline.MODES, "ghost", "fusion.no_such_module:estimate")
-    monkeypatch.setitem(pipeline.MODES, "hollow", "fusion.pipeline:no_such_function")
+    monkeypatch.setitem(pipeline.MODES, "hollow", "fusion.modes:no_such_function")
     for name in ("ghost", "hollow"):
         with pytest.raises(ModeUnavailableError, match=f"mode '{name}' is unavailable"):
             pipeline.get_mode(name)

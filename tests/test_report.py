@@ -11,10 +11,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from fusion import cli, pipeline
+from fusion import cli, modes
+from fusion.io.estimates import ESTIMATE_COLUMNS
+from fusion.run_types import ModeResult, RunOptions
 from fusion.geometry import geodetic2ecef, ned2ecef_vec
-from fusion.metrics import ned_errors, summarize
-from fusion.report import ALL, METRIC_KEYS, evaluate_trace, metrics_table
+from fusion.eval.metrics import ned_errors, summarize
+from fusion.eval.report import ALL, METRIC_KEYS, metrics_table
+from fusion.evaluate import evaluate_trace
 from fusion.trace import Trace, empty_trace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -63,13 +66,13 @@ def test_report_writes_tables_figures_and_report_md(wls_report):
 
 
 def test_table_metrics_equal_summarize_of_estimates(wls_report):
-    from fusion.io_gsdc import load_trace
+    from fusion.io.load import load_trace
 
     _, out, trace_dir = wls_report
     trace = load_trace(trace_dir)
     trace = trace.select(np.arange(min(N_EPOCHS, trace.n_epochs)))
     est = pd.read_csv(out / "2021-04-28-US-MTV-1_Pixel4" / "wls" / "estimates.csv")
-    assert list(est.columns) == pipeline.ESTIMATE_COLUMNS
+    assert list(est.columns) == ESTIMATE_COLUMNS
     pos = np.full((trace.n_epochs, 3), np.nan)
     idx = np.searchsorted(trace.t_ms, est.gps_millis.to_numpy())
     assert np.array_equal(trace.t_ms[idx], est.gps_millis.to_numpy())
@@ -152,17 +155,17 @@ def _offset_mode(trace, wls, opts):
     pos = trace.truth + ned2ecef_vec(np.array([3.0, 4.0, -2.0]), trace.truth)
     valid = np.ones(trace.n_epochs, bool)
     valid[0] = False
-    return pipeline.ModeResult(pos=np.where(valid[:, None], pos, np.nan), valid=valid)
+    return ModeResult(pos=np.where(valid[:, None], pos, np.nan), valid=valid)
 
 
 def test_new_mode_needs_no_report_change_and_all_row_pools(tmp_path, monkeypatch):
     mod = types.ModuleType("gnssfuse_test_modes")
     mod.estimate_offset = _offset_mode
     monkeypatch.setitem(sys.modules, "gnssfuse_test_modes", mod)
-    monkeypatch.setitem(pipeline.MODES, "offset", "gnssfuse_test_modes:estimate_offset")
+    monkeypatch.setitem(modes.MODES, "offset", "gnssfuse_test_modes:estimate_offset")
     fake_wls = types.SimpleNamespace(reasons={})
     traces = [_synthetic_trace("c1/p", 11, 37.4), _synthetic_trace("c2/p", 21, 37.5)]
-    evals = [evaluate_trace(t, ["offset"], pipeline.RunOptions(), tmp_path, f"t{i}", wls=fake_wls,
+    evals = [evaluate_trace(t, ["offset"], RunOptions(), tmp_path, f"t{i}", wls=fake_wls,
                             progress=False) for i, t in enumerate(traces)]
     df = metrics_table(evals, ["offset"]).set_index("trace")
     for name in ("c1/p", "c2/p", ALL):
@@ -178,7 +181,7 @@ def test_new_mode_needs_no_report_change_and_all_row_pools(tmp_path, monkeypatch
 
 
 def test_plots_handle_outliers_and_empty_input(tmp_path):
-    from fusion import plots
+    from fusion.eval import plots
 
     rng = np.random.default_rng(0)
     err = rng.normal(0, 2, (500, 3))
@@ -260,7 +263,7 @@ def test_run_all_collects_records_and_survives_bad_scripts(tmp_path):
 
 def test_drop_failed_modes_returns_new_values_and_leaves_its_arguments():
     ra = _run_all()
-    from fusion.report import ALL
+    from fusion.eval.report import ALL
 
     df = pd.DataFrame({"trace": ["t1", ALL, "t1", ALL], "mode": ["wls", "wls", "dnn", "dnn"],
                        "status": ["ok", "ok", "failed: no weights", "failed on every trace"]})

@@ -9,9 +9,9 @@ import pytest
 
 from fusion.errors import DataError
 from fusion.geometry import C_LIGHT
-from fusion.orbits import sat_state, select_ephemeris, transmit_states
+from fusion.nav.orbits import sat_state, select_ephemeris, transmit_states
 from fusion.gpstime import gps_ms_from_calendar
-from fusion.rinex_nav import default_nav_path, read_rinex_nav
+from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 
 DAY118_MS = gps_ms_from_calendar(2021, 4, 28, 0, 0, 0.0)
 
@@ -155,7 +155,7 @@ def test_transmit_time_is_consistent(nav):
 
 
 def test_broadcast_vs_precise_sp3(shared_data):
-    from fusion.sp3 import read_sp3
+    from fusion.io.sp3 import read_sp3
     sp = read_sp3(shared_data / "ephemeris/precise/COD0MGXFIN_20211180000_01D_05M_ORB.SP3")
     nav = read_rinex_nav(shared_data / "ephemeris/gnss_lib_py_nav/brdc1180.21n")
     g = np.array([s.startswith("G") for s in sp.sats])

@@ -8,11 +8,9 @@ import pytest
 from fusion.errors import DataError, GeometryError
 from fusion.geometry import ecef2geodetic, ecef2ned_vec, line_of_sight
 from fusion.gpstime import gps_ms_from_calendar
-from fusion.rinex_nav import default_nav_path, read_rinex_nav
-from fusion.simulate import (DEFAULT_START_MS, SimConfig, main, simulate, simulate_dataset,
-                             simulate_trajectory, write_gsdc2021)
-from fusion.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, load_gsdc_trajectory,
-                               random_ne_path, random_trajectory)
+from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+from fusion.sim.simulate import (DEFAULT_START_MS, SimConfig, main, simulate, simulate_dataset, simulate_trajectory, write_gsdc2021)
+from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, load_gsdc_trajectory, random_ne_path, random_trajectory)
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +19,7 @@ def nav():
 
 
 def _gauss_newton(tr, x0):
-    """Plain least squares on the Trace model (stand-in independent of fusion.wls)."""
+    """Plain least squares on the Trace model (stand-in independent of fusion.estimate.wls)."""
     x = np.concatenate([x0, np.zeros((len(x0), 1))], axis=1)
     for _ in range(8):
         rng, los = line_of_sight(tr.sat_pos, x[:, :3])
@@ -98,7 +96,8 @@ def test_noise_free_measurements_give_the_truth(nav):
 
 
 def test_noise_free_through_solve_wls(nav):
-    wls = pytest.importorskip("fusion.wls")
+    from fusion.estimate import wls
+
     res = simulate((-33.9, 151.2, 50.0), n_epochs=100, nav=nav, seed=4, config=SimConfig(sigma_m=0.0))
     out = wls.solve_wls(res.trace, elev_mask_deg=5.0)
     assert out.valid.all()
@@ -201,7 +200,7 @@ def test_dataset_many_origins(nav):
     one = simulate_dataset(4, 10, seed=2, nav=nav, concatenate=True)
     assert one.n_epochs == 40 and one.clock_reset.sum() == 3 and np.all(np.diff(one.t_ms) > 0)
     # a trace boundary stays flagged when that trace's first epochs are dropped (too few satellites)
-    from fusion.simulate import SimConfig
+    from fusion.sim.simulate import SimConfig
     high = simulate_dataset(6, 60, seed=12, nav=nav, config=SimConfig(elev_mask_deg=38), concatenate=True)
     clock = high.pr[:, 0] - np.linalg.norm(high.sat_pos[:, 0] - high.truth, axis=1)   # ~ receiver clock
     jumps = np.abs(np.diff(clock)) > 500.0
@@ -277,7 +276,8 @@ def test_gsdc2021_files_round_trip(tmp_path, nav):
 
 
 def test_round_trip_through_load_trace(tmp_path, nav):
-    io = pytest.importorskip("fusion.io_gsdc")
+    from fusion.io import load as io
+
     res = simulate(n_epochs=40, nav=nav, seed=13, config=SimConfig(nlos=True))
     a = res.trace
     d_path, _ = write_gsdc2021(res, tmp_path, "2021-04-28-US-SIM-13")

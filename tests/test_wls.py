@@ -7,7 +7,7 @@ import pytest
 from fusion.errors import DataError
 from fusion.geometry import geodetic2ecef, ned2ecef_vec, sagnac_rotate
 from fusion.trace import Trace, empty_trace
-from fusion.wls import STATUS_NAMES, solve_wls, solve_wls_arrays
+from fusion.estimate.wls import STATUS_NAMES, solve_wls, solve_wls_arrays
 
 #: Receiver in Mountain View, and the GPS orbit radius.
 RX_LLH = np.array([37.3958, -122.1030, 10.0])
@@ -199,8 +199,8 @@ def test_empty_trace():
 
 
 def test_shipped_trace_wls_accuracy(shipped_trace_dir):
-    io = pytest.importorskip("fusion.io_gsdc")
-    from fusion.metrics import ned_errors, summarize
+    from fusion.io import load as io
+    from fusion.eval.metrics import ned_errors, summarize
     if not shipped_trace_dir.is_dir():
         pytest.skip(f"shipped trace not present at {shipped_trace_dir}")
     trace = io.load_trace(shipped_trace_dir)

@@ -7,16 +7,55 @@ would only resolve ~0.2 us, i.e. ~70 m of light travel).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from fusion.errors import DataError
 from fusion.geometry import C_LIGHT, OMEGA_E, line_of_sight
-from fusion.rinex_nav import GpsNav
 
 #: WGS-84 gravitational constant used by GPS [m^3/s^2] (IS-GPS-200).
 MU_GPS = 3.986005e14
 #: Relativistic clock correction constant F [s/sqrt(m)] (IS-GPS-200 20.3.3.3.3.1).
 F_REL = -4.442807633e-10
+
+
+@dataclass
+class GpsNav:
+    """Healthy GPS broadcast ephemerides, one entry per distinct (PRN, toe).
+
+    prn:    (N,) int, GPS PRN (1..32).
+    toc_ms: (N,) int64 clock reference time, GPS ms.   toe_ms: (N,) int64 ephemeris reference time.
+    params: name -> (N,) float64 (af0, af1, af2, crs, delta_n, m0, cuc, e, cus, sqrt_a, toe_sow,
+            cic, omega0, cis, i0, crc, omega, omega_dot, idot, week, accuracy, health, tgd, iodc,
+            iode, t_transmit, fit_h) in IS-GPS-200 units (s, m, rad, rad/s).
+    source: file path, for error messages.
+    skipped: counts of dropped records by reason.
+    """
+
+    prn: np.ndarray
+    toc_ms: np.ndarray
+    toe_ms: np.ndarray
+    params: dict[str, np.ndarray]
+    source: str
+    skipped: dict[str, int]
+
+    def __len__(self) -> int:
+        return int(self.prn.shape[0])
+
+    @property
+    def valid_from_ms(self) -> np.ndarray:
+        """(N,) start of each record's fit interval [GPS ms]."""
+        return self.toe_ms - (self.params["fit_h"] * 1800e3).astype(np.int64)
+
+    @property
+    def valid_to_ms(self) -> np.ndarray:
+        """(N,) end of each record's fit interval [GPS ms]."""
+        return self.toe_ms + (self.params["fit_h"] * 1800e3).astype(np.int64)
+
+    def span_ms(self) -> tuple[int, int]:
+        """Earliest and latest instant covered by any record's fit interval [GPS ms]."""
+        return int(self.valid_from_ms.min()), int(self.valid_to_ms.max())
 
 
 _POS_KEYS = ("sqrt_a", "delta_n", "e", "m0", "omega", "cus", "cuc", "crs", "crc", "i0", "cis", "cic",

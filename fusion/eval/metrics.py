@@ -9,6 +9,8 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.geometry import ecef2ned_vec
+from fusion.run_types import ModeResult
+from fusion.trace import Trace
 
 
 def ned_errors(est_ecef: np.ndarray, truth_ecef: np.ndarray) -> np.ndarray:
@@ -77,3 +79,33 @@ def format_summary(s: dict) -> str:
     return (f"n={s['n']} (excl {s['n_excluded']})  MAE N/E/D {s['mae_n']:.2f}/{s['mae_e']:.2f}/"
             f"{s['mae_d']:.2f} m  h p50 {s['h_p50']:.2f}  p95 {s['h_p95']:.2f}  "
             f"GSDC {s['gsdc_score']:.2f} m")
+
+
+def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:
+    """(E, 3) NED error [m] of a mode's estimates w.r.t. the truth (NaN rows where the epoch is
+    unsolved or has no truth), or None when the trace has no truth. Truth is used here only."""
+    if not trace.has_truth:
+        return None
+    est = np.where(result.valid[:, None], result.pos, np.nan)
+    return ned_errors(est, trace.truth)
+
+
+def mode_metrics(trace: Trace, result: ModeResult) -> dict | None:
+    """Accuracy against truth (None when the trace has none): ``summarize(trace_errors(...))``."""
+    err = trace_errors(trace, result)
+    return None if err is None else summarize(err)
+
+
+def format_table(rows: dict[str, dict | None]) -> str:
+    """Plain-text accuracy table, one row per mode (``rows``: mode -> :func:`summarize` dict or None)."""
+    head = f"{'mode':<12} {'MAE N':>14} {'MAE E':>14} {'MAE D':>14} {'h p50':>7} {'h p95':>7} {'score':>7} {'n':>6}"
+    lines = [head, "-" * len(head)]
+    for mode, m in rows.items():
+        if m is None:
+            lines.append(f"{mode:<12} (no truth: metrics unavailable)")
+            continue
+        axes = [f"{m[f'mae_{a}']:6.2f}±{m[f'std_{a}']:<6.2f}" for a in "ned"]
+        lines.append(f"{mode:<12} {axes[0]:>14} {axes[1]:>14} {axes[2]:>14} "
+                     f"{m['h_p50']:7.2f} {m['h_p95']:7.2f} {m['gsdc_score']:7.2f} {m['n']:6d}")
+    return "\n".join(lines)
+

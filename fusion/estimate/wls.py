@@ -63,6 +63,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
+from fusion.run_types import ModeResult
 from fusion.trace import count_skip
 
 #: goGPS default a-priori code standard deviation (``STD_CODE``) [m].
@@ -462,3 +463,13 @@ def _check_inputs(sat_pos, pr, mask, sigma, x0, weighting):
         if x0.shape != (E, 3):
             raise DataError(f"x0 has shape {x0.shape}, expected {(E, 3)}")
     return sat_pos, pr, mask, sigma, x0
+
+
+def estimate_wls(trace, wls: WlsResult, opts) -> ModeResult:
+    """The WLS baseline as a mode (WLS is already solved by :func:`fusion.modes.run_modes`)."""
+    # Copies: every mode receives the same WlsResult, so no mode's output may alias it.
+    return ModeResult(pos=wls.pos.copy(), valid=wls.valid.copy(), cov=wls.cov[:, :3, :3].copy(),
+                      info={"unsolved": int((~wls.valid).sum()),
+                            # epochs loaded with < 4 measurements (CLI loads with min_sats=1 so the
+                            # fused modes can carry them; WLS cannot solve them)
+                            "lt4_sats": int((trace.n_sats < 4).sum())})

@@ -2,7 +2,7 @@
 
 Every function takes plain arrays keyed by mode name, writes one PNG and returns its path, so
 adding a mode never needs a change here. Errors are NED metres (north, east, down) as returned by
-:func:`fusion.metrics.ned_errors`; NaN rows (unsolved epochs or epochs without truth) are ignored.
+:func:`fusion.eval.metrics.ned_errors`; NaN rows (unsolved epochs or epochs without truth) are ignored.
 Matplotlib runs headless (Agg); figures are closed after saving so long runs do not leak memory.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from fusion.geometry import ecef2ned_vec  # noqa: E402
-from fusion.metrics import cdf, horizontal  # noqa: E402
+from fusion.eval.metrics import cdf, horizontal  # noqa: E402
 
 AXES = ("north", "east", "down")
 #: Upper percentile shown on CDF x-axes; a few extreme outliers would otherwise squash the curves.

@@ -1,11 +1,6 @@
-"""``gnssfuse evaluate``: compare modes on one or more traces and write a report folder.
+"""The evaluation report: metrics tables (per trace and pooled), figures and ``report.md``.
 
-Every requested mode (``--modes``, any name in :data:`fusion.pipeline.MODES`) is run on the same trace
-and the same WLS solution (:func:`fusion.pipeline.run_modes`), so a new mode can be requested here with
-no change to this file.
-Truth is used only to score: never passed to a mode.
-
-Output layout (``--out REPORT_DIR``)::
+Output layout (``gnssfuse evaluate --out REPORT_DIR``; :mod:`fusion.evaluate` runs the modes)::
 
     report.md                     ties everything together (relative links)
     metrics.csv / metrics.md      one row per (trace, mode) plus pooled "ALL" rows
@@ -14,19 +9,15 @@ Output layout (``--out REPORT_DIR``)::
 """
 from __future__ import annotations
 
-import argparse
-import re
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
-from fusion.errors import DataError, GnssfuseError
-from fusion.pipeline import (MODES, ModeResult, RunOptions, add_run_options, get_mode, options_from_args,
-                             run_modes, solve_initial, trace_errors, write_outputs)
+from fusion.eval import plots
+from fusion.eval.metrics import summarize
+from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 
 #: Name of the pooled rows (all traces' epochs together) in the tables.
@@ -42,7 +33,7 @@ class TraceEval:
 
     results: mode -> ModeResult (modes that failed are absent and listed in ``failed``).
     errors:  mode -> (E, 3) NED error [m] (NaN where unsolved or no truth); empty without truth.
-    records: mode -> the record :func:`fusion.pipeline.write_outputs` returned.
+    records: mode -> the record :func:`fusion.io.estimates.write_outputs` returned.
     """
 
     trace: Trace
@@ -54,55 +45,14 @@ class TraceEval:
     wls_reasons: dict[str, int] = field(default_factory=dict)
 
 
-def check_modes(modes: list[str]) -> None:
-    """Fail before any work when a mode is unknown or its module cannot be imported."""
-    for m in modes:
-        get_mode(m)
-
-
-def _slug(name: str, taken: set[str]) -> str:
-    base = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "trace"
-    slug, k = base, 2
-    while slug in taken:
-        slug, k = f"{base}_{k}", k + 1
-    taken.add(slug)
-    return slug
-
-
-def evaluate_trace(trace: Trace, modes: list[str], opts: RunOptions, out_dir: Path, slug: str,
-                   wls=None, progress: bool = True) -> TraceEval:
-    """Run every mode on ``trace`` (one shared WLS), write estimates, collect errors.
-
-    A mode that raises one of our input errors on this trace is recorded in ``failed`` and the
-    others still run: one bad mode must not lose the rest of the report.
-    """
-    ev = TraceEval(trace=trace, slug=slug)
-    wls = solve_initial(trace, opts) if wls is None else wls
-    ev.wls_reasons = dict(getattr(wls, "reasons", {}) or {})
-    for mode in tqdm(modes, desc=f"  {trace.name}", leave=False, disable=not progress):
-        try:
-            result = run_modes(trace, [mode], opts, wls=wls)[mode]
-        except GnssfuseError as exc:
-            ev.failed[mode] = str(exc)
-            continue
-        ev.results[mode] = result
-        ev.records[mode] = write_outputs(out_dir / slug / mode, trace, mode, result)
-        err = trace_errors(trace, result)
-        if err is not None:
-            ev.errors[mode] = err
-    return ev
-
-
 # ---------------------------------------------------------------------------- tables
 def _skip_text(skipped: dict[str, int]) -> str:
     return ";".join(f"{k}={v}" for k, v in sorted(skipped.items()))
 
 
 def metrics_table(evals: list[TraceEval], modes: list[str]) -> pd.DataFrame:
-    """One row per (trace, mode) with the metrics of :func:`fusion.metrics.summarize`, then one
+    """One row per (trace, mode) with the metrics of :func:`fusion.eval.metrics.summarize`, then one
     pooled row per mode (``trace == "ALL"``: every scored epoch of every trace together)."""
-    from fusion.metrics import summarize
-
     rows = []
     for ev in evals:
         for mode in modes:
@@ -177,8 +127,6 @@ def write_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, dict[str, 
 
     Returns section -> figure kind -> path; section is a trace slug or ``ALL``.
     """
-    from fusion import plots
-
     figs: dict[str, dict[str, Path]] = {}
     for ev in evals:
         f: dict[str, Path] = {}
@@ -261,92 +209,10 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
         lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
         for kind, p in figs.get(ev.slug, {}).items():
             lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
-    from fusion.plots import CDF_CLIP_PCT
-
-    lines += [f"CDF x-axes and error-vs-time y-axes stop at the {CDF_CLIP_PCT:g}th percentile of the "
+    lines += [f"CDF x-axes and error-vs-time y-axes stop at the {plots.CDF_CLIP_PCT:g}th percentile of the "
               "pooled errors (the curves use every epoch; each panel states how many points lie beyond). "
               "Box plots: box Q1–Q3 with the median, whiskers at 1.5×IQR, outliers as dots; outliers beyond the "
               "plotted range are counted in the panel title.", ""]
     path = out_dir / "report.md"
     path.write_text("\n".join(lines))
     return path
-
-
-# ---------------------------------------------------------------------------- CLI
-def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description="Compare modes on traces: tables, CDFs, box "
-                                "plots, trajectories and report.md.")
-    p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR",
-                   help="<collection>/<phone> folders (GSDC 2021 derived or 2022/23 device_gnss)")
-    p.add_argument("--modes", default="wls", help=f"comma-separated, from {','.join(MODES)}")
-    p.add_argument("--out", type=Path, required=True, help="report folder")
-    add_run_options(p)
-    p.add_argument("--max-epochs", type=int, default=None,
-                   help="use only the first N epochs of each trace (quick looks, tests)")
-    p.add_argument("--no-progress", action="store_true", help="no tqdm progress bars")
-    return p
-
-
-def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
-             max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
-             argv: list[str] | None = None) -> tuple[pd.DataFrame, dict[str, str]]:
-    """Load, run, tabulate, plot and write the report. Returns (metrics table, load failures).
-
-    A trace that fails to load is reported and skipped; only when none loads is it an error.
-    """
-    from fusion.io_gsdc import load_trace
-
-    check_modes(modes)
-    missing = [str(d) for d in trace_dirs if not Path(d).is_dir()]
-    if missing:
-        raise DataError(f"trace folder(s) not found: {', '.join(missing)}")
-    if max_epochs is not None and max_epochs < 1:
-        raise GnssfuseError("--max-epochs must be >= 1")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    evals, failures, taken = [], {}, set()
-    for d in tqdm(trace_dirs, desc="traces", disable=not progress):
-        try:
-            # min_sats=1: epochs with < 4 satellites reach the modes (the fused ones carry them)
-            trace = load_trace(d, signals=opts.signals, fix_truth_height=fix_truth_height, min_sats=1)
-            if trace.n_epochs == 0:
-                raise DataError(f"{d}: no epochs with {', '.join(opts.signals)} measurements")
-        except GnssfuseError as exc:
-            failures[str(d)] = str(exc)
-            continue
-        if max_epochs is not None and trace.n_epochs > max_epochs:
-            trace = trace.select(np.arange(max_epochs))
-        evals.append(evaluate_trace(trace, modes, opts, out_dir, _slug(trace.name, taken),
-                                    progress=progress))
-    if not evals:
-        raise DataError("no trace could be loaded: " + "; ".join(failures.values()))
-    df = metrics_table(evals, modes)
-    df.to_csv(out_dir / "metrics.csv", index=False, float_format="%.4f")
-    (out_dir / "metrics.md").write_text(markdown_table(df) + "\n")
-    figs = write_figures(evals, out_dir / "figures")
-    write_report_md(out_dir, df, evals, figs, modes, opts, argv or [], failures)
-    return df, failures
-
-
-def main(argv: list[str], prog: str = "gnssfuse evaluate") -> int:
-    args = build_parser(prog).parse_args(argv)
-    opts = options_from_args(args)
-    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
-    if not modes:
-        raise GnssfuseError("--modes is empty")
-    df, failures = evaluate(args.trace_dirs, modes, args.out, opts, max_epochs=args.max_epochs,
-                            fix_truth_height=not args.no_truth_height_fix,
-                            progress=not args.no_progress, argv=argv)
-    print(markdown_table(df))
-    print(f"wrote {args.out / 'report.md'}, metrics.csv, metrics.md and figures/")
-    # The report for the good part is written; still exit non-zero so scripts notice the rest.
-    for path, msg in failures.items():
-        print(f"{prog}: error: could not load {path}: {msg}", file=sys.stderr)
-    bad_modes = df[df.status.str.startswith("failed") & (df.trace != ALL)]
-    for r in bad_modes.itertuples(index=False):
-        print(f"{prog}: error: mode {r.mode} on {r.trace}: {r.status}", file=sys.stderr)
-    return 2 if failures or len(bad_modes) else 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main(sys.argv[1:]))

@@ -13,7 +13,7 @@ tropo already removed), so WLS, features and the graph consume simulated and rea
 pseudorange (to the file's millimetre rounding).
 
 Truth heights in the written ``ground_truth.csv`` carry the GSDC 2021 +63.1 m error
-(:data:`fusion.trajectory.GSDC2021_HEIGHT_ERROR_M`) by default, exactly like the real files, so
+(:data:`fusion.sim.trajectory.GSDC2021_HEIGHT_ERROR_M`) by default, exactly like the real files, so
 ``load_trace(..., fix_truth_height=True)`` returns the simulated truth.
 """
 from __future__ import annotations
@@ -29,12 +29,12 @@ import pandas as pd
 from fusion.errors import DataError, GeometryError
 from fusion.geometry import (C_LIGHT, ecef2geodetic, ecef2ned_vec, elevation_azimuth, line_of_sight, ned_rotation,
                              sagnac_rotate)
-from fusion.orbits import sat_state, select_ephemeris, transmit_states
 from fusion.gpstime import format_gps_ms, gps_ms_from_calendar
-from fusion.rinex_nav import GpsNav, default_nav_path, read_rinex_nav
+from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+from fusion.nav.orbits import GpsNav, sat_state, select_ephemeris, transmit_states
 from fusion.trace import SIGNALS, Trace
-from fusion.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_rate, load_gsdc_trajectory,
-                               parse_origins, random_trajectories, random_trajectory)
+from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_rate, load_gsdc_trajectory,
+                                   parse_origins, random_trajectories, random_trajectory)
 
 #: Default start: 2021-04-28 20:00:00 GPS time, inside the shipped nav file (2021 day 118).
 DEFAULT_START_MS = gps_ms_from_calendar(2021, 4, 28, 20, 0, 0.0)

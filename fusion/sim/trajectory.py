@@ -17,7 +17,7 @@ import pymap3d
 from fusion.errors import DataError
 from fusion.geometry import geodetic2ecef
 # One figure for the whole package: the loader subtracts the same number (data/README.md).
-from fusion.io_gsdc import GSDC2021_TRUTH_HEIGHT_ERROR_M as GSDC2021_HEIGHT_ERROR_M
+from fusion.io.truth import GSDC2021_TRUTH_HEIGHT_ERROR_M as GSDC2021_HEIGHT_ERROR_M
 
 
 @dataclass

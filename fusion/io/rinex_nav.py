@@ -2,7 +2,7 @@
 
 Only GPS (``G``) records are kept; other systems in a RINEX 3 mixed file are skipped by their
 known record lengths. The result is a struct-of-arrays :class:`GpsNav` (one entry per record,
-``N`` records) so that :mod:`fusion.orbits` can evaluate many (epoch, satellite) pairs at once.
+``N`` records) so that :mod:`fusion.nav.orbits` can evaluate many (epoch, satellite) pairs at once.
 
 Times: ``toc_ms`` / ``toe_ms`` are absolute GPS milliseconds since the GPS epoch (1980-01-06).
 The RINEX GPS week is resolved against the clock epoch ``toc`` rather than trusted, because
@@ -10,13 +10,13 @@ some writers store it modulo 1024.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fusion.errors import DataError
 from fusion.gpstime import WEEK_S, gps_ms_from_calendar
+from fusion.nav.orbits import GpsNav
 from fusion.trace import count_skip
 #: Fit interval used when a record leaves it blank or zero (IS-GPS-200: 4 hours).
 DEFAULT_FIT_H = 4.0
@@ -35,44 +35,6 @@ _ORBIT_FIELDS = (
     "t_transmit", "fit_h",
 )
 _KEEP = ("af0", "af1", "af2") + tuple(f for f in _ORBIT_FIELDS if f not in ("l2_codes", "l2p_flag"))
-
-
-@dataclass
-class GpsNav:
-    """Healthy GPS broadcast ephemerides, one entry per distinct (PRN, toe).
-
-    prn:    (N,) int, GPS PRN (1..32).
-    toc_ms: (N,) int64 clock reference time, GPS ms.   toe_ms: (N,) int64 ephemeris reference time.
-    params: name -> (N,) float64 (af0, af1, af2, crs, delta_n, m0, cuc, e, cus, sqrt_a, toe_sow,
-            cic, omega0, cis, i0, crc, omega, omega_dot, idot, week, accuracy, health, tgd, iodc,
-            iode, t_transmit, fit_h) in IS-GPS-200 units (s, m, rad, rad/s).
-    source: file path, for error messages.
-    skipped: counts of dropped records by reason.
-    """
-
-    prn: np.ndarray
-    toc_ms: np.ndarray
-    toe_ms: np.ndarray
-    params: dict[str, np.ndarray]
-    source: str
-    skipped: dict[str, int]
-
-    def __len__(self) -> int:
-        return int(self.prn.shape[0])
-
-    @property
-    def valid_from_ms(self) -> np.ndarray:
-        """(N,) start of each record's fit interval [GPS ms]."""
-        return self.toe_ms - (self.params["fit_h"] * 1800e3).astype(np.int64)
-
-    @property
-    def valid_to_ms(self) -> np.ndarray:
-        """(N,) end of each record's fit interval [GPS ms]."""
-        return self.toe_ms + (self.params["fit_h"] * 1800e3).astype(np.int64)
-
-    def span_ms(self) -> tuple[int, int]:
-        """Earliest and latest instant covered by any record's fit interval [GPS ms]."""
-        return int(self.valid_from_ms.min()), int(self.valid_to_ms.max())
 
 
 def _num(text: str, path: Path, line_no: int) -> float:
@@ -209,4 +171,4 @@ def read_rinex_nav(path: str | Path) -> GpsNav:
 
 def default_nav_path() -> Path:
     """The GPS broadcast navigation file shipped with gnssfuse (IGS hourly merge, 2021 day 118)."""
-    return Path(__file__).resolve().parent / "data" / "hour1180.21n"
+    return Path(__file__).resolve().parents[1] / "data" / "hour1180.21n"

@@ -1,0 +1,164 @@
+"""Everything the factor loop needs, per epoch, computed for the whole trace without Python loops
+over epochs: initial values, satellite selection and sigmas, motion and clock chains, priors, and
+which epochs the graph can determine at all."""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.errors import GeometryError
+from fusion.estimate.graph.clock import clock_chain
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.isb import IsbInputs, isb_inputs
+from fusion.estimate.graph.priors import PriorProvider, Priors, ask_provider, clean_priors
+from fusion.estimate.graph.series import interp_rows
+from fusion.estimate.wls import WlsResult
+from fusion.geometry import elevation_azimuth, line_of_sight
+from fusion.trace import Trace
+
+
+@dataclass
+class EpochInputs:
+    """Everything the factor loop needs, precomputed without Python loops.
+
+    E epochs, S slots.
+    init_pos (E,3), init_clock_m (E,) (NaN where no satellite), init_vel (E,3) ECEF [m/s] initial
+    velocities (central differences of init_pos within a motion component, 0 for isolated epochs),
+    sel (E,S) bool satellites used, sigma (E,S) [m], dt (E,) [s] time since the previous epoch
+    (0 for the first), pos_link (E,) bool (epoch k linked by motion to k-1), clock_link (E,) int
+    (index of the epoch whose clock k's clock is chained to, -1 for none), clock_mean_m (E,) the
+    expected clock change along that link, clock_sigma_m (E,), prior_mean (E,3), prior_cov (E,3,3),
+    prior_ok (E,) bool, keep (E,) bool (epoch in a determinable component), comp (E,) component id,
+    dropped: counts by reason; isb: the inter-system bias states (:class:`IsbInputs`).
+    """
+
+    init_pos: np.ndarray
+    init_clock_m: np.ndarray
+    init_vel: np.ndarray
+    sel: np.ndarray
+    sigma: np.ndarray
+    dt: np.ndarray
+    pos_link: np.ndarray
+    clock_link: np.ndarray
+    clock_mean_m: np.ndarray
+    clock_sigma_m: np.ndarray
+    prior_mean: np.ndarray
+    prior_cov: np.ndarray
+    prior_ok: np.ndarray
+    keep: np.ndarray
+    comp: np.ndarray
+    dropped: dict
+    isb: IsbInputs
+
+
+def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(E,3) WLS positions, interpolated in time where WLS failed, and (E,) bool where WLS solved."""
+    wls_ok = np.asarray(wls.valid, bool) & np.isfinite(wls.pos).all(axis=1)
+    if not wls_ok.any():
+        raise GeometryError(f"{trace.name}: WLS solved no epoch, so the graph has no initial position")
+    return interp_rows(t, np.asarray(wls.pos, float), wls_ok), wls_ok
+
+
+def learned_priors(trace: Trace, provider: PriorProvider | None, init_pos: np.ndarray,
+                   prior_guess: np.ndarray | None, cfg: GraphConfig) -> tuple[Priors, int]:
+    """The provider's priors asked at ``prior_guess`` (E,3) (NaN rows and None: ``init_pos``), cleaned
+    by :func:`clean_priors`; no provider gives no priors. Also the count the provider offered but
+    the rule rejected (non-finite or not positive definite)."""
+    E = trace.n_epochs
+    if provider is None:
+        none = np.zeros(E, bool)
+        return Priors(np.zeros((E, 3)), np.tile(np.eye(3), (E, 1, 1)), none, none, none), 0
+    at = init_pos
+    if prior_guess is not None:
+        at = np.where(np.isfinite(prior_guess).all(axis=1)[:, None], prior_guess, init_pos)
+    mean, cov, valid = ask_provider(provider, trace, at, trace.n_sats >= 1)
+    pri = clean_priors(mean, cov, valid, cfg.prior_cov_scale, cfg.prior_sigma_floor_m,
+                       what="GraphConfig: prior_cov_scale / prior_sigma_floor_m")
+    return pri, int((valid & ~(pri.finite & pri.spd)).sum())
+
+
+def select_satellites(trace: Trace, wls: WlsResult, wls_ok: np.ndarray, init_pos: np.ndarray,
+                      cfg: GraphConfig, elev_mask_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slots used, their pseudorange sigmas [m] and residuals pr - range at the initial position
+    (NaN where not used), each (E,S). Where WLS solved, its choice of satellites is trusted (it may
+    have excluded outliers); elsewhere the elevation mask alone decides."""
+    rng, los = line_of_sight(trace.sat_pos, init_pos)
+    el, _ = elevation_azimuth(los, init_pos)
+    sel = trace.mask & (el >= elev_mask_deg)
+    if getattr(wls, "used", None) is not None:
+        sel &= np.where(wls_ok[:, None], np.asarray(wls.used, bool), True)
+    sin_el = np.sin(np.radians(np.clip(el, 5.0, 90.0)))
+    sigma = np.sqrt((cfg.pr_sigma_scale * trace.pr_sigma) ** 2 + (cfg.pr_sigma_zenith_m / sin_el) ** 2)
+    return sel, sigma, np.where(sel, trace.pr - rng, np.nan)
+
+
+def initial_clocks(wls: WlsResult, wls_ok: np.ndarray, resid: np.ndarray) -> np.ndarray:
+    """(E,) clock [m]: WLS where solved, else the median residual at the initial position; NaN for
+    epochs without a selected satellite. resid (E,S) NaN where not selected."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # epochs without satellites -> NaN
+        med = np.nanmedian(resid, axis=1)
+    clock = np.where(wls_ok, np.asarray(wls.clock_m, float), med)
+    return np.where(np.isfinite(resid).any(axis=1), clock, np.nan)
+
+
+def motion_links(t: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """dt (E,) [s] since the previous epoch (0 first), pos_link (E,) bool tied to the previous epoch
+    (no gap over ``max_gap_s``), comp (E,) motion component id."""
+    dt = np.concatenate([[0.0], np.diff(t)])
+    pos_link = np.concatenate([[False], dt[1:] <= max_gap_s])
+    return dt, pos_link, np.cumsum(~pos_link) - 1
+
+
+def initial_velocities(init_pos: np.ndarray, dt: np.ndarray, pos_link: np.ndarray) -> np.ndarray:
+    """(E,3) ECEF [m/s]: central differences of the initial track within motion components (one-sided
+    at component ends, 0 for isolated epochs)."""
+    E = init_pos.shape[0]
+    if E < 2:
+        return np.zeros((E, 3))
+    fwd = np.diff(init_pos, axis=0) / np.maximum(dt[1:], 1e-3)[:, None]
+    fwd = np.where(pos_link[1:, None], fwd, np.nan)
+    nan_row = np.full((1, 3), np.nan)
+    both = np.stack([np.vstack([fwd, nan_row]), np.vstack([nan_row, fwd])])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # isolated epochs -> 0 velocity
+        return np.nan_to_num(np.nanmean(both, axis=0))
+
+
+def determinable(comp: np.ndarray, n_sel: np.ndarray, prior_ok: np.ndarray) -> np.ndarray:
+    """(E,) bool epochs in a motion component with an anchor (an epoch with >= 4 pseudoranges or a
+    prior); the clocks are then fixed by their pseudoranges. The graph drops the others."""
+    anchor = (n_sel >= 4) | prior_ok
+    comp_ok = np.bincount(comp, weights=anchor.astype(float), minlength=comp.max() + 1) > 0
+    return comp_ok[comp]
+
+
+def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg: float = 10.0,
+                   provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None) -> EpochInputs:
+    """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
+
+    prior_guess: (E,3) positions at which to ask the provider (NaN rows: the initial position);
+    None = the initial positions (WLS, interpolated where it failed).
+    Raises :class:`GeometryError` when no epoch has any usable initial position.
+    """
+    t = trace.t_ms.astype(float) / 1000.0
+    init_pos, wls_ok = initial_positions(trace, wls, t)
+    pri, n_rejected = learned_priors(trace, provider, init_pos, prior_guess, cfg)
+    sel, sigma, resid = select_satellites(trace, wls, wls_ok, init_pos, cfg, elev_mask_deg)
+    init_clock = initial_clocks(wls, wls_ok, resid)
+    dt, pos_link, comp = motion_links(t, cfg.max_gap_s)
+    wls_clock = np.where(wls_ok, np.asarray(wls.clock_m, float), np.nan)
+    chain = clock_chain(t, wls_clock, sel.any(axis=1), pos_link, trace.clock_reset, cfg)
+    keep = determinable(comp, sel.sum(axis=1), pri.ok)
+    dropped = {"clock_resets": chain.n_resets, "epochs_undetermined": int((~keep).sum())}
+    if provider is not None:
+        dropped = {"prior_rejected": n_rejected, **dropped}
+    inp = EpochInputs(init_pos=init_pos, init_clock_m=init_clock,
+                      init_vel=initial_velocities(init_pos, dt, pos_link), sel=sel, sigma=sigma, dt=dt,
+                      pos_link=pos_link, clock_link=chain.link, clock_mean_m=chain.change_m,
+                      clock_sigma_m=chain.sigma_m, prior_mean=pri.mean, prior_cov=pri.cov, prior_ok=pri.ok,
+                      keep=keep, comp=comp, dropped=dropped,
+                      isb=isb_inputs(trace, sel, comp, init_clock, resid, cfg))
+    return inp

@@ -1,0 +1,146 @@
+"""``gnssfuse evaluate``: compare modes on one or more traces and write a report folder.
+
+Every requested mode (``--modes``, any name in :data:`fusion.modes.MODES`) is run on the same trace
+and the same WLS solution (:func:`fusion.modes.run_modes`), so a new mode can be requested here with
+no change to this file. Truth is used only to score: never passed to a mode. The report's layout
+is in :mod:`fusion.eval.report`.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from fusion.cli import add_run_options, options_from_args
+from fusion.errors import DataError, GnssfuseError
+from fusion.estimate.wls import WlsResult
+from fusion.eval.metrics import mode_metrics, trace_errors
+from fusion.eval.report import (ALL, TraceEval, markdown_table, metrics_table, write_figures,
+                                write_report_md)
+from fusion.io.estimates import write_outputs
+from fusion.io.load import load_trace
+from fusion.modes import MODES, get_mode, run_modes, solve_initial
+from fusion.run_types import RunOptions
+from fusion.trace import Trace
+
+
+def check_modes(modes: list[str]) -> None:
+    """Fail before any work when a mode is unknown or its module cannot be imported."""
+    for m in modes:
+        get_mode(m)
+
+
+def _slug(name: str, taken: set[str]) -> str:
+    base = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("_") or "trace"
+    slug, k = base, 2
+    while slug in taken:
+        slug, k = f"{base}_{k}", k + 1
+    taken.add(slug)
+    return slug
+
+
+def evaluate_trace(trace: Trace, modes: list[str], opts: RunOptions, out_dir: Path, slug: str,
+                   wls: WlsResult | None = None, progress: bool = True) -> TraceEval:
+    """Run every mode on ``trace`` (one shared WLS), write estimates, collect errors.
+
+    A mode that raises one of our input errors on this trace is recorded in ``failed`` and the
+    others still run: one bad mode must not lose the rest of the report.
+    """
+    ev = TraceEval(trace=trace, slug=slug)
+    wls = solve_initial(trace, opts) if wls is None else wls
+    ev.wls_reasons = dict(getattr(wls, "reasons", {}) or {})
+    for mode in tqdm(modes, desc=f"  {trace.name}", leave=False, disable=not progress):
+        try:
+            result = run_modes(trace, [mode], opts, wls=wls)[mode]
+        except GnssfuseError as exc:
+            ev.failed[mode] = str(exc)
+            continue
+        ev.results[mode] = result
+        ev.records[mode] = write_outputs(out_dir / slug / mode, trace, mode, result, mode_metrics(trace, result))
+        err = trace_errors(trace, result)
+        if err is not None:
+            ev.errors[mode] = err
+    return ev
+
+
+# ---------------------------------------------------------------------------- CLI
+def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="Compare modes on traces: tables, CDFs, box "
+                                "plots, trajectories and report.md.")
+    p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR",
+                   help="<collection>/<phone> folders (GSDC 2021 derived or 2022/23 device_gnss)")
+    p.add_argument("--modes", default="wls", help=f"comma-separated, from {','.join(MODES)}")
+    p.add_argument("--out", type=Path, required=True, help="report folder")
+    add_run_options(p)
+    p.add_argument("--max-epochs", type=int, default=None,
+                   help="use only the first N epochs of each trace (quick looks, tests)")
+    p.add_argument("--no-progress", action="store_true", help="no tqdm progress bars")
+    return p
+
+
+def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
+             max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
+             argv: list[str] | None = None) -> tuple[pd.DataFrame, dict[str, str]]:
+    """Load, run, tabulate, plot and write the report. Returns (metrics table, load failures).
+
+    A trace that fails to load is reported and skipped; only when none loads is it an error.
+    """
+    check_modes(modes)
+    missing = [str(d) for d in trace_dirs if not Path(d).is_dir()]
+    if missing:
+        raise DataError(f"trace folder(s) not found: {', '.join(missing)}")
+    if max_epochs is not None and max_epochs < 1:
+        raise GnssfuseError("--max-epochs must be >= 1")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    evals, failures, taken = [], {}, set()
+    for d in tqdm(trace_dirs, desc="traces", disable=not progress):
+        try:
+            # min_sats=1: epochs with < 4 satellites reach the modes (the fused ones carry them)
+            trace = load_trace(d, signals=opts.signals, fix_truth_height=fix_truth_height, min_sats=1)
+            if trace.n_epochs == 0:
+                raise DataError(f"{d}: no epochs with {', '.join(opts.signals)} measurements")
+        except GnssfuseError as exc:
+            failures[str(d)] = str(exc)
+            continue
+        if max_epochs is not None and trace.n_epochs > max_epochs:
+            trace = trace.select(np.arange(max_epochs))
+        evals.append(evaluate_trace(trace, modes, opts, out_dir, _slug(trace.name, taken),
+                                    progress=progress))
+    if not evals:
+        raise DataError("no trace could be loaded: " + "; ".join(failures.values()))
+    df = metrics_table(evals, modes)
+    df.to_csv(out_dir / "metrics.csv", index=False, float_format="%.4f")
+    (out_dir / "metrics.md").write_text(markdown_table(df) + "\n")
+    figs = write_figures(evals, out_dir / "figures")
+    write_report_md(out_dir, df, evals, figs, modes, opts, argv or [], failures)
+    return df, failures
+
+
+def main(argv: list[str], prog: str = "gnssfuse evaluate") -> int:
+    args = build_parser(prog).parse_args(argv)
+    opts = options_from_args(args)
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    if not modes:
+        raise GnssfuseError("--modes is empty")
+    df, failures = evaluate(args.trace_dirs, modes, args.out, opts, max_epochs=args.max_epochs,
+                            fix_truth_height=not args.no_truth_height_fix,
+                            progress=not args.no_progress, argv=argv)
+    print(markdown_table(df))
+    print(f"wrote {args.out / 'report.md'}, metrics.csv, metrics.md and figures/")
+    # The report for the good part is written; still exit non-zero so scripts notice the rest.
+    for path, msg in failures.items():
+        print(f"{prog}: error: could not load {path}: {msg}", file=sys.stderr)
+    bad_modes = df[df.status.str.startswith("failed") & (df.trace != ALL)]
+    for r in bad_modes.itertuples(index=False):
+        print(f"{prog}: error: mode {r.mode} on {r.trace}: {r.status}", file=sys.stderr)
+    return 2 if failures or len(bad_modes) else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main(sys.argv[1:]))

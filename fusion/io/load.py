@@ -1,0 +1,142 @@
+"""Find and load traces: a ``<collection>/<phone>`` folder (or a file in one) -> :class:`~fusion.trace.Trace`.
+
+The format is detected from the files: ``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
+-> GSDC 2022/23 (:mod:`fusion.io.gsdc`). Truth comes from the folder's ``ground_truth.csv`` or
+SPAN NMEA log (:mod:`fusion.io.truth`).
+"""
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+from fusion.errors import DataError, GnssfuseError
+from fusion.io.gsdc import load_derived_2021, load_device_gnss
+from fusion.io.truth import TRUTH_TOL_MS
+from fusion.trace import Trace
+
+def _csv_name(p: Path) -> str:
+    """'x.csv' or 'x.csv.gz' -> 'x', else ''."""
+    n = p.name
+    for suf in (".csv.gz", ".csv"):
+        if n.endswith(suf):
+            return n[: -len(suf)]
+    return ""
+
+
+def _measurement_files(folder: Path) -> list[Path]:
+    files = [p for p in folder.iterdir() if p.is_file()
+             and ("_derived" in _csv_name(p) or _csv_name(p) == "device_gnss")]
+    return sorted(files)
+
+
+def _find_optional(folder: Path, stem: str) -> Path | None:
+    for suf in (".csv", ".csv.gz"):
+        if (folder / f"{stem}{suf}").is_file():
+            return folder / f"{stem}{suf}"
+    return None
+
+
+def _span_file(folder: Path, phone: str) -> Path | None:
+    sup = folder / "supplemental"
+    if not sup.is_dir():
+        return None
+    cands = sorted(p for p in sup.iterdir() if p.name.startswith("SPAN_")
+                   and (p.name.endswith(".nmea") or p.name.endswith(".nmea.gz")))
+    if len(cands) > 1:
+        cands = [p for p in cands if phone in p.name] or cands
+        if len(cands) > 1:
+            raise DataError(f"{sup}: several SPAN NMEA logs ({', '.join(p.name for p in cands)}); pass one")
+    return cands[0] if cands else None
+
+
+def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = True, truth: str = "auto",
+               *, min_sats: int = 4, truth_tol_ms: float = TRUTH_TOL_MS) -> Trace:
+    """Load one trace: a ``<collection>/<phone>`` folder, or a measurement file inside one.
+
+    Format is detected from the files (``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
+    -> GSDC 2022/23). ``truth``: ``"auto"`` (SPAN NMEA when present for 2021, else
+    ``ground_truth.csv``, else none), ``"csv"`` (ignore NMEA), ``"nmea"`` (require it), ``"none"``.
+    The trace is named ``<collection>/<phone>`` after its folder, or ``<folder>/<stem>`` when that
+    folder holds several measurement files (e.g. ``samples/Pixel4_derived``).
+    """
+    path = Path(path)
+    if truth not in ("auto", "csv", "nmea", "none"):
+        raise GnssfuseError(f"truth must be 'auto', 'csv', 'nmea' or 'none', got {truth!r}")
+    if path.is_dir():
+        files = _measurement_files(path)
+        if not files:
+            raise DataError(f"{path}: no *_derived.csv[.gz] or device_gnss.csv[.gz] measurement file")
+        if len(files) > 1:
+            raise DataError(f"{path}: several measurement files ({', '.join(p.name for p in files)}); "
+                            f"pass one of them")
+        meas, folder = files[0], path
+        single = True
+    elif path.is_file():
+        meas, folder = path, path.parent
+        single = len(_measurement_files(folder)) == 1
+    else:
+        raise DataError(f"{path}: no such trace folder or file")
+    name = f"{folder.parent.name}/{folder.name}" if single else f"{folder.name}/{_csv_name(meas)}"
+    stem = _csv_name(meas)
+
+    # Truth beside the file: '<x>_ground_truth' pairs with '<x>_derived'; else the folder's one.
+    truth_csv = None
+    if truth in ("auto", "csv"):
+        paired = _find_optional(folder, stem.replace("_derived", "_ground_truth")) if "_derived" in stem else None
+        truth_csv = paired or (_find_optional(folder, "ground_truth") if single else None)
+
+    if stem == "device_gnss":
+        if truth == "nmea":
+            raise DataError(f"{folder}: truth='nmea' is only for GSDC 2021 traces with a SPAN log")
+        return load_device_gnss(meas, truth_csv, signals=signals, min_sats=min_sats,
+                                truth_tol_ms=truth_tol_ms, name=name)
+    nmea = None
+    if truth in ("auto", "nmea") and single:
+        nmea = _span_file(folder, folder.name)
+    if truth == "nmea":
+        if nmea is None:
+            raise DataError(f"{folder}: truth='nmea' but no supplemental/SPAN_*.nmea[.gz] file")
+        if not fix_truth_height:
+            raise GnssfuseError("truth='nmea' already has correct heights; fix_truth_height=False contradicts it")
+    return load_derived_2021(meas, truth_csv, nmea, signals=signals, fix_truth_height=fix_truth_height,
+                             min_sats=min_sats, truth_tol_ms=truth_tol_ms, name=name)
+
+
+def find_traces(root: str | Path) -> list[Path]:
+    """Every loadable trace under ``root`` (a Kaggle-layout folder such as ``train/``, or a trace).
+
+    Returns ``<collection>/<phone>`` folders holding one measurement file; folders holding several
+    (e.g. ``samples/``) contribute each file, which :func:`load_trace` also accepts. Sorted.
+    Raises :class:`DataError` when ``root`` does not exist or holds no trace.
+    """
+    root = Path(root)
+    if not root.exists():
+        raise DataError(f"{root}: no such folder")
+    if root.is_file():
+        return [root]
+    found: list[Path] = []
+    for folder in sorted({root, *(p for p in root.rglob("*") if p.is_dir())}):
+        files = _measurement_files(folder)
+        found.extend([folder] if len(files) == 1 else files)
+    if not found:
+        raise DataError(f"{root}: no trace found (no *_derived.csv[.gz] or device_gnss.csv[.gz] below it)")
+    return sorted(found)
+
+
+def load_dataset(root: str | Path, signals=("GPS_L1",), fix_truth_height: bool = True, truth: str = "auto",
+                 *, min_sats: int = 4, on_error: str = "raise") -> Iterator[Trace]:
+    """Yield :func:`load_trace` of every trace :func:`find_traces` finds under ``root``.
+
+    on_error: ``"raise"`` stops at the first bad trace; ``"skip"`` warns and goes on.
+    """
+    if on_error not in ("raise", "skip"):
+        raise GnssfuseError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+    for path in find_traces(root):
+        try:
+            yield load_trace(path, signals=signals, fix_truth_height=fix_truth_height, truth=truth,
+                             min_sats=min_sats)
+        except DataError as exc:
+            if on_error == "raise":
+                raise
+            warnings.warn(f"skipping trace: {exc}", stacklevel=2)

@@ -1,0 +1,41 @@
+"""What every mode takes and returns: the run options and a mode's result.
+
+These sit below the estimators (which import them) and below the application layer (the mode
+registry in :mod:`fusion.modes`, the CLI), so no estimator depends on the code that calls it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class RunOptions:
+    """Settings shared by every mode of one run."""
+
+    weights: Path | None = None          # DNN checkpoint; None = the weights shipped in learned/weights
+    elev_mask_deg: float = 10.0
+    device: str = "cpu"
+    dnn_passes: int = 1                  # DNN applied iteratively, features recomputed each pass
+    incremental: bool = False            # fused modes: ISAM2 / fixed-lag instead of batch LM
+    signals: tuple[str, ...] = ("GPS_L1",)
+    wls_weighting: str = "elevation"
+    wls_robust: bool = False
+
+
+@dataclass
+class ModeResult:
+    """Output of one mode on one trace.
+
+    pos:   (E, 3) ECEF [m], NaN rows where the epoch was not solved.
+    valid: (E,) bool.
+    cov:   (E, 3, 3) ECEF position covariance [m^2], or None when the mode gives none.
+    info:  counts and diagnostics for the report (e.g. skipped epochs by reason).
+    """
+
+    pos: np.ndarray
+    valid: np.ndarray
+    cov: np.ndarray | None = None
+    info: dict = field(default_factory=dict)
