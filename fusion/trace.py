@@ -83,6 +83,21 @@ class Trace:
     truth:       (E,3)    float64 ECEF truth [m] with NaN rows where unknown, or None.
     name:        ``"<collection>/<phone>"`` or a file stem.
     skipped:     counts of dropped rows / epochs by reason, for the user's report.
+
+    Optional per-slot measurements (None when the source has none; padded slots hold 0 / False):
+
+    cn0:         (E,S)    float64, carrier-to-noise density [dB-Hz]; 0 where unknown.
+    prr:         (E,S)    float64, pseudorange rate from Doppler [m/s] (``-wavelength * doppler``),
+                          satellite clock drift removed (``+ c * d(dt_sv)/dt``), like ``pr``.
+    prr_sigma:   (E,S)    float64, its 1-sigma [m/s] (1 where not ``prr_ok``).
+    prr_ok:      (E,S)    bool, the slot has a usable Doppler.
+    adr:         (E,S)    float64, accumulated delta range (carrier phase) [m], satellite clock
+                          removed (``+ c * dt_sv``), so that between two epochs without a slip
+                          ``diff(adr) = diff(range) + diff(receiver clock)`` (+ noise, iono change).
+    adr_sigma:   (E,S)    float64, its 1-sigma [m] (1 where not ``adr_ok``).
+    adr_ok:      (E,S)    bool, the slot has a valid carrier phase.
+    adr_slip:    (E,S)    bool, the carrier phase of this slot's satellite/signal was reset or
+                          slipped since the previous epoch (its chain must break here).
     """
 
     t_ms: np.ndarray
@@ -97,6 +112,14 @@ class Trace:
     truth: np.ndarray | None = None
     name: str = "trace"
     skipped: dict[str, int] = field(default_factory=dict)
+    cn0: np.ndarray | None = None
+    prr: np.ndarray | None = None
+    prr_sigma: np.ndarray | None = None
+    prr_ok: np.ndarray | None = None
+    adr: np.ndarray | None = None
+    adr_sigma: np.ndarray | None = None
+    adr_ok: np.ndarray | None = None
+    adr_slip: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -116,6 +139,7 @@ class Trace:
             got = np.shape(getattr(self, key))
             if got != shape:
                 raise DataError(f"{self.name}: {key} has shape {got}, expected {shape}")
+        self._validate_optional(E, S)
         if self.truth is not None and np.shape(self.truth) != (E, 3):
             raise DataError(f"{self.name}: truth has shape {np.shape(self.truth)}, expected {(E, 3)}")
         if self.mask.dtype != bool:
@@ -126,6 +150,32 @@ class Trace:
                 raise DataError(f"{self.name}: {key} has non-finite values in unmasked slots")
         if E > 1 and np.any(np.diff(self.t_ms) <= 0):
             raise DataError(f"{self.name}: epoch times are not strictly increasing")
+
+    def _validate_optional(self, E: int, S: int) -> None:
+        """The optional per-slot arrays: all of a group or none, each (E,S), flags bool."""
+        for group in OPTIONAL_GROUPS:
+            have = [getattr(self, k) is not None for k in group]
+            if any(have) and not all(have):
+                raise DataError(f"{self.name}: {', '.join(group)} must be given together")
+        for key in OPTIONAL_SLOT_FIELDS:
+            a = getattr(self, key)
+            if a is None:
+                continue
+            if np.shape(a) != (E, S):
+                raise DataError(f"{self.name}: {key} has shape {np.shape(a)}, expected {(E, S)}")
+            if key in ("prr_ok", "adr_ok", "adr_slip") and np.asarray(a).dtype != bool:
+                raise DataError(f"{self.name}: {key} must be bool, got {np.asarray(a).dtype}")
+        for value, ok in (("prr", "prr_ok"), ("adr", "adr_ok")):
+            if getattr(self, ok) is not None and not np.all(np.isfinite(getattr(self, value)[getattr(self, ok)])):
+                raise DataError(f"{self.name}: {value} has non-finite values in slots flagged {ok}")
+
+    @property
+    def has_doppler(self) -> bool:
+        return self.prr_ok is not None and bool((self.prr_ok & self.mask).any())
+
+    @property
+    def has_carrier(self) -> bool:
+        return self.adr_ok is not None and bool((self.adr_ok & self.mask).any())
 
     # ------------------------------------------------------------------ convenience
     @property
@@ -172,13 +222,23 @@ class Trace:
                 return np.take_along_axis(a, order[..., None], axis=1)
             return np.take_along_axis(a, order, axis=1)
 
+        optional = {k: take(getattr(self, k)) for k in OPTIONAL_SLOT_FIELDS if getattr(self, k) is not None}
+        if "adr_slip" in optional and idx.size > 1:
+            optional["adr_slip"] = optional["adr_slip"] | self._slip_across_dropped(idx, order)
         return replace(
             self,
             t_ms=self.t_ms[idx], sat_pos=take(self.sat_pos), sat_vel=take(self.sat_vel),
             pr=take(self.pr), pr_sigma=take(self.pr_sigma), sat_id=take(self.sat_id),
             signal=take(self.signal), mask=take(self.mask), clock_reset=reset,
-            truth=None if self.truth is None else self.truth[idx], skipped=dict(self.skipped),
+            truth=None if self.truth is None else self.truth[idx], skipped=dict(self.skipped), **optional,
         )
+
+    def _slip_across_dropped(self, idx: np.ndarray, order: np.ndarray) -> np.ndarray:
+        """(E',S') True where a kept slot's carrier chain breaks between two kept epochs that are not
+        consecutive: a slip on a dropped epoch, or a gap of several epochs, can hide a slip, so the
+        chain is broken conservatively wherever epochs were dropped in between."""
+        gap = np.r_[False, np.diff(idx) > 1]
+        return np.broadcast_to(gap[:, None], order.shape).copy()
 
     def select_slots(self, keep: np.ndarray) -> "Trace":
         """A new Trace whose mask is ``mask & keep`` (keep: (E,S) bool), e.g. a signal filter."""
@@ -186,6 +246,12 @@ class Trace:
 
     def count_skip(self, reason: str, n) -> None:
         count_skip(self.skipped, reason, n)
+
+
+#: Optional per-slot fields of :class:`Trace` (None when the source has none).
+OPTIONAL_SLOT_FIELDS = ("cn0", "prr", "prr_sigma", "prr_ok", "adr", "adr_sigma", "adr_ok", "adr_slip")
+#: Fields that come together or not at all.
+OPTIONAL_GROUPS = (("prr", "prr_sigma", "prr_ok"), ("adr", "adr_sigma", "adr_ok", "adr_slip"))
 
 
 def count_skip(skipped: dict[str, int], key: str, n) -> None:
@@ -221,7 +287,7 @@ def pack_rows(epoch_index: np.ndarray, n_epochs: int, columns: dict[str, np.ndar
     slot = np.arange(N) - starts[epoch_index]
     out: dict[str, np.ndarray] = {}
     for key, col in columns.items():
-        filler = 1.0 if key == "pr_sigma" else 0
+        filler = 1.0 if key.endswith("_sigma") else 0
         arr = np.full((n_epochs, S) + col.shape[1:], filler, dtype=col.dtype)
         arr[epoch_index, slot] = col
         out[key] = arr

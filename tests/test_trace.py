@@ -71,3 +71,39 @@ def test_select_carries_a_dropped_clock_reset_to_the_next_kept_epoch():
 def test_select_with_a_wrong_length_mask_names_the_trace():
     with pytest.raises(DataError, match="t: cannot select epochs of a 3-epoch trace"):
         _trace().select(np.array([True, False]))
+
+
+def _with_raw(E=5, S=3):
+    from fusion.trace import Trace, empty_trace
+    kw = empty_trace(E, S)
+    kw["t_ms"] = np.arange(E, dtype=np.int64) * 1000
+    kw["mask"][:] = True
+    kw["sat_pos"][:] = 2e7
+    kw["pr"][:] = 2.2e7
+    f = np.ones((E, S))
+    return Trace(**kw, cn0=30 * f, prr=f.copy(), prr_sigma=f.copy(), prr_ok=np.ones((E, S), bool),
+                 adr=f.copy(), adr_sigma=f.copy(), adr_ok=np.ones((E, S), bool), adr_slip=np.zeros((E, S), bool))
+
+
+def test_optional_raw_fields_travel_with_select_and_slips_break_across_dropped_epochs():
+    tr = _with_raw()
+    assert tr.has_doppler and tr.has_carrier
+    sub = tr.select(np.array([0, 1, 3]))
+    assert sub.prr.shape == (3, 3) and sub.cn0[0, 0] == 30
+    # epoch 2 was dropped: the carrier chain between kept epochs 1 and 3 is broken
+    assert sub.adr_slip.tolist() == [[False] * 3, [False] * 3, [True] * 3]
+
+
+def test_optional_raw_fields_must_come_in_groups_and_be_finite_where_flagged():
+    import dataclasses
+    from fusion.errors import DataError
+    tr = _with_raw()
+    with pytest.raises(DataError, match="must be given together"):
+        dataclasses.replace(tr, prr_ok=None)
+    bad = tr.prr.copy()
+    bad[1, 1] = np.nan
+    with pytest.raises(DataError, match="non-finite values in slots flagged prr_ok"):
+        dataclasses.replace(tr, prr=bad)
+    ok = tr.prr_ok.copy()
+    ok[1, 1] = False
+    dataclasses.replace(tr, prr=bad, prr_ok=ok)     # NaN where not flagged: fine
