@@ -24,6 +24,7 @@ from fusion.modes import run_modes
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate, simulate_dataset  # noqa: E402
 from learned.data import build_samples, split_random  # noqa: E402
+from learned.features import CHANNELS, FeatureConfig  # noqa: E402
 from learned.train import TrainConfig, train  # noqa: E402
 
 
@@ -48,11 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"simulated {len(traces)} drives -> {len(train_s)} training / {len(val_s)} validation epochs")
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    cfg = TrainConfig(epochs=args.epochs, seed=args.seed,
+    cfg = TrainConfig(epochs=args.epochs, seed=args.seed, features=FeatureConfig(inputs=tuple(CHANNELS)),
                       data={"sources": ["sim"], "traces": args.traces, "bias": args.bias_scenario})
     history = train(train_s, val_s, cfg, args.out, progress=False)
-    best = min(history, key=lambda r: r["val_mse"])
-    print(f"best epoch {best['epoch']} (val MSE {best['val_mse']:.3f}) -> {args.out}")
+    best = min(history, key=lambda r: r["val_score_m"])
+    print(f"best epoch {best['epoch']} (val horizontal error {best['val_score_m']:.2f} m) -> {args.out}")
 
     # A fresh drive (seed never used for training) to test on.
     test = simulate(n_epochs=args.test_epochs, config=sim_cfg, seed=args.seed + 10_000, name="sim-test").trace

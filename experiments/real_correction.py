@@ -6,12 +6,14 @@ For each checkpoint NAME=PATH (default: the shipped weights as "shipped"):
 - honest protocol: initial guess = our WLS position, the DNN applied 1, 2 and 3 times (features
   recomputed at each corrected position; the clock is always re-estimated from the measurements).
 Errors in the NED frame of the truth over epochs solved by both WLS and the DNN; MAE N/E/D, horizontal
-p50/p95 and the variance head's 1/2-sigma coverage (honest protocol), raw and with the checkpoint's
-variance calibration (fitted on its own validation split, never on this trace; "-" when it has none).
+p50/p95 and the 1/2-sigma coverage of the output's covariance (honest protocol), raw and with the
+checkpoint's calibration of that output (fitted on its own validation split, never on this trace; "-" when
+it has none). ``--output`` picks the output (``wls``: learned-weight least squares, ``correction``: the
+paper's correction head; default: each checkpoint's).
 Checkpoints trained with a box / WLS guess mix (``--guess-mix``) are run the same way; the table's
 method column names each checkpoint's mix.
 
-    PYTHONPATH=. python experiments/real_correction.py [--ckpt noaug=/tmp/noaug.pt direct=/tmp/direct.pt]
+    PYTHONPATH=. python experiments/real_correction.py [--ckpt noaug=/tmp/noaug.pt] [--output correction]
     PYTHONPATH=. python experiments/real_correction.py --no-shipped --ckpt loo=/tmp/lt2/loo_sf2.pt \
         --trace ../shared/data/gsdc2021/train/2020-09-04-US-SF-2/Pixel4   # leave-one-trace-out
 """
@@ -27,6 +29,7 @@ from fusion.io.load import load_trace
 from fusion.eval.metrics import ned_errors, summarize
 from fusion.estimate.wls import solve_wls
 from learned.augment import draw_guesses, epoch_generator
+from learned.forward import OUTPUTS
 from learned.infer import SHIPPED_WEIGHTS, Corrector, calibration
 
 #: The held-out test trace, as shipped in the repository.
@@ -61,6 +64,7 @@ def main() -> None:
     p.add_argument("--paper-eta", type=float, nargs="*", default=None, help="default: each checkpoint's eta")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--output", choices=OUTPUTS, default=None, help="default: each checkpoint's output")
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     tr = load_trace(a.trace)
@@ -69,7 +73,7 @@ def main() -> None:
     ckpts = [("shipped", SHIPPED_WEIGHTS)] if SHIPPED_WEIGHTS.is_file() and not a.no_shipped else []
     ckpts += [tuple(c.split("=", 1)) for c in a.ckpt]
     print(f"trace {tr.name}: {tr.n_epochs} epochs, {int(wls.valid.sum())} WLS-valid, {int(has.sum())} with truth\n")
-    print("| method | epochs | MAE N / E / D [m] | horiz. p50 [m] | horiz. p95 [m] | raw head: within 1 sigma "
+    print("| method | epochs | MAE N / E / D [m] | horiz. p50 [m] | horiz. p95 [m] | raw: within 1 sigma "
           "N/E/D | 2 sigma | calibrated: within 1 sigma N/E/D | 2 sigma |")
     print("|---|---|---|---|---|---|---|---|---|")
     base_ok = wls.valid & has
@@ -78,18 +82,19 @@ def main() -> None:
     for name, path in ckpts:
         corr = Corrector.load(Path(path))
         raw = Corrector.load(Path(path), calibrated=False)
-        has_cal = bool((corr.config.get("calibration") or {}).get("scale_ned"))
-        name = f"{name} ({mix_label(corr.config)})"
+        output = a.output or corr.output
+        has_cal = bool(((corr.config.get("calibration") or {}).get(output) or {}).get("scale_ned"))
+        name = f"{name} ({mix_label(corr.config)}, output {output})"
         etas = a.paper_eta or [float(corr.config["eta"])]
         for eta in etas:
             guess = draw_guesses(truth_t, eta, epoch_generator(a.seed, 20_000)).numpy()
-            c = corr.predict(tr, guess, has)
+            c = corr.predict(tr, guess, has, output=output)
             ok = c.valid & base_ok
             print(row(f"{name}: PAPER PROTOCOL guess = truth + U(+-{eta:g} m)", c.mean_ecef, tr.truth, ok))
         pos, valid = wls.pos, wls.valid
         for k in (1, 2, 3):
-            c_raw = raw.predict(tr, pos, valid)            # same means; only the variances differ
-            c = corr.predict(tr, pos, valid)
+            c_raw = raw.predict(tr, pos, valid, output=output)    # same means; only the variances differ
+            c = corr.predict(tr, pos, valid, output=output)
             pos, valid = c.mean_ecef, c.valid
             ok = valid & base_ok
             err = np.full((tr.n_epochs, 3), np.nan)

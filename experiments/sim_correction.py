@@ -54,10 +54,11 @@ def predict_given_clock(ckpt: Path, samples, guess: np.ndarray) -> tuple[np.ndar
     x, _ = features_torch(torch.as_tensor(samples.sat_pos, **f64), torch.as_tensor(samples.pr, **f64),
                           torch.as_tensor(mask), torch.as_tensor(guess, **f64), fcfg,
                           torch.as_tensor(samples.clock, **f64))
-    mu, logvar = model(x, torch.as_tensor(mask))
+    mu, logvar, _ = model(x, torch.as_tensor(mask))
     out = mu.double().numpy() * fcfg.out_scale
     var = torch.exp(logvar).double().numpy() * fcfg.out_scale ** 2
-    scale = np.asarray((blob["config"].get("calibration") or {}).get("scale_ned", [1.0, 1.0, 1.0]))
+    cal = ((blob["config"].get("calibration") or {}).get("correction") or {})
+    scale = np.asarray(cal.get("scale_ned", [1.0, 1.0, 1.0]))
     mean = guess + np.einsum("nji,nj->ni", ned_rotation(guess), out)
     cov = np.einsum("ni,ij->nij", var * scale ** 2, np.eye(3))
     mean[~valid] = np.nan
@@ -82,7 +83,7 @@ def evaluate(ckpt: Path, samples, eta: float, seed: int, honest: bool = False, l
         kw = empty_trace(len(samples), samples.mask.shape[1], name="test", with_truth=True)
         kw.update(sat_pos=samples.sat_pos, pr=samples.pr, mask=samples.mask, truth=samples.truth,
                   t_ms=np.arange(len(samples), dtype=np.int64))
-        c = Corrector.load(ckpt).predict(Trace(**kw), guess, np.ones(len(samples), bool))
+        c = Corrector.load(ckpt).predict(Trace(**kw), guess, np.ones(len(samples), bool), output="correction")
         mean, cov_ned, valid = c.mean_ecef, c.cov_ned, c.valid
     # Before and after over the same epochs: those the network corrected (``valid``).
     before = np.abs(ned_errors(guess, samples.truth))
@@ -137,7 +138,7 @@ def main() -> None:
             ck = Path(d) / f"row{len(honest_rows)}.pt"
             fcfg = FeatureConfig(clock="given" if leak else "median")
             train(tr, va, TrainConfig(epochs=a.epochs, eta=eta, seed=a.seed, guess_mix=parse_guess_mix(mix),
-                                      features=fcfg), ck, progress=False)
+                                      features=fcfg, output="correction"), ck, progress=False)
             for honest in (False, True):
                 r = evaluate(ck, test, eta, a.seed, honest=honest, leak=leak)
                 cal = r["cal"]

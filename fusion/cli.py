@@ -20,7 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("fusion.cli:run_main", "solve one trace in one mode (wls, dnn, fused, fused-nodnn)"),
     "evaluate": ("fusion.evaluate:main", "compare modes on traces: tables, CDFs, box plots, report.md"),
     "simulate": ("fusion.sim.simulate:main", "simulate a GNSS trace (GSDC 2021 derived format + truth)"),
-    "train": ("learned.train:main", "train the set-transformer correction network"),
+    "train": ("learned.train_cli:main", "train the set-transformer correction network"),
 }
 
 
@@ -35,6 +35,11 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
     p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
+    p.add_argument("--no-learned-sigmas", action="store_true",
+                   help="fused: without the per-satellite head's pseudorange sigmas and biases")
+    p.add_argument("--dnn-output", choices=("wls", "correction"), default=None,
+                   help="dnn: learned-weight least squares or the paper's correction head (default: the checkpoint's)")
     p.add_argument("--no-truth-height-fix", action="store_true",
                    help="keep GSDC 2021 truth heights as published (~63 m too high)")
 
@@ -48,7 +53,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
         raise GnssfuseError("--dnn-passes must be >= 1")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
-                      wls_robust=args.robust_wls)
+                      wls_robust=args.robust_wls, learned_prior=not args.no_learned_prior,
+                      learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output)
 
 
 def build_run_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:

@@ -23,6 +23,10 @@ class RunOptions:
     signals: tuple[str, ...] = ("GPS_L1",)
     wls_weighting: str = "elevation"
     wls_robust: bool = False
+    # fused mode: which learned parts enter the graph (the report isolates what each adds)
+    learned_prior: bool = True           # the network's position prior per epoch
+    learned_sigmas: bool = True          # the per-satellite head's pseudorange sigma and bias
+    dnn_output: str | None = None        # "wls" | "correction"; None: the checkpoint's
 
 
 @dataclass

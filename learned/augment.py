@@ -30,11 +30,12 @@ def draw_guesses(truth: torch.Tensor, eta: float, generator: torch.Generator) ->
     return truth + torch.einsum("bji,bj->bi", R, u)
 
 
-def epoch_generator(seed: int, epoch: int, device: torch.device | str = "cpu") -> torch.Generator:
-    """Generator for one training epoch, derived from (seed, epoch) so that resuming reproduces the
-    draws of an uninterrupted run without saving RNG states."""
+def epoch_generator(seed: int, epoch: int, device: torch.device | str = "cpu", rank: int = 0) -> torch.Generator:
+    """Generator for one training epoch, derived from (seed, epoch, rank) so that resuming reproduces the
+    draws of an uninterrupted run without saving RNG states, and each distributed rank draws its own
+    augmentation stream (rank 0 draws what a one-process run draws)."""
     g = torch.Generator(device=device)
-    g.manual_seed((int(seed) * 1_000_003 + int(epoch) * 7_919 + 12_345) % (2**63))
+    g.manual_seed((int(seed) * 1_000_003 + int(epoch) * 7_919 + 12_345 + int(rank) * 104_729) % (2**63))
     return g
 
 

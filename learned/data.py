@@ -29,6 +29,7 @@ from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate_dataset
 from fusion.trace import Trace
+from learned.context import CONTEXT_KEYS, slot_context
 from learned.features import compact_slots, elevation_mask
 from learned.toy import toy_dataset
 
@@ -46,6 +47,7 @@ class Samples:
         protocol, ``FeatureConfig(clock="given")``); never filled from phone data.
     graph: (N,3) ECEF no-prior factor-graph (fused-nodnn) position of the sample's trace (NaN where the
         graph left the epoch unsolved), or None.
+    ctx: per-slot context (:mod:`learned.context`), (N,S) arrays keyed by ``CONTEXT_KEYS``, or None.
     """
 
     sat_pos: np.ndarray
@@ -59,6 +61,7 @@ class Samples:
     real: np.ndarray | None = None
     clock: np.ndarray | None = None
     graph: np.ndarray | None = None
+    ctx: dict[str, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return int(self.pr.shape[0])
@@ -79,7 +82,8 @@ class Samples:
                        list(self.names), dict(self.skipped),
                        None if self.wls is None else self.wls[idx], None if self.real is None else self.real[idx],
                        None if self.clock is None else self.clock[idx],
-                       None if self.graph is None else self.graph[idx])
+                       None if self.graph is None else self.graph[idx],
+                       None if self.ctx is None else {k: v[idx] for k, v in self.ctx.items()})
 
 
 def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0, *, real: bool = False,
@@ -104,24 +108,26 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     enough = mask.sum(1) >= 4
     skipped["lt4_sats"] = int((~enough).sum())
     idx, mask, truth = idx[enough], mask[enough], truth[enough]
+    w = solve_initial(trace, RunOptions(elev_mask_deg=elev_mask_deg)) if (with_wls or with_graph) else None
+    ctx = slot_context(trace, w).as_dict() if w is not None else None
     # Real slots first, padding trimmed; padded slots zeroed so no stale measurement lingers there.
-    sat_pos, pr, mask = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask)
+    extra = [ctx[k][idx] for k in CONTEXT_KEYS] if ctx is not None else []
+    sat_pos, pr, mask, *extra = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask, *extra)
     sat_pos, pr = sat_pos * mask[..., None], pr * mask
+    ctx = None if ctx is None else {k: np.where(mask, v, 1.0 if k == "pr_sigma" else 0.0)
+                                    for k, v in zip(CONTEXT_KEYS, extra)}
     wls = graph = None
-    if with_wls or with_graph:
-        opts = RunOptions(elev_mask_deg=elev_mask_deg)
-        w = solve_initial(trace, opts)
     if with_wls:
         wls = np.where(w.valid[idx, None], w.pos[idx], np.nan)
         skipped["wls_invalid"] = int((~np.isfinite(wls).all(1)).sum())
     if with_graph:
-        g = graph_positions(trace, w, opts)
-        graph = g[idx]
+        graph = graph_positions(trace, w, RunOptions(elev_mask_deg=elev_mask_deg))[idx]
         skipped["graph_invalid"] = int((~np.isfinite(graph).all(1)).sum())
     if clock is not None and np.shape(clock) != (trace.n_epochs,):
         raise DataError(f"{trace.name}: clock must have shape ({trace.n_epochs},), got {np.shape(clock)}")
     return Samples(sat_pos, pr, mask, truth, np.full(len(idx), index), [trace.name], skipped, wls,
-                   np.full(len(idx), bool(real)), None if clock is None else np.asarray(clock, float)[idx], graph)
+                   np.full(len(idx), bool(real)), None if clock is None else np.asarray(clock, float)[idx], graph,
+                   ctx)
 
 
 def graph_positions(trace: Trace, wls, opts=None) -> np.ndarray:
@@ -163,9 +169,13 @@ def concat_samples(parts: list[Samples]) -> Samples:
     # A true clock only when every part has one: a partial array would silently mix in NaN clocks.
     clock = np.concatenate([p.clock for p in parts]) if all(p.clock is not None for p in parts) else None
     graph = None if all(p.graph is None for p in parts) else np.concatenate([p.graph_or_nan() for p in parts])
+    # Context only when every part has it (a model reading it cannot train on parts without it).
+    ctx = None if any(p.ctx is None for p in parts) else {
+        k: np.concatenate([np.pad(p.ctx[k], [(0, 0), (0, S - p.mask.shape[1])], constant_values=float(k == "pr_sigma"))
+                           for p in parts]) for k in CONTEXT_KEYS}
     return Samples(np.concatenate([pad(p.sat_pos) for p in parts]), np.concatenate([pad(p.pr) for p in parts]),
                    np.concatenate([pad(p.mask) for p in parts]), np.concatenate([p.truth for p in parts]),
-                   np.concatenate(trace), names, skipped, wls, real, clock, graph)
+                   np.concatenate(trace), names, skipped, wls, real, clock, graph, ctx)
 
 
 def split_random(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:
@@ -191,6 +201,17 @@ def split_blocks(samples: Samples, val_frac: float, rng: np.random.Generator,
     sizes = np.bincount(bid)[perm]
     n_blocks = int(np.argmin(np.abs(np.cumsum(sizes) - val_frac * n)) + 1)   # closest to val_frac * n
     is_val = np.isin(bid, perm[:min(n_blocks, len(blocks) - 1)])
+    return samples.subset(np.flatnonzero(~is_val)), samples.subset(np.flatnonzero(is_val))
+
+
+def split_traces(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:
+    """Validation = whole traces (about ``val_frac`` of them, at least one when there are two or more), so
+    that the best epoch is the one that generalises to a drive the network has not seen."""
+    n_tr = len(samples.names)
+    if n_tr < 2 or val_frac <= 0:
+        return split_blocks(samples, val_frac, rng)
+    val = rng.permutation(n_tr)[:max(1, int(round(val_frac * n_tr)))]
+    is_val = np.isin(samples.trace, val)
     return samples.subset(np.flatnonzero(~is_val)), samples.subset(np.flatnonzero(is_val))
 
 

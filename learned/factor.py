@@ -13,6 +13,9 @@ For a ``Pose3`` variable use :func:`learned_pose_translation_factor` (a ``PoseTr
 on the pose's translation, i.e. the pose frame is ECEF). :func:`learned_prior_factors` does a whole
 trace in one network pass (much faster than one call per epoch).
 ``examples/04_learned_factor_in_your_graph.py`` composes it with an odometry chain.
+
+The per-satellite head as factors: :func:`learned_pseudorange_factors` gives GTSAM ``PseudorangeFactor``s
+whose noise (and bias) the network predicts for each measurement (``examples/05_learned_pseudorange_factors.py``).
 """
 from __future__ import annotations
 
@@ -20,7 +23,7 @@ import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
-from fusion.estimate.graph.factors import prior_noise_model
+from fusion.estimate.graph.factors import prior_noise_model, robust_model
 from fusion.estimate.graph.priors import PRIOR_MIN_EIG, PriorProvider, Priors, ask_provider, clean_priors
 from fusion.trace import Trace, empty_trace
 
@@ -155,3 +158,30 @@ def learned_prior_factors(corrector: PriorProvider, trace: Trace, init_pos: np.n
     factors = [make(keys[k], pri.mean[k], prior_noise_model(pri.cov[k], robust, robust_k)) if pri.ok[k] else None
                for k in range(trace.n_epochs)]
     return factors, pri.mean, pri.cov, pri.ok
+
+
+def learned_pseudorange_factors(corrector, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
+                                pos_keys: list[int], clock_keys: list[int], *, default_sigma_m: float = 5.0,
+                                robust: str = "huber", robust_k: float = 2.0) -> tuple[list[list], np.ndarray]:
+    """GTSAM ``PseudorangeFactor`` per measurement, weighted by the per-satellite head.
+
+    corrector: a ``learned.infer.Corrector`` (its :meth:`slot_noise` is asked at ``init_pos``).
+    trace: the measurements (E epochs, S slots); init_pos (E,3) ECEF guesses (never the truth);
+    valid (E,) bool epochs to ask; pos_keys / clock_keys: E keys of an ECEF ``Point3`` and of a receiver
+    clock in seconds (``double``), as GTSAM's ``PseudorangeFactor`` expects.
+    Each factor measures ``pr - bias`` with sigma from the head; slots the head has no opinion on (not
+    asked, out of the training range, other signals) get ``default_sigma_m`` and no bias. The noise model is
+    wrapped in ``robust`` at ``robust_k`` sigmas. Returns ``(factors per epoch (E lists), sigma (E,S))``,
+    the sigma used per slot (NaN on padding).
+    """
+    E = trace.n_epochs
+    if len(pos_keys) != E or len(clock_keys) != E:
+        raise GeometryError(f"{trace.name}: {E} position and clock keys needed, got {len(pos_keys)} / {len(clock_keys)}")
+    sigma, bias = corrector.slot_noise()(trace, np.asarray(init_pos, float), np.asarray(valid, bool))
+    have = np.isfinite(sigma) & np.isfinite(bias)
+    used = np.where(trace.mask, np.where(have, sigma, default_sigma_m), np.nan)
+    pr = trace.pr - np.where(have, bias, 0.0)
+    factors = [[gtsam.PseudorangeFactor(pos_keys[k], clock_keys[k], float(pr[k, s]), trace.sat_pos[k, s], 0.0,
+                                        robust_model(robust, robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(used[k, s]))))
+                for s in np.flatnonzero(trace.mask[k])] for k in range(E)]
+    return factors, used

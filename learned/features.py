@@ -1,6 +1,10 @@
 """Network inputs and targets at an initial position guess (paper Sec. "Position correction").
 
-Per satellite slot the network sees ``[residual / res_scale, los_n, los_e, los_d]``:
+Per satellite slot the network sees ``[residual / res_scale, los_n, los_e, los_d]`` (the paper's four
+inputs; ``los_d = -sin(elevation)``, so elevation is among them) and, when ``FeatureConfig.inputs`` asks for
+them, context channels that do not depend on the guess (:func:`context_channels`, from
+:mod:`learned.context`): the phone's reported pseudorange uncertainty, C/N0, the residual change since the
+previous epoch and the age of the satellite's tracking arc.
 
 - geometry is Sagnac-rotated exactly as :func:`fusion.geometry.line_of_sight` (the same model WLS uses);
 - ``raw = pr - range(guess)`` still contains the receiver clock (often 1e5 m and more on phones), which is
@@ -29,7 +33,14 @@ import torch
 from fusion.geometry import C_LIGHT, OMEGA_E, ecef2ned_vec, elevation_azimuth, line_of_sight
 
 #: Bump when the meaning or scaling of the inputs changes; checkpoints record it.
-FEATURE_VERSION = 1
+FEATURE_VERSION = 2
+
+#: Input channel groups and their widths. "res" and "los" are the paper's and always first.
+CHANNELS = {"res": 1, "los": 3, "pr_sigma": 1, "cn0": 2, "dres": 2, "arc": 1}
+#: The paper's inputs.
+PAPER_INPUTS = ("res", "los")
+#: Reference values of the context scalings: a typical phone pseudorange sigma [m], C/N0 [dB-Hz].
+_PR_SIGMA_REF_M, _CN0_REF, _CN0_SCALE = 3.0, 35.0, 10.0
 
 # WGS-84 ellipsoid (torch geodetic latitude for the NED rotation).
 _WGS84_A = 6378137.0
@@ -60,6 +71,8 @@ class FeatureConfig:
         (the simulator's true clock), reproducing the paper's released code, which fed the true clock to
         the network at evaluation (a ground-truth leak). :class:`learned.infer.Corrector` refuses
         checkpoints with ``"given"``, so such a model can never run in the product.
+    inputs: channel groups fed to the network, from :data:`CHANNELS`, starting with the paper's
+        ("res", "los").
     """
 
     version: int = FEATURE_VERSION
@@ -67,18 +80,52 @@ class FeatureConfig:
     out_scale: float = 10.0
     elev_mask_deg: float = 10.0
     clock: str = "median"
+    inputs: tuple[str, ...] = PAPER_INPUTS
 
     def __post_init__(self):
         if self.clock not in CLOCK_MODES:
             raise ValueError(f"FeatureConfig.clock must be one of {CLOCK_MODES}, got {self.clock!r}")
+        object.__setattr__(self, "inputs", tuple(self.inputs))
+        unknown = [c for c in self.inputs if c not in CHANNELS]
+        if unknown or self.inputs[:2] != PAPER_INPUTS:
+            raise ValueError(f"FeatureConfig.inputs must start with {PAPER_INPUTS} and name channels from "
+                             f"{tuple(CHANNELS)}; got {self.inputs}")
+
+    @property
+    def n_inputs(self) -> int:
+        """Input width per slot."""
+        return sum(CHANNELS[c] for c in self.inputs)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        d = asdict(self)
+        d["inputs"] = list(self.inputs)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "FeatureConfig":
-        # Checkpoints written before ``clock`` existed used the median: the default.
-        return cls(**{k: d[k] for k in ("version", "res_scale", "out_scale", "elev_mask_deg", "clock") if k in d})
+        keys = ("version", "res_scale", "out_scale", "elev_mask_deg", "clock", "inputs")
+        return cls(**{k: d[k] for k in keys if k in d})
+
+
+def context_channels(ctx: dict[str, np.ndarray], mask: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
+    """The context channels ``cfg.inputs`` asks for beyond the paper's: (N,S,C) float32, zeros on padding.
+
+    ctx: (N,S) arrays keyed as :data:`learned.context.CONTEXT_KEYS`; mask (N,S) bool real slots.
+    """
+    cols = []
+    for name in cfg.inputs[2:]:
+        if name == "pr_sigma":
+            cols.append(np.log(np.clip(ctx["pr_sigma"], 0.1, 1000.0) / _PR_SIGMA_REF_M))
+        elif name == "cn0":
+            have = ctx["cn0"] > 0
+            cols += [np.where(have, (ctx["cn0"] - _CN0_REF) / _CN0_SCALE, 0.0), have]
+        elif name == "dres":
+            cols += [np.clip(ctx["dres"] / cfg.res_scale, -10.0, 10.0), ctx["prev_ok"]]
+        elif name == "arc":
+            cols.append(np.log1p(ctx["arc_s"]) / np.log1p(600.0))
+    if not cols:
+        return np.zeros(mask.shape + (0,), np.float32)
+    return (np.stack([np.asarray(c, float) for c in cols], axis=-1) * mask[..., None]).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------- numpy
@@ -96,12 +143,13 @@ def masked_median_numpy(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 
 def features_numpy(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, guess: np.ndarray,
-                   cfg: FeatureConfig = FeatureConfig(), clock: np.ndarray | None = None
-                   ) -> tuple[np.ndarray, np.ndarray]:
+                   cfg: FeatureConfig = FeatureConfig(), clock: np.ndarray | None = None,
+                   extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Reference features. sat_pos (B,S,3), pr (B,S), mask (B,S) bool, guess (B,3) ECEF;
-    ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only).
+    ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only); ``extra`` (B,S,C) the
+    :func:`context_channels` appended after the paper's four.
 
-    Returns ``x`` (B,S,4) float32 (zeros in padded slots) and the clock used (B,) [m].
+    Returns ``x`` (B,S,4+C) float32 (zeros in padded slots) and the clock used (B,) [m].
     """
     _check_clock(cfg, clock)
     rng, los = line_of_sight(sat_pos, guess)
@@ -109,7 +157,8 @@ def features_numpy(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, guess:
     clock = masked_median_numpy(raw, mask) if clock is None else np.asarray(clock, float)
     res = np.where(mask, (raw - clock[:, None]) / cfg.res_scale, 0.0)
     los_ned = ecef2ned_vec(los, guess[:, None, :]) * mask[..., None]
-    return np.concatenate([res[..., None], los_ned], axis=-1).astype(np.float32), clock
+    parts = [res[..., None], los_ned] + ([] if extra is None else [extra])
+    return np.concatenate(parts, axis=-1).astype(np.float32), clock
 
 
 def target_numpy(truth: np.ndarray, guess: np.ndarray, cfg: FeatureConfig = FeatureConfig()) -> np.ndarray:
@@ -154,11 +203,12 @@ def line_of_sight_torch(sat_pos: torch.Tensor, rx: torch.Tensor) -> tuple[torch.
 
 
 def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, guess: torch.Tensor,
-                   cfg: FeatureConfig = FeatureConfig(), clock: torch.Tensor | None = None
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
+                   cfg: FeatureConfig = FeatureConfig(), clock: torch.Tensor | None = None,
+                   extra: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Batched features on any device. Inputs float64: sat_pos (B,S,3), pr (B,S), mask (B,S) bool,
-    guess (B,3); ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only).
-    Returns ``x`` (B,S,4) float32 and the NED rotation at the guess (B,3,3) float64."""
+    guess (B,3); ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only); ``extra``
+    (B,S,C) float32 context channels (:func:`context_channels`).
+    Returns ``x`` (B,S,4+C) float32 and the NED rotation at the guess (B,3,3) float64."""
     _check_clock(cfg, clock)
     rng, los = line_of_sight_torch(sat_pos, guess)
     raw = pr - rng
@@ -168,7 +218,8 @@ def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, 
     res = ((raw - clock[:, None]) / cfg.res_scale).masked_fill(~mask, 0.0)
     R = ned_rotation_torch(guess)
     los_ned = torch.einsum("bij,bsj->bsi", R, los) * mask[..., None]
-    return torch.cat([res[..., None], los_ned], -1).float(), R
+    x = torch.cat([res[..., None], los_ned], -1).float()
+    return (x if extra is None else torch.cat([x, extra.float()], -1)), R
 
 
 def target_torch(truth: torch.Tensor, guess: torch.Tensor, R: torch.Tensor,
@@ -177,20 +228,20 @@ def target_torch(truth: torch.Tensor, guess: torch.Tensor, R: torch.Tensor,
     return torch.einsum("bij,bj->bi", R, truth - guess).float() / cfg.out_scale
 
 
-def compact_slots(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Move each epoch's real slots to the front and drop the all-padding tail: (N,S',3), (N,S'), (N,S').
+def compact_slots(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, *extra: np.ndarray) -> tuple:
+    """Move each epoch's real slots to the front and drop the all-padding tail.
 
-    sat_pos (N,S,3), pr (N,S), mask (N,S) bool; S' = the most real slots of any epoch (>= 1); padded slots
-    keep whatever the inputs held there. The network's output does not depend on slot order or padding,
-    but its cost grows with S: traces are padded to the most slots of any epoch *before* the elevation
-    mask (measured on the shipped trace: S 10 -> 8, about 20 % less network time).
+    sat_pos (N,S,3), pr (N,S), mask (N,S) bool, and any ``extra`` (N,S[,k]) arrays slotted the same way;
+    returns them in that order with S' = the most real slots of any epoch (>= 1) slots. Padded slots keep
+    whatever the inputs held there. The network's output does not depend on slot order or padding, but its
+    cost grows with S: traces are padded to the most slots of any epoch *before* the elevation mask
+    (measured on the shipped trace: S 10 -> 8, about 20 % less network time).
     """
-    order = np.argsort(~mask, axis=1, kind="stable")
-    S = max(int(mask.sum(1).max(initial=0)), 1)
-    order = order[:, :S]
-    return (np.take_along_axis(sat_pos, order[..., None], 1), np.take_along_axis(pr, order, 1),
-            np.take_along_axis(mask, order, 1))
+    order = np.argsort(~mask, axis=1, kind="stable")[:, :max(int(mask.sum(1).max(initial=0)), 1)]
+
+    def take(a: np.ndarray) -> np.ndarray:
+        return np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)
+    return tuple(take(a) for a in (sat_pos, pr, mask, *extra))
 
 
 def elevation_mask(sat_pos: np.ndarray, mask: np.ndarray, at: np.ndarray, min_deg: float) -> np.ndarray:

@@ -12,10 +12,16 @@ import numpy as np
 import torch
 
 from fusion.errors import CheckpointError, GeometryError
-from fusion.geometry import ned_rotation
+from fusion.modes import solve_initial
+from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, Trace
 from learned.checkpoint import load_model
-from learned.features import FeatureConfig, compact_slots, elevation_mask, features_torch
+from learned.context import slot_context
+from learned.features import FeatureConfig, context_channels, elevation_mask, features_torch
+from learned.forward import outputs
+from learned.guard import slot_out_of_range, trust
+from learned.losses import weighted_ls_step
+from learned.forward import OUTPUTS
 
 #: Weights shipped with the package (see learned/weights/TRAINING.md).
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.pt"
@@ -33,6 +39,9 @@ class Correction:
     corr_ned:  (E,3) correction in the NED frame of the initial guess [m].  cov_ned: (E,3,3) [m^2].
     valid:     (E,) bool: initial guess valid and >= 4 satellites above the elevation mask at it.
     n_too_few: epochs with a valid guess but < 4 satellites above the mask.
+    sigma, bias: (E,S) learned pseudorange sigma and bias [m] per trace slot, NaN where the network was
+               not asked or the slot's inputs are out of the training range (:mod:`learned.guard`).
+    trust:     (E,) the guard's trust in [0, 1] (NaN where not valid); the correction is shrunk by it.
     """
 
     mean_ecef: np.ndarray
@@ -41,26 +50,42 @@ class Correction:
     cov_ned: np.ndarray
     valid: np.ndarray
     n_too_few: int = 0
+    sigma: np.ndarray | None = None
+    bias: np.ndarray | None = None
+    trust: np.ndarray | None = None
+
+
+def _calibration_scales(config: dict, path, calibrated: bool) -> dict[str, np.ndarray]:
+    """Variance scales (name -> (3,) NED), ones where absent or not ``calibrated``: per output (fitted on the
+    validation split) and ``unseen_dnn`` / ``unseen_fused`` (fitted on unseen drives by
+    ``experiments/crossval.py``, applied on top)."""
+    out = {}
+    for name in (*OUTPUTS, "unseen_dnn", "unseen_fused"):
+        scale = ((config.get("calibration") or {}).get(name) or {}).get("scale_ned")
+        if scale is None or not calibrated:
+            out[name] = np.ones(3)
+            continue
+        scale = np.asarray(scale, float)
+        if scale.shape != (3,) or not (np.isfinite(scale).all() and (scale > 0).all()):
+            raise CheckpointError(f"{path}: calibration {name} scale_ned must be 3 positive numbers, got {scale.tolist()}")
+        out[name] = scale ** 2
+    return out
 
 
 class Corrector:
-    """A loaded checkpoint. ``corrector(trace, init_pos, valid) -> (mean_ecef, cov_ecef, valid)``.
+    """A loaded checkpoint: the learned position (``predict``), prior provider (``provider``) and
+    per-satellite noise provider (``slot_noise``).
 
-    Variance calibration: when the checkpoint's config holds ``calibration.scale_ned`` (per-NED-axis sigma
-    scale fitted on validation guesses at WLS, or at the no-prior graph solution when the training mix used
-    graph guesses (``calibration.guess``), by :func:`learned.train.fit_calibration`), predicted variances are
-    multiplied by its square (``calibrated=False`` gives the raw head, e.g. to report before/after).
-    Checkpoints without it (trained before calibration existed) load with scale 1.
-
-    Signals: the network only ever sees the signals it was trained on (``config["signals"]``, GPS_L1 for
-    checkpoints written before the key existed); other slots of a trace are ignored by :meth:`predict`
-    (the initial guess may still come from an all-signal WLS).
+    Output (``config["output"]``, or the ``output`` argument): ``"wls"``, the least-squares position with the
+    per-satellite head's sigmas and biases, iterated from the guess; ``"correction"``, the paper's
+    correction head. Covariances are scaled by the checkpoint's calibration (``calibrated=False``: raw).
+    The guard (:mod:`learned.guard`) shrinks the correction toward the guess where inputs leave the
+    training range. Only the signals the network was trained on are used (``config["signals"]``).
     """
 
     def __init__(self, model: torch.nn.Module, config: dict, device: str = "cpu", path: Path | None = None,
                  calibrated: bool = True):
-        self.model = model.eval()
-        self.config = config
+        self.model, self.config, self.path = model.eval(), config, path
         try:
             self.features = FeatureConfig.from_dict(config["features"])
         except (TypeError, ValueError) as exc:
@@ -75,19 +100,11 @@ class Corrector:
             raise CheckpointError(f"{path}: unknown training signal(s) {unknown} (known: {', '.join(SIGNALS)})")
         self.signals = signals
         self._signal_idx = np.array([SIGNALS.index(s) for s in signals], np.int8)
-        self.kind = config["model"]["kind"]
+        self.output = config.get("output", "correction")
         self.device = torch.device(device)
-        self.path = path
-        ref = config.get("reference_ecef")
-        if self.kind == "direct" and ref is None:
-            raise CheckpointError(f"{path}: direct-position checkpoint without a reference point")
-        self.reference = None if ref is None else np.asarray(ref, float)
-        scale = (config.get("calibration") or {}).get("scale_ned")
-        if scale is not None:
-            scale = np.asarray(scale, float)
-            if scale.shape != (3,) or not (np.isfinite(scale).all() and (scale > 0).all()):
-                raise CheckpointError(f"{path}: calibration scale_ned must be 3 positive numbers, got {scale.tolist()}")
-        self.var_scale = np.ones(3) if (scale is None or not calibrated) else scale ** 2
+        self.var_scale = _calibration_scales(config, path, calibrated)
+        self.ranges = config.get("input_ranges")
+        self._ctx_cache: tuple[int, dict] | None = None
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str = "cpu", calibrated: bool = True) -> "Corrector":
@@ -98,64 +115,99 @@ class Corrector:
         model, blob = load_model(path, map_location=device)
         return cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
 
-    @torch.no_grad()
-    def predict(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
-                elev_mask_deg: float | None = None) -> Correction:
-        """Correct ``init_pos`` (E,3) ECEF at epochs where ``valid`` (E,) and >= 4 satellites of the
-        checkpoint's signals clear the elevation mask (checkpoint's, unless given) seen from the guess.
-        Batched over all epochs."""
+    def _context(self, trace: Trace) -> dict[str, np.ndarray]:
+        """The trace's per-slot context (E,S) from its own default WLS (as in training), cached per trace."""
+        if self._ctx_cache is None or self._ctx_cache[0] != id(trace):
+            wls = solve_initial(trace, RunOptions(elev_mask_deg=self.features.elev_mask_deg))
+            self._ctx_cache = (id(trace), slot_context(trace, wls).as_dict())
+        return self._ctx_cache[1]
+
+    def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float
+               ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Epochs asked (N,) and their slot masks (N,S): valid guess, trained signals, >= 4 above ``elev``."""
         E = trace.n_epochs
-        init_pos = np.asarray(init_pos, float)
         if init_pos.shape != (E, 3) or np.shape(valid) != (E,):
             raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
-                             f"got {init_pos.shape} and {np.shape(valid)}")
-        elev = self.features.elev_mask_deg if elev_mask_deg is None else elev_mask_deg
-        ok = np.asarray(valid, bool) & np.isfinite(init_pos).all(1)
-        idx = np.flatnonzero(ok)
-        guess = init_pos[idx]
-        # Only the signals the network was trained on (a GPS-L1 network fed GLONASS/Galileo/BeiDou slots
+                                f"got {init_pos.shape} and {np.shape(valid)}")
+        idx = np.flatnonzero(np.asarray(valid, bool) & np.isfinite(init_pos).all(1))
+        # Only the signals the network was trained on (a GPS-L1 network fed other constellations' slots
         # would see their inter-system clock offsets as residuals it has never met).
         own = trace.mask[idx] & np.isin(trace.signal[idx], self._signal_idx)
-        mask = elevation_mask(trace.sat_pos[idx], own, guess, elev)
+        mask = elevation_mask(trace.sat_pos[idx], own, init_pos[idx], elev)
         enough = mask.sum(1) >= 4
-        n_too_few = int((~enough).sum())
-        idx, guess, mask = idx[enough], guess[enough], mask[enough]
-
-        mean = np.full((E, 3), np.nan)
-        cov = np.full((E, 3, 3), np.nan)
-        corr = np.full((E, 3), np.nan)
-        cov_n = np.full((E, 3, 3), np.nan)
-        if len(idx):
-            at = guess if self.reference is None else np.broadcast_to(self.reference, guess.shape)
-            out, var = self._forward(trace.sat_pos[idx], trace.pr[idx], mask, at)
-            R_at = ned_rotation(at)                               # (N,3,3) ECEF -> NED at feature point
-            m_ecef = at + np.einsum("nji,nj->ni", R_at, out)
-            c_ecef = np.einsum("nji,nj,njk->nik", R_at, var, R_at)
-            # a correcting (non-direct) model is evaluated at the guess itself: same rotation
-            R_g = R_at if self.reference is None else ned_rotation(guess)
-            mean[idx], cov[idx] = m_ecef, c_ecef
-            corr[idx] = np.einsum("nij,nj->ni", R_g, m_ecef - guess)
-            cov_n[idx] = np.einsum("nij,njk,nlk->nil", R_g, c_ecef, R_g)
-        v = np.zeros(E, bool)
-        v[idx] = True
-        return Correction(mean, cov, corr, cov_n, v, n_too_few)
+        return idx[enough], mask[enough], int((~enough).sum())
 
     @torch.no_grad()
-    def _forward(self, sat_pos, pr, mask, at) -> tuple[np.ndarray, np.ndarray]:
-        """Network output (N,3) [m] and per-axis variance (N,3) [m^2] in the NED frame at ``at``."""
+    def _forward(self, trace: Trace, idx: np.ndarray, mask: np.ndarray, guess: np.ndarray) -> dict:
+        """Network outputs for epochs ``idx`` (N,) with slot mask (N,S) at ``guess`` (N,3), in trace slots."""
+        ctx = {k: v[idx] for k, v in self._context(trace).items()}
+        extra = context_channels(ctx, mask, self.features)
+        order = np.argsort(~mask, axis=1, kind="stable")[:, :max(int(mask.sum(1).max(initial=0)), 1)]
+        sat_pos, pr, m, extra, prs = (np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)
+                                      for a in (trace.sat_pos[idx], trace.pr[idx], mask, extra, ctx["pr_sigma"]))
+        parts = [self._chunk(sat_pos[sl], pr[sl], m[sl], extra[sl], prs[sl], guess[sl])
+                 for sl in (slice(a, a + INFER_CHUNK) for a in range(0, len(idx), INFER_CHUNK))]
+        out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        out["oor"] = slot_out_of_range(out.pop("x"), m, self.ranges)
+        for k in ("sigma", "bias", "oor"):      # back from compacted to trace slots
+            full = np.zeros(mask.shape, out[k].dtype)
+            np.put_along_axis(full, order, out[k], axis=1)
+            out[k] = np.where(mask, full, False if k == "oor" else np.nan)
+        return out
+
+    def _chunk(self, sat_pos, pr, mask, extra, pr_sigma, guess) -> dict:
+        """One chunk (N epochs, S slots: sat_pos (N,S,3), pr, mask, pr_sigma (N,S), extra (N,S,C), guess
+        (N,3)) through the network; the learned-weight solution iterated twice from the guess."""
         f64 = dict(dtype=torch.float64, device=self.device)
-        sat_pos, pr, mask = compact_slots(sat_pos, pr, mask)
-        outs, vars_ = [], []
-        for a in range(0, len(pr), INFER_CHUNK):
-            sl = slice(a, a + INFER_CHUNK)
-            m = torch.as_tensor(mask[sl], device=self.device)
-            x, _ = features_torch(torch.as_tensor(sat_pos[sl], **f64), torch.as_tensor(pr[sl], **f64), m,
-                                  torch.as_tensor(np.ascontiguousarray(at[sl]), **f64), self.features)
-            mu, logvar = self.model(x, m)
-            outs.append(mu.double().cpu().numpy())
-            vars_.append(torch.exp(logvar).double().cpu().numpy())
+        b = {"sat_pos": torch.as_tensor(sat_pos, **f64), "pr": torch.as_tensor(pr, **f64),
+             "pr_sigma": torch.as_tensor(pr_sigma, **f64),
+             "mask": torch.as_tensor(mask, device=self.device), "guess": torch.as_tensor(guess, **f64)}
+        b["x"], R = features_torch(b["sat_pos"], b["pr"], b["mask"], b["guess"], self.features,
+                                   extra=torch.as_tensor(extra, device=self.device))
+        o = outputs(self.model, b, self.features)
+        # the weights come from the guess's features; a second step removes the linearisation error
+        pos, cov = weighted_ls_step(b["sat_pos"], b["pr"], b["mask"], o["pos"], o["sigma"], o["bias"])
         s = self.features.out_scale
-        return np.concatenate(outs) * s, np.concatenate(vars_) * (s * s) * self.var_scale
+        R = R.cpu().numpy()
+        corr_ned = {"wls": np.einsum("nij,nj->ni", R, (pos - b["guess"]).cpu().numpy()),
+                    "correction": o["mean"].double().cpu().numpy() * s}
+        var_ned = {"wls": np.einsum("nij,njk,nlk->nil", R, cov.cpu().numpy(), R),
+                   "correction": np.apply_along_axis(np.diag, 1, torch.exp(o["logvar"]).double().cpu().numpy() * s * s)}
+        return {"x": b["x"].cpu().numpy(), "sigma": o["sigma"].cpu().numpy(), "bias": o["bias"].cpu().numpy(),
+                "R": R, **{f"corr_{k}": v for k, v in corr_ned.items()}, **{f"cov_{k}": v for k, v in var_ned.items()}}
+
+    def predict(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
+                elev_mask_deg: float | None = None, output: str | None = None) -> Correction:
+        """Correct ``init_pos`` (E,3) ECEF at epochs where ``valid`` (E,) and >= 4 satellites of the
+        checkpoint's signals clear the elevation mask (checkpoint's, unless given) seen from the guess."""
+        E, S = trace.mask.shape
+        init_pos = np.asarray(init_pos, float)
+        output = output or self.output
+        if output not in OUTPUTS:
+            raise CheckpointError(f"{self.path}: unknown output {output!r} (known: {', '.join(OUTPUTS)})")
+        elev = self.features.elev_mask_deg if elev_mask_deg is None else elev_mask_deg
+        idx, mask, n_too_few = self._asked(trace, init_pos, valid, elev)
+        res = Correction(np.full((E, 3), np.nan), np.full((E, 3, 3), np.nan), np.full((E, 3), np.nan),
+                         np.full((E, 3, 3), np.nan), np.zeros(E, bool), n_too_few, np.full((E, S), np.nan),
+                         np.full((E, S), np.nan), np.full(E, np.nan))
+        if len(idx):
+            self._fill(res, self._forward(trace, idx, mask, init_pos[idx]), idx, mask, init_pos[idx], output)
+        return res
+
+    def _fill(self, res: Correction, out: dict, idx, mask, guess, output: str) -> None:
+        """Shrink by the guard's trust, scale the covariance, rotate to ECEF, write rows ``idx``."""
+        a = trust(out["oor"], mask)
+        corr = out[f"corr_{output}"] * a[:, None]
+        # what the shrink left out is uncertainty the covariance must carry
+        v = self.var_scale[output] * self.var_scale["unseen_dnn"]
+        cov = out[f"cov_{output}"] * np.sqrt(np.outer(v, v))
+        cov = cov + np.apply_along_axis(np.diag, 1, ((1 - a)[:, None] * out[f"corr_{output}"]) ** 2)
+        R = out["R"]
+        res.corr_ned[idx], res.cov_ned[idx], res.trust[idx], res.valid[idx] = corr, cov, a, True
+        res.mean_ecef[idx] = guess + np.einsum("nji,nj->ni", R, corr)
+        res.cov_ecef[idx] = np.einsum("nji,njk,nkl->nil", R, cov, R)
+        res.sigma[idx] = np.where(out["oor"], np.nan, out["sigma"])
+        res.bias[idx] = np.where(out["oor"], np.nan, out["bias"])
 
     def __call__(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
         return self.provider()(trace, init_pos, valid)
@@ -167,6 +219,14 @@ class Corrector:
         def ask(trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
             c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
             return c.mean_ecef, c.cov_ecef, c.valid
+        return ask
+
+    def slot_noise(self, elev_mask_deg: float | None = None):
+        """This corrector as a graph slot-noise provider ``(trace, init_pos, valid) -> (sigma (E,S),
+        bias (E,S))`` [m], NaN where it has no opinion (the graph then keeps its default sigma)."""
+        def ask(trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
+            c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
+            return c.sigma, c.bias
         return ask
 
 

@@ -1,7 +1,10 @@
 """Networks mapping a padded set of per-satellite features (B,S,F) + mask (B,S) to a 3-vector.
 
-All models return ``(mean (B,3), log_var (B,3))``: the correction (in units of the feature config's
-``out_scale``) and the per-axis log-variance of its error (same units squared).
+All models return ``(mean (B,3), log_var (B,3), sat (B,S,2))``: the correction (in units of the feature
+config's ``out_scale``), the per-axis log-variance of its error (same units squared), and per satellite
+slot the log of its pseudorange error sigma relative to a physical sigma model and its bias (in units of
+``res_scale``; see :func:`sat_sigma_bias`). The per-satellite head reads each slot's own embedding after the encoder, which has
+already attended to the whole set.
 
 - :class:`SetTransformer` (paper Sec. 5.0): Linear(4->64)+ReLU, 2 Transformer encoder layers, attention
   pooling with one learned seed (PMA), 2 Transformer decoder layers attending to the encoded set,
@@ -9,6 +12,8 @@ All models return ``(mean (B,3), log_var (B,3))``: the correction (in units of t
   above the paper's 151,107 (which we could not match exactly with standard PyTorch layers); the
   log-variance head adds 195.
 - :class:`DeepSets`: per-element MLP, masked mean + masked max pooling, MLP decoder.
+
+The per-satellite head (``Linear(d_model -> 2)``) adds 130 parameters to the set transformer.
 
 Padding slots (mask False) are excluded by key padding masks in every attention and by the pooling
 masks, so the output does not depend on what the padded slots contain or on slot order.
@@ -20,6 +25,23 @@ from torch import nn
 
 #: Log-variance output is clamped to this range (variance between ~5e-5 and ~2e4 out_scale^2).
 LOGVAR_RANGE = (-10.0, 10.0)
+#: The per-satellite log-multiplier is clamped to this range (sigma between 1/50 and 50 x the model's).
+LOGSIG_RANGE = (-4.0, 4.0)
+#: Zenith term of the physical sigma model [m] (the graph's default: GraphConfig.pr_sigma_zenith_m).
+ZENITH_SIGMA_M = 1.0
+
+
+def base_sigma(pr_sigma: torch.Tensor, sin_el: torch.Tensor) -> torch.Tensor:
+    """The physical pseudorange sigma model [m], ``sqrt(pr_sigma^2 + (ZENITH_SIGMA_M / sin el)^2)``: the
+    phone's reported uncertainty and an elevation term; both (B,S), sin_el clipped to [0.1, 1]."""
+    return torch.sqrt(pr_sigma.double() ** 2 + (ZENITH_SIGMA_M / sin_el.double().clamp(0.1, 1.0)) ** 2)
+
+
+def sat_sigma_bias(sat: torch.Tensor, res_scale: float, base: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-slot pseudorange error sigma and bias [m] from the head's (B,S,2) output: the head scales the
+    physical model ``base`` (B,S) [m] (it learns what the phone's report and the elevation miss, and starts
+    from them) and predicts the bias in units of ``res_scale``."""
+    return base * torch.exp(sat[..., 0].double().clamp(*LOGSIG_RANGE)), sat[..., 1].double() * res_scale
 
 
 class PMA(nn.Module):
@@ -49,9 +71,10 @@ class SetTransformer(nn.Module):
             d_model, n_heads, dim_feedforward, dropout=0.0, batch_first=True) for _ in range(n_decoder))
         self.head = nn.Linear(d_model, d_out)
         self.logvar_head = nn.Linear(d_model, d_out)
+        self.sat_head = nn.Linear(d_model, 2)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """x (B,S,F) float32, mask (B,S) bool True for real slots -> mean (B,3), log_var (B,3)."""
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """x (B,S,F) float32, mask (B,S) bool True for real slots -> mean (B,3), log_var (B,3), sat (B,S,2)."""
         pad = ~mask
         h = self.embed(x)
         for layer in self.encoder:
@@ -60,7 +83,7 @@ class SetTransformer(nn.Module):
         for layer in self.decoder:
             z = layer(z, h, memory_key_padding_mask=pad)
         z = z[:, 0]
-        return self.head(z), self.logvar_head(z).clamp(*LOGVAR_RANGE)
+        return self.head(z), self.logvar_head(z).clamp(*LOGVAR_RANGE), self.sat_head(h)
 
 
 class DeepSets(nn.Module):
@@ -71,21 +94,24 @@ class DeepSets(nn.Module):
         self.rho = nn.Sequential(nn.Linear(2 * d_model, d_model), nn.ReLU(), nn.Linear(d_model, d_model), nn.ReLU())
         self.head = nn.Linear(d_model, d_out)
         self.logvar_head = nn.Linear(d_model, d_out)
+        self.sat_head = nn.Linear(d_model + 2 * d_model, 2)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """x (B,S,F), mask (B,S) -> mean (B,3), log_var (B,3). Masked mean and max pooling."""
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """x (B,S,F), mask (B,S) -> mean (B,3), log_var (B,3), sat (B,S,2). Masked mean and max pooling;
+        the per-satellite head reads each element's embedding beside the pooled set."""
         h = self.phi(x)
         m = mask[..., None].to(h.dtype)
         mean = (h * m).sum(1) / m.sum(1).clamp_min(1.0)
         mx = h.masked_fill(~mask[..., None], float("-inf")).amax(1)
         mx = torch.where(torch.isfinite(mx), mx, torch.zeros_like(mx))
-        z = self.rho(torch.cat([mean, mx], -1))
-        return self.head(z), self.logvar_head(z).clamp(*LOGVAR_RANGE)
+        pooled = torch.cat([mean, mx], -1)
+        z = self.rho(pooled)
+        sat = self.sat_head(torch.cat([h, pooled[:, None, :].expand(-1, h.shape[1], -1)], -1))
+        return self.head(z), self.logvar_head(z).clamp(*LOGVAR_RANGE), sat
 
 
-#: ``--model`` name -> class. "direct" is the set transformer fed with features at a fixed reference
-#: point (see learned.data / learned.train): the architecture is the same, the regression target differs.
-MODELS = {"set": SetTransformer, "deepsets": DeepSets, "direct": SetTransformer}
+#: ``--model`` name -> class.
+MODELS = {"set": SetTransformer, "deepsets": DeepSets}
 
 
 def build_model(kind: str, **hparams) -> nn.Module:
@@ -94,5 +120,8 @@ def build_model(kind: str, **hparams) -> nn.Module:
     return MODELS[kind](**hparams)
 
 
-def count_parameters(model: nn.Module, include_logvar: bool = True) -> int:
-    return sum(p.numel() for n, p in model.named_parameters() if include_logvar or not n.startswith("logvar_head"))
+def count_parameters(model: nn.Module, include_heads: bool = True) -> int:
+    """Parameters, or without the variance and per-satellite heads (the paper's mean path) when
+    ``include_heads`` is False."""
+    extra = ("logvar_head", "sat_head")
+    return sum(p.numel() for n, p in model.named_parameters() if include_heads or not n.startswith(extra))

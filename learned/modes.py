@@ -10,6 +10,7 @@ import numpy as np
 from fusion.estimate.graph.fuse import fuse
 from fusion.estimate.graph.priors import PriorProvider
 from fusion.estimate.wls import WlsResult
+from fusion.geometry import ecef2ned_cov, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 from learned.infer import Corrector
@@ -20,14 +21,15 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     recomputed at each corrected position). Epochs with invalid WLS or < 4 satellites: not solved."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     pos, valid = np.asarray(wls.pos, float), np.asarray(wls.valid, bool)
-    cov, too_few = None, 0
+    cov, too_few, trust = None, 0, np.full(trace.n_epochs, np.nan)
     for _ in range(max(1, int(opts.dnn_passes))):
-        c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg)
+        c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg, output=opts.dnn_output)
         too_few += c.n_too_few
-        pos, valid, cov = c.mean_ecef, c.valid, c.cov_ecef
+        pos, valid, cov, trust = c.mean_ecef, c.valid, c.cov_ecef, c.trust
     info = {"passes": int(max(1, opts.dnn_passes)), "unsolved": int((~valid).sum()),
             "unsolved_wls": int((~np.asarray(wls.valid, bool)).sum()), "too_few_sats": too_few,
-            "weights": str(corrector.path)}
+            "output": opts.dnn_output or corrector.output, "weights": str(corrector.path),
+            "guard_shrunk": int((trust[valid] < 1).sum()), "guard_off": int((trust[valid] == 0).sum())}
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
@@ -46,14 +48,25 @@ def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
     return run
 
 
-def learned_provider(opts: RunOptions) -> PriorProvider:
+def learned_provider(opts: RunOptions, corrector: Corrector | None = None) -> PriorProvider:
     """The checkpoint's corrector as a prior provider, under the run's elevation mask (as ``dnn``),
     applied ``opts.dnn_passes`` times."""
-    corrector = Corrector.load(opts.weights, device=opts.device)
+    corrector = corrector or Corrector.load(opts.weights, device=opts.device)
     return iterated(corrector.provider(opts.elev_mask_deg), int(opts.dnn_passes))
 
 
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
-    """The ``fused`` mode: pseudoranges + learned position prior + motion (the paper's correction
-    inside a graph)."""
-    return fuse(trace, wls, opts, provider=learned_provider(opts))
+    """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
+    + motion; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
+    corrector = Corrector.load(opts.weights, device=opts.device)
+    provider = learned_provider(opts, corrector) if opts.learned_prior else None
+    noise = corrector.slot_noise(opts.elev_mask_deg) if opts.learned_sigmas else None
+    res = fuse(trace, wls, opts, provider=provider, slot_noise=noise)
+    if res.cov is not None and res.valid.any():
+        # the graph's marginals, scaled per NED axis as measured on unseen drives (ones if not calibrated)
+        ok = res.valid
+        v = np.sqrt(corrector.var_scale["unseen_fused"])
+        ned = ecef2ned_cov(res.cov[ok], res.pos[ok]) * np.outer(v, v)
+        res.cov = res.cov.copy()
+        res.cov[ok] = ned2ecef_cov(ned, res.pos[ok])
+    return res

@@ -1,27 +1,25 @@
-"""``gnssfuse train``: fit the correction network (paper Sec. 5.0 settings by default).
+"""``gnssfuse train``: fit the correction network and its per-satellite head.
 
-Adam(lr 3e-4, betas (0.9, 0.99)), batch 64, MSE on the NED correction; after ``--warmup-epochs`` of pure
-MSE the per-axis log-variance head is trained with a Gaussian NLL on the *detached* mean, so the mean is
-fitted exactly as in the paper and the variance head only learns how large its errors are.
-Every epoch draws new initial guesses (geometry-based augmentation, :mod:`learned.augment`) unless
-``--no-augment``, in which case guesses are drawn once and kept (the paper's baseline). ``--guess-mix``
-chooses where guesses come from: the paper's box around the truth (``box``) and/or each sample's own WLS
-solution plus ``--wls-jitter`` (``wls``: the inference-time distribution; the network learns to undo what
-pulls WLS off, e.g. NLOS-biased satellites); ``graph``: each sample's own no-prior factor-graph
-solution plus the same jitter (where the fused mode asks the network). After training, the variance
-head is calibrated on the validation split from WLS guesses, or from graph guesses when the mix uses
-``graph`` (per-NED-axis scale, stored in the checkpoint, applied by
-:class:`learned.infer.Corrector`). Validation uses
-guesses drawn once, so its loss is comparable across epochs; the best validation MSE is saved to ``--out``
-and the last state (with optimizer) to ``<out>.last`` for ``--resume``.
+Three losses train it (:class:`LossWeights`, :mod:`learned.losses`): the paper's MSE of the NED correction
+(plus, after ``warmup`` epochs, a Gaussian NLL on the detached mean for the variance head), the Gaussian NLL
+of each pseudorange's error under the per-satellite sigma and bias, and the error of the position the
+per-satellite weights give (one weighted least-squares step from the guess): the weights are trained for
+what the ``dnn`` and ``fused`` modes use them for. Adam(lr 3e-4, betas (0.9, 0.99)).
 
-Reproducible on CPU for a given seed (model init, guesses and batch order come from seeded generators;
-per-epoch generators are derived from (seed, epoch), so a resumed run draws what an uninterrupted one would).
+Every epoch draws new initial guesses (geometry-based augmentation, :mod:`learned.augment`): the paper's box
+around the truth and/or each sample's own WLS or no-prior graph solution plus jitter (``--guess-mix``), the
+points where inference asks the network. Validation asks at each sample's WLS solution exactly; the best
+validation error of the configured output is saved to ``--out``, the last state (with optimizer) to
+``<out>.last`` for ``--resume``. Afterwards both outputs' covariances are calibrated on the validation
+split (:mod:`learned.calibrate`).
+
+Reproducible on CPU for a given seed (model init, guesses and batch order come from seeded generators; per-
+epoch generators derive from (seed, epoch, rank), so a resumed run draws what an uninterrupted one would).
+Under ``torchrun`` (:mod:`learned.distributed`) every rank trains on its shard of each epoch's permutation
+with its own guess stream, gradients are averaged, and rank 0 alone validates, logs and writes checkpoints.
 """
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import math
 import sys
 import time
@@ -33,16 +31,32 @@ import torch
 import torch.nn.functional as F
 
 from fusion.errors import CheckpointError, DataError
-from fusion.geometry import ecef2geodetic, geodetic2ecef
+from learned import distributed as dist
 from learned.augment import draw_guesses, draw_mixed_guesses, epoch_generator, parse_guess_mix
+from learned.calibrate import calibrate_checkpoint
 from learned.checkpoint import read_checkpoint, save_checkpoint
-from learned.data import (Samples, build_samples, load_real_traces, simulated_traces, split_blocks,
-                          split_random)
-from learned.features import FeatureConfig, features_torch, target_torch
-from learned.model import build_model, count_parameters
+from learned.data import Samples
+from learned.features import FeatureConfig, context_channels, features_torch, target_torch
+from learned.losses import gaussian_nll, position_loss, sat_nll
+from learned.forward import OUTPUTS, outputs, predict_all, take
+from learned.guard import input_ranges
+from learned.model import build_model
 
 #: Feature chunk size when regenerating a whole epoch's inputs (bounded memory on any device).
 CHUNK = 16384
+
+
+@dataclass
+class LossWeights:
+    """Mix of the three losses (0 switches one off)."""
+
+    correction: float = 1.0     # paper's MSE (+ variance NLL after warm-up), out_scale units
+    sat: float = 0.1            # per-satellite NLL [log m]
+    wls: float = 1.0            # Huber of the learned-weight WLS position error, over ``wls_scale`` [m]
+    wls_scale: float = 5.0
+    # pull toward the physical sigma model and no bias: the head departs from them only where the
+    # data insist (unregularised, its departures lost to the model alone on unseen drives)
+    shrink: float = 1.0
 
 
 @dataclass
@@ -62,37 +76,31 @@ class TrainConfig:
     features: FeatureConfig = field(default_factory=FeatureConfig)
     data: dict = field(default_factory=dict)  # description of the training data (for the checkpoint)
     guess_mix: dict = field(default_factory=lambda: {"box": 1.0, "wls": 0.0})
-    wls_jitter: float = 2.0               # [m] per NED axis around the WLS guess
-    # Training only: a sample whose WLS (for a wls guess) or no-prior graph solution (for a graph guess)
-    # is farther than this from the truth gets a box guess instead (a 200 m blunder would dominate the
-    # MSE; the network's output scale is 10 m).
+    wls_jitter: float = 2.0               # [m] per NED axis around WLS / graph guesses
+    # Training only: a guess source farther than this from the truth gives that sample a box guess.
     wls_max_err: float = 100.0
-    # after training, fit the variance scale on validation guesses at WLS (at the graph solution when
-    # the mix uses graph guesses)
     calibrate: bool = True
-    # Signals the training traces were loaded with (real traces: load_real_traces' default; the simulator
-    # makes GPS L1); inference uses only these slots of a trace.
     signals: tuple[str, ...] = ("GPS_L1",)
+    loss: LossWeights = field(default_factory=LossWeights)
+    output: str = "wls"                   # what the dnn mode returns (one of OUTPUTS)
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
 
-    def to_checkpoint_config(self, reference_ecef: np.ndarray | None) -> dict:
+    def to_checkpoint_config(self) -> dict:
+        hp = dict(self.hparams, d_in=self.features.n_inputs)
         return {
-            "model": {"kind": self.model, "hparams": dict(self.hparams)},
-            "features": self.features.to_dict(),
+            "model": {"kind": self.model, "hparams": hp}, "features": self.features.to_dict(),
             "eta": self.eta, "augment": self.augment, "seed": self.seed, "epochs": self.epochs,
             "batch": self.batch, "lr": self.lr, "betas": list(self.betas), "warmup_epochs": self.warmup(),
-            "val_frac": self.val_frac, "data": self.data,
-            "guess_mix": parse_guess_mix(self.guess_mix), "wls_jitter": self.wls_jitter,
-            "wls_max_err": self.wls_max_err, "signals": list(self.signals),
-            # Direct-position model only: features and targets live at this fixed ECEF reference.
-            "reference_ecef": None if reference_ecef is None else [float(v) for v in reference_ecef],
+            "val_frac": self.val_frac, "data": self.data, "guess_mix": parse_guess_mix(self.guess_mix),
+            "wls_jitter": self.wls_jitter, "wls_max_err": self.wls_max_err, "signals": list(self.signals),
+            "loss": vars(self.loss).copy(), "output": self.output,
         }
 
 
-def _guess_source(name: str, pos: np.ndarray, truth: np.ndarray, max_err: float, device: torch.device
-                  ) -> dict[str, torch.Tensor]:
+# ------------------------------------------------------------------------------------------ tensors
+def _guess_source(name: str, pos: np.ndarray, truth: np.ndarray, max_err: float, device) -> dict:
     """``name`` (N,3) positions (NaN rows -> 0), ``name_ok`` (finite) and ``name_use`` (finite and within
     ``max_err`` of the truth: the training-time filter for guesses from this source)."""
     ok = np.isfinite(pos).all(1)
@@ -101,352 +109,197 @@ def _guess_source(name: str, pos: np.ndarray, truth: np.ndarray, max_err: float,
             f"{name}_ok": torch.as_tensor(ok, device=device), f"{name}_use": torch.as_tensor(use, device=device)}
 
 
-def _tensors(s: Samples, device: torch.device, wls_max_err: float = math.inf) -> dict[str, torch.Tensor]:
-    """Sample arrays on ``device``, with the guess sources of :func:`_guess_source`: ``wls`` always,
-    ``graph`` when the samples carry graph positions."""
+def sample_tensors(s: Samples, fcfg: FeatureConfig, device, max_err: float = math.inf) -> dict:
+    """Sample arrays on ``device``: measurements, truth, guess sources (``wls``; ``graph`` when carried)
+    and the context channels (N,S,C) the feature config asks for."""
+    if len(fcfg.inputs) > 2 and s.ctx is None:
+        raise DataError(f"features {fcfg.inputs} need per-slot context but the samples carry none")
     f64 = dict(dtype=torch.float64, device=device)
-    graph = {} if s.graph is None else _guess_source("graph", s.graph, s.truth, wls_max_err, device)
+    extra = context_channels(s.ctx, s.mask, fcfg) if s.ctx is not None else np.zeros(s.mask.shape + (0,))
+    graph = {} if s.graph is None else _guess_source("graph", s.graph, s.truth, max_err, device)
     return {"sat_pos": torch.as_tensor(s.sat_pos, **f64), "pr": torch.as_tensor(s.pr, **f64),
             "mask": torch.as_tensor(s.mask, device=device), "truth": torch.as_tensor(s.truth, **f64),
-            **_guess_source("wls", s.wls_or_nan(), s.truth, wls_max_err, device),
+            "extra": torch.as_tensor(extra, dtype=torch.float32, device=device),
+            "pr_sigma": torch.as_tensor(s.ctx["pr_sigma"] if s.ctx is not None else np.ones(s.mask.shape), **f64),
             "real": torch.as_tensor(s.real_or_false(), device=device),
-            **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)}), **graph}
+            # the simulator's true clock: only for the paper-leak experiment (FeatureConfig(clock="given"))
+            **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)}),
+            **_guess_source("wls", s.wls_or_nan(), s.truth, max_err, device), **graph}
 
 
-def _require_graph(*ts: dict[str, torch.Tensor]) -> None:
-    """DataError unless every sample set carries graph positions (a mix with 'graph' guesses)."""
-    if not all("graph" in t for t in ts):
-        raise DataError("guess mix uses 'graph' but the samples carry no graph positions "
-                        "(build them with with_graph=True)")
-
-
-def guesses_for(t: dict[str, torch.Tensor], cfg: "TrainConfig", generator: torch.Generator) -> torch.Tensor:
-    """Initial guesses (N,3) for one epoch: the paper's box only (bit-identical to earlier versions),
-    or the configured box / WLS / graph mix (graph: needs samples built ``with_graph``)."""
+def guesses_for(t: dict, cfg: TrainConfig, generator: torch.Generator) -> torch.Tensor:
+    """Initial guesses (N,3) for one epoch: the paper's box, or the configured box / WLS / graph mix."""
     mix = parse_guess_mix(cfg.guess_mix)
-    box, gf = mix["box"], mix.get("graph", 0.0)
-    if box >= 1.0:
+    if mix["box"] >= 1.0:
         return draw_guesses(t["truth"], cfg.eta, generator)
-    if gf > 0:
-        _require_graph(t)
-    return draw_mixed_guesses(t["truth"], t["wls"], t["wls_use"], cfg.eta, box, cfg.wls_jitter, generator,
-                              t.get("graph"), t.get("graph_use"), gf)[0]
+    if mix.get("graph", 0.0) > 0 and "graph" not in t:
+        raise DataError("guess mix uses 'graph' but the samples carry no graph positions (with_graph=True)")
+    return draw_mixed_guesses(t["truth"], t["wls"], t["wls_use"], cfg.eta, mix["box"], cfg.wls_jitter,
+                              generator, t.get("graph"), t.get("graph_use"), mix.get("graph", 0.0))[0]
 
 
-def make_inputs(t: dict[str, torch.Tensor], guess: torch.Tensor, fcfg: FeatureConfig
-                ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Features (N,S,4) float32 and targets (N,3) float32 at ``guess`` (N,3) or a broadcast (1,3)."""
-    xs, ys = [], []
-    n = t["pr"].shape[0]
-    for a in range(0, n, CHUNK):
-        sl = slice(a, min(a + CHUNK, n))
-        g = guess[sl] if guess.shape[0] == n else guess.expand(sl.stop - sl.start, 3)
-        # The true clock only for the paper-leak experiment (FeatureConfig.clock == "given").
-        clk = t["clock"][sl] if fcfg.clock == "given" else None
-        x, R = features_torch(t["sat_pos"][sl], t["pr"][sl], t["mask"][sl], g, fcfg, clk)
+def make_inputs(t: dict, guess: torch.Tensor, fcfg: FeatureConfig) -> dict:
+    """Network inputs at ``guess`` (N,3): ``x`` (N,S,F) float32, target ``y`` (N,3), NED rotation ``R``
+    (N,3,3) and the guess, beside the sample tensors."""
+    xs, ys, Rs = [], [], []
+    for a in range(0, guess.shape[0], CHUNK):
+        sl = slice(a, a + CHUNK)
+        clock = t["clock"][sl] if fcfg.clock == "given" else None
+        x, R = features_torch(t["sat_pos"][sl], t["pr"][sl], t["mask"][sl], guess[sl], fcfg, clock,
+                              extra=t["extra"][sl])
         xs.append(x)
-        ys.append(target_torch(t["truth"][sl], g, R, fcfg))
-    return torch.cat(xs), torch.cat(ys)
+        Rs.append(R)
+        ys.append(target_torch(t["truth"][sl], guess[sl], R, fcfg))
+    return dict(t, x=torch.cat(xs), y=torch.cat(ys), R=torch.cat(Rs), guess=guess)
 
 
-def reference_point(truth: np.ndarray) -> np.ndarray:
-    """Direct model's fixed reference: the training truths' mean, put on the ellipsoid (h = 0)."""
-    llh = ecef2geodetic(truth.mean(0))
-    return geodetic2ecef(np.array([llh[0], llh[1], 0.0]))
+# ---------------------------------------------------------------------------------------- the step
+def batch_loss(out: dict, b: dict, w: LossWeights, use_nll: bool) -> torch.Tensor:
+    """The weighted sum of the three losses on one batch."""
+    loss = w.correction * F.mse_loss(out["mean"], b["y"])
+    if use_nll:
+        loss = loss + w.correction * gaussian_nll(out["mean"].detach(), out["logvar"], b["y"])
+    if w.sat:
+        loss = loss + w.sat * sat_nll(b["sat_pos"], b["pr"], b["mask"], b["truth"], out["sigma"], out["bias"])
+    if w.wls:
+        loss = loss + w.wls * position_loss(out["pos"], b["truth"], b["R"], w.wls_scale)
+    if w.shrink:
+        loss = loss + w.shrink * head_departure(out, b["mask"])
+    return loss
 
 
-def gaussian_nll(mean: torch.Tensor, logvar: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (logvar + (y - mean) ** 2 * torch.exp(-logvar)).mean()
+def head_departure(out: dict, mask: torch.Tensor) -> torch.Tensor:
+    """Mean squared log-multiplier of the per-satellite sigma plus squared bias in units of the sigma,
+    over real slots (B,S): zero when the head keeps the physical model."""
+    dep = out["log_mult"] ** 2 + (out["bias"] / out["sigma"]) ** 2
+    return (dep * mask).sum() / mask.sum().clamp_min(1)
 
 
-def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *, resume: bool = False,
-          progress: bool = True) -> list[dict]:
-    """Train and checkpoint; returns the per-epoch history (losses, MAE [m], timings [s])."""
-    out = Path(out)
-    last = out.with_name(out.name + ".last")
-    device = torch.device(cfg.device)
+def train_epoch(model, opt, inp: dict, cfg: TrainConfig, epoch: int, order: torch.Tensor) -> float:
+    """One pass over the rows ``order`` in batches; returns the mean loss."""
+    model.train()
+    total = torch.zeros((), dtype=torch.float64, device=order.device)
+    for a in range(0, order.numel(), cfg.batch):
+        b = take(inp, order[a:a + cfg.batch])
+        loss = batch_loss(outputs(model, b, cfg.features), b, cfg.loss, epoch >= cfg.warmup())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        dist.average_gradients(model)
+        opt.step()
+        total += loss.detach().double() * b["x"].shape[0]  # read once per epoch: no GPU sync per step
+    return float(total) / max(order.numel(), 1)
+
+
+def estimate_loss(model, inp: dict, cfg: TrainConfig) -> dict:
+    """Validation at the samples' WLS solutions: MAE N/E/D [m] of both outputs and the selection score
+    (mean horizontal error of ``cfg.output`` [m])."""
+    out = predict_all(model, inp, cfg.features)
+    err_c = (out["mean"].double() - inp["y"]) * cfg.features.out_scale
+    err_w = torch.einsum("bij,bj->bi", inp["R"], out["pos"] - inp["truth"])
+    chosen = err_w if cfg.output == "wls" else err_c
+    return {"val_score_m": float(chosen[:, :2].norm(dim=1).mean()),
+            "val_mae_ned_m": [float(v) for v in err_c.abs().mean(0)],
+            "val_wls_mae_ned_m": [float(v) for v in err_w.abs().mean(0)]}
+
+
+# ------------------------------------------------------------------------------------- the loop
+def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
+    """Model, optimizer, start epoch and history (from ``last`` when resuming)."""
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg.model, **cfg.to_checkpoint_config()["model"]["hparams"]).to(device)
+    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=cfg.betas)
+    if not resume:
+        return model, opt, 0, []
+    if not last.is_file():
+        raise CheckpointError(f"{last}: no checkpoint to resume from")
+    blob = read_checkpoint(last, map_location=device)
+    now = cfg.to_checkpoint_config()
+    for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss"):
+        if blob["config"].get(key) != now.get(key):
+            raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
+                                  f"({blob['config'].get(key)!r} in checkpoint vs {now.get(key)!r} now)")
+    model.load_state_dict(blob["model_state"])
+    opt.load_state_dict(blob["optimizer_state"])
+    return model, opt, int(blob["epoch"]), list(blob["history"])
+
+
+def validation_inputs(va: dict, fcfg: FeatureConfig) -> dict | None:
+    """Validation inputs at each sample's WLS solution exactly (what inference sees), or None."""
+    rows = torch.nonzero(va["wls_ok"]).flatten()
+    return make_inputs(take(va, rows), va["wls"][rows], fcfg) if rows.numel() else None
+
+
+def check_inputs(train_s: Samples, val_s: Samples, cfg: TrainConfig, device) -> None:
+    if cfg.features.clock == "given" and (train_s.clock is None or (len(val_s) and val_s.clock is None)):
+        raise DataError("FeatureConfig(clock='given') (paper-leak experiment) needs samples with a true clock "
+                        "(learned.data.simulated_samples_with_clock)")
     if device.type == "cuda" and not torch.cuda.is_available():
         raise DataError("--device cuda requested but CUDA is not available")
     if len(train_s) == 0:
         raise DataError("no training samples after filtering (truth present, >= 4 satellites)")
-    if cfg.features.clock == "given" and (train_s.clock is None or (len(val_s) and val_s.clock is None)):
-        raise DataError("FeatureConfig(clock='given') (paper-leak experiment) needs samples with a true clock "
-                        "(learned.data.simulated_samples_with_clock)")
-    direct = cfg.model == "direct"
-    ref = reference_point(train_s.truth) if direct else None
-    if direct and cfg.features.out_scale < 100:
-        # Residuals and targets at a fixed reference are km-sized: scale them to O(1) like the others.
-        cfg.features = dataclasses.replace(cfg.features, res_scale=1000.0, out_scale=1000.0)
-    ckpt_cfg = cfg.to_checkpoint_config(ref)
-    fcfg = cfg.features
+    if cfg.output not in OUTPUTS:
+        raise DataError(f"output must be one of {OUTPUTS}, got {cfg.output!r}")
 
-    torch.manual_seed(cfg.seed)
-    model = build_model(cfg.model, **cfg.hparams).to(device)
-    opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=cfg.betas)
-    history: list[dict] = []
-    start = 0
-    if resume:
-        if not last.is_file():
-            raise CheckpointError(f"{last}: no checkpoint to resume from")
-        blob = read_checkpoint(last, map_location=device)
-        for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter"):
-            if blob["config"].get(key) != ckpt_cfg.get(key):
-                raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
-                                      f"({blob['config'].get(key)!r} in checkpoint vs {ckpt_cfg.get(key)!r} now)")
-        model.load_state_dict(blob["model_state"])
-        opt.load_state_dict(blob["optimizer_state"])
-        start, history = blob["epoch"], list(blob["history"])
-    best = min((h["val_mse"] for h in history), default=math.inf)
 
-    tr, va = _tensors(train_s, device, cfg.wls_max_err), _tensors(val_s, device, cfg.wls_max_err)
-    # Honest validation: guess = the sample's WLS position exactly (what inference sees), every WLS-valid sample.
-    vw = torch.nonzero(va["wls_ok"]).flatten()
-    xw, yw = (make_inputs({k: v[vw] for k, v in va.items()}, va["wls"][vw], fcfg) if len(vw) and not direct
-              else (None, None))
-    # With a graph source: also validate (and calibrate) at each sample's no-prior graph solution exactly,
-    # the point where the fused mode asks the network.
-    use_graph = parse_guess_mix(cfg.guess_mix).get("graph", 0.0) > 0 and not direct
-    if use_graph:
-        _require_graph(tr, va)
-    vg = torch.nonzero(va["graph_ok"]).flatten() if use_graph else torch.zeros(0, dtype=torch.long)
-    xg, yg = (make_inputs({k: v[vg] for k, v in va.items()}, va["graph"][vg], fcfg) if len(vg)
-              else (None, None))
-    ref_t = None if ref is None else torch.as_tensor(ref, dtype=torch.float64, device=device)[None]
-    # Validation (and no-augmentation training) guesses: drawn once, from generators independent of epochs.
-    if direct:
-        xv, yv = make_inputs(va, ref_t, fcfg) if len(val_s) else (None, None)
-        fixed_train = make_inputs(tr, ref_t, fcfg)
-    else:
-        gv = guesses_for(va, cfg, epoch_generator(cfg.seed, -2, device))
-        xv, yv = make_inputs(va, gv, fcfg) if len(val_s) else (None, None)
-        fixed_train = None if cfg.augment else make_inputs(
-            tr, guesses_for(tr, cfg, epoch_generator(cfg.seed, -1, device)), fcfg)
-
-    n = len(train_s)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=cfg.epochs, initial=start, desc="train", unit="epoch", file=sys.stderr, dynamic_ncols=True)
+def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *, resume: bool = False,
+          progress: bool = True) -> list[dict]:
+    """Train and checkpoint; returns the per-epoch history (losses, validation errors [m], timings [s])."""
+    out, device = Path(out), dist.device_for(cfg.device)
+    last = out.with_name(out.name + ".last")
+    check_inputs(train_s, val_s, cfg, device)
+    model, opt, start, history = setup(cfg, last, resume, device)
+    dist.broadcast_parameters(model)
+    tr = sample_tensors(train_s, cfg.features, device, cfg.wls_max_err)
+    va = validation_inputs(sample_tensors(val_s, cfg.features, device, cfg.wls_max_err), cfg.features) \
+        if len(val_s) else None
+    best = min((h["val_score_m"] for h in history), default=math.inf)
+    ckpt_cfg = dict(cfg.to_checkpoint_config(), world_size=dist.world_size())
+    at_wls = validation_inputs(tr, cfg.features)       # the training inputs where dnn asks: the OOD guard's ranges
+    ckpt_cfg["input_ranges"] = input_ranges(at_wls["x"], at_wls["mask"]) if at_wls is not None else None
+    bar = progress_bar(cfg, start) if progress and dist.is_main() else None
     for epoch in range(start, cfg.epochs):
-        gen = epoch_generator(cfg.seed, epoch, device)
-        t0 = time.perf_counter()
-        if fixed_train is not None:
-            x, y = fixed_train
-        else:
-            x, y = make_inputs(tr, guesses_for(tr, cfg, gen), fcfg)
-        perm = torch.randperm(n, generator=gen, device=device)
-        t_feat = time.perf_counter() - t0
-        use_nll = epoch >= cfg.warmup()
-        model.train()
-        # summed on the device and read once per epoch: an .item() per batch would sync the GPU every step
-        sums = torch.zeros(2, dtype=torch.float64, device=device)
-        t_model = 0.0
-        for a in range(0, n, cfg.batch):
-            idx = perm[a:a + cfg.batch]
-            xb, yb, mb = x[idx], y[idx], tr["mask"][idx]
-            tm = time.perf_counter()
-            mean, logvar = model(xb, mb)
-            mse = F.mse_loss(mean, yb)
-            loss = mse + gaussian_nll(mean.detach(), logvar, yb) if use_nll else mse
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            t_model += time.perf_counter() - tm
-            sums += torch.stack([mse.detach(), loss.detach()]).double() * len(idx)
-        sums = sums.cpu()
-        rec = {"epoch": epoch + 1, "train_mse": float(sums[0] / n), "train_loss": float(sums[1] / n),
-               "nll": use_nll, "time_s": time.perf_counter() - t0, "feature_s": t_feat, "model_s": t_model,
-               "samples": n}
-        rec.update(evaluate_arrays(model, xv, yv, va["mask"], fcfg) if xv is not None else
-                   {"val_mse": rec["train_mse"]})
-        if xw is not None:
-            rec.update({"val_wls_" + k[4:]: v for k, v in
-                        evaluate_arrays(model, xw, yw, va["mask"][vw], fcfg).items()})
-        if xg is not None:
-            rec.update({"val_graph_" + k[4:]: v for k, v in
-                        evaluate_arrays(model, xg, yg, va["mask"][vg], fcfg).items()})
+        rec = run_epoch(model, opt, tr, va, cfg, epoch)
         history.append(rec)
-        if rec["val_mse"] < best:
-            best = rec["val_mse"]
-            save_checkpoint(out, model, ckpt_cfg, epoch=epoch + 1, history=history)
-        save_checkpoint(last, model, ckpt_cfg, optimizer_state=opt.state_dict(), epoch=epoch + 1, history=history)
+        if dist.is_main():
+            if rec["val_score_m"] < best:
+                best = rec["val_score_m"]
+                save_checkpoint(out, model, ckpt_cfg, epoch=epoch + 1, history=history)
+            save_checkpoint(last, model, ckpt_cfg, optimizer_state=opt.state_dict(), epoch=epoch + 1,
+                            history=history)
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(train=f"{rec['train_mse']:.4f}", val=f"{rec['val_mse']:.4f}",
-                            mae=f"{rec.get('val_mae_m', float('nan')):.2f}m")
-    if bar is not None:
-        bar.close()
-    if not out.is_file():  # zero epochs left to run (e.g. resume of a finished run) still leaves a model
-        save_checkpoint(out, model, ckpt_cfg, epoch=start, history=history)
-    # Calibrate where the network will be asked: graph guesses when the mix uses them, else WLS guesses.
-    cx, cy, ci, at = (xg, yg, vg, "graph") if xg is not None else (xw, yw, vw, "wls")
-    if cfg.calibrate and cx is not None:
-        blob = read_checkpoint(out, map_location=device)
-        model.load_state_dict(blob["model_state"])
-        real = va["real"][ci]
-        # Calibrate for phones when there are enough phone samples: simulated errors are not phone errors.
-        sub = real if int(real.sum()) >= CALIB_MIN_REAL else torch.ones_like(real)
-        cal = fit_calibration(model, cx[sub], cy[sub], va["mask"][ci][sub], fcfg)
-        cal["subset"] = "real validation samples" if sub is real else "all validation samples"
-        if at == "graph":     # key only for the new source: older checkpoints (WLS guesses) stay as they were
-            cal["guess"] = "graph"
-        save_checkpoint(out, model, dict(blob["config"], calibration=cal), epoch=blob["epoch"],
-                        history=blob["history"])
+            bar.set_postfix(loss=f"{rec['train_loss']:.3f}", val=f"{rec['val_score_m']:.2f}m")
+    if dist.is_main():
+        finish(model, out, ckpt_cfg, history, start, va, val_s, cfg)
+    dist.barrier()
     return history
 
 
-#: Fewest real validation samples (at the calibration guesses: WLS, or graph) to calibrate on them alone.
-CALIB_MIN_REAL = 200
+def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: int) -> dict:
+    """Fresh guesses, one training pass over this rank's shard, validation; the epoch's history record."""
+    t0 = time.perf_counter()
+    gen = epoch_generator(cfg.seed, epoch, tr["truth"].device, rank=dist.rank())
+    fixed = epoch_generator(cfg.seed, -1, tr["truth"].device)       # --no-augment: the same guesses every epoch
+    inp = make_inputs(tr, guesses_for(tr, cfg, gen if cfg.augment else fixed), cfg.features)
+    # one permutation shared by every rank (same seed), each rank taking its own shard of it
+    order = dist.shard(torch.randperm(tr["truth"].shape[0], generator=epoch_generator(cfg.seed, epoch)))
+    loss = train_epoch(model, opt, inp, cfg, epoch, order.to(tr["truth"].device))
+    rec = {"epoch": epoch + 1, "train_loss": loss, "time_s": 0.0, "samples": int(order.numel()),
+           "world_size": dist.world_size()}
+    rec.update(estimate_loss(model, va, cfg) if va is not None and dist.is_main() else {"val_score_m": loss})
+    rec["time_s"] = time.perf_counter() - t0
+    return rec
 
 
-@torch.no_grad()
-def fit_calibration(model, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, fcfg: FeatureConfig) -> dict:
-    """Per-NED-axis scale ``s`` for the predicted sigma (variance *= s^2) from features ``x`` built at
-    the guesses the network will be asked at (each sample's WLS, or its no-prior graph solution).
-
-    ``s_k = median(|err_k| / sigma_k) / 0.6745``: makes the 1-sigma interval hold 68.3 % of the errors;
-    a median, not the RMS of z, because a few guess blunders (z of 50+) would otherwise set the scale for
-    all epochs. Both are stored (``scale_rms`` for information); coverages before/after on the same set.
-    """
-    model.eval()
-    mean, logvar = model(x, mask)
-    z = ((mean - y) * torch.exp(-0.5 * logvar)).double().abs()
-    s = (z.median(dim=0).values / 0.6744897501960817).clamp_min(1e-3)
-    rms = torch.sqrt((z ** 2).mean(0))
-
-    def cover(zz: torch.Tensor, k: float) -> list[float]:
-        return [float(v) for v in (zz <= k).double().mean(0)]
-
-    return {"method": "median", "scale_ned": [float(v) for v in s], "scale_rms": [float(v) for v in rms],
-            "n": int(x.shape[0]), "within_1sigma_before": cover(z, 1), "within_2sigma_before": cover(z, 2),
-            "within_1sigma_after": cover(z / s, 1), "within_2sigma_after": cover(z / s, 2)}
+def finish(model, out: Path, ckpt_cfg: dict, history: list, start: int, va: dict | None,
+           val_s: Samples, cfg: TrainConfig) -> None:
+    """Leave a model at ``out`` even when no epoch ran, then calibrate it on the validation split."""
+    if not out.is_file():
+        save_checkpoint(out, model, ckpt_cfg, epoch=start, history=history)
+    if cfg.calibrate and va is not None:
+        calibrate_checkpoint(out, va, cfg.features)
 
 
-@torch.no_grad()
-def evaluate_arrays(model, x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, fcfg: FeatureConfig,
-                    batch: int = 4096) -> dict:
-    """Validation MSE (normalised units), MAE per axis [m] and 1/2-sigma coverage of the variance head."""
-    model.eval()
-    means, logvars = [], []
-    for a in range(0, x.shape[0], batch):
-        m, lv = model(x[a:a + batch], mask[a:a + batch])
-        means.append(m)
-        logvars.append(lv)
-    mean, logvar = torch.cat(means), torch.cat(logvars)
-    err = (mean - y) * fcfg.out_scale
-    sigma = torch.exp(0.5 * logvar) * fcfg.out_scale
-    mae = err.abs().mean(0)
-    return {"val_mse": float(F.mse_loss(mean, y)), "val_mae_m": float(mae.mean()),
-            "val_mae_ned_m": [float(v) for v in mae],
-            "val_within_1sigma": [float(v) for v in (err.abs() <= sigma).float().mean(0)],
-            "val_within_2sigma": [float(v) for v in (err.abs() <= 2 * sigma).float().mean(0)]}
-
-
-# ------------------------------------------------------------------------------------------------- CLI
-def _parser(prog: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
-    p.add_argument("--data", nargs="+", required=True,
-                   help="'sim' (fusion.sim.simulate), 'toy' (learned.toy), and/or trace folders / Kaggle roots "
-                        "(comma-separated also accepted)")
-    p.add_argument("--eta", type=float, default=15.0, help="augmentation half-width per NED axis [m]")
-    p.add_argument("--epochs", type=int, default=200)
-    p.add_argument("--out", type=Path, required=True, help="best checkpoint path (last state: <out>.last)")
-    p.add_argument("--resume", action="store_true", help="continue from <out>.last")
-    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--model", default="set", choices=("set", "deepsets", "direct"))
-    p.add_argument("--no-augment", action="store_true", help="draw guesses once and keep them (paper's baseline)")
-    p.add_argument("--sim-traces", type=int, default=50)
-    p.add_argument("--sim-epochs", type=int, default=200, help="epochs per simulated trace")
-    p.add_argument("--sim-bias", action="store_true",
-                   help="simulate 'sim' with the Gaussian + bias scenario ('sim-bias' in --data adds such traces "
-                        "next to Gaussian ones)")
-    p.add_argument("--sim-bias-traces", type=int, default=None, help="traces for 'sim-bias' (default --sim-traces)")
-    p.add_argument("--guess-mix", default="box=1",
-                   help="initial-guess sources and fractions, e.g. box=0.5,wls=0.5 (box: truth + U(+-eta) per NED "
-                        "axis, the paper's; wls: the sample's own WLS solution + U(+-wls-jitter); graph: the "
-                        "sample's own no-prior factor-graph (fused-nodnn) solution + U(+-wls-jitter))")
-    p.add_argument("--wls-jitter", type=float, default=2.0, help="[m] per NED axis around WLS guesses")
-    p.add_argument("--wls-max-err", type=float, default=100.0,
-                   help="[m] a training sample whose WLS (wls guesses) or graph solution (graph guesses) is "
-                        "farther from the truth gets a box guess instead")
-    p.add_argument("--val-split", default="random", choices=("random", "blocks"),
-                   help="validation = random epochs, or random blocks of 60 consecutive epochs")
-    p.add_argument("--no-calibrate", action="store_true", help="do not fit the variance scale after training")
-    p.add_argument("--batch", type=int, default=64)
-    p.add_argument("--lr", type=float, default=3e-4)
-    p.add_argument("--warmup-epochs", type=int, default=None, help="MSE-only epochs before the NLL term")
-    p.add_argument("--val-frac", type=float, default=0.1)
-    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg], at the truth")
-    p.add_argument("--threads", type=int, default=None,
-                   help="torch CPU threads (1 is fastest on a busy machine: small batches do not parallelise)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return p
-
-
-def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, sim_bias: bool, seed: int,
-                       elev_mask_deg: float, sim_bias_traces: int | None = None, with_graph: bool = False
-                       ) -> tuple[Samples, dict]:
-    """``sim`` / ``toy``: simulated (Gaussian, or bias with ``sim_bias``); ``sim-bias`` / ``toy-bias``: the
-    Gaussian + NLOS-bias scenario (seed + 1, so not the same drives as ``sim``); anything else: real traces."""
-    traces, real, desc = [], [], {"sources": sources}
-    for src in sources:
-        if src in ("sim", "toy", "sim-bias", "toy-bias"):
-            extra = src.endswith("-bias")
-            n = (sim_bias_traces if sim_bias_traces is not None else sim_traces) if extra else sim_traces
-            sd = seed + 1 if extra else seed
-            new = simulated_traces(n, sim_epochs, seed=sd, bias=extra or sim_bias, toy=src.startswith("toy"))
-            desc[src] = {"traces": n, "epochs_per_trace": sim_epochs, "bias": extra or sim_bias, "seed": sd}
-            real += [False] * len(new)
-        else:
-            new = load_real_traces([src])
-            real += [True] * len(new)
-        traces += new
-    samples = build_samples(traces, elev_mask_deg, real=real, with_graph=with_graph)
-    desc.update(traces=samples.names, n_samples=len(samples), skipped=samples.skipped)
-    return samples, desc
-
-
-def main(argv: list[str], prog: str = "gnssfuse train") -> int:
-    args = _parser(prog).parse_args(argv)
-    if args.epochs < 1 or args.batch < 1 or not (0 <= args.val_frac < 1) or args.eta <= 0:
-        raise DataError("need --epochs >= 1, --batch >= 1, 0 <= --val-frac < 1, --eta > 0")
-    if args.wls_jitter < 0 or args.wls_max_err <= 0:
-        raise DataError("need --wls-jitter >= 0 and --wls-max-err > 0")
-    try:
-        mix = parse_guess_mix(args.guess_mix)
-    except ValueError as exc:
-        raise DataError(f"--guess-mix: {exc}") from None
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    sources = [s for item in args.data for s in item.split(",") if s]
-    samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
-                                       sim_bias=args.sim_bias, seed=args.seed, elev_mask_deg=args.elev_mask,
-                                       sim_bias_traces=args.sim_bias_traces,
-                                       with_graph=mix.get("graph", 0.0) > 0)
-    split = split_blocks if args.val_split == "blocks" else split_random
-    train_s, val_s = split(samples, args.val_frac, np.random.default_rng(args.seed))
-    desc.update(n_train=len(train_s), n_val=len(val_s), val_split=args.val_split)
-    cfg = TrainConfig(eta=args.eta, epochs=args.epochs, batch=args.batch, lr=args.lr, seed=args.seed,
-                      model=args.model, augment=not args.no_augment, warmup_epochs=args.warmup_epochs,
-                      val_frac=args.val_frac, device=args.device,
-                      features=FeatureConfig(elev_mask_deg=args.elev_mask), data=desc, guess_mix=mix,
-                      wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate)
-    model_params = count_parameters(build_model(args.model))
-    print(f"{prog}: {len(train_s)} training / {len(val_s)} validation samples from {len(samples.names)} traces; "
-          f"model {args.model} ({model_params} parameters); skipped {samples.skipped}", file=sys.stderr)
-    hist = train(train_s, val_s, cfg, args.out, resume=args.resume, progress=not args.quiet)
-    if hist:
-        h = min(hist, key=lambda r: r["val_mse"])
-        print(f"best epoch {h['epoch']}: val MAE N/E/D [m] = "
-              + "/".join(f"{v:.2f}" for v in h.get("val_mae_ned_m", [float('nan')] * 3))
-              + ("" if "val_wls_mae_ned_m" not in h else " (guess = WLS: "
-                 + "/".join(f"{v:.2f}" for v in h["val_wls_mae_ned_m"]) + ")")
-              + ("" if "val_graph_mae_ned_m" not in h else " (guess = graph: "
-                 + "/".join(f"{v:.2f}" for v in h["val_graph_mae_ned_m"]) + ")") + f" -> {args.out}")
-        cal = read_checkpoint(args.out)["config"].get("calibration")
-        if cal:
-            print(f"variance scale N/E/D {'/'.join(f'{v:.2f}' for v in cal['scale_ned'])} ({cal['subset']}, "
-                  f"n={cal['n']}): within 1 sigma {'/'.join(f'{v:.2f}' for v in cal['within_1sigma_before'])}"
-                  f" -> {'/'.join(f'{v:.2f}' for v in cal['within_1sigma_after'])}")
-    return 0
+def progress_bar(cfg: TrainConfig, start: int):
+    from tqdm import tqdm
+    return tqdm(total=cfg.epochs, initial=start, desc="train", unit="epoch", file=sys.stderr, dynamic_ncols=True)

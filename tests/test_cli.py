@@ -31,3 +31,22 @@ def test_unwritable_output_is_one_line_error(shipped_trace_dir, tmp_path, capsys
     assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--out", str(blocker / "out")]) == 2
     err = capsys.readouterr().err
     assert "error" in err and err.strip().count("\n") == 0
+
+
+def test_learned_part_flags_reach_the_run_options():
+    import argparse
+
+    from fusion.cli import add_run_options, options_from_args
+
+    p = argparse.ArgumentParser()
+    add_run_options(p)
+    o = options_from_args(p.parse_args([]))
+    assert o.learned_prior and o.learned_sigmas and o.dnn_output is None
+    o = options_from_args(p.parse_args(["--no-learned-prior", "--no-learned-sigmas", "--dnn-output", "correction"]))
+    assert not o.learned_prior and not o.learned_sigmas and o.dnn_output == "correction"
+    try:
+        p.parse_args(["--dnn-output", "direct"])
+    except SystemExit:
+        pass
+    else:
+        raise AssertionError("--dnn-output direct was accepted")

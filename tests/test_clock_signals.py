@@ -58,7 +58,7 @@ def test_clock_mode_errors_and_config_round_trip():
 def test_product_refuses_leaky_checkpoints(tmp_path):
     from fusion.run_types import RunOptions
     from fusion.estimate.wls import solve_wls
-    cfg = TrainConfig(features=FeatureConfig(clock="given")).to_checkpoint_config(None)
+    cfg = TrainConfig(features=FeatureConfig(clock="given")).to_checkpoint_config()
     with pytest.raises(CheckpointError, match="true-clock leak"):
         Corrector(build_model("set"), cfg)
     path = save_checkpoint(tmp_path / "leak.pt", build_model("set"), cfg)
@@ -104,7 +104,7 @@ def test_predict_uses_only_the_trained_signals():
     tr.pr[:, 6:] += 300.0
     init = tr.truth + 4.0
     valid = np.ones(20, bool)
-    base = TrainConfig().to_checkpoint_config(None)
+    base = TrainConfig().to_checkpoint_config()
     assert base["signals"] == ["GPS_L1"]
     gps_only = tr.select_slots(tr.signal != glo)
     c = Corrector(_net(), base).predict(tr, init, valid)
@@ -126,18 +126,25 @@ def test_predict_uses_only_the_trained_signals():
 
 def test_compacting_slots_does_not_change_predictions():
     """Inference drops padding (fewer slots -> faster); the output must not depend on it."""
-    from learned.infer import compact_slots
+    from learned.features import compact_slots
     tr = toy_trace(15, seed=6, n_sats=(5, 9))
     init = tr.truth + 3.0
     valid = np.ones(15, bool)
     pad = lambda a, v: np.concatenate([np.full(a.shape[:1] + (4,) + a.shape[2:], v, a.dtype), a], 1)
     wide = tr.select(np.ones(15, bool))
     wide.sat_pos, wide.pr, wide.mask = pad(tr.sat_pos, 1e7), pad(tr.pr, 2e7), pad(tr.mask, False)
-    wide.signal, wide.sat_id = pad(tr.signal, 0), pad(tr.sat_id, 0)
-    a = Corrector(_net(), TrainConfig().to_checkpoint_config(None)).predict(tr, init, valid)
-    b = Corrector(_net(), TrainConfig().to_checkpoint_config(None)).predict(wide, init, valid)
-    np.testing.assert_allclose(b.mean_ecef, a.mean_ecef, atol=1e-6)
-    np.testing.assert_allclose(b.cov_ecef, a.cov_ecef, rtol=1e-5)
+    wide.signal, wide.sat_id, wide.pr_sigma = pad(tr.signal, 0), pad(tr.sat_id, 0), pad(tr.pr_sigma, 1.0)
+    from learned.features import CHANNELS
+    for inputs in (("res", "los"), tuple(CHANNELS)):           # the paper's inputs, and every context channel
+        cfg = TrainConfig(features=FeatureConfig(inputs=inputs)).to_checkpoint_config()
+        net = lambda: (torch.manual_seed(0), build_model("set", d_in=cfg["model"]["hparams"]["d_in"]))[1]  # noqa: E731
+        a = Corrector(net(), cfg).predict(tr, init, valid)
+        b = Corrector(net(), cfg).predict(wide, init, valid)
+        assert a.valid.all()
+        np.testing.assert_allclose(b.mean_ecef, a.mean_ecef, atol=1e-6)
+        np.testing.assert_allclose(b.cov_ecef, a.cov_ecef, rtol=1e-5)
+        np.testing.assert_allclose(b.sigma[:, 4:], a.sigma, rtol=1e-5)          # per-slot outputs stay in place
+        assert np.isnan(b.sigma[:, :4]).all()
     sp, pr, m = compact_slots(wide.sat_pos, wide.pr, wide.mask)
     assert m.shape[1] == tr.mask.sum(1).max() and (m.sum(1) == tr.mask.sum(1)).all()
     assert m[:, 0].all() and (pr[m] == tr.pr[tr.mask]).all()

@@ -99,19 +99,32 @@ def test_example03_simulates_and_trains(tmp_path, capsys):
         assert row is not None and row[-1] > 0, out
 
 
-def test_sim_correction_before_and_after_cover_the_same_epochs():
+@pytest.fixture(scope="module")
+def untrained_ckpt(tmp_path_factory) -> Path:
+    """An untrained set transformer with the default training config: enough for plumbing tests."""
+    import torch
+
+    from learned.checkpoint import save_checkpoint
+    from learned.model import SetTransformer
+    from learned.train import TrainConfig
+
+    torch.manual_seed(0)
+    return save_checkpoint(tmp_path_factory.mktemp("ck") / "untrained.pt", SetTransformer(),
+                           TrainConfig().to_checkpoint_config())
+
+
+def test_sim_correction_before_and_after_cover_the_same_epochs(untrained_ckpt):
     """experiments/sim_correction.evaluate scores 'before' and 'after' over the same (corrected) epochs:
     epochs left with < 4 satellites are uncorrected and must drop out of both columns."""
     from learned.data import simulated_samples_with_clock
-    from learned.infer import SHIPPED_WEIGHTS
-    if not Path(SHIPPED_WEIGHTS).is_file():
-        pytest.skip("shipped weights missing")
     spec = importlib.util.spec_from_file_location("sim_correction", REPO / "experiments" / "sim_correction.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     s = simulated_samples_with_clock(1, 12, seed=3)
     s.mask[:4] = False
     s.mask[:4, :3] = True                          # 3 satellites: the network cannot correct these 4 epochs
-    r = mod.evaluate(Path(SHIPPED_WEIGHTS), s, eta=15.0, seed=0)
+    r = mod.evaluate(untrained_ckpt, s, eta=15.0, seed=0)
     assert r["before"].shape == r["after"].shape == (len(s.pr) - 4, 3)
     assert np.isfinite(r["before"]).all() and np.isfinite(r["after"]).all()
+    assert not np.allclose(r["before"], r["after"])          # the correction head moved the guesses
+    assert r["cal"]["n"] == len(s.pr) - 4

@@ -1,6 +1,7 @@
 """learned.factor: the learned correction as a GTSAM factor, and example 04 that composes it."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -10,7 +11,8 @@ import numpy as np
 import pytest
 
 from fusion.errors import GeometryError
-from learned.factor import learned_pose_translation_factor, learned_prior_factor, one_epoch_trace
+from learned.factor import (learned_pose_translation_factor, learned_prior_factor, learned_pseudorange_factors,
+                            one_epoch_trace)
 from learned.toy import toy_trace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,6 +124,51 @@ def test_example_04_runs(tiny_ckpt, shipped_trace_dir):
     assert out.returncode == 0, out.stderr[-2000:]
     assert "pose graph  horizontal error p50" in out.stdout
     assert "40 epochs" in out.stdout
+
+
+def test_example_05_runs(tiny_ckpt, shipped_trace_dir):
+    if not shipped_trace_dir.is_dir():
+        pytest.skip("shipped trace not present")
+    out = subprocess.run([sys.executable, str(REPO / "examples" / "05_learned_pseudorange_factors.py"),
+                          "--weights", str(tiny_ckpt), "--epochs", "30"],
+                         capture_output=True, text=True, timeout=120, env={"OMP_NUM_THREADS": "2",
+                                                                             "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr[-2000:]
+    rows = {m.group(1): float(m.group(2)) for m in re.finditer(r"^(fixed 5 m sigma|learned sigmas)\s+horizontal "
+                                                               r"error p50 ([\d.]+) m", out.stdout, re.M)}
+    assert set(rows) == {"fixed 5 m sigma", "learned sigmas"} and all(0 < v < 100 for v in rows.values()), out.stdout
+    n = int(re.search(r"over (\d+) measurements", out.stdout).group(1))
+    assert n > 30 * 4                                        # every measurement got a sigma
+
+
+def test_pseudorange_factors_take_the_heads_sigma_and_bias():
+    """Slots with an opinion get its sigma and bias; NaN slots get the default sigma and no bias."""
+    tr = toy_trace(3, seed=6, n_sats=(7, 7))
+    sig = np.full(tr.mask.shape, np.nan)
+    bias = np.full(tr.mask.shape, np.nan)
+    sig[:, 0], bias[:, 0] = 2.0, 50.0
+
+    class Head:
+        def slot_noise(self, elev_mask_deg=None):
+            return lambda trace, init_pos, valid: (sig, bias)
+
+    pk, ck = [gtsam.symbol("x", k) for k in range(3)], [gtsam.symbol("c", k) for k in range(3)]
+    factors, used = learned_pseudorange_factors(Head(), tr, tr.truth, np.ones(3, bool), pk, ck, default_sigma_m=5.0,
+                                                robust="none")
+    assert [len(f) for f in factors] == [7, 7, 7]
+    np.testing.assert_array_equal(used[:, 0], 2.0)
+    np.testing.assert_array_equal(used[:, 1:], 5.0)
+    # the factor on slot 0 measures pr - 50 m with sigma 2 m: against the same slot without the bias its
+    # unwhitened error moves by exactly 50 m, and the noise model is the head's sigma
+    bias[:, 0] = 0.0
+    plain, _ = learned_pseudorange_factors(Head(), tr, tr.truth, np.ones(3, bool), pk, ck, robust="none")
+    v = gtsam.Values()
+    v.insert(pk[0], tr.truth[0])
+    v.insert(ck[0], 1e-4)
+    d = factors[0][0].unwhitenedError(v) - plain[0][0].unwhitenedError(v)
+    assert abs(float(d[0])) == pytest.approx(50.0, abs=1e-6)
+    np.testing.assert_allclose(factors[0][0].noiseModel().sigmas(), [2.0])
+    np.testing.assert_allclose(factors[0][1].noiseModel().sigmas(), [5.0])
 
 
 def test_factor_safety_options_inflate_floor_and_robustify():

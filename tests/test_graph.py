@@ -493,9 +493,10 @@ def test_fused_feeds_the_network_the_runs_elevation_mask(trace, wls, tmp_path, m
     seen = []
     real = Corrector.predict
 
-    def spy(self, trace, init_pos, valid, elev_mask_deg=None):
+    def spy(self, trace, init_pos, valid, elev_mask_deg=None, **kw):
         seen.append(elev_mask_deg)
-        return real(self, trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
+        return real(self, trace, init_pos, valid, elev_mask_deg=elev_mask_deg, **kw)
     monkeypatch.setattr(Corrector, "predict", spy)
     run_modes(trace, ["dnn", "fused"], RunOptions(weights=ckpt, elev_mask_deg=17.0), wls=wls)
-    assert seen and set(seen) == {17.0}      # dnn and fused: the same network input
+    # dnn once, fused for its prior and for its slot noise: all with the run's mask
+    assert len(seen) >= 3 and set(seen) == {17.0}

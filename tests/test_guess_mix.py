@@ -18,7 +18,9 @@ from learned.features import FeatureConfig
 from learned.infer import Corrector
 from learned.model import SetTransformer
 from learned.toy import toy_dataset, toy_trace
-from learned.train import TrainConfig, fit_calibration, main, train
+from learned.calibrate import sigma_scale
+from learned.train import TrainConfig, train
+from learned.train_cli import main
 
 
 def test_parse_guess_mix_normalises_and_rejects_bad_text():
@@ -93,19 +95,10 @@ def test_split_blocks_is_contiguous_and_disjoint():
     np.testing.assert_array_equal(va.truth, va2.truth)
 
 
-class ScaledErrNet(nn.Module):
-    """Predicts (0,0,0) with log-variance 0 (sigma = out_scale), whatever the input."""
-
-    def forward(self, x, mask):
-        B = x.shape[0]
-        return torch.zeros(B, 3), torch.zeros(B, 3)
-
-
-def test_fit_calibration_recovers_the_sigma_scale():
-    g = torch.Generator().manual_seed(0)
-    y = torch.randn(20000, 3, generator=g) * torch.tensor([2.0, 1.0, 0.5])   # true sigma / predicted sigma
-    x, mask = torch.zeros(20000, 4, 4), torch.ones(20000, 4, dtype=torch.bool)
-    cal = fit_calibration(ScaledErrNet(), x, y, mask, FeatureConfig())
+def test_sigma_scale_recovers_the_scale():
+    g = np.random.default_rng(0)
+    z = g.standard_normal((20000, 3)) * np.array([2.0, 1.0, 0.5])   # true sigma / predicted sigma
+    cal = sigma_scale(z)
     np.testing.assert_allclose(cal["scale_ned"], [2.0, 1.0, 0.5], rtol=0.03)
     np.testing.assert_allclose(cal["within_1sigma_after"], 0.683, atol=0.01)
     assert cal["within_1sigma_before"][0] < 0.45 and cal["within_1sigma_before"][2] > 0.9
@@ -113,32 +106,39 @@ def test_fit_calibration_recovers_the_sigma_scale():
 
 class UnitNet(nn.Module):
     def forward(self, x, mask):
-        B = x.shape[0]
-        return torch.ones(B, 3), torch.zeros(B, 3)
+        B, S = x.shape[:2]
+        return torch.ones(B, 3), torch.zeros(B, 3), torch.zeros(B, S, 2)
 
 
 def test_calibration_scale_applied_by_predict_and_old_configs_load():
     tr = toy_trace(20, seed=1)
-    cfg = TrainConfig().to_checkpoint_config(None)
-    raw = Corrector(UnitNet(), cfg).predict(tr, tr.truth + 3.0, np.ones(20, bool))
-    cal = Corrector(UnitNet(), dict(cfg, calibration={"scale_ned": [2.0, 1.0, 0.5]}))
-    c = cal.predict(tr, tr.truth + 3.0, np.ones(20, bool))
-    np.testing.assert_allclose(c.mean_ecef, raw.mean_ecef)                  # means untouched
-    np.testing.assert_allclose(np.diagonal(c.cov_ned, axis1=1, axis2=2),
-                               np.diagonal(raw.cov_ned, axis1=1, axis2=2) * [4.0, 1.0, 0.25], rtol=1e-9)
-    off = Corrector(UnitNet(), dict(cfg, calibration={"scale_ned": [2.0, 1.0, 0.5]}), calibrated=False)
-    np.testing.assert_allclose(off.predict(tr, tr.truth + 3.0, np.ones(20, bool)).cov_ned, raw.cov_ned)
+    init, valid = tr.truth + 3.0, np.ones(20, bool)
+    cfg = TrainConfig().to_checkpoint_config()
+    calib = {"correction": {"scale_ned": [2.0, 1.0, 0.5]}, "wls": {"scale_ned": [1.0, 3.0, 1.0]}}
+    for output, var in (("correction", [4.0, 1.0, 0.25]), ("wls", [1.0, 9.0, 1.0])):
+        raw = Corrector(UnitNet(), cfg).predict(tr, init, valid, output=output)
+        cal = Corrector(UnitNet(), dict(cfg, calibration=calib))
+        np.testing.assert_allclose(cal.var_scale[output], var)
+        c = cal.predict(tr, init, valid, output=output)
+        np.testing.assert_allclose(c.mean_ecef, raw.mean_ecef)                  # means untouched
+        # per NED axis: the covariance scales by s_i * s_j
+        s = np.sqrt(var)
+        np.testing.assert_allclose(c.cov_ned, raw.cov_ned * np.outer(s, s), rtol=1e-9, atol=1e-12)
+        off = Corrector(UnitNet(), dict(cfg, calibration=calib), calibrated=False)
+        np.testing.assert_allclose(off.predict(tr, init, valid, output=output).cov_ned, raw.cov_ned)
     with pytest.raises(CheckpointError, match="scale_ned"):
-        Corrector(UnitNet(), dict(cfg, calibration={"scale_ned": [1.0, -1.0, 1.0]}))
+        Corrector(UnitNet(), dict(cfg, calibration={"wls": {"scale_ned": [1.0, -1.0, 1.0]}}))
 
 
 def test_old_checkpoint_without_new_fields_loads_with_defaults(tmp_path):
-    old_cfg = TrainConfig().to_checkpoint_config(None)
-    for k in ("guess_mix", "wls_jitter", "wls_max_err"):
+    old_cfg = TrainConfig().to_checkpoint_config()
+    for k in ("guess_mix", "wls_jitter", "wls_max_err", "output", "loss"):
         old_cfg.pop(k)
     path = save_checkpoint(tmp_path / "old.pt", SetTransformer(), old_cfg)
     c = Corrector.load(path)
-    np.testing.assert_array_equal(c.var_scale, np.ones(3))
+    assert c.output == "correction" and c.ranges is None
+    for v in c.var_scale.values():
+        np.testing.assert_array_equal(v, np.ones(3))
     tr = toy_trace(10, seed=6)
     assert c.predict(tr, tr.truth + 2.0, np.ones(10, bool)).valid.all()
 
@@ -154,18 +154,23 @@ def test_checkpoint_round_trip_with_mix_and_calibration(tiny, tmp_path):
     tr, va = tiny
     cfg = TrainConfig(epochs=1, guess_mix={"box": 0.5, "wls": 0.5}, wls_jitter=1.5, wls_max_err=80.0)
     hist = train(tr, va, cfg, tmp_path / "m.pt", progress=False)
-    assert "val_wls_mae_ned_m" in hist[0] and len(hist[0]["val_wls_within_1sigma"]) == 3
+    assert len(hist[0]["val_wls_mae_ned_m"]) == 3 and len(hist[0]["val_mae_ned_m"]) == 3
     conf = read_checkpoint(tmp_path / "m.pt")["config"]
     assert conf["guess_mix"] == {"box": 0.5, "wls": 0.5} and conf["wls_jitter"] == 1.5
     assert conf["wls_max_err"] == 80.0
     cal = conf["calibration"]
-    assert len(cal["scale_ned"]) == 3 and cal["n"] == len(va) and cal["subset"] == "all validation samples"
+    assert set(cal) == {"wls", "correction"}
+    for c in cal.values():
+        # fewer than CALIB_MIN_REAL real samples: calibrated on all of them (every sample has a WLS fix)
+        assert len(c["scale_ned"]) == 3 and c["n"] == len(va) and c["subset"] == "all validation samples"
+        assert all(s > 0 for s in c["scale_ned"])
     c = Corrector.load(tmp_path / "m.pt")
-    np.testing.assert_allclose(c.var_scale, np.square(cal["scale_ned"]))
+    for name in ("wls", "correction"):
+        np.testing.assert_allclose(c.var_scale[name], np.square(cal[name]["scale_ned"]))
     assert "calibration" not in read_checkpoint(tmp_path / "m.pt.last")["config"]
     # A box-only run and a mixed run see different guesses -> different first-epoch losses.
     hist_box = train(tr, va, TrainConfig(epochs=1), tmp_path / "b.pt", progress=False)
-    assert hist_box[0]["train_mse"] != hist[0]["train_mse"]
+    assert hist_box[0]["train_loss"] != hist[0]["train_loss"]
     with pytest.raises(CheckpointError, match="'guess_mix' differs"):
         train(tr, va, dataclasses.replace(cfg, epochs=2, guess_mix={"box": 1.0}), tmp_path / "m.pt",
               resume=True, progress=False)
@@ -173,17 +178,41 @@ def test_checkpoint_round_trip_with_mix_and_calibration(tiny, tmp_path):
     assert "calibration" not in read_checkpoint(tmp_path / "nc.pt")["config"]
 
 
+def test_calibrated_scale_makes_the_validation_coverage_nominal(tiny, tmp_path):
+    """After calibration the stored 1-sigma coverage on the validation split is the nominal ~68 %."""
+    tr, va = tiny
+    train(tr, va, TrainConfig(epochs=1), tmp_path / "m.pt", progress=False)
+    for name, c in read_checkpoint(tmp_path / "m.pt")["config"]["calibration"].items():
+        np.testing.assert_allclose(c["within_1sigma_after"], 0.683, atol=0.1, err_msg=name)
+
+
 def test_cli_guess_mix_and_bias_source(tmp_path, capsys):
     out = tmp_path / "ck.pt"
-    assert main(["--data", "toy", "toy-bias", "--sim-traces", "1", "--sim-bias-traces", "1", "--sim-epochs", "60",
+    assert main(["--data", "toy", "toy-bias", "--sim-traces", "1", "--sim-epochs", "60",
                  "--epochs", "1", "--guess-mix", "box=0.25,wls=0.75", "--val-split", "blocks", "--out", str(out),
                  "--quiet", "--threads", "1"]) == 0
     conf = read_checkpoint(out)["config"]
     assert conf["guess_mix"] == {"box": 0.25, "wls": 0.75} and conf["data"]["toy-bias"]["bias"]
-    assert conf["data"]["val_split"] == "blocks" and "calibration" in conf
-    assert "variance scale N/E/D" in capsys.readouterr().out
+    assert conf["data"]["toy-bias"]["traces"] == 1 and not conf["data"]["toy"]["bias"]
+    assert conf["data"]["toy-bias"]["seed"] == conf["data"]["toy"]["seed"] + 1          # other drives
+    assert conf["data"]["val_split"] == "blocks" and set(conf["calibration"]) == {"wls", "correction"}
+    printed = capsys.readouterr().out
+    assert "wls covariance scale N/E/D" in printed and "correction covariance scale N/E/D" in printed
     with pytest.raises(DataError, match="--guess-mix"):
         main(["--data", "toy", "--guess-mix", "truth=1", "--out", str(tmp_path / "x.pt")])
+    with pytest.raises(SystemExit):                              # the old flag is gone: use the 'sim-bias' source
+        main(["--data", "toy", "--sim-bias-traces", "1", "--out", str(tmp_path / "x.pt")])
+
+
+def test_load_training_data_sources():
+    from learned.train_cli import load_training_data
+
+    s, desc = load_training_data(["toy", "toy-bias"], sim_traces=2, sim_epochs=20, seed=3, elev_mask_deg=10.0)
+    assert len(s.names) == 4 and desc["toy"]["seed"] == 3 and desc["toy-bias"]["seed"] == 4
+    assert desc["n_samples"] == len(s) and s.graph is None and s.ctx is not None
+    assert not s.real_or_false().any()
+    g, _ = load_training_data(["toy"], sim_traces=1, sim_epochs=20, seed=3, elev_mask_deg=10.0, with_graph=True)
+    assert g.graph is not None and np.isfinite(g.graph).all()
 
 
 # ------------------------------------------------------------------ graph guesses (no-prior graph solution)
@@ -232,20 +261,19 @@ def test_sample_graph_is_the_truth_free_nodnn_solution():
     assert both.graph.shape == (80, 3) and both.subset(np.array([1, 70])).graph.shape == (2, 3)
 
 
-def test_train_with_graph_mix_validates_and_calibrates_at_the_graph(tmp_path):
+def test_train_with_graph_mix_needs_graph_positions(tmp_path):
     torch.set_num_threads(1)
     s = build_samples(toy_dataset(2, 80, seed=9, bias=True), real=[True, False], with_graph=True)
     tr, va = split_blocks(s, 0.25, np.random.default_rng(0), block=20)
     cfg = TrainConfig(epochs=1, guess_mix="box=0.25,wls=0.25,graph=0.5")
     hist = train(tr, va, cfg, tmp_path / "g.pt", progress=False)
-    assert "val_graph_mae_ned_m" in hist[0] and "val_wls_mae_ned_m" in hist[0]
-    assert hist[0]["val_graph_mae_ned_m"] != hist[0]["val_wls_mae_ned_m"]
+    assert np.isfinite(hist[0]["val_score_m"]) and np.isfinite(hist[0]["train_loss"])
     conf = read_checkpoint(tmp_path / "g.pt")["config"]
     assert conf["guess_mix"] == {"box": 0.25, "wls": 0.25, "graph": 0.5}
-    assert conf["calibration"]["guess"] == "graph" and conf["calibration"]["n"] == len(va)
-    # A two-source mix keeps its WLS calibration (no "guess" key) and its history keys.
+    # a graph mix and a two-source mix draw different guesses -> different training losses
     h2 = train(tr, va, TrainConfig(epochs=1, guess_mix="box=0.25,wls=0.75"), tmp_path / "w.pt", progress=False)
-    assert "val_graph_mae_ned_m" not in h2[0] and "guess" not in read_checkpoint(tmp_path / "w.pt")["config"]["calibration"]
+    assert h2[0]["train_loss"] != hist[0]["train_loss"]
+    assert set(h2[0]) == set(hist[0])
     tr_nog, va_nog = split_blocks(build_samples(toy_dataset(2, 80, seed=9)), 0.25, np.random.default_rng(0), block=20)
     with pytest.raises(DataError, match="no graph positions"):
         train(tr_nog, va_nog, cfg, tmp_path / "x.pt", progress=False)
@@ -258,4 +286,14 @@ def test_cli_graph_mix(tmp_path, capsys):
                  "--quiet", "--threads", "1"]) == 0
     conf = read_checkpoint(out)["config"]
     assert conf["guess_mix"]["graph"] == 0.5 and conf["data"]["skipped"]["graph_invalid"] == 0
-    assert "guess = graph:" in capsys.readouterr().out
+    assert "best epoch 1" in capsys.readouterr().out
+
+
+def test_epoch_generator_streams_per_seed_epoch_and_rank():
+    draw = lambda **kw: torch.rand(8, generator=epoch_generator(**kw))          # noqa: E731
+    a = draw(seed=1, epoch=3)
+    assert torch.equal(a, draw(seed=1, epoch=3, rank=0))                        # rank 0 = the one-process run
+    assert torch.equal(a, draw(seed=1, epoch=3, device="cpu"))
+    others = [draw(seed=1, epoch=3, rank=1), draw(seed=1, epoch=4), draw(seed=2, epoch=3), draw(seed=1, epoch=3, rank=2)]
+    assert all(not torch.equal(a, o) for o in others)
+    assert not torch.equal(others[0], others[3])

@@ -18,15 +18,22 @@ from learned.train import TrainConfig
 
 
 class ConstantNet(nn.Module):
-    """Stub network: always predicts the NED correction (1, 2, 3) * out_scale with log-variance (0, ln 4, 0)."""
+    """Stub network: always predicts the NED correction (1, 2, 3) * out_scale with log-variance (0, ln 4, 0),
+    and per satellite the log-scale ``log_k`` of the physical sigma model and bias 0."""
+
+    def __init__(self, log_k: float = 0.0):
+        super().__init__()
+        self.log_k = log_k
 
     def forward(self, x, mask):
-        B = x.shape[0]
-        return (torch.tensor([1.0, 2.0, 3.0]).expand(B, 3), torch.tensor([0.0, np.log(4.0), 0.0]).expand(B, 3))
+        B, S = x.shape[:2]
+        sat = torch.zeros(B, S, 2)
+        sat[..., 0] = self.log_k
+        return (torch.tensor([1.0, 2.0, 3.0]).expand(B, 3), torch.tensor([0.0, np.log(4.0), 0.0]).expand(B, 3), sat)
 
 
-def _config(kind="set", **feat):
-    return TrainConfig(model=kind, features=FeatureConfig(**feat)).to_checkpoint_config(None)
+def _config(kind="set", output="correction", **feat):
+    return TrainConfig(model=kind, features=FeatureConfig(**feat), output=output).to_checkpoint_config()
 
 
 def test_predict_applies_ned_correction_and_covariance_in_frame_of_guess():
@@ -47,6 +54,64 @@ def test_predict_applies_ned_correction_and_covariance_in_frame_of_guess():
     np.testing.assert_allclose(c.cov_ecef[0], R.T @ np.diag([4.0, 16.0, 4.0]) @ R, atol=1e-9)
     mean, cov, v = Corrector(ConstantNet(), _config(out_scale=2.0))(tr, init, valid)
     np.testing.assert_array_equal(v, c.valid)
+    np.testing.assert_allclose(mean, c.mean_ecef)
+    # no guard ranges in the config: full trust everywhere asked
+    np.testing.assert_array_equal(c.trust[ok], 1.0)
+    assert np.isnan(c.trust[~ok]).all()
+
+
+def _noise_free(E=12, seed=1, n_sats=(6, 9)):
+    """A toy trace whose pseudoranges are the exact (Sagnac) ranges plus a clock: WLS lands on the truth."""
+    from fusion.geometry import line_of_sight
+    tr = toy_trace(E, seed=seed, n_sats=n_sats)
+    rng, _ = line_of_sight(tr.sat_pos, tr.truth)
+    tr.pr = np.where(tr.mask, rng + 1234.5, 0.0)
+    return tr
+
+
+def test_wls_output_is_least_squares_with_the_heads_sigmas_and_slot_noise_matches():
+    """Output "wls": the position of least squares weighted by the per-satellite head, iterated from the
+    guess; on noise-free ranges it is the truth whatever the weights."""
+    tr = _noise_free()
+    init = tr.truth + np.array([6.0, -4.0, 3.0])
+    valid = np.ones(tr.n_epochs, bool)
+    corr = Corrector(ConstantNet(), _config(output="wls"))
+    assert corr.output == "wls" and set(corr.var_scale) >= {"wls", "correction"}
+    c = corr.predict(tr, init, valid)
+    assert c.valid.all()
+    np.testing.assert_allclose(c.mean_ecef, tr.truth, atol=1e-3)
+    assert np.abs(c.corr_ned).max() > 3.0                   # it moved, and not by the correction head's (1,2,3)
+    assert np.allclose(c.cov_ecef, np.swapaxes(c.cov_ecef, 1, 2)) and (np.linalg.eigvalsh(c.cov_ecef) > 0).all()
+    # the per-slot sigma: positive on real slots, NaN on padding; the bias 0 (the stub's)
+    assert (c.sigma[tr.mask] > 0).all() and np.isnan(c.sigma[~tr.mask]).all()
+    np.testing.assert_array_equal(c.bias[tr.mask], 0.0)
+    # the head scales the sigmas: 2x everywhere -> the same position, covariance x4
+    c2 = Corrector(ConstantNet(np.log(2.0)), _config(output="wls")).predict(tr, init, valid)
+    np.testing.assert_allclose(c2.sigma[tr.mask], 2.0 * c.sigma[tr.mask], rtol=1e-6)
+    np.testing.assert_allclose(c2.mean_ecef, c.mean_ecef, atol=1e-6)
+    np.testing.assert_allclose(c2.cov_ecef, 4.0 * c.cov_ecef, rtol=1e-6)
+    # ... and a larger reported pseudorange sigma gives a larger learned sigma (the physical model under it)
+    loud = _noise_free()
+    loud.pr_sigma = loud.pr_sigma * 3.0
+    c3 = corr.predict(loud, init, valid)
+    assert (c3.sigma[tr.mask] > c.sigma[tr.mask]).all()
+    sigma, bias = corr.slot_noise()(tr, init, valid)
+    np.testing.assert_array_equal(sigma, c.sigma)
+    np.testing.assert_array_equal(bias, c.bias)
+    # the output argument overrides the checkpoint's; an unknown one is refused
+    cc = corr.predict(tr, init, valid, output="correction")
+    np.testing.assert_allclose(cc.corr_ned[0], [10.0, 20.0, 30.0])       # (1, 2, 3) * out_scale 10
+    with pytest.raises(CheckpointError, match="unknown output 'direct'"):
+        corr.predict(tr, init, valid, output="direct")
+
+
+def test_checkpoints_without_output_default_to_the_correction_head():
+    tr = toy_trace(8, seed=3)
+    cfg = _config(output="wls")
+    cfg.pop("output")
+    c = Corrector(ConstantNet(), cfg)
+    assert c.output == "correction"
+    np.testing.assert_allclose(c.predict(tr, tr.truth, np.ones(8, bool)).corr_ned, np.tile([10.0, 20.0, 30.0], (8, 1)))
 
 
 def test_epochs_with_too_few_satellites_not_solved_and_counted():
@@ -172,9 +237,16 @@ def test_shipped_weights_load_run_and_match_training_md(shipped_trace_dir):
     for flag in (f"--epochs {cfg['epochs']}", f"--eta {cfg['eta']:g}", f"--guess-mix {mix}",
                  f"--wls-jitter {cfg['wls_jitter']:g}", f"--val-split {cfg['data']['val_split']}",
                  f"--seed {cfg['seed']}", f"--sim-traces {cfg['data']['sim']['traces']}",
-                 f"--sim-bias-traces {cfg['data']['sim-bias']['traces']}",
                  f"--sim-epochs {cfg['data']['sim']['epochs_per_trace']}"):
         assert f" {flag} " in command, flag
+    # the new options appear when they differ from the CLI defaults
+    from learned.train_cli import DEFAULT_INPUTS
+    if ",".join(cfg["features"]["inputs"]) != DEFAULT_INPUTS:
+        assert f" --inputs {','.join(cfg['features']['inputs'])} " in command
+    if cfg["output"] != "wls":
+        assert f" --output {cfg['output']} " in command
+    assert corr.features.inputs == tuple(cfg["features"]["inputs"]) and cfg["input_ranges"] is not None
+    assert set(cfg["calibration"]) >= {"wls", "correction"}
     best = read_checkpoint(SHIPPED_WEIGHTS)["epoch"]
     assert f"**{best} of {cfg['epochs']}**" in doc
     assert f"{cfg['data']['n_train']:,} train / {cfg['data']['n_val']:,} validation" in doc

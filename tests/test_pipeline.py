@@ -11,7 +11,7 @@ from fusion.cli import main
 from fusion.geometry import geodetic2ecef
 from fusion.io.load import load_trace
 from fusion.eval.metrics import ned_errors, summarize
-from fusion.io.estimates import ESTIMATE_COLUMNS
+from fusion.io.estimates import ESTIMATE_COLUMNS, SIGMA_COLUMNS
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
 
@@ -19,7 +19,11 @@ from fusion.run_types import RunOptions
 def test_run_wls_writes_contract_files(shipped_trace_dir, tmp_path, capsys):
     assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--out", str(tmp_path)]) == 0
     est = pd.read_csv(tmp_path / "estimates.csv")
-    assert list(est.columns) == ESTIMATE_COLUMNS
+    # the contract's columns, then the 1-sigma N/E/D of modes with a covariance (WLS has one)
+    assert list(est.columns) == ESTIMATE_COLUMNS + SIGMA_COLUMNS
+    sig = est[SIGMA_COLUMNS].to_numpy()
+    assert np.isfinite(sig).mean() > 0.95 and (sig[np.isfinite(sig)] > 0).all()
+    assert np.nanmedian(sig[:, 2]) > np.nanmedian(sig[:, 0])        # vertical is the weak axis of a fix
     trace = load_trace(shipped_trace_dir)
     assert 0.95 * trace.n_epochs <= len(est) <= trace.n_epochs
     # Geodetic and ECEF columns describe the same points.

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from fusion import cli, modes
-from fusion.io.estimates import ESTIMATE_COLUMNS
+from fusion.io.estimates import ESTIMATE_COLUMNS, SIGMA_COLUMNS
 from fusion.run_types import ModeResult, RunOptions
 from fusion.geometry import geodetic2ecef, ned2ecef_vec
 from fusion.eval.metrics import ned_errors, summarize
@@ -72,7 +72,7 @@ def test_table_metrics_equal_summarize_of_estimates(wls_report):
     trace = load_trace(trace_dir)
     trace = trace.select(np.arange(min(N_EPOCHS, trace.n_epochs)))
     est = pd.read_csv(out / "2021-04-28-US-MTV-1_Pixel4" / "wls" / "estimates.csv")
-    assert list(est.columns) == ESTIMATE_COLUMNS
+    assert list(est.columns) == ESTIMATE_COLUMNS + SIGMA_COLUMNS          # WLS gives a covariance
     pos = np.full((trace.n_epochs, 3), np.nan)
     idx = np.searchsorted(trace.t_ms, est.gps_millis.to_numpy())
     assert np.array_equal(trace.t_ms[idx], est.gps_millis.to_numpy())

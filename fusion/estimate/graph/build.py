@@ -29,10 +29,11 @@ def pseudorange_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig
     comp, grp = int(inp.comp[k]), inp.isb.group[k]
     for s in np.flatnonzero(inp.sel[k]):          # ~10 satellites
         model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(inp.sigma[k, s])))
+        pr = trace.pr[k, s] - inp.pr_bias[k, s]
         if grp[s] < 0:
-            out.append(pseudorange_factor_xc(k, trace.pr[k, s], trace.sat_pos[k, s], model))
+            out.append(pseudorange_factor_xc(k, pr, trace.sat_pos[k, s], model))
         else:
-            out.append(pseudorange_factor_xci(k, comp, int(grp[s]), trace.pr[k, s], trace.sat_pos[k, s], model))
+            out.append(pseudorange_factor_xci(k, comp, int(grp[s]), pr, trace.sat_pos[k, s], model))
     return out
 
 

@@ -17,6 +17,11 @@ class GraphConfig:
     # Pseudorange sigma [m]: sqrt((pr_sigma_scale * pr_sigma)^2 + (pr_sigma_zenith_m / sin(el))^2).
     pr_sigma_scale: float = 1.0
     pr_sigma_zenith_m: float = 1.0
+    # A slot-noise provider's sigmas (the learned per-satellite head): "absolute" = used as given;
+    # "relative" = rescaled per epoch so that their median over the epoch's satellites equals the
+    # median of the sigma model above (the provider reweights satellites against each other, the
+    # graph keeps the level at which its motion and clock models were tuned).
+    slot_noise_level: str = "relative"
     robust: str = "cauchy"             # "huber", "cauchy" or "none"
     robust_k: float = 2.0              # scale on the whitened residual
     # Motion: "rw" = zero-mean position random walk; "cv" = velocity states, constant velocity.

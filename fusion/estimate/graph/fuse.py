@@ -16,7 +16,7 @@ from fusion.estimate.graph.batch import solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.incremental import solve_incremental
 from fusion.estimate.graph.inputs import prepare_inputs
-from fusion.estimate.graph.priors import PriorProvider
+from fusion.estimate.graph.priors import PriorProvider, SlotNoiseProvider
 from fusion.estimate.graph.solve_errors import check_determined
 from fusion.estimate.wls import WlsResult
 from fusion.run_types import ModeResult, RunOptions
@@ -25,15 +25,17 @@ from fusion.trace import Trace
 
 def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig,
                 provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None,
-                on_undetermined: str = "drop", want_cov: bool = True) -> ModeResult:
-    """One solve of the graph, the provider asked at ``prior_guess`` (E,3) (None: the WLS track).
+                on_undetermined: str = "drop", want_cov: bool = True,
+                slot_noise: SlotNoiseProvider | None = None) -> ModeResult:
+    """One solve of the graph, the providers asked at ``prior_guess`` (E,3) (None: the WLS track).
 
     on_undetermined: "drop" (epochs nothing can determine are left unsolved and counted in
     ``info["epochs_undetermined"]``) or "raise" (:class:`GeometryError` naming the first one).
     """
     if on_undetermined not in ("drop", "raise"):
         raise GnssfuseError(f"on_undetermined must be 'drop' or 'raise', got {on_undetermined!r}")
-    inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, provider, prior_guess=prior_guess)
+    inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, provider, prior_guess=prior_guess,
+                         slot_noise=slot_noise)
     if on_undetermined == "raise":
         check_determined(trace, inp)
     E = trace.n_epochs
@@ -63,18 +65,21 @@ def prior_guess(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
 
 
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,
-         cfg: GraphConfig | None = None, on_undetermined: str = "drop", want_cov: bool = True) -> ModeResult:
+         cfg: GraphConfig | None = None, on_undetermined: str = "drop", want_cov: bool = True,
+         slot_noise: SlotNoiseProvider | None = None) -> ModeResult:
     """Smooth a whole trace in a factor graph.
 
     trace: the measurements; wls: the shared ``WlsResult`` (initial positions, clocks, used slots).
     provider: position prior provider, or None for the graph without a prior.
+    slot_noise: per-slot pseudorange sigma/bias provider, or None for the config's sigma model.
     on_undetermined: see :func:`solve_graph`.
     Returns a ModeResult with pos (E,3) ECEF, valid (E,), cov (E,3,3) ECEF marginals (batch only;
     None in incremental mode) and info counts.
     """
     opts, cfg = opts or RunOptions(), cfg or GraphConfig()
-    guess = None if provider is None else prior_guess(trace, wls, opts, cfg)
-    return solve_graph(trace, wls, opts, cfg, provider, guess, on_undetermined, want_cov)
+    learned = provider is not None or slot_noise is not None
+    guess = prior_guess(trace, wls, opts, cfg) if learned else None
+    return solve_graph(trace, wls, opts, cfg, provider, guess, on_undetermined, want_cov, slot_noise)
 
 
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:

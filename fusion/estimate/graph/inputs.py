@@ -12,7 +12,8 @@ from fusion.errors import GeometryError
 from fusion.estimate.graph.clock import clock_chain
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
-from fusion.estimate.graph.priors import PriorProvider, Priors, ask_provider, clean_priors
+from fusion.estimate.graph.priors import (PriorProvider, Priors, SlotNoiseProvider, ask_provider,
+                                          clean_priors)
 from fusion.estimate.graph.series import interp_rows
 from fusion.estimate.wls import WlsResult
 from fusion.geometry import elevation_azimuth, line_of_sight
@@ -31,7 +32,8 @@ class EpochInputs:
     (index of the epoch whose clock k's clock is chained to, -1 for none), clock_mean_m (E,) the
     expected clock change along that link, clock_sigma_m (E,), prior_mean (E,3), prior_cov (E,3,3),
     prior_ok (E,) bool, keep (E,) bool (epoch in a determinable component), comp (E,) component id,
-    dropped: counts by reason; isb: the inter-system bias states (:class:`IsbInputs`).
+    dropped: counts by reason; isb: the inter-system bias states (:class:`IsbInputs`);
+    pr_bias (E,S) [m] subtracted from each pseudorange (a slot-noise provider's bias, else 0).
     """
 
     init_pos: np.ndarray
@@ -51,6 +53,7 @@ class EpochInputs:
     comp: np.ndarray
     dropped: dict
     isb: IsbInputs
+    pr_bias: np.ndarray
 
 
 def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -92,6 +95,28 @@ def select_satellites(trace: Trace, wls: WlsResult, wls_ok: np.ndarray, init_pos
     sin_el = np.sin(np.radians(np.clip(el, 5.0, 90.0)))
     sigma = np.sqrt((cfg.pr_sigma_scale * trace.pr_sigma) ** 2 + (cfg.pr_sigma_zenith_m / sin_el) ** 2)
     return sel, sigma, np.where(sel, trace.pr - rng, np.nan)
+
+
+def slot_noise_at(trace: Trace, slot_noise: SlotNoiseProvider | None, at: np.ndarray, sel: np.ndarray,
+                  sigma: np.ndarray, level: str = "absolute") -> tuple[np.ndarray, np.ndarray, int]:
+    """The provider's sigma (E,S) where it gave a finite positive one on a selected slot, else ``sigma``
+    (``level`` "relative": rescaled per epoch to the median of ``sigma``, see GraphConfig); its bias (E,S)
+    there, else 0; and how many selected slots it set."""
+    if slot_noise is None:
+        return sigma, np.zeros_like(sigma), 0
+    if level not in ("absolute", "relative"):
+        raise GeometryError(f"GraphConfig.slot_noise_level must be 'absolute' or 'relative', got {level!r}")
+    got_sigma, got_bias = (np.asarray(a, float) for a in slot_noise(trace, at, np.isfinite(at).all(axis=1)))
+    if got_sigma.shape != sigma.shape or got_bias.shape != sigma.shape:
+        raise GeometryError(f"{trace.name}: slot noise provider returned shapes {got_sigma.shape} / "
+                            f"{got_bias.shape}, expected {sigma.shape}")
+    use = sel & np.isfinite(got_sigma) & (got_sigma > 0) & np.isfinite(got_bias)
+    if level == "relative":
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)      # epochs the provider skipped -> NaN
+            ratio = np.nanmedian(np.where(use, sigma, np.nan), 1) / np.nanmedian(np.where(use, got_sigma, np.nan), 1)
+        got_sigma = got_sigma * np.nan_to_num(ratio, nan=1.0)[:, None]
+    return np.where(use, got_sigma, sigma), np.where(use, got_bias, 0.0), int(use.sum())
 
 
 def initial_clocks(wls: WlsResult, wls_ok: np.ndarray, resid: np.ndarray) -> np.ndarray:
@@ -136,17 +161,22 @@ def determinable(comp: np.ndarray, n_sel: np.ndarray, prior_ok: np.ndarray) -> n
 
 
 def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg: float = 10.0,
-                   provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None) -> EpochInputs:
+                   provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None,
+                   slot_noise: SlotNoiseProvider | None = None) -> EpochInputs:
     """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
 
-    prior_guess: (E,3) positions at which to ask the provider (NaN rows: the initial position);
+    prior_guess: (E,3) positions at which to ask the providers (NaN rows: the initial position);
     None = the initial positions (WLS, interpolated where it failed).
+    slot_noise: per-slot pseudorange sigma and bias provider (None: the config's sigma model).
     Raises :class:`GeometryError` when no epoch has any usable initial position.
     """
     t = trace.t_ms.astype(float) / 1000.0
     init_pos, wls_ok = initial_positions(trace, wls, t)
     pri, n_rejected = learned_priors(trace, provider, init_pos, prior_guess, cfg)
     sel, sigma, resid = select_satellites(trace, wls, wls_ok, init_pos, cfg, elev_mask_deg)
+    at = init_pos if prior_guess is None else np.where(np.isfinite(prior_guess).all(axis=1)[:, None],
+                                                       prior_guess, init_pos)
+    sigma, pr_bias, n_learned = slot_noise_at(trace, slot_noise, at, sel, sigma, cfg.slot_noise_level)
     init_clock = initial_clocks(wls, wls_ok, resid)
     dt, pos_link, comp = motion_links(t, cfg.max_gap_s)
     wls_clock = np.where(wls_ok, np.asarray(wls.clock_m, float), np.nan)
@@ -155,10 +185,12 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
     dropped = {"clock_resets": chain.n_resets, "epochs_undetermined": int((~keep).sum())}
     if provider is not None:
         dropped = {"prior_rejected": n_rejected, **dropped}
+    if slot_noise is not None:
+        dropped = {"learned_sigmas": n_learned, **dropped}
     inp = EpochInputs(init_pos=init_pos, init_clock_m=init_clock,
                       init_vel=initial_velocities(init_pos, dt, pos_link), sel=sel, sigma=sigma, dt=dt,
                       pos_link=pos_link, clock_link=chain.link, clock_mean_m=chain.change_m,
                       clock_sigma_m=chain.sigma_m, prior_mean=pri.mean, prior_cov=pri.cov, prior_ok=pri.ok,
                       keep=keep, comp=comp, dropped=dropped,
-                      isb=isb_inputs(trace, sel, comp, init_clock, resid, cfg))
+                      isb=isb_inputs(trace, sel, comp, init_clock, resid, cfg), pr_bias=pr_bias)
     return inp

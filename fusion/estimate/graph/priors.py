@@ -19,6 +19,10 @@ from fusion.trace import Trace
 #: ``provider(trace, init_pos (E,3), valid (E,)) -> (mean_ecef (E,3), cov_ecef (E,3,3), valid (E,))``
 PriorProvider = Callable[[Trace, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
 
+#: ``slot_noise(trace, init_pos (E,3), valid (E,)) -> (sigma (E,S), bias (E,S))`` [m]: a pseudorange sigma
+#: and bias per slot, NaN where the provider has no opinion (the graph keeps its own sigma and no bias).
+SlotNoiseProvider = Callable[[Trace, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
 #: smallest eigenvalue [m^2] a provider's covariance needs to be used as a prior
 PRIOR_MIN_EIG = 1e-6
 

@@ -1,0 +1,219 @@
+"""Leave-drives-out cross-validation of the learned correction on the GSDC 2021 training drives.
+
+Four folds of three drives, grouped by date so that neighbouring days never straddle a fold. For each fold
+a network is trained on the other nine drives (``learned.train``, the shipped recipe unless options say
+otherwise) and every mode runs on the fold's unseen drives with the honest protocol (guess from WLS or the
+graph, clock estimated, no truth): ``wls``, ``dnn`` (learned-weight least squares), ``dnn-paper`` (the
+paper's correction head), ``fused-nodnn``, ``fused`` and its ablations ``fused-prior`` (learned prior only)
+and ``fused-sigmas`` (learned per-satellite sigmas only), and ``wls-prunc`` (a non-learned reference: WLS
+weighted by the phone's reported pseudorange uncertainty). Printed and written to ``<out>/crossval.md``:
+per-fold and pooled GSDC score, p50, p95, MAE N/E/D, and the share of errors within 1 and 2 sigma per axis,
+both with each checkpoint's own calibration and cross-fitted (the scale fitted on the other folds' unseen
+drives, applied to this fold's). ``--store-calibration CKPT`` writes the pooled unseen-drive scales into a
+checkpoint (the shipped one is calibrated this way).
+
+    python experiments/crossval.py --data ../shared/data/gsdc2021/train --out /tmp/cv --jobs 2
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pickle
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from fusion.eval.metrics import ned_errors, summarize  # noqa: E402
+from fusion.geometry import ecef2ned_cov  # noqa: E402
+from fusion.io.load import load_trace  # noqa: E402
+from fusion.modes import run_modes, solve_initial  # noqa: E402
+from fusion.run_types import RunOptions  # noqa: E402
+from learned.augment import parse_guess_mix  # noqa: E402
+from learned.calibrate import sigma_scale  # noqa: E402
+from learned.data import concat_samples, samples_from_trace, split_traces  # noqa: E402
+from learned.features import CHANNELS, FeatureConfig  # noqa: E402
+from learned.train import LossWeights, TrainConfig, train  # noqa: E402
+
+FOLDS = {
+    "A": ("2020-05-14-US-MTV-1", "2020-05-14-US-MTV-2", "2020-07-08-US-MTV-1"),
+    "B": ("2020-05-21-US-MTV-1", "2020-05-21-US-MTV-2", "2020-09-04-US-SF-2"),
+    "C": ("2020-05-29-US-MTV-1", "2020-05-29-US-MTV-2", "2020-06-11-US-MTV-1"),
+    "D": ("2020-06-04-US-MTV-1", "2020-06-05-US-MTV-1", "2020-06-05-US-MTV-2"),
+}
+#: mode label -> (pipeline mode, RunOptions changes)
+MODES = {
+    "wls": ("wls", {}), "wls-prunc": ("wls", {"wls_weighting": "uncertainty"}),
+    "dnn": ("dnn", {"dnn_output": "wls"}), "dnn-paper": ("dnn", {"dnn_output": "correction"}),
+    "fused-nodnn": ("fused-nodnn", {}), "fused": ("fused", {}),
+    "fused-prior": ("fused", {"learned_sigmas": False}), "fused-sigmas": ("fused", {"learned_prior": False}),
+}
+CALIBRATED = ("dnn", "fused")
+
+
+def drive_dir(data: Path, drive: str) -> Path:
+    return data / drive / "Pixel4"
+
+
+def drive_samples(data: Path, drive: str, cache: Path):
+    """Training samples of one drive (with graph positions), cached: they cost a graph solve."""
+    f = cache / f"{drive}.pkl"
+    if f.is_file():
+        return pickle.loads(f.read_bytes())
+    s = samples_from_trace(load_trace(drive_dir(data, drive)), real=True, with_graph=True)
+    f.write_bytes(pickle.dumps(s))
+    return s
+
+
+def train_fold(fold: str, args) -> Path:
+    ckpt = args.out / f"fold_{fold}.pt"
+    if ckpt.is_file() and args.reuse:
+        return ckpt
+    import torch
+    torch.set_num_threads(1)
+    drives = [d for f, ds in FOLDS.items() if f != fold for d in ds]
+    parts = [drive_samples(args.data, d, args.out / "cache") for d in drives]
+    samples = concat_samples([replace(p, trace=np.full(len(p), i)) for i, p in enumerate(parts)])
+    # validation: one whole drive of the nine, so the best epoch is the one that generalises
+    tr, va = split_traces(samples, 0.1, np.random.default_rng(args.seed))
+    cfg = recipe(args, {"drives": drives})
+    hist = train(tr, va, cfg, ckpt, progress=False)
+    print(f"fold {fold}: {len(tr)} training samples, {len(hist)} epochs in {sum(h['time_s'] for h in hist):.0f} s, "
+          f"best validation {min(h['val_score_m'] for h in hist):.2f} m", file=sys.stderr, flush=True)
+    return ckpt
+
+
+def recipe(args, data: dict) -> TrainConfig:
+    """The training recipe under test (the shipped one by default)."""
+    w = LossWeights(**{k: float(v) for k, v in (kv.split("=") for kv in args.loss.split(",") if kv)})
+    return TrainConfig(epochs=args.epochs, batch=args.batch, seed=args.seed, data=data, loss=w,
+                       guess_mix=parse_guess_mix(args.guess_mix),
+                       features=FeatureConfig(inputs=tuple(args.inputs.split(","))), output="wls")
+
+
+def eval_drive(drive: str, ckpt: Path, args) -> dict:
+    """NED errors (E,3) and NED sigmas (E,3) per mode on one unseen drive."""
+    import torch
+    torch.set_num_threads(1)
+    trace = load_trace(drive_dir(args.data, drive))
+    base = RunOptions(weights=ckpt)
+    wls = solve_initial(trace, base)
+    out = {}
+    for label, (mode, changes) in MODES.items():
+        opts = replace(base, **changes)
+        w = wls if mode != "wls" or not changes else solve_initial(trace, opts)
+        res = run_modes(trace, [mode], opts, wls=w)[mode]
+        err = ned_errors(np.where(res.valid[:, None], res.pos, np.nan), trace.truth)
+        sig = np.full_like(err, np.nan)
+        if res.cov is not None:
+            ok = res.valid & np.isfinite(trace.truth).all(1)
+            sig[ok] = np.sqrt(np.diagonal(ecef2ned_cov(res.cov[ok], trace.truth[ok]), axis1=1, axis2=2))
+        out[label] = {"err": err, "sigma": sig}
+    return out
+
+
+def run_fold(fold: str, args) -> dict:
+    ckpt = train_fold(fold, args)
+    return {d: eval_drive(d, ckpt, args) for d in FOLDS[fold]}
+
+
+def pooled(results: dict, folds, label: str) -> dict:
+    err = np.concatenate([results[f][d][label]["err"] for f in folds for d in results[f]])
+    return summarize(err)
+
+
+def coverage(results: dict, folds, label: str, scale=np.ones(3)) -> dict:
+    z = np.concatenate([np.abs(results[f][d][label]["err"]) / results[f][d][label]["sigma"]
+                        for f in folds for d in results[f]]) / scale
+    z = z[np.isfinite(z).all(1)]
+    return {"within_1sigma": (z <= 1).mean(0).tolist(), "within_2sigma": (z <= 2).mean(0).tolist(), "n": len(z)}
+
+
+def cross_fitted(results: dict, label: str) -> dict:
+    """Coverage of each fold with the sigma scale fitted on the other folds' unseen drives, pooled."""
+    z_all = []
+    if len(results) < 2:
+        return {"within_1sigma": [float("nan")] * 3, "within_2sigma": [float("nan")] * 3, "n": 0}
+    for f in results:
+        others = [g for g in results if g != f]
+        zo = np.concatenate([np.abs(results[g][d][label]["err"]) / results[g][d][label]["sigma"]
+                             for g in others for d in results[g]])
+        s = np.asarray(sigma_scale(zo)["scale_ned"])
+        z_all.append(np.concatenate([np.abs(results[f][d][label]["err"]) / results[f][d][label]["sigma"]
+                                     for d in results[f]]) / s)
+    z = np.concatenate(z_all)
+    z = z[np.isfinite(z).all(1)]
+    return {"within_1sigma": (z <= 1).mean(0).tolist(), "within_2sigma": (z <= 2).mean(0).tolist(), "n": len(z)}
+
+
+def tables(results: dict) -> str:
+    lines = ["| fold | mode | GSDC score | h p50 | h p95 | MAE N | MAE E | MAE D | epochs |", "|---|---|---|---|---|---|---|---|---|"]
+    for name, folds in [*((f, [f]) for f in results), ("pooled", list(results))]:
+        for label in MODES:
+            s = pooled(results, folds, label)
+            lines.append(f"| {name} | {label} | {s['gsdc_score']:.2f} | {s['h_p50']:.2f} | {s['h_p95']:.2f} | "
+                         f"{s['mae_n']:.2f} | {s['mae_e']:.2f} | {s['mae_d']:.2f} | {s['n']} |")
+    lines += ["", "| mode | calibration | within 1 sigma N / E / D | within 2 sigma N / E / D | n |", "|---|---|---|---|---|"]
+    for label in CALIBRATED:
+        for how, c in (("checkpoint's", coverage(results, list(results), label)),
+                       ("cross-fitted", cross_fitted(results, label))):
+            lines.append(f"| {label} | {how} | {' / '.join(f'{v:.2f}' for v in c['within_1sigma'])} | "
+                         f"{' / '.join(f'{v:.2f}' for v in c['within_2sigma'])} | {c['n']} |")
+    return "\n".join(lines)
+
+
+def pooled_scales(results: dict) -> dict:
+    """Sigma scales fitted on every fold's unseen drives, per calibrated mode (to store in a checkpoint)."""
+    out = {}
+    for label in CALIBRATED:
+        z = np.concatenate([np.abs(results[f][d][label]["err"]) / results[f][d][label]["sigma"]
+                            for f in results for d in results[f]])
+        out[label] = sigma_scale(z)
+    return out
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "gsdc2021" / "train")
+    p.add_argument("--out", type=Path, default=Path("/tmp/gnssfuse_cv"))
+    p.add_argument("--folds", default="A,B,C,D")
+    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--loss", default="correction=1,sat=0.1,wls=1,shrink=1")
+    p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3")
+    p.add_argument("--inputs", default=",".join(CHANNELS))
+    p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
+    p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")
+    p.add_argument("--store-calibration", type=Path, default=None, help="write pooled unseen scales into this checkpoint")
+    return p.parse_args(argv)
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    (args.out / "cache").mkdir(parents=True, exist_ok=True)
+    folds = args.folds.split(",")
+    with ProcessPoolExecutor(args.jobs) as ex:
+        results = dict(zip(folds, ex.map(run_fold, folds, [args] * len(folds))))
+    text = tables(results)
+    print(text)
+    (args.out / "crossval.md").write_text(text + "\n")
+    (args.out / "results.pkl").write_bytes(pickle.dumps(results))
+    scales = pooled_scales(results)
+    (args.out / "scales.json").write_text(json.dumps(scales, indent=1))
+    if args.store_calibration:
+        from learned.calibrate import store_calibration
+        from learned.checkpoint import read_checkpoint
+        cal = dict(read_checkpoint(args.store_calibration)["config"].get("calibration") or {})
+        store_calibration(args.store_calibration, {**cal, **{f"unseen_{k}": v for k, v in scales.items()}})
+        print(f"stored unseen-drive scales in {args.store_calibration}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,99 @@
+"""Per-satellite context the network reads beside (residual, line of sight): what a satellite's
+measurement looked like before this epoch and what the phone said about it.
+
+All of it comes from the measurements and the WLS solution of the same trace (no truth):
+
+- ``pr_sigma``: the phone's reported pseudorange uncertainty [m] (``rawPrUncM``);
+- ``cn0``: C/N0 [dB-Hz] where the source has it (0 = unknown);
+- ``dres``: change of the satellite's WLS post-fit residual since the previous epoch [m] (a jump is
+  what multipath or a reflection appearing looks like), with ``prev_ok`` saying it exists;
+- ``arc_s``: seconds since the satellite (this signal) was first seen in its current unbroken arc
+  (newly acquired signals are the noisy ones).
+
+A slot's "previous epoch" is the epoch before it in the trace, if no more than :data:`MAX_STEP_S`
+earlier, with the same satellite and signal, neither epoch's WLS failed, and no clock reset between.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.estimate.wls import WlsResult
+from fusion.trace import Trace
+
+#: Longest step between epochs [s] that still counts as "the previous epoch" (1 Hz logs: 1 s).
+MAX_STEP_S = 1.5
+#: Arc ages are capped here [s]: beyond ten minutes an arc is simply "old".
+MAX_ARC_S = 600.0
+#: The per-slot context arrays, in a fixed order.
+CONTEXT_KEYS = ("pr_sigma", "cn0", "dres", "prev_ok", "arc_s")
+
+
+@dataclass
+class SlotContext:
+    """(E,S) arrays aligned with a trace's slots (padded slots: pr_sigma 1, the rest 0)."""
+
+    pr_sigma: np.ndarray
+    cn0: np.ndarray
+    dres: np.ndarray
+    prev_ok: np.ndarray
+    arc_s: np.ndarray
+
+    def as_dict(self) -> dict[str, np.ndarray]:
+        return {k: getattr(self, k) for k in CONTEXT_KEYS}
+
+
+def _slot_keys(trace: Trace) -> np.ndarray:
+    """(E,S) int64 key of each real slot (satellite and signal), -1 on padding."""
+    key = trace.sat_id.astype(np.int64) * 64 + trace.signal.astype(np.int64)
+    return np.where(trace.mask, key, -1)
+
+
+def _previous_slot(keys: np.ndarray, linked: np.ndarray) -> np.ndarray:
+    """(E,S) index of the same key's slot in epoch k-1 (-1 where absent or epoch k not ``linked``)."""
+    E, S = keys.shape
+    prev = np.full((E, S), -1, np.int64)
+    if E < 2:
+        return prev
+    # match key (k, s) against row k-1: sort each previous row once, then one searchsorted per row pair
+    order = np.argsort(keys[:-1], axis=1, kind="stable")
+    sorted_prev = np.take_along_axis(keys[:-1], order, axis=1)
+    offset = (np.arange(E - 1) * (2 ** 40))[:, None]          # keys < 2**40: rows never interleave
+    flat = (sorted_prev + offset).ravel()
+    q = keys[1:] + offset
+    pos = np.clip(np.searchsorted(flat, q.ravel()).reshape(q.shape) - np.arange(E - 1)[:, None] * S, 0, S - 1)
+    hit = (np.take_along_axis(sorted_prev, pos, axis=1) == keys[1:]) & (keys[1:] >= 0)
+    prev[1:] = np.where(hit & linked[1:, None], np.take_along_axis(order, pos, axis=1), -1)
+    return prev
+
+
+def _arc_ages(t_s: np.ndarray, keys: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """(E,S) seconds since each real slot's arc began (an arc: consecutive ``prev`` links)."""
+    e, s = np.nonzero(keys >= 0)
+    order = np.lexsort((e, keys[e, s]))                 # by satellite key, then epoch
+    e, s = e[order], s[order]
+    # sorted this way, a linked slot directly follows its previous-epoch slot: runs are arcs
+    is_start = prev[e, s] < 0
+    first = np.maximum.accumulate(np.where(is_start, np.arange(e.size), 0))
+    out = np.zeros(keys.shape)
+    out[e, s] = t_s[e] - t_s[e[first]]
+    return np.minimum(out, MAX_ARC_S)
+
+
+def slot_context(trace: Trace, wls: WlsResult) -> SlotContext:
+    """The context of every slot of ``trace`` (E epochs, S slots) given its WLS solution."""
+    t_s = trace.t_ms.astype(float) / 1000.0
+    step_ok = np.r_[False, np.diff(t_s) <= MAX_STEP_S] & ~np.asarray(trace.clock_reset, bool)
+    keys = _slot_keys(trace)
+    prev = _previous_slot(keys, step_ok)
+    arc = _arc_ages(t_s, keys, prev)
+    valid = np.asarray(wls.valid, bool)
+    resid = np.where(valid[:, None] & trace.mask, wls.resid, np.nan)
+    prev_resid = np.full_like(resid, np.nan)
+    prev_resid[1:] = np.take_along_axis(resid[:-1], np.maximum(prev[1:], 0), axis=1)
+    dres = resid - np.where(prev >= 0, prev_resid, np.nan)
+    prev_ok = np.isfinite(dres)
+    cn0 = trace.cn0 if trace.cn0 is not None else np.zeros(trace.mask.shape)
+    return SlotContext(pr_sigma=np.where(trace.mask, trace.pr_sigma, 1.0), cn0=np.where(trace.mask, cn0, 0.0),
+                       dres=np.where(prev_ok, dres, 0.0), prev_ok=prev_ok, arc_s=arc)

@@ -1,0 +1,46 @@
+"""Out-of-distribution guard: how far to trust the network on an epoch it was not trained for.
+
+Training stores, per input channel, the range the training inputs spanned (quantiles 0.1 % and 99.9 % over
+real slots, at the samples' WLS solutions; :func:`input_ranges`). At inference a slot is *out of range* when
+any channel leaves that range widened by :data:`MARGIN` of its width; an epoch's trust is 1 while at most
+:data:`SHARE_FULL` of its slots are out of range, falling linearly to 0 at :data:`SHARE_NONE`
+(:func:`trust`). The modes shrink the learned correction by the trust (toward the guess: plain WLS for
+``dnn``) and fall back to the default pseudorange sigma on out-of-range slots (``fused``): a phone, city
+or firmware the network never met gets the non-learned answer instead of a confident wrong one.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+MARGIN = 0.1
+SHARE_FULL, SHARE_NONE = 0.1, 0.5
+_QUANTILES = (0.001, 0.999)
+#: Channels that are bounded by construction (line-of-sight components) are not checked.
+_SKIP = slice(1, 4)
+
+
+def input_ranges(x: torch.Tensor, mask: torch.Tensor) -> dict:
+    """Per-channel [lo, hi] of training inputs ``x`` (N,S,F) over real slots ``mask`` (N,S)."""
+    v = x[mask].double()
+    if v.shape[0] > 200_000:      # quantile has a size limit; an even subsample is as good for ranges
+        v = v[torch.linspace(0, v.shape[0] - 1, 200_000).long()]
+    q = torch.quantile(v, torch.tensor(_QUANTILES, dtype=v.dtype, device=v.device), dim=0)
+    return {"lo": [float(a) for a in q[0]], "hi": [float(a) for a in q[1]]}
+
+
+def slot_out_of_range(x: np.ndarray, mask: np.ndarray, ranges: dict | None) -> np.ndarray:
+    """(N,S) bool: real slots of inputs ``x`` (N,S,F) with a channel outside the widened training range."""
+    if not ranges:
+        return np.zeros(mask.shape, bool)
+    lo, hi = np.asarray(ranges["lo"]), np.asarray(ranges["hi"])
+    pad = MARGIN * (hi - lo)
+    out = (x < lo - pad) | (x > hi + pad)
+    out[..., _SKIP] = False
+    return out.any(-1) & mask
+
+
+def trust(out_of_range: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(N,) trust in [0, 1] from the share of out-of-range slots (N,S) among real slots (N,S)."""
+    share = out_of_range.sum(1) / np.maximum(mask.sum(1), 1)
+    return np.clip((SHARE_NONE - share) / (SHARE_NONE - SHARE_FULL), 0.0, 1.0)

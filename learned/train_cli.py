@@ -1,0 +1,153 @@
+"""``gnssfuse train`` command line: data sources, options, and the summary line (the loop is in
+:mod:`learned.train`). Runs unchanged under ``torchrun --nproc_per_node N`` (:mod:`learned.distributed`)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fusion.errors import DataError
+from learned import distributed as dist
+from learned.augment import parse_guess_mix
+from learned.checkpoint import read_checkpoint
+from learned.data import (Samples, build_samples, load_real_traces, simulated_traces, split_blocks, split_random,
+                          split_traces)
+from learned.features import CHANNELS, FeatureConfig
+from learned.model import build_model, count_parameters
+from learned.train import OUTPUTS, LossWeights, TrainConfig, train
+
+#: Inputs of the shipped recipe: the paper's (residual, line of sight) and every context channel.
+DEFAULT_INPUTS = ",".join(CHANNELS)
+
+
+def _parser(prog: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="train the correction network and its per-satellite head")
+    p.add_argument("--data", nargs="+", required=True,
+                   help="'sim', 'sim-bias' (fusion.sim.simulate), 'toy', and/or trace folders / Kaggle roots")
+    p.add_argument("--out", type=Path, required=True, help="best checkpoint path (last state: <out>.last)")
+    p.add_argument("--epochs", type=int, default=40)
+    p.add_argument("--eta", type=float, default=15.0, help="box augmentation half-width per NED axis [m]")
+    p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3",
+                   help="initial-guess sources and fractions (box: truth + U(+-eta); wls / graph: the sample's "
+                        "own WLS / no-prior graph solution + U(+-wls-jitter))")
+    p.add_argument("--wls-jitter", type=float, default=2.0, help="[m] per NED axis around WLS / graph guesses")
+    p.add_argument("--wls-max-err", type=float, default=100.0, help="[m] farther guess sources -> box guess")
+    p.add_argument("--inputs", default=DEFAULT_INPUTS, help=f"input channel groups from {','.join(CHANNELS)}")
+    p.add_argument("--output", default="wls", choices=OUTPUTS,
+                   help="dnn output: learned-weight least squares (wls) or the paper's correction")
+    p.add_argument("--loss", default="correction=1,sat=0.1,wls=1,shrink=1",
+                   help="loss weights (correction, sat, wls, wls_scale, shrink)")
+    p.add_argument("--resume", action="store_true", help="continue from <out>.last")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--model", default="set", choices=("set", "deepsets"))
+    p.add_argument("--no-augment", action="store_true", help="draw guesses once and keep them (paper's baseline)")
+    p.add_argument("--sim-traces", type=int, default=50)
+    p.add_argument("--sim-epochs", type=int, default=200, help="epochs per simulated trace")
+    p.add_argument("--val-split", default="traces", choices=("random", "blocks", "traces"),
+                   help="validation = random epochs, blocks of 60 epochs, or whole traces (drives)")
+    p.add_argument("--val-frac", type=float, default=0.1)
+    p.add_argument("--no-calibrate", action="store_true", help="do not fit the covariance scales after training")
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--lr", type=float, default=3e-4)
+    p.add_argument("--warmup-epochs", type=int, default=None, help="epochs before the variance NLL term")
+    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg], at the truth")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads per process")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def parse_loss(text: str) -> LossWeights:
+    """``correction=1,sat=0.1,wls=1`` -> :class:`LossWeights` (unnamed weights keep their defaults)."""
+    w = LossWeights()
+    for item in filter(None, text.split(",")):
+        key, _, val = item.partition("=")
+        if not hasattr(w, key.strip()):
+            raise DataError(f"--loss: unknown term {key!r} (known: {', '.join(vars(w))})")
+        try:
+            setattr(w, key.strip(), float(val))
+        except ValueError:
+            raise DataError(f"--loss: {item!r} is not name=number") from None
+    return w
+
+
+def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, seed: int, elev_mask_deg: float,
+                       with_graph: bool = False) -> tuple[Samples, dict]:
+    """``sim`` / ``toy``: simulated Gaussian traces; ``sim-bias`` / ``toy-bias``: the Gaussian + NLOS-bias
+    scenario (seed + 1, other drives); anything else: real trace folders."""
+    traces, real, desc = [], [], {"sources": sources}
+    for src in sources:
+        if src in ("sim", "toy", "sim-bias", "toy-bias"):
+            bias = src.endswith("-bias")
+            sd = seed + 1 if bias else seed
+            new = simulated_traces(sim_traces, sim_epochs, seed=sd, bias=bias, toy=src.startswith("toy"))
+            desc[src] = {"traces": sim_traces, "epochs_per_trace": sim_epochs, "bias": bias, "seed": sd}
+            real += [False] * len(new)
+        else:
+            new = load_real_traces([src])
+            real += [True] * len(new)
+        traces += new
+    samples = build_samples(traces, elev_mask_deg, real=real, with_graph=with_graph)
+    desc.update(traces=samples.names, n_samples=len(samples), skipped=samples.skipped)
+    return samples, desc
+
+
+def config_from_args(args, desc: dict) -> TrainConfig:
+    try:
+        mix = parse_guess_mix(args.guess_mix)
+        features = FeatureConfig(elev_mask_deg=args.elev_mask, inputs=tuple(args.inputs.split(",")))
+    except ValueError as exc:
+        raise DataError(f"--guess-mix / --inputs: {exc}") from None
+    return TrainConfig(eta=args.eta, epochs=args.epochs, batch=args.batch, lr=args.lr, seed=args.seed,
+                       model=args.model, augment=not args.no_augment, warmup_epochs=args.warmup_epochs,
+                       val_frac=args.val_frac, device=args.device, features=features, data=desc, guess_mix=mix,
+                       wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate,
+                       loss=parse_loss(args.loss), output=args.output)
+
+
+def check_args(args) -> None:
+    if args.epochs < 1 or args.batch < 1 or not (0 <= args.val_frac < 1) or args.eta <= 0:
+        raise DataError("need --epochs >= 1, --batch >= 1, 0 <= --val-frac < 1, --eta > 0")
+    if args.wls_jitter < 0 or args.wls_max_err <= 0:
+        raise DataError("need --wls-jitter >= 0 and --wls-max-err > 0")
+
+
+def summary(out: Path, hist: list[dict]) -> str:
+    h = min(hist, key=lambda r: r["val_score_m"])
+    ned = "/".join(f"{v:.2f}" for v in h.get("val_wls_mae_ned_m", [float("nan")] * 3))
+    line = f"best epoch {h['epoch']}: val horizontal error {h['val_score_m']:.2f} m, learned-WLS MAE N/E/D {ned} m"
+    cal = read_checkpoint(out)["config"].get("calibration", {})
+    for name, c in cal.items():
+        line += (f"\n{name} covariance scale N/E/D {'/'.join(f'{v:.2f}' for v in c['scale_ned'])}: within 1 sigma "
+                 f"{'/'.join(f'{v:.2f}' for v in c['within_1sigma_after'])} (n={c['n']})")
+    return line + f" -> {out}"
+
+
+def main(argv: list[str], prog: str = "gnssfuse train") -> int:
+    args = _parser(prog).parse_args(argv)
+    check_args(args)
+    dist.init_from_env(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    sources = [s for item in args.data for s in item.split(",") if s]
+    cfg = config_from_args(args, {})         # option errors before any data is loaded
+    samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
+                                       seed=args.seed, elev_mask_deg=args.elev_mask,
+                                       with_graph=cfg.guess_mix.get("graph", 0.0) > 0)
+    split = {"blocks": split_blocks, "random": split_random, "traces": split_traces}[args.val_split]
+    train_s, val_s = split(samples, args.val_frac, np.random.default_rng(args.seed))
+    desc.update(n_train=len(train_s), n_val=len(val_s), val_split=args.val_split)
+    cfg.data = desc
+    if dist.is_main():
+        n_par = count_parameters(build_model(args.model, d_in=cfg.features.n_inputs))
+        print(f"{prog}: {len(train_s)} training / {len(val_s)} validation samples from {len(samples.names)} "
+              f"traces; model {args.model} ({n_par} parameters); world size {dist.world_size()}; "
+              f"skipped {samples.skipped}", file=sys.stderr)
+    hist = train(train_s, val_s, cfg, args.out, resume=args.resume, progress=not args.quiet)
+    if dist.is_main() and hist:
+        print(summary(args.out, hist))
+    dist.shutdown()
+    return 0
