@@ -34,6 +34,10 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
     p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
+    p.add_argument("--no-doppler", action="store_true",
+                   help="fused modes: ignore the trace's Doppler (pseudorange rates)")
+    p.add_argument("--no-carrier", action="store_true",
+                   help="fused modes: ignore the trace's carrier phase (accumulated delta ranges)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-truth-height-fix", action="store_true",
                    help="keep GSDC 2021 truth heights as published (~63 m too high)")
@@ -48,7 +52,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
         raise GnssfuseError("--dnn-passes must be >= 1")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
-                      wls_robust=args.robust_wls)
+                      wls_robust=args.robust_wls, use_doppler=not args.no_doppler,
+                      use_carrier=not args.no_carrier)
 
 
 def build_run_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:

@@ -23,6 +23,9 @@ class RunOptions:
     signals: tuple[str, ...] = ("GPS_L1",)
     wls_weighting: str = "elevation"
     wls_robust: bool = False
+    # fused modes: use the trace's Doppler / carrier phase where it has them (no effect otherwise)
+    use_doppler: bool = True
+    use_carrier: bool = True
 
 
 @dataclass
