@@ -6,6 +6,7 @@ import time
 import gtsam
 import numpy as np
 
+from fusion.estimate.graph.batch import read_velocities
 from fusion.estimate.graph.build import epoch_factors, trace_motion
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
@@ -83,4 +84,5 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> tuple
     valid = inp.keep & np.isfinite(pos).all(axis=1)
     n = max(int(inp.keep.sum()), 1)
     return pos, valid, None, {"online_pos": online, "incremental_s": elapsed,
-                              "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp)}
+                              "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp),
+                              "vel": read_velocities(est, np.flatnonzero(inp.keep), E)}
