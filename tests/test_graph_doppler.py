@@ -154,6 +154,16 @@ def test_carrier_chains_break_at_slips_invalid_phase_and_clock_resets(sim, wls):
     assert (raw.tdcp_prev[k + 3] >= 0).sum() == (base.tdcp_prev[k + 3] >= 0).sum()
 
 
+def test_doppler_without_satellite_velocity_or_sigma_is_a_counted_skip(sim, wls):
+    tr = sim.trace
+    sat_vel, prr_sigma = tr.sat_vel.copy(), tr.prr_sigma.copy()
+    sat_vel[10, 0] = 0.0
+    prr_sigma[11, 0] = np.nan
+    raw = prepare_inputs(dataclasses.replace(tr, sat_vel=sat_vel, prr_sigma=prr_sigma), wls, GraphConfig()).raw
+    assert not raw.doppler[10, 0] and not raw.doppler[11, 0]
+    assert raw.counts["doppler_without_satellite_velocity"] == 1 and raw.counts["doppler_bad_sigma"] == 1
+
+
 def test_switches_and_traces_without_the_fields(sim, wls):
     tr = sim.trace
     bare = dataclasses.replace(tr, **{k: None for k in OPTIONAL_SLOT_FIELDS})

@@ -40,7 +40,11 @@ def doppler_slots(trace: Trace, above: np.ndarray, has_clock: np.ndarray, cfg: G
     sigma = np.sqrt((cfg.prr_sigma_scale * trace.prr_sigma) ** 2 + cfg.prr_sigma_floor_mps ** 2)
     bad_sigma = ok & ~(np.isfinite(sigma) & (sigma > 0))
     count_skip(counts, "doppler_bad_sigma", bad_sigma)
-    use = ok & ~bad_sigma & above & has_clock[:, None]
+    # a zero satellite velocity means "unknown" in a Trace: a Doppler factor would then silently
+    # read the satellite's motion as the receiver's
+    no_sat_vel = ok & ~bad_sigma & ~np.any(trace.sat_vel != 0, axis=-1)
+    count_skip(counts, "doppler_without_satellite_velocity", no_sat_vel)
+    use = ok & ~bad_sigma & ~no_sat_vel & above & has_clock[:, None]
     if cfg.motion != "cv":
         count_skip(counts, "doppler_without_velocity_states", use)
         use = np.zeros_like(use)
