@@ -162,6 +162,10 @@ def test_doppler_without_satellite_velocity_or_sigma_is_a_counted_skip(sim, wls)
     raw = prepare_inputs(dataclasses.replace(tr, sat_vel=sat_vel, prr_sigma=prr_sigma), wls, GraphConfig()).raw
     assert not raw.doppler[10, 0] and not raw.doppler[11, 0]
     assert raw.counts["doppler_without_satellite_velocity"] == 1 and raw.counts["doppler_bad_sigma"] == 1
+    # random-walk motion has no velocity states for Doppler to constrain: all counted, none used
+    rw = prepare_inputs(tr, wls, GraphConfig(motion="rw")).raw
+    assert not rw.doppler.any() and not rw.use_drift
+    assert rw.counts["doppler_without_velocity_states"] > 5 * tr.n_epochs and rw.counts["tdcp_factors"] > 0
 
 
 def test_switches_and_traces_without_the_fields(sim, wls):
