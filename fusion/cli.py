@@ -34,6 +34,10 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
     p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
+    p.add_argument("--no-doppler", action="store_true",
+                   help="fused modes: ignore the trace's Doppler (pseudorange rates)")
+    p.add_argument("--no-carrier", action="store_true",
+                   help="fused modes: ignore the trace's carrier phase (accumulated delta ranges)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
     p.add_argument("--no-learned-sigmas", action="store_true",
@@ -54,7 +58,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
                       wls_robust=args.robust_wls, learned_prior=not args.no_learned_prior,
-                      learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output)
+                      learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
+                      use_doppler=not args.no_doppler, use_carrier=not args.no_carrier)
 
 
 def build_run_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:

@@ -99,6 +99,22 @@ def line_of_sight(sat_pos: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, 
     return rng, d / np.maximum(rng, 1.0)[..., None]
 
 
+def range_rate(sat_pos: np.ndarray, sat_vel: np.ndarray, rx_pos: np.ndarray, rx_vel: np.ndarray) -> np.ndarray:
+    """Geometric range rate [m/s] with the first-order Earth-rotation term, the model of GTSAM's
+    ``DopplerFactor`` (so simulated and fused Doppler agree to numerical precision).
+
+    sat_pos, sat_vel: (..., S, 3) transmit-time ECEF [m], [m/s]. rx_pos, rx_vel: (..., 3).
+    Returns (..., S): d/dt (|sat - rx| + OMEGA_E / c * (x_sat y_rx - y_sat x_rx)).
+    """
+    d = sat_pos - rx_pos[..., None, :]
+    los = d / np.maximum(np.linalg.norm(d, axis=-1), 1.0)[..., None]
+    dv = sat_vel - rx_vel[..., None, :]
+    x, v = rx_pos[..., None, :], rx_vel[..., None, :]
+    sagnac = (sat_vel[..., 0] * x[..., 1] + sat_pos[..., 0] * v[..., 1]
+              - sat_vel[..., 1] * x[..., 0] - sat_pos[..., 1] * v[..., 0])
+    return np.sum(los * dv, axis=-1) + OMEGA_E / C_LIGHT * sagnac
+
+
 def elevation_azimuth(los_ecef: np.ndarray, rx_pos: np.ndarray,
                       R: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Elevation and azimuth [deg] of unit LOS vectors (..., S, 3) seen from ``rx_pos`` (..., 3).

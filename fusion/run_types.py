@@ -27,6 +27,9 @@ class RunOptions:
     learned_prior: bool = True           # the network's position prior per epoch
     learned_sigmas: bool = True          # the per-satellite head's pseudorange sigma and bias
     dnn_output: str | None = None        # "wls" | "correction"; None: the checkpoint's
+    # fused modes: use the trace's Doppler / carrier phase where it has them (no effect otherwise)
+    use_doppler: bool = True
+    use_carrier: bool = True
 
 
 @dataclass

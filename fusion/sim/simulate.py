@@ -32,7 +32,8 @@ from fusion.geometry import (C_LIGHT, ecef2geodetic, ecef2ned_vec, elevation_azi
 from fusion.gpstime import format_gps_ms, gps_ms_from_calendar
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.nav.orbits import GpsNav, sat_state, select_ephemeris, transmit_states
-from fusion.trace import SIGNALS, Trace
+from fusion.trace import OPTIONAL_SLOT_FIELDS, SIGNALS, Trace
+from fusion.sim.doppler_carrier import doppler_carrier_arrays
 from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_rate, load_gsdc_trajectory,
                                    parse_origins, random_trajectories, random_trajectory)
 
@@ -62,6 +63,10 @@ class SimConfig:
     clock_bias_rw_m / clock_drift_rw_mps: random-walk densities per sqrt(second).
     iono_zenith_m / tropo_zenith_m: zenith delays written to the derived file (they cancel in
                      the corrected pseudorange; only the raw pseudorange carries them).
+    doppler:         also simulate pseudorange rates (``Trace.prr``), 1-sigma ``prr_sigma_mps``.
+    carrier:         also simulate carrier phase (``Trace.adr``), 1-sigma ``adr_sigma_m``, with a
+                     random cycle slip per satellite and epoch at probability ``slip_prob``, each a
+                     jump of the ambiguity by +-U[``slip_jump_m``] (see fusion.sim.doppler_carrier).
     """
 
     sigma_m: float = 6.0
@@ -78,6 +83,12 @@ class SimConfig:
     clock_drift_rw_mps: float = 0.05
     iono_zenith_m: float = 4.0
     tropo_zenith_m: float = 2.4
+    doppler: bool = False
+    prr_sigma_mps: float = 0.2
+    carrier: bool = False
+    adr_sigma_m: float = 0.003
+    slip_prob: float = 0.0
+    slip_jump_m: tuple[float, float] = (5.0, 100.0)
 
     def validate(self) -> None:
         if self.sigma_m < 0:
@@ -89,6 +100,11 @@ class SimConfig:
         lo, hi = self.nlos_bias_m
         if not (0 <= lo <= hi) or self.nlos_rate < 0:
             raise ValueError(f"bad NLOS settings: rate {self.nlos_rate}, bias range {self.nlos_bias_m}")
+        if not (self.prr_sigma_mps > 0 and self.adr_sigma_m > 0 and 0 <= self.slip_prob <= 1):
+            raise ValueError(f"bad Doppler/carrier settings: prr_sigma_mps {self.prr_sigma_mps}, "
+                             f"adr_sigma_m {self.adr_sigma_m}, slip_prob {self.slip_prob}")
+        if not 0 <= self.slip_jump_m[0] <= self.slip_jump_m[1]:
+            raise ValueError(f"slip_jump_m must be (lo, hi) with 0 <= lo <= hi, got {self.slip_jump_m}")
 
 
 @dataclass
@@ -103,6 +119,9 @@ class SimResult:
     sat_clock_m, sat_clock_drift_mps: (E, S) c*dt_sv and its rate (broadcast model, L1 TGD in).
     flight_s: (E, S) true signal flight time [s].
     iono_m, tropo_m: (E, S) delays written to the derived file.
+    rx_vel_mps: (E, 3) true receiver ECEF velocity, clock_drift_mps: (E,) true clock drift
+              (with ``SimConfig.doppler``; else None).
+    ambiguity_m: (E, S) true carrier ambiguity of each slot (with ``SimConfig.carrier``; else None).
     """
 
     trace: Trace
@@ -116,6 +135,9 @@ class SimResult:
     flight_s: np.ndarray
     iono_m: np.ndarray
     tropo_m: np.ndarray
+    rx_vel_mps: np.ndarray | None = None
+    clock_drift_mps: np.ndarray | None = None
+    ambiguity_m: np.ndarray | None = None
 
 
 def _check_coverage(nav: GpsNav, prns: np.ndarray, t_ms: np.ndarray, min_sats: int) -> np.ndarray:
@@ -134,8 +156,9 @@ def _check_coverage(nav: GpsNav, prns: np.ndarray, t_ms: np.ndarray, min_sats: i
 
 
 def _receiver_clock(t_ms: np.ndarray, seg_start: np.ndarray, cfg: SimConfig,
-                    rng: np.random.Generator) -> np.ndarray:
-    """(E,) c*dt [m]: bias + integrated drift random walk, restarted at each segment start."""
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(E,) c*dt [m] and (E,) its drift [m/s]: bias + integrated drift random walk, restarted at
+    each segment start (seg_start (E,) bool)."""
     E = t_ms.shape[0]
     seg = np.cumsum(seg_start) - 1                                        # segment id per epoch
     n_seg = int(seg[-1]) + 1
@@ -152,73 +175,72 @@ def _receiver_clock(t_ms: np.ndarray, seg_start: np.ndarray, cfg: SimConfig,
 
     drift = d0[seg] + seg_cumsum(w_d)
     drift_prev = np.r_[0.0, drift[:-1]]
-    return b0[seg] + seg_cumsum(drift_prev * dt + w_b)
+    return b0[seg] + seg_cumsum(drift_prev * dt + w_b), drift
 
 
-def _simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav: GpsNav,
-                     cfg: SimConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
-    """Core simulator on flat arrays. t_ms (E,), rx (E,3), seg_start (E,) bool (trace starts).
+def _visibility_guess(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav: GpsNav,
+                      idx: np.ndarray, R: np.ndarray, cfg: SimConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Pass 1: (E,P) bool candidates (maybe above the mask) and (E,P) flight-time guesses [s].
 
-    Returns (E, K) slot arrays (K = max_sats or number of PRNs) and (E,) ``keep`` epochs.
-    All random draws happen in a fixed order over all epochs, so a seed fixes the result.
+    Satellites move < 0.012 deg/s on the sky (a car's few hundred metres shift them by < 0.01 deg),
+    so elevations are computed once per 30 s block of each segment, at a nominal 75 ms flight time,
+    and kept with a 1 deg margin. The flight-time guess is good to ~0.1 ms, which the iterations of
+    pass 2 make exact. A PRN whose ephemeris starts inside a block stays a candidate.
+    t_ms (E,), rx (E,3), seg_start (E,) bool, idx (E,P) ephemeris indices, R (E,3,3) NED rotations.
     """
-    cfg.validate()
-    prns = np.unique(nav.prn)
-    idx = _check_coverage(nav, prns, t_ms, min(cfg.min_sats, 4))
-    E, P = idx.shape
-    K = P if cfg.max_sats is None else min(int(cfg.max_sats), P)
-
-    # Pass 1, visibility: satellites move < 0.012 deg/s on the sky (a car's few hundred metres
-    # shift them by < 0.01 deg), so elevations are computed once per 30 s block of each
-    # segment, at a nominal 75 ms flight time, and kept with a 1 deg margin. It also gives a
-    # flight-time guess good to ~0.1 ms, which one more iteration in pass 2 makes exact.
     seg_id = np.cumsum(seg_start) - 1
     t0_seg = t_ms[np.flatnonzero(seg_start)][seg_id]
     block = seg_id.astype(np.int64) * 10**9 + (t_ms - t0_seg) // _BLOCK_MS
     first = np.r_[True, block[1:] != block[:-1]]
     samp = np.flatnonzero(first)                                         # (B,) sample epochs
     samp_of = np.cumsum(first) - 1                                       # (E,) -> index in samp
-    R = ned_rotation(rx)                                                 # (E, 3, 3)
     Rs, rxs = R[samp], rx[samp]
     st = sat_state(nav, np.maximum(idx[samp], 0), t_ms[samp, None], -0.075, position_only=True)
     d = sagnac_rotate(st["pos"], rxs) - rxs[:, None, :]
     r = np.linalg.norm(d, axis=-1)
-    tau_s = r / C_LIGHT                                                  # (B, P)
     el_s = np.degrees(np.arcsin(-np.einsum("bj,bpj->bp", Rs[:, 2], d) / r))
-    # Pass 2, candidates only: exact transmit-time states. A PRN whose ephemeris starts inside
-    # a block (no record at the block's sample) stays a candidate.
     maybe_up = (el_s >= cfg.elev_mask_deg - 1.0) | (idx[samp] < 0)
-    ce, cp = np.nonzero((idx >= 0) & maybe_up[samp_of])
-    st, ta = transmit_states(nav, idx[ce, cp], rx[ce], t_ms[ce], tau_s[samp_of[ce], cp],
-                             n_iter=_TAU_ITER)
+    return maybe_up[samp_of], (r / C_LIGHT)[samp_of]
+
+
+def _satellite_states(t_ms: np.ndarray, rx: np.ndarray, nav: GpsNav, idx: np.ndarray, R: np.ndarray,
+                      candidate: np.ndarray, tau_guess: np.ndarray) -> dict[str, np.ndarray]:
+    """Pass 2, candidates only: exact transmit-time states, elevation and azimuth.
+
+    t_ms (E,), rx (E,3), idx (E,P), R (E,3,3), candidate (E,P) bool, tau_guess (E,P) [s].
+    Returns (E,P[,3]) arrays pos, vel, el (-90 where not computed), az, clk [s], drift [s/s], tau [s].
+    """
+    E, P = idx.shape
+    ce, cp = np.nonzero((idx >= 0) & candidate)
+    st, ta = transmit_states(nav, idx[ce, cp], rx[ce], t_ms[ce], tau_guess[ce, cp], n_iter=_TAU_ITER)
     d = sagnac_rotate(st["pos"][:, None, :], rx[ce]) - rx[ce][:, None, :]          # (N, 1, 3)
     e_, z_ = elevation_azimuth(d / np.linalg.norm(d, axis=-1, keepdims=True), rx[ce], R=R[ce])
-    e_, z_ = e_[:, 0], z_[:, 0]
-    pos = np.zeros((E, P, 3)); vel = np.zeros((E, P, 3)); el = np.full((E, P), -90.0)
-    az = np.zeros((E, P)); clk = np.zeros((E, P)); drift = np.zeros((E, P)); tau = np.zeros((E, P))
-    pos[ce, cp], vel[ce, cp], el[ce, cp], az[ce, cp] = st["pos"], st["vel"], e_, z_
-    clk[ce, cp], drift[ce, cp], tau[ce, cp] = st["clock_s"], st["clock_drift"], ta
-    eligible = (idx >= 0) & (el >= cfg.elev_mask_deg)
+    out = {"pos": np.zeros((E, P, 3)), "vel": np.zeros((E, P, 3)), "el": np.full((E, P), -90.0)}
+    out.update({k: np.zeros((E, P)) for k in ("az", "clk", "drift", "tau")})
+    out["pos"][ce, cp], out["vel"][ce, cp] = st["pos"], st["vel"]
+    out["el"][ce, cp], out["az"][ce, cp] = e_[:, 0], z_[:, 0]
+    out["clk"][ce, cp], out["drift"][ce, cp], out["tau"][ce, cp] = st["clock_s"], st["clock_drift"], ta
+    return out
 
-    # Random subset of at most K visible satellites, then slots ordered by PRN.
-    keys = np.where(eligible, rng.random((E, P)), 2.0)
+
+def _pick_satellites(eligible: np.ndarray, K: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A random subset of at most K eligible (E,P) satellites per epoch, slots ordered by PRN.
+    Returns pick (E,K) indices into P and mask (E,K) bool."""
+    P = eligible.shape[1]
+    keys = np.where(eligible, rng.random(eligible.shape), 2.0)
     pick = np.argsort(keys, axis=1, kind="stable")[:, :K]
     picked_ok = np.take_along_axis(eligible, pick, axis=1)
     order = np.argsort(np.where(picked_ok, pick, P + pick), axis=1, kind="stable")
-    pick = np.take_along_axis(pick, order, axis=1)
-    mask = np.take_along_axis(picked_ok, order, axis=1)
+    return np.take_along_axis(pick, order, axis=1), np.take_along_axis(picked_ok, order, axis=1)
 
-    def g(a: np.ndarray) -> np.ndarray:
-        if a.ndim == 3:
-            return np.take_along_axis(a, pick[..., None], axis=1)
-        return np.take_along_axis(a, pick, axis=1)
 
-    sat_pos, sat_vel, el_k, az_k = g(pos), g(vel), g(el), g(az)
-    clock = _receiver_clock(t_ms, seg_start, cfg, rng)
-    sin_el = np.sin(np.radians(np.clip(el_k, 1.0, 90.0)))
+def _pseudorange_errors(el_k: np.ndarray, mask: np.ndarray, cfg: SimConfig, rng: np.random.Generator
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(E,K) sigma, Gaussian noise and NLOS bias [m] of the picked slots (el_k (E,K) [deg])."""
+    E, K = el_k.shape
     sigma = np.full((E, K), float(cfg.sigma_m))
     if cfg.elevation_noise:
-        sigma = sigma / sin_el
+        sigma = sigma / np.sin(np.radians(np.clip(el_k, 1.0, 90.0)))
     noise = rng.standard_normal((E, K)) * sigma
     bias = np.zeros((E, K))
     if cfg.nlos:
@@ -226,23 +248,51 @@ def _simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, na
         rank = np.argsort(np.argsort(np.where(mask, rng.random((E, K)), 2.0), axis=1), axis=1)
         hit = rank < n_bad[:, None]
         bias = np.where(hit, rng.uniform(*cfg.nlos_bias_m, (E, K)), 0.0)
+    return sigma, noise, bias
+
+
+def _simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav: GpsNav,
+                     cfg: SimConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Core simulator on flat arrays. t_ms (E,), rx (E,3), seg_start (E,) bool (trace starts).
+
+    Returns (E, K) slot arrays (K = max_sats or number of PRNs) and (E,) ``keep`` epochs.
+    All random draws happen in a fixed order over all epochs, so a seed fixes the result; Doppler
+    and carrier draw after everything else, so switching them on leaves the pseudoranges as they were.
+    """
+    cfg.validate()
+    prns = np.unique(nav.prn)
+    idx = _check_coverage(nav, prns, t_ms, min(cfg.min_sats, 4))
+    P = idx.shape[1]
+    K = P if cfg.max_sats is None else min(int(cfg.max_sats), P)
+    R = ned_rotation(rx)                                                 # (E, 3, 3)
+    candidate, tau_guess = _visibility_guess(t_ms, rx, seg_start, nav, idx, R, cfg)
+    st = _satellite_states(t_ms, rx, nav, idx, R, candidate, tau_guess)
+    pick, mask = _pick_satellites((idx >= 0) & (st["el"] >= cfg.elev_mask_deg), K, rng)
+
+    def g(a: np.ndarray) -> np.ndarray:
+        return np.take_along_axis(a, pick[..., None] if a.ndim == 3 else pick, axis=1)
+
+    sat_pos, el_k = g(st["pos"]), g(st["el"])
+    clock, clock_drift = _receiver_clock(t_ms, seg_start, cfg, rng)
+    sigma, noise, bias = _pseudorange_errors(el_k, mask, cfg, rng)
     # Exactly the model a solver inverts (fusion.geometry.line_of_sight).
     rng_m = line_of_sight(sat_pos, rx)[0]
-    pr = rng_m + clock[:, None] + noise + bias
-
     # Plausible delays for the raw pseudorange of the derived file (they cancel when corrected).
+    sin_el = np.sin(np.radians(np.clip(el_k, 1.0, 90.0)))
     tropo = cfg.tropo_zenith_m * 1.001 / np.sqrt(0.002001 + sin_el**2)
     iono = cfg.iono_zenith_m * (1.0 + 16.0 * (0.53 - np.clip(el_k, 0, 90) / 180.0) ** 3)
-    zero = ~mask
     out = dict(
-        sat_pos=sat_pos, sat_vel=sat_vel, pr=pr, pr_sigma=sigma, mask=mask,
-        sat_id=(1000 + prns[pick]).astype(np.int32), el=el_k, az=az_k, noise=noise, bias=bias,
-        sat_clock_m=g(clk) * C_LIGHT, sat_clock_drift_mps=g(drift) * C_LIGHT, flight_s=g(tau),
-        iono=iono, tropo=tropo, clock=clock,
+        sat_pos=sat_pos, sat_vel=g(st["vel"]), pr=rng_m + clock[:, None] + noise + bias, mask=mask,
+        sat_id=(1000 + prns[pick]).astype(np.int32), el=el_k, az=g(st["az"]), noise=noise, bias=bias,
+        sat_clock_m=g(st["clk"]) * C_LIGHT, sat_clock_drift_mps=g(st["drift"]) * C_LIGHT,
+        flight_s=g(st["tau"]), iono=iono, tropo=tropo, clock=clock,
     )
+    out.update(doppler_carrier_arrays(t_ms, rx, seg_start, out, pick, P, clock_drift, rng_m, cfg, rng))
+    zero = ~mask
     for k in ("sat_pos", "sat_vel", "pr", "el", "az", "noise", "bias", "sat_clock_m",
-              "sat_clock_drift_mps", "flight_s", "iono", "tropo"):
-        out[k] = np.where(zero[..., None] if out[k].ndim == 3 else zero, 0.0, out[k])
+              "sat_clock_drift_mps", "flight_s", "iono", "tropo", "prr", "adr"):
+        if k in out:
+            out[k] = np.where(zero[..., None] if out[k].ndim == 3 else zero, 0.0, out[k])
     out["pr_sigma"] = np.where(zero, 1.0, sigma)
     out["keep"] = mask.sum(axis=1) >= cfg.min_sats
     return out
@@ -254,19 +304,26 @@ def _to_result(arrs: dict[str, np.ndarray], t_ms: np.ndarray, rx: np.ndarray, se
     keep = sel[arrs["keep"][sel]]
     n_drop = sel.size - keep.size
     S = max(int(arrs["mask"][keep].sum(axis=1).max(initial=0)), 1)
-    cut = {k: v[keep][:, :S] if v.ndim >= 2 else v[keep] for k, v in arrs.items()}
+    per_epoch = ("clock", "keep", "rx_vel", "clock_drift")
+    cut = {k: v[keep] if k in per_epoch else v[keep][:, :S] for k, v in arrs.items()}
+    optional = {k: cut[k] for k in OPTIONAL_SLOT_FIELDS if k in cut}
+    if "adr_slip" in optional:
+        # a dropped epoch hides whether the arc went on: break every chain across it
+        gap = np.r_[True, np.diff(keep) > 1]
+        optional["adr_slip"] = optional["adr_slip"] | (gap[:, None] & cut["mask"])
     trace = Trace(
         t_ms=t_ms[keep].copy(), sat_pos=cut["sat_pos"], sat_vel=cut["sat_vel"], pr=cut["pr"],
         pr_sigma=cut["pr_sigma"], sat_id=np.where(cut["mask"], cut["sat_id"], 0).astype(np.int32),
         signal=np.full(cut["pr"].shape, SIGNALS.index("GPS_L1"), np.int8), mask=cut["mask"],
-        clock_reset=np.zeros(keep.size, bool), truth=rx[keep].copy(), name=name,
+        clock_reset=np.zeros(keep.size, bool), truth=rx[keep].copy(), name=name, **optional,
     )
     trace.count_skip("sim_too_few_visible_sats", n_drop)
     return SimResult(
         trace=trace, clock_m=cut["clock"], bias_m=cut["bias"], noise_m=cut["noise"],
         elev_deg=cut["el"], az_deg=cut["az"], sat_clock_m=cut["sat_clock_m"],
         sat_clock_drift_mps=cut["sat_clock_drift_mps"], flight_s=cut["flight_s"],
-        iono_m=cut["iono"], tropo_m=cut["tropo"],
+        iono_m=cut["iono"], tropo_m=cut["tropo"], rx_vel_mps=cut.get("rx_vel"),
+        clock_drift_mps=cut.get("clock_drift"), ambiguity_m=cut.get("ambiguity"),
     )
 
 

@@ -10,7 +10,7 @@ from fusion.estimate.graph.build import build_graph
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_estimates
-from fusion.estimate.graph.keys import pos_key
+from fusion.estimate.graph.keys import pos_key, vel_key
 from fusion.estimate.graph.solve_errors import geometry_error
 from fusion.trace import Trace
 
@@ -24,6 +24,17 @@ def marginal_positions(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, 
     for k in epochs:
         cov[k] = marg.marginalCovariance(pos_key(int(k)))
     return cov
+
+
+def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndarray | None:
+    """(E,3) ECEF velocity estimates [m/s] (NaN for epochs not in ``epochs``), or None without
+    velocity states (random-walk motion)."""
+    if len(epochs) == 0 or not values.exists(vel_key(int(epochs[0]))):
+        return None
+    vel = np.full((E, 3), np.nan)
+    for k in epochs:
+        vel[k] = values.atPoint3(vel_key(int(k)))
+    return vel
 
 
 def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True
@@ -51,5 +62,5 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt.iterations()),
             "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
-            "isb_m": isb_estimates(result, inp)}
+            "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
     return pos, valid, cov, info

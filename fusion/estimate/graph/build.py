@@ -4,8 +4,11 @@ Per epoch ``k``: a position ``x(k)``; a clock ``c(k)`` with one robust pseudoran
 satellite (GPS L1, or the first signal present, is the reference clock; every other signal gets an
 inter-system bias state per motion component, introduced with a zero-mean prior at its first use);
 a clock random walk to the previous clocked epoch; the position prior where the provider gave one;
-and the motion model's link to ``k - 1``. Links point backwards only, so the same per-epoch factors
-feed the batch graph and the incremental smoother.
+and the motion model's link to ``k - 1``. Where the trace carries them: a robust Doppler factor per
+satellite on the velocity and a clock-drift state ``d(k)`` (the clock chain then carries the drift,
+itself a random walk), and a robust time-differenced carrier-phase factor per satellite tracked
+without a slip since ``k - 1``. Links point backwards only, so the same per-epoch factors feed the
+batch graph and the incremental smoother.
 """
 from __future__ import annotations
 
@@ -13,11 +16,12 @@ import gtsam
 import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import (clock_factor_cc, isb_prior_factor_i, position_prior_factor_x,
-                                           prior_noise_model, pseudorange_factor_xc, pseudorange_factor_xci,
-                                           robust_model)
+from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_cc, doppler_factor_vcd,
+                                           drift_prior_factor_cd, drift_walk_factor_cdcd, isb_prior_factor_i,
+                                           position_prior_factor_x, prior_noise_model, pseudorange_factor_xc,
+                                           pseudorange_factor_xci, robust_model, tdcp_factor_xxcc)
 from fusion.estimate.graph.inputs import EpochInputs
-from fusion.estimate.graph.keys import clock_key, isb_key, pos_key
+from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, drift_key, isb_key, pos_key
 from fusion.estimate.graph.motion import motion_model
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
@@ -37,9 +41,18 @@ def pseudorange_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig
     return out
 
 
+def uses_drift(inp: EpochInputs) -> bool:
+    """Whether the graph has clock-drift states (it uses some Doppler)."""
+    return inp.raw is not None and inp.raw.use_drift
+
+
 def clock_and_bias(k: int, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values) -> list:
-    """Epoch ``k``'s clock variable and the inter-system biases first used here (values and priors)."""
-    values.insert(clock_key(k), float(inp.init_clock_m[k] / C_LIGHT))
+    """Epoch ``k``'s clock variable (and drift, see :func:`drift_key`) and the inter-system biases first
+    used here (values and priors)."""
+    clock_s = float(inp.init_clock_m[k] / C_LIGHT)
+    values.insert(clock_key(k), clock_s)
+    if uses_drift(inp):
+        values.insert(drift_key(k), clock_s + float(inp.clock_drift_mps[k]) * DRIFT_HORIZON_S / C_LIGHT)
     out = []
     if inp.isb.new is not None:
         comp = int(inp.comp[k])
@@ -49,10 +62,40 @@ def clock_and_bias(k: int, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Val
     return out
 
 
-def clock_link(k: int, inp: EpochInputs) -> list:
-    """The clock random walk from the previous clocked epoch to ``k`` (none across a reset)."""
+def clock_link(k: int, inp: EpochInputs, cfg: GraphConfig) -> list:
+    """The clock random walk from the previous clocked epoch to ``k`` (none across a reset). With drift
+    states the clock follows the drift and the drift walks; a chain start gets a loose drift prior."""
     j = int(inp.clock_link[k])
-    return [clock_factor_cc(j, k, inp.clock_mean_m[k], inp.clock_sigma_m[k])] if j >= 0 else []
+    if not uses_drift(inp):
+        return [clock_factor_cc(j, k, inp.clock_mean_m[k], inp.clock_sigma_m[k])] if j >= 0 else []
+    if j < 0:
+        return [drift_prior_factor_cd(k, float(inp.clock_drift_mps[k]), cfg.drift_start_sigma_mps)]
+    root_span = float(np.sqrt(max(inp.clock_span_s[k], 1e-3)))
+    return [clock_drift_factor_ccd(j, k, float(inp.clock_span_s[k]), cfg.drift_clock_rw_m * root_span),
+            drift_walk_factor_cdcd(j, k, cfg.drift_rw_mps * root_span)]
+
+
+def doppler_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
+    """Robust Doppler factors of epoch ``k`` (on v(k), c(k), d(k))."""
+    raw = inp.raw
+    out = []
+    for s in np.flatnonzero(raw.doppler[k]):      # ~10 satellites
+        model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.prr_sigma[k, s])))
+        out.append(doppler_factor_vcd(k, trace.prr[k, s], trace.sat_pos[k, s], trace.sat_vel[k, s],
+                                      inp.init_pos[k], model))
+    return out
+
+
+def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
+    """The time-differenced carrier factor from epoch ``k - 1`` to ``k`` (on x, x, c, c), robust per
+    satellite; none when no satellite kept its carrier chain."""
+    raw = inp.raw
+    cur = np.flatnonzero(raw.tdcp_prev[k] >= 0)
+    if cur.size == 0:
+        return []
+    prev = raw.tdcp_prev[k, cur]
+    return [tdcp_factor_xxcc(k - 1, k, trace.adr[k, cur] - trace.adr[k - 1, prev], trace.sat_pos[k - 1, prev],
+                             trace.sat_pos[k, cur], raw.tdcp_sigma[k, cur], cfg.robust, cfg.robust_k)]
 
 
 def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConfig
@@ -65,7 +108,9 @@ def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConf
     if inp.sel[k].any():
         factors += clock_and_bias(k, inp, cfg, values)
         factors += pseudorange_factors(k, trace, inp, cfg)
-        factors += clock_link(k, inp)
+        factors += clock_link(k, inp, cfg)
+        if inp.raw is not None:
+            factors += doppler_factors(k, trace, inp, cfg) + tdcp_factors(k, trace, inp, cfg)
     if inp.prior_ok[k]:
         model = prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k)
         factors.append(position_prior_factor_x(k, inp.prior_mean[k], model))

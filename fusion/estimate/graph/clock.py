@@ -19,12 +19,16 @@ from fusion.estimate.graph.series import interp_rows, rolling_nanmedian
 class ClockChain:
     """E epochs. link (E,) int: index of the epoch whose clock k's clock is tied to (-1: none);
     change_m (E,): expected clock change along that link [m]; sigma_m (E,) its 1-sigma [m];
-    n_resets: receiver clock jumps found (a jump seen across several epochs counts once)."""
+    n_resets: receiver clock jumps found (a jump seen across several epochs counts once);
+    drift_mps (E,): the WLS clock drift [m/s] (starting values of drift states); span_s (E,) the
+    time along each link [s]."""
 
     link: np.ndarray
     change_m: np.ndarray
     sigma_m: np.ndarray
     n_resets: int
+    drift_mps: np.ndarray | None = None
+    span_s: np.ndarray | None = None
 
 
 def wls_clock_drift(t: np.ndarray, wls_clock: np.ndarray, pos_link: np.ndarray, window: int) -> np.ndarray:
@@ -78,4 +82,5 @@ def clock_chain(t: np.ndarray, wls_clock: np.ndarray, has_clock: np.ndarray, pos
     link = np.where(has_clock & (prev_clock >= 0) & (breaks == breaks[safe_prev]), prev_clock, -1)
     sigma = cfg.clock_sigma_m + cfg.clock_rw_m * np.sqrt(np.maximum(span, 0.0))
     n_resets = int((reset & ~np.r_[False, reset[:-1]]).sum())
-    return ClockChain(link=link, change_m=drift * span, sigma_m=sigma, n_resets=n_resets)
+    return ClockChain(link=link, change_m=drift * span, sigma_m=sigma, n_resets=n_resets, drift_mps=drift,
+                      span_s=np.maximum(span, 0.0))

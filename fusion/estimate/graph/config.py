@@ -74,3 +74,17 @@ class GraphConfig:
     # group seen by a single satellite determinable. GPS-only traces get no bias states at all.
     isb: str = "window"
     isb_sigma_m: float = 10.0
+    # Doppler and carrier phase, used where the trace carries them (RunOptions.use_doppler /
+    # use_carrier). Chosen a priori from the phones' reported sigmas and checked on simulated traces
+    # only (experiments/doppler_carrier.py), not tuned on real data:
+    # Doppler sigma [m/s] = sqrt((prr_sigma_scale * prr_sigma)^2 + prr_sigma_floor_mps^2).
+    prr_sigma_scale: float = 1.0
+    prr_sigma_floor_mps: float = 0.05
+    # Time-differenced carrier sigma [m] = sqrt(adr_sigma(k-1)^2 + adr_sigma(k)^2 + tdcp_sigma_floor_m^2):
+    # the floor covers what differencing leaves (multipath change, iono change over a second).
+    tdcp_sigma_floor_m: float = 0.02
+    # Clock with a drift state (graphs with Doppler): c(k) = c(j) + drift(j) * dt + w, w ~ N(0, rw^2 dt),
+    # and drift(k) - drift(j) ~ N(0, drift_rw_mps^2 dt); a loose prior starts each chain.
+    drift_clock_rw_m: float = 1.0
+    drift_rw_mps: float = 0.2
+    drift_start_sigma_mps: float = 1000.0

@@ -35,7 +35,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     if on_undetermined not in ("drop", "raise"):
         raise GnssfuseError(f"on_undetermined must be 'drop' or 'raise', got {on_undetermined!r}")
     inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, provider, prior_guess=prior_guess,
-                         slot_noise=slot_noise)
+                         slot_noise=slot_noise, use_doppler=opts.use_doppler, use_carrier=opts.use_carrier)
     if on_undetermined == "raise":
         check_determined(trace, inp)
     E = trace.n_epochs

@@ -6,6 +6,7 @@ import time
 import gtsam
 import numpy as np
 
+from fusion.estimate.graph.batch import read_velocities
 from fusion.estimate.graph.build import epoch_factors, trace_motion
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
@@ -22,7 +23,8 @@ def isam2(cfg: GraphConfig) -> gtsam.ISAM2:
     # The clock is in seconds: scalar thresholds meant for metres would never relinearise it or
     # propagate its updates (0.001 s = 300 km), so thresholds are per variable type, in their units.
     thr = gtsam.ISAM2ThresholdMap()
-    for sym, dim, scale in (("x", 3, 1.0), ("v", 3, 1.0), ("c", 1, 1.0 / C_LIGHT), ("i", 1, 1.0)):
+    for sym, dim, scale in (("x", 3, 1.0), ("v", 3, 1.0), ("c", 1, 1.0 / C_LIGHT), ("d", 1, 1.0 / C_LIGHT),
+                            ("i", 1, 1.0)):
         thr.insert((sym, np.full(dim, cfg.isam_relin_threshold * scale)))
     params.setRelinearizeThreshold(thr)
     params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(cfg.isam_wildfire_m / C_LIGHT))
@@ -82,4 +84,5 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> tuple
     valid = inp.keep & np.isfinite(pos).all(axis=1)
     n = max(int(inp.keep.sum()), 1)
     return pos, valid, None, {"online_pos": online, "incremental_s": elapsed,
-                              "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp)}
+                              "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp),
+                              "vel": read_velocities(est, np.flatnonzero(inp.keep), E)}

@@ -14,6 +14,7 @@ from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
 from fusion.estimate.graph.priors import (PriorProvider, Priors, SlotNoiseProvider, ask_provider,
                                           clean_priors)
+from fusion.estimate.graph.raw_inputs import RawInputs, raw_inputs
 from fusion.estimate.graph.series import interp_rows
 from fusion.estimate.wls import WlsResult
 from fusion.geometry import elevation_azimuth, line_of_sight
@@ -33,7 +34,9 @@ class EpochInputs:
     expected clock change along that link, clock_sigma_m (E,), prior_mean (E,3), prior_cov (E,3,3),
     prior_ok (E,) bool, keep (E,) bool (epoch in a determinable component), comp (E,) component id,
     dropped: counts by reason; isb: the inter-system bias states (:class:`IsbInputs`);
-    pr_bias (E,S) [m] subtracted from each pseudorange (a slot-noise provider's bias, else 0).
+    pr_bias (E,S) [m] subtracted from each pseudorange (a slot-noise provider's bias, else 0); raw: the
+    Doppler and carrier factors (:class:`RawInputs`); clock_drift_mps (E,) starting drift [m/s] and
+    clock_span_s (E,) [s] along each clock link (for drift states).
     """
 
     init_pos: np.ndarray
@@ -54,6 +57,9 @@ class EpochInputs:
     dropped: dict
     isb: IsbInputs
     pr_bias: np.ndarray
+    raw: RawInputs | None = None
+    clock_drift_mps: np.ndarray | None = None
+    clock_span_s: np.ndarray | None = None
 
 
 def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -160,14 +166,27 @@ def determinable(comp: np.ndarray, n_sel: np.ndarray, prior_ok: np.ndarray) -> n
     return comp_ok[comp]
 
 
+def trace_raw_inputs(trace: Trace, init_pos: np.ndarray, elev_mask_deg: float, has_clock: np.ndarray,
+                     clock_link: np.ndarray, cfg: GraphConfig, use_doppler: bool, use_carrier: bool
+                     ) -> RawInputs | None:
+    """The trace's Doppler / carrier factors (None when it has neither or both are switched off);
+    init_pos (E,3) fixes the elevations, has_clock (E,) bool, clock_link (E,) int."""
+    if not ((use_doppler and trace.has_doppler) or (use_carrier and trace.has_carrier)):
+        return None
+    el, _ = elevation_azimuth(line_of_sight(trace.sat_pos, init_pos)[1], init_pos)
+    return raw_inputs(trace, el, elev_mask_deg, has_clock, clock_link, cfg, use_doppler, use_carrier)
+
+
 def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg: float = 10.0,
                    provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None,
-                   slot_noise: SlotNoiseProvider | None = None) -> EpochInputs:
+                   slot_noise: SlotNoiseProvider | None = None, use_doppler: bool = True,
+                   use_carrier: bool = True) -> EpochInputs:
     """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
 
     prior_guess: (E,3) positions at which to ask the providers (NaN rows: the initial position);
     None = the initial positions (WLS, interpolated where it failed).
     slot_noise: per-slot pseudorange sigma and bias provider (None: the config's sigma model).
+    use_doppler / use_carrier: add the trace's Doppler / carrier factors where it has them.
     Raises :class:`GeometryError` when no epoch has any usable initial position.
     """
     t = trace.t_ms.astype(float) / 1000.0
@@ -192,5 +211,10 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
                       pos_link=pos_link, clock_link=chain.link, clock_mean_m=chain.change_m,
                       clock_sigma_m=chain.sigma_m, prior_mean=pri.mean, prior_cov=pri.cov, prior_ok=pri.ok,
                       keep=keep, comp=comp, dropped=dropped,
-                      isb=isb_inputs(trace, sel, comp, init_clock, resid, cfg), pr_bias=pr_bias)
+                      isb=isb_inputs(trace, sel, comp, init_clock, resid, cfg), pr_bias=pr_bias,
+                      raw=trace_raw_inputs(trace, init_pos, elev_mask_deg, sel.any(axis=1), chain.link, cfg,
+                                           use_doppler, use_carrier),
+                      clock_drift_mps=chain.drift_mps, clock_span_s=chain.span_s)
+    if inp.raw is not None:
+        inp.dropped.update(inp.raw.counts)
     return inp

@@ -5,7 +5,13 @@
   multiplies it by c; our code carries the clock in metres and converts only at this boundary);
 - ``vel_key(k)``: receiver velocity at epoch ``k``, ECEF [m/s] (constant-velocity motion);
 - ``isb_key(comp, g)``: the (negated) inter-system bias [m] of signal group ``g`` in motion
-  component ``comp``.
+  component ``comp``;
+- ``drift_key(k)``: the receiver clock drift at epoch ``k`` (graphs with Doppler only), stored as the
+  clock extrapolated :data:`DRIFT_HORIZON_S` ahead, ``c(k) + drift(k) * DRIFT_HORIZON_S`` [s]. GTSAM's
+  C++ ``DopplerFactor`` takes the drift as ``(clock_b - clock_a) / dt`` of two clock keys, so with
+  ``(c(k), d(k))`` and ``dt = DRIFT_HORIZON_S`` it sees exactly ``drift(k)``: the Doppler factor stays
+  in C++ (a Python ``CustomFactor`` per satellite would be far slower) and the drift is still a state
+  of its own, chained by a random walk (:mod:`fusion.estimate.graph.factors`).
 """
 from __future__ import annotations
 
@@ -15,7 +21,11 @@ import gtsam
 ISB_STRIDE = 16
 
 #: symbol character -> what it keys, for error messages
-KEY_NAMES = {"x": "position", "c": "receiver clock", "v": "velocity", "i": "inter-system bias"}
+KEY_NAMES = {"x": "position", "c": "receiver clock", "v": "velocity", "i": "inter-system bias",
+             "d": "receiver clock drift"}
+
+#: the drift key holds the clock this far ahead [s]; see the module docstring
+DRIFT_HORIZON_S = 1.0
 
 
 def pos_key(k: int) -> int:
@@ -36,3 +46,8 @@ def vel_key(k: int) -> int:
 def isb_key(comp: int, group: int) -> int:
     """Key of the (negated) inter-system bias [m] of signal ``group`` in motion component ``comp``."""
     return gtsam.symbol("i", ISB_STRIDE * comp + group)
+
+
+def drift_key(k: int) -> int:
+    """Key of the receiver clock drift at epoch ``k``, held as ``c(k) + drift(k) * DRIFT_HORIZON_S`` [s]."""
+    return gtsam.symbol("d", k)

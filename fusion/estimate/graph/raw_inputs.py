@@ -1,0 +1,96 @@
+"""Which Doppler and carrier-phase measurements enter the fused graph, computed for the whole trace
+without Python loops over epochs.
+
+Doppler: every real slot flagged ``prr_ok`` above the elevation mask, at epochs with a clock
+variable (the drift key is tied to it), with the constant-velocity motion model only (the factor
+constrains velocity states). Carrier: time-differenced between consecutive epochs ``k - 1`` and
+``k`` of the same satellite and signal, both ``adr_ok``, no ``adr_slip`` at ``k``, and only where
+the clock chain links ``k`` directly to ``k - 1`` (no receiver clock reset, no motion gap).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fusion.estimate.graph.config import GraphConfig
+from fusion.trace import Trace, count_skip
+
+
+@dataclass
+class RawInputs:
+    """E epochs, S slots. doppler (E,S) bool slots with a Doppler factor; prr_sigma (E,S) [m/s];
+    use_drift: clock-drift states in the clock chain (some Doppler is used); tdcp_prev (E,S) int: the
+    slot of epoch k-1 whose carrier phase is differenced with slot s of epoch k (-1: none);
+    tdcp_sigma (E,S) [m]; counts: factors used and measurements left out, by reason."""
+
+    doppler: np.ndarray
+    prr_sigma: np.ndarray
+    tdcp_prev: np.ndarray
+    tdcp_sigma: np.ndarray
+    use_drift: bool = False
+    counts: dict = field(default_factory=dict)
+
+
+def doppler_slots(trace: Trace, above: np.ndarray, has_clock: np.ndarray, cfg: GraphConfig,
+                  counts: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(E,S) bool Doppler slots used and (E,S) their sigmas [m/s]; above (E,S) bool slots over the
+    elevation mask, has_clock (E,) bool epochs with a clock variable."""
+    ok = trace.mask & trace.prr_ok
+    sigma = np.sqrt((cfg.prr_sigma_scale * trace.prr_sigma) ** 2 + cfg.prr_sigma_floor_mps ** 2)
+    bad_sigma = ok & ~(np.isfinite(sigma) & (sigma > 0))
+    count_skip(counts, "doppler_bad_sigma", bad_sigma)
+    # a zero satellite velocity means "unknown" in a Trace: a Doppler factor would then silently
+    # read the satellite's motion as the receiver's
+    no_sat_vel = ok & ~bad_sigma & ~np.any(trace.sat_vel != 0, axis=-1)
+    count_skip(counts, "doppler_without_satellite_velocity", no_sat_vel)
+    use = ok & ~bad_sigma & ~no_sat_vel & above & has_clock[:, None]
+    if cfg.motion != "cv":
+        count_skip(counts, "doppler_without_velocity_states", use)
+        use = np.zeros_like(use)
+    counts["doppler_factors"] = int(use.sum())
+    return use, np.where(use, sigma, 1.0)
+
+
+def tdcp_pairs(trace: Trace, above: np.ndarray, clock_link: np.ndarray, cfg: GraphConfig,
+               counts: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(E,S) int slot of epoch k-1 paired with slot s of epoch k (-1: none) and (E,S) sigma [m] of
+    the difference. above (E,S) bool; clock_link (E,) int from the clock chain."""
+    E, S = trace.mask.shape
+    ok = trace.mask & trace.adr_ok & np.isfinite(trace.adr_sigma) & (trace.adr_sigma >= 0)
+    count_skip(counts, "carrier_bad_sigma", trace.mask & trace.adr_ok & ~ok)
+    prev = np.full((E, S), -1)
+    if E < 2:
+        return prev, np.ones((E, S))
+    ident = trace.sat_id.astype(np.int64) * 64 + trace.signal
+    cur_ok = ok[1:] & above[1:] & ~trace.adr_slip[1:]
+    same = (ident[1:, :, None] == ident[:-1, None, :]) & ok[:-1, None, :] & above[:-1, None, :]
+    found = same.any(axis=2) & cur_ok
+    chained = (clock_link[1:] == np.arange(E - 1))[:, None]
+    count_skip(counts, "carrier_chain_broken_by_clock", found & ~chained)
+    use = found & chained
+    prev[1:] = np.where(use, same.argmax(axis=2), -1)
+    prev_sigma = np.take_along_axis(trace.adr_sigma[:-1], np.maximum(prev[1:], 0), axis=1)
+    sigma = np.ones((E, S))
+    sigma[1:] = np.sqrt(trace.adr_sigma[1:] ** 2 + prev_sigma ** 2 + cfg.tdcp_sigma_floor_m ** 2)
+    counts["tdcp_factors"] = int(use.sum())
+    return prev, np.where(prev >= 0, sigma, 1.0)
+
+
+def raw_inputs(trace: Trace, el: np.ndarray, elev_mask_deg: float, has_clock: np.ndarray,
+               clock_link: np.ndarray, cfg: GraphConfig, use_doppler: bool = True,
+               use_carrier: bool = True) -> RawInputs:
+    """The Doppler and carrier factors of a trace (none where the trace lacks the fields or the
+    options switch them off). el (E,S) elevations [deg] at the initial positions; has_clock (E,)
+    bool; clock_link (E,) int (see :class:`fusion.estimate.graph.clock.ClockChain`)."""
+    E, S = trace.mask.shape
+    above = el >= elev_mask_deg
+    counts: dict = {}
+    doppler, prr_sigma = np.zeros((E, S), bool), np.ones((E, S))
+    if use_doppler and trace.has_doppler:
+        doppler, prr_sigma = doppler_slots(trace, above, has_clock, cfg, counts)
+    prev, tdcp_sigma = np.full((E, S), -1), np.ones((E, S))
+    if use_carrier and trace.has_carrier:
+        prev, tdcp_sigma = tdcp_pairs(trace, above, clock_link, cfg, counts)
+    return RawInputs(doppler=doppler, prr_sigma=prr_sigma, tdcp_prev=prev, tdcp_sigma=tdcp_sigma,
+                     use_drift=bool(doppler.any()), counts=counts)

@@ -1,0 +1,88 @@
+"""Simulated Doppler (pseudorange rate) and carrier phase (accumulated delta range) for the slots
+the simulator picked, with the truth-known arcs, ambiguities and cycle slips tests need.
+
+Models (the ones the graph inverts; satellite clock already removed, like ``Trace.prr`` / ``adr``):
+
+- ``prr = range_rate(sat, rx) + receiver clock drift + N(0, prr_sigma^2)``, the range rate of
+  :func:`fusion.geometry.range_rate` (GTSAM's ``DopplerFactor`` model) at the true receiver velocity;
+- ``adr = range + receiver clock + ambiguity + N(0, adr_sigma^2)``, the range of
+  :func:`fusion.geometry.line_of_sight` (the pseudorange's), the ambiguity constant along an arc.
+
+An arc of one satellite ends where it leaves the picked subset, where a trace segment starts, or
+at a random cycle slip (probability ``slip_prob`` per satellite and epoch); each new arc starts with
+a fresh ambiguity and sets ``adr_slip`` in that epoch's slot.
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fusion.geometry import range_rate
+
+if TYPE_CHECKING:  # the config lives with the simulator that imports this module
+    from fusion.sim.simulate import SimConfig
+
+
+def receiver_velocity(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray) -> np.ndarray:
+    """(E,3) ECEF velocity [m/s] of the true track rx (E,3) at times t_ms (E,): central differences
+    within each segment (seg_start (E,) bool), one-sided at its ends, 0 for one-epoch segments."""
+    E = t_ms.shape[0]
+    if E < 2:
+        return np.zeros((E, 3))
+    step = np.diff(rx, axis=0) / (np.diff(t_ms) * 1e-3)[:, None]          # (E-1,3) k -> k+1
+    linked = ~seg_start[1:]                                                # k and k+1 same segment
+    fwd = np.vstack([np.where(linked[:, None], step, np.nan), np.full((1, 3), np.nan)])
+    bwd = np.vstack([np.full((1, 3), np.nan), np.where(linked[:, None], step, np.nan)])
+    n = np.isfinite(fwd[:, :1]).astype(float) + np.isfinite(bwd[:, :1])
+    return (np.nan_to_num(fwd) + np.nan_to_num(bwd)) / np.maximum(n, 1.0)
+
+
+def carrier_arcs(in_view: np.ndarray, seg_start: np.ndarray, cfg: "SimConfig", rng: np.random.Generator
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per (epoch, PRN): new_arc (E,P) bool and ambiguity (E,P) [m].
+
+    in_view (E,P) bool the PRN is among the picked slots; seg_start (E,) bool.
+    A new arc starts at (re)acquisition, at a segment start or at a random slip; the ambiguity is a
+    cumulative sum of the jumps drawn at arc starts, so it is constant along each arc.
+    """
+    E, P = in_view.shape
+    prev = np.vstack([np.zeros((1, P), bool), in_view[:-1]])
+    slip = rng.random((E, P)) < cfg.slip_prob
+    new_arc = in_view & (~prev | seg_start[:, None] | slip)
+    lo, hi = cfg.slip_jump_m
+    jump = rng.uniform(lo, hi, (E, P)) * rng.choice([-1.0, 1.0], (E, P))
+    return new_arc, np.cumsum(np.where(new_arc, jump, 0.0), axis=0)
+
+
+def doppler_carrier_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, slots: dict,
+                           pick: np.ndarray, P: int, clock_drift: np.ndarray, rng_m: np.ndarray,
+                           cfg: "SimConfig", rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Doppler and carrier slot arrays, empty when ``cfg`` asks for neither.
+
+    t_ms (E,), rx (E,3) true track, seg_start (E,) bool; slots: the simulator's (E,K) arrays so far
+    (``sat_pos``, ``sat_vel``, ``mask``, ``clock``); pick (E,K) PRN index of each slot out of P;
+    clock_drift (E,) [m/s]; rng_m (E,K) geometric ranges [m].
+    Returns prr, prr_sigma, prr_ok, rx_vel (E,3), clock_drift (E,) with ``cfg.doppler``, and adr,
+    adr_sigma, adr_ok, adr_slip, ambiguity with ``cfg.carrier``.
+    """
+    out: dict[str, np.ndarray] = {}
+    mask = slots["mask"]
+    if cfg.doppler:
+        vel = receiver_velocity(t_ms, rx, seg_start)
+        rate = range_rate(slots["sat_pos"], slots["sat_vel"], rx, vel)
+        noise = rng.standard_normal(mask.shape) * cfg.prr_sigma_mps
+        out.update(prr=rate + clock_drift[:, None] + noise, prr_sigma=np.where(mask, cfg.prr_sigma_mps, 1.0),
+                   prr_ok=mask.copy(), rx_vel=vel, clock_drift=clock_drift)
+    if cfg.carrier:
+        in_view = np.zeros((mask.shape[0], P), bool)
+        rows = np.broadcast_to(np.arange(mask.shape[0])[:, None], mask.shape)
+        in_view[rows[mask], pick[mask]] = True
+        new_arc, amb = carrier_arcs(in_view, seg_start, cfg, rng)
+        ambiguity = np.take_along_axis(amb, pick, axis=1)
+        noise = rng.standard_normal(mask.shape) * cfg.adr_sigma_m
+        out.update(adr=rng_m + slots["clock"][:, None] + ambiguity + noise,
+                   adr_sigma=np.where(mask, cfg.adr_sigma_m, 1.0), adr_ok=mask.copy(),
+                   adr_slip=np.take_along_axis(new_arc, pick, axis=1) & mask,
+                   ambiguity=np.where(mask, ambiguity, 0.0))
+    return out

@@ -1,0 +1,249 @@
+"""Doppler and carrier phase: the simulator's truth-known Doppler/ADR, the graph's Doppler and
+time-differenced carrier factors, chains broken at slips and resets, batch vs incremental, and
+traces without the fields solved exactly as before."""
+from __future__ import annotations
+
+import dataclasses
+
+import gtsam
+import numpy as np
+import pytest
+
+from fusion.cli import add_run_options, options_from_args
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.factors import (_linear_factor, doppler_factor_vcd, drift_walk_factor_cdcd, robust_rows,
+                                           tdcp_factor_xxcc)
+from fusion.estimate.graph.fuse import fuse
+from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, drift_key, pos_key, vel_key
+from fusion.geometry import C_LIGHT, line_of_sight, range_rate
+from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+from fusion.modes import solve_initial
+from fusion.run_types import RunOptions
+from fusion.sim.simulate import SimConfig, simulate
+from fusion.trace import OPTIONAL_SLOT_FIELDS
+
+RAW = SimConfig(doppler=True, carrier=True, slip_prob=0.005)
+
+
+@pytest.fixture(scope="module")
+def nav():
+    return read_rinex_nav(default_nav_path())
+
+
+@pytest.fixture(scope="module")
+def sim(nav):
+    return simulate(n_epochs=200, nav=nav, seed=11, config=RAW)
+
+
+@pytest.fixture(scope="module")
+def wls(sim):
+    return solve_initial(sim.trace, RunOptions())
+
+
+def pos_err(trace, pos) -> np.ndarray:
+    return np.linalg.norm(pos - trace.truth, axis=1)
+
+
+def solve(trace, wls, **opts):
+    return fuse(trace, wls, RunOptions(**opts), want_cov=False)
+
+
+# ------------------------------------------------------------------------------ simulator
+def test_doppler_and_carrier_leave_the_pseudoranges_as_they_were(nav):
+    plain = simulate(n_epochs=80, nav=nav, seed=5)
+    raw = simulate(n_epochs=80, nav=nav, seed=5, config=SimConfig(doppler=True, carrier=True, slip_prob=0.1))
+    for key in ("t_ms", "sat_pos", "pr", "mask", "sat_id", "truth"):
+        np.testing.assert_array_equal(getattr(plain.trace, key), getattr(raw.trace, key))
+    np.testing.assert_array_equal(plain.clock_m, raw.clock_m)
+    assert plain.trace.prr is None and plain.trace.adr is None
+    assert raw.trace.has_doppler and raw.trace.has_carrier
+
+
+def test_simulated_doppler_and_carrier_follow_their_models(sim):
+    tr, m = sim.trace, sim.trace.mask
+    prr_res = tr.prr - range_rate(tr.sat_pos, tr.sat_vel, tr.truth, sim.rx_vel_mps) - sim.clock_drift_mps[:, None]
+    assert abs(prr_res[m].std() - RAW.prr_sigma_mps) < 0.02 and abs(prr_res[m].mean()) < 0.02
+    adr_res = tr.adr - line_of_sight(tr.sat_pos, tr.truth)[0] - sim.clock_m[:, None] - sim.ambiguity_m
+    assert abs(adr_res[m].std() - RAW.adr_sigma_m) < 0.0005
+    # the ambiguity changes only where a slip is flagged, always when one is, by a big jump
+    same_sat = m[1:] & m[:-1] & (tr.sat_id[1:] == tr.sat_id[:-1])
+    jump = np.abs(np.diff(sim.ambiguity_m, axis=0))
+    slip = tr.adr_slip[1:]
+    assert same_sat.any() and (slip & same_sat).any()
+    assert np.all(jump[same_sat & ~slip] == 0)
+    assert np.all(jump[same_sat & slip] >= RAW.slip_jump_m[0])
+
+
+# ------------------------------------------------------------------------------ factors
+def test_doppler_factor_is_zero_at_the_truth(sim):
+    tr, k = sim.trace, 50
+    v = gtsam.Values()
+    v.insert(vel_key(k), sim.rx_vel_mps[k])
+    clock_s = sim.clock_m[k] / C_LIGHT
+    v.insert(clock_key(k), clock_s)
+    v.insert(drift_key(k), clock_s + sim.clock_drift_mps[k] * DRIFT_HORIZON_S / C_LIGHT)
+    model = gtsam.noiseModel.Isotropic.Sigma(1, 1.0)
+    errs = [doppler_factor_vcd(k, tr.prr[k, s], tr.sat_pos[k, s], tr.sat_vel[k, s], tr.truth[k] + 20.0,
+                               model).unwhitenedError(v)[0] for s in np.flatnonzero(tr.mask[k])]
+    assert np.max(np.abs(errs)) < 4 * RAW.prr_sigma_mps       # only the simulated noise is left
+
+
+def test_tdcp_factor_error_and_jacobian(sim):
+    tr, k = sim.trace, 30
+    s = np.flatnonzero(tr.mask[k] & tr.mask[k - 1] & (tr.sat_id[k] == tr.sat_id[k - 1]) & ~tr.adr_slip[k])
+    f = tdcp_factor_xxcc(k - 1, k, tr.adr[k, s] - tr.adr[k - 1, s], tr.sat_pos[k - 1, s], tr.sat_pos[k, s],
+                         np.full(s.size, 0.01), "none", 1.0)
+    v = gtsam.Values()
+    for j in (k - 1, k):
+        v.insert(pos_key(j), tr.truth[j])
+        v.insert(clock_key(j), sim.clock_m[j] / C_LIGHT)
+    e = f.unwhitenedError(v) * 0.01                           # unit noise model: rows are whitened
+    assert np.max(np.abs(e)) < 0.02                            # mm noise + first-order Sagnac
+    lin = f.linearize(v)
+    A, b = lin.jacobian()
+    step = np.array([0.7, -0.4, 0.2])
+    v2 = gtsam.Values(v)
+    v2.update(pos_key(k), tr.truth[k] + step)
+    predicted = -b + A[:, 3:6] @ step
+    np.testing.assert_allclose(f.unwhitenedError(v2), predicted, atol=1e-3)
+
+
+def test_robust_rows_cost_and_weights():
+    e = np.array([0.0, 0.5, 3.0, -40.0])
+    r, sw = robust_rows(e, "cauchy", 2.0)
+    np.testing.assert_allclose(0.5 * r**2, 0.5 * 4.0 * np.log1p((e / 2.0) ** 2))
+    np.testing.assert_allclose(sw**2, 1.0 / (1.0 + (e / 2.0) ** 2))
+    r, sw = robust_rows(e, "huber", 1.0)
+    np.testing.assert_allclose(0.5 * r**2, np.where(np.abs(e) <= 1, 0.5 * e**2, np.abs(e) - 0.5))
+    assert np.sign(r[3]) < 0 and sw[3] ** 2 == pytest.approx(1 / 40)
+
+
+def test_four_key_linear_factor_is_exact():
+    keys = [drift_key(2), clock_key(2), drift_key(1), clock_key(1)]
+    v = gtsam.Values()
+    x = np.array([0.3, -0.2, 0.5, 1.1])
+    for key, xi in zip(keys, x):
+        v.insert(key, float(xi))
+    a = np.array([1.0, -1.0, -1.0, 1.0])
+    assert _linear_factor(keys, list(a), 0.5).error(v) == pytest.approx(0.5 * (a @ x / 0.5) ** 2)
+    sigma_mps = 0.3
+    expect = 0.5 * ((a @ x) * C_LIGHT / DRIFT_HORIZON_S / sigma_mps) ** 2
+    assert drift_walk_factor_cdcd(1, 2, sigma_mps).error(v) == pytest.approx(expect)
+
+
+# ------------------------------------------------------------------------------ inputs
+def test_carrier_chains_break_at_slips_invalid_phase_and_clock_resets(sim, wls):
+    tr = sim.trace
+    base = prepare_inputs(tr, wls, GraphConfig()).raw
+    k = 100
+    assert (base.tdcp_prev[k] >= 0).sum() >= 4 and np.all(base.tdcp_prev[tr.adr_slip] < 0)
+    s0 = int(np.flatnonzero(base.tdcp_prev[k] >= 0)[0])
+    slip, bad = tr.adr_slip.copy(), tr.adr_ok.copy()
+    slip[k, s0] = True
+    bad[k + 1, s0] = False
+    reset = tr.clock_reset.copy()
+    reset[k + 5] = True
+    edited = dataclasses.replace(tr, adr_slip=slip, adr_ok=bad, clock_reset=reset)
+    raw = prepare_inputs(edited, wls, GraphConfig()).raw
+    assert raw.tdcp_prev[k, s0] < 0 and raw.tdcp_prev[k + 1, s0] < 0
+    assert np.all(raw.tdcp_prev[k + 5] < 0) and (base.tdcp_prev[k + 5] >= 0).any()
+    assert raw.counts["carrier_chain_broken_by_clock"] > 0
+    # k+2 pairs with k+1, where s0 had no valid phase; the other satellites keep their chains
+    assert (raw.tdcp_prev[k + 2] >= 0).sum() == (base.tdcp_prev[k + 2] >= 0).sum() - 1
+    assert (raw.tdcp_prev[k + 3] >= 0).sum() == (base.tdcp_prev[k + 3] >= 0).sum()
+
+
+def test_doppler_without_satellite_velocity_or_sigma_is_a_counted_skip(sim, wls):
+    tr = sim.trace
+    sat_vel, prr_sigma = tr.sat_vel.copy(), tr.prr_sigma.copy()
+    sat_vel[10, 0] = 0.0
+    prr_sigma[11, 0] = np.nan
+    raw = prepare_inputs(dataclasses.replace(tr, sat_vel=sat_vel, prr_sigma=prr_sigma), wls, GraphConfig()).raw
+    assert not raw.doppler[10, 0] and not raw.doppler[11, 0]
+    assert raw.counts["doppler_without_satellite_velocity"] == 1 and raw.counts["doppler_bad_sigma"] == 1
+    # random-walk motion has no velocity states for Doppler to constrain: all counted, none used
+    rw = prepare_inputs(tr, wls, GraphConfig(motion="rw")).raw
+    assert not rw.doppler.any() and not rw.use_drift
+    assert rw.counts["doppler_without_velocity_states"] > 5 * tr.n_epochs and rw.counts["tdcp_factors"] > 0
+
+
+def test_switches_and_traces_without_the_fields(sim, wls):
+    tr = sim.trace
+    bare = dataclasses.replace(tr, **{k: None for k in OPTIONAL_SLOT_FIELDS})
+    assert prepare_inputs(bare, wls, GraphConfig()).raw is None
+    assert prepare_inputs(tr, wls, GraphConfig(), use_doppler=False, use_carrier=False).raw is None
+    off = solve(tr, wls, use_doppler=False, use_carrier=False)
+    plain = solve(bare, wls)
+    np.testing.assert_array_equal(off.pos, plain.pos)
+    assert "doppler_factors" not in plain.info and "tdcp_factors" not in plain.info
+
+
+# ------------------------------------------------------------------------------ solutions
+@pytest.fixture(scope="module")
+def solutions(sim, wls):
+    return {(d, c): solve(sim.trace, wls, use_doppler=d, use_carrier=c)
+            for d, c in ((False, False), (True, False), (True, True))}
+
+
+def test_doppler_improves_velocity_and_position(sim, solutions):
+    tr = sim.trace
+    none, dop = solutions[(False, False)], solutions[(True, False)]
+    v_none = np.linalg.norm(none.info["vel"] - sim.rx_vel_mps, axis=1)
+    v_dop = np.linalg.norm(dop.info["vel"] - sim.rx_vel_mps, axis=1)
+    assert np.median(v_dop) < 0.5 * np.median(v_none)
+    assert np.median(v_dop) < 0.3
+    assert np.median(pos_err(tr, dop.pos)) < np.median(pos_err(tr, none.pos))
+    assert np.percentile(pos_err(tr, dop.pos), 95) < np.percentile(pos_err(tr, none.pos), 95)
+    assert dop.info["doppler_factors"] > 5 * tr.n_epochs
+
+
+def test_carrier_tightens_further(sim, solutions):
+    tr = sim.trace
+    dop, both = solutions[(True, False)], solutions[(True, True)]
+    assert both.info["tdcp_factors"] > 5 * tr.n_epochs
+    assert np.median(pos_err(tr, both.pos)) < 0.7 * np.median(pos_err(tr, dop.pos))
+    # consecutive-epoch displacement: what carrier phase measures, to centimetres
+    d_err = np.linalg.norm(np.diff(both.pos - tr.truth, axis=0), axis=1)
+    d_err_dop = np.linalg.norm(np.diff(dop.pos - tr.truth, axis=0), axis=1)
+    assert np.median(d_err) < 0.05 and np.median(d_err) < 0.2 * np.median(d_err_dop)
+
+
+def test_flagged_slips_with_big_jumps_do_not_corrupt_the_solution(nav, solutions, sim):
+    slipping = simulate(n_epochs=200, nav=nav, seed=11,
+                        config=dataclasses.replace(RAW, slip_prob=0.1, slip_jump_m=(500.0, 5000.0)))
+    tr = slipping.trace
+    assert tr.adr_slip.sum() > 0.1 * tr.mask.sum()
+    res = solve(tr, solve_initial(tr, RunOptions()))
+    clean = pos_err(sim.trace, solutions[(True, True)].pos)
+    assert np.percentile(pos_err(tr, res.pos), 95) < 2.0 * np.percentile(clean, 95) + 0.5
+    assert np.max(pos_err(tr, res.pos)) < 5.0
+
+
+def test_an_unflagged_slip_is_held_off_by_the_robust_loss(sim, wls, solutions):
+    tr = sim.trace
+    k = 120
+    s = np.flatnonzero(tr.mask[k] & ~tr.adr_slip[k])[0]
+    adr = tr.adr.copy()
+    same = tr.sat_id == tr.sat_id[k, s]
+    adr[k:][same[k:]] += 50.0                                  # a 50 m jump nobody flagged
+    res = solve(dataclasses.replace(tr, adr=adr), wls)
+    clean = solutions[(True, True)].pos
+    assert np.max(np.linalg.norm(res.pos - clean, axis=1)) < 0.5
+
+
+def test_batch_and_incremental_agree(sim, wls, solutions):
+    inc = solve(sim.trace, wls, use_doppler=True, use_carrier=True, incremental=True)
+    gap = np.linalg.norm(inc.pos - solutions[(True, True)].pos, axis=1)
+    assert np.median(gap) < 0.05 and np.max(gap) < 0.5
+    assert np.median(np.linalg.norm(inc.info["vel"] - sim.rx_vel_mps, axis=1)) < 0.3
+
+
+def test_cli_switches():
+    import argparse
+    p = argparse.ArgumentParser()
+    add_run_options(p)
+    on = options_from_args(p.parse_args([]))
+    off = options_from_args(p.parse_args(["--no-doppler", "--no-carrier"]))
+    assert (on.use_doppler, on.use_carrier) == (True, True)
+    assert (off.use_doppler, off.use_carrier) == (False, False)
