@@ -77,7 +77,8 @@ def carrier_hz(signal: np.ndarray, glo_k: np.ndarray) -> np.ndarray:
     signal: (N,) str, names from SIGNALS.  glo_k: (N,) int, GLONASS channel (-99 unknown).
     Returns (N,) float64; NaN for GLONASS rows whose channel is unknown.
     """
-    f = pd.Series(signal).map(SIGNAL_CARRIER_HZ).to_numpy(float, copy=True)
+    codes, names = pd.factorize(np.asarray(signal, dtype=object))
+    f = np.array([SIGNAL_CARRIER_HZ.get(n, np.nan) for n in names] + [np.nan])[codes]
     glo = np.asarray(signal) == "GLO_G1"
     k = np.asarray(glo_k)
     f[glo] = np.where(k[glo] == GLO_K_UNKNOWN, np.nan, 1602.0e6 + k[glo] * GLO_G1_STEP_HZ)
@@ -144,7 +145,8 @@ def finish_raw(columns: dict[str, np.ndarray]) -> pd.DataFrame:
     cols = dict(columns)
     const = np.asarray(cols["const"], dtype=object)
     if "sat_id" not in cols:
-        ctype = pd.Series(const).map(CONSTELLATION_TYPE).to_numpy(np.int64)
+        codes, names = pd.factorize(const)
+        ctype = np.array([CONSTELLATION_TYPE.get(n, 0) for n in names] + [0], np.int64)[codes]
         cols["sat_id"] = 1000 * ctype + np.asarray(cols["svid"], np.int64)
     if "carrier_hz" not in cols:
         cols["carrier_hz"] = carrier_hz(np.asarray(cols["signal"], dtype=object), cols["glo_k"])
