@@ -44,7 +44,7 @@ _SVID_OFFSET = {"J": 192, "S": 100}
 _GPS_LIKE = {"GPS", "GAL", "QZS", ""}
 _BDT_OFFSET_S = 14
 _FIELD = 16  # F14.3 + LLI + SSI
-_GPS_EPOCH_DAYS = 723_186  # 1980-01-06 in days since 0000-03-01 (proleptic Gregorian)
+_GPS_EPOCH_DAYS = 723_125  # 1980-01-06 in days since 0000-03-01 (proleptic Gregorian)
 
 
 @dataclass
@@ -154,7 +154,7 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     e_line = np.flatnonzero(is_epoch)
     if e_line.size == 0:
         raise DataError(f"{path}: no epoch records after the header (header only?)")
-    line_no = head.n_lines + 1 + e_line + 1  # 1-based file line numbers of epoch lines
+    line_no = head.n_lines + 1 + e_line  # 1-based file line numbers of epoch lines
     t_ns, flag, n_sat = _epoch_fields(char_matrix(body, starts[e_line], ends[e_line], 35), head, path, line_no)
     n_lines = np.diff(np.append(e_line, starts.size)) - 1
     _trim_trailing_blank(n_lines, starts, ends)
@@ -182,7 +182,7 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     first = np.repeat(e_line[kept] + 1, n_sat[kept])
     sat = first + (np.arange(first.size) - np.repeat(np.cumsum(n_sat[kept]) - n_sat[kept], n_sat[kept]))
     epochs = {"t_ns": t_ns[kept], "clock_reset": flag[kept] == 1, "epoch_of": epoch_of,
-              "line_no": head.n_lines + 2 + sat}
+              "line_no": head.n_lines + 1 + sat}
     return epochs, np.column_stack([starts[sat], ends[sat], epoch_of])
 
 
@@ -209,7 +209,10 @@ def _epoch_fields(m: np.ndarray, head: ObsHeader, path: Path,
     sec, sec_bad = parse_float(m[:, 18:29])
     mant, dec, _, _ = parse_decimal(m[:, 18:29])
     bad |= sec_bad | (dec > 9) | ~np.isfinite(sec) | (v["month"] < 1) | (v["month"] > 12) | (v["day"] < 1) \
-        | (v["day"] > 31) | (v["hour"] > 23) | (v["minute"] > 59) | (sec >= 61) | (v["flag"] > 6) | (v["n_sat"] < 0)
+        | (v["day"] > 31) | (v["hour"] > 23) | (v["minute"] > 59) | (sec >= 61)
+    # Event records (flags 2-5) may leave the time blank; they are skipped anyway.
+    bad &= (v["flag"] < 2) | (v["flag"] > 5)
+    bad |= (v["flag"] > 6) | (v["n_sat"] < 0)
     if bad.any():
         i = np.flatnonzero(bad)[0]
         text = bytes(m[i]).decode("ascii", errors="replace").rstrip()

@@ -1,0 +1,163 @@
+"""RINEX 3 observation reader: values against a plain per-line reference parse, flags, malformed files."""
+from __future__ import annotations
+
+import gzip
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fusion.errors import DataError
+from fusion.io.raw import RAW_COLUMNS, check_raw
+from fusion.io.rinex_obs import read_rinex_obs
+
+DATA = Path(__file__).parent / "data"
+FIXTURE = DATA / "pixel5_head.21o"  # header + first 5 epochs of the GSDC 2021 Pixel5 RINEX log
+C = 299_792_458.0
+
+
+def _reference(path: Path) -> dict[tuple[int, str, int, str], float]:
+    """Slow, obviously-right parse: (epoch index, system, prn, obs type) -> value (0.0 / blank skipped)."""
+    lines = path.read_text().splitlines()
+    end = next(i for i, l in enumerate(lines) if "END OF HEADER" in l)
+    types, sys = {}, ""
+    for l in lines[:end]:
+        if l[60:].strip() == "SYS / # / OBS TYPES":
+            sys = l[0] if l[0] != " " else sys
+            types.setdefault(sys, []).extend(l[7:60].split())
+    out, epoch = {}, -1
+    for l in lines[end + 1:]:
+        if l.startswith(">"):
+            epoch += 1
+            continue
+        for i, t in enumerate(types[l[0]]):
+            text = l[3 + 16 * i: 3 + 16 * i + 14].strip()
+            if text and float(text) != 0.0:
+                out[(epoch, l[0], int(l[1:3]), t)] = float(text)
+    return out
+
+
+def _write(tmp_path: Path, text: str | bytes, name: str = "x.21o") -> Path:
+    p = tmp_path / name
+    p.write_bytes(text.encode() if isinstance(text, str) else text)
+    return p
+
+
+def test_fixture_matches_reference_parse():
+    raw = read_rinex_obs(FIXTURE)
+    check_raw(raw.frame)
+    f = raw.frame
+    assert list(f.columns) == list(RAW_COLUMNS)
+    assert raw.n_epochs == 5 and raw.approx_pos is None  # the phone wrote zeros
+    ref = _reference(FIXTURE)
+    epoch = np.searchsorted(np.unique(f.t_ns), f.t_ns)
+    code = {"GPS_L1": "1C", "GPS_L5": "5X", "GLO_G1": "1C", "GAL_E1": "1C", "GAL_E5A": "5X"}
+    n_checked = 0
+    for row, e in zip(f.itertuples(), epoch):
+        key = (int(e), row.const, row.svid % 1000)
+        c = code[row.signal]
+        pr = ref.get(key + ("C" + c,), math.nan)
+        assert (math.isnan(pr) and math.isnan(row.pr_m)) or pr == row.pr_m
+        wl = C / row.carrier_hz
+        for obs, got, scale in (("L", row.adr_m, wl), ("D", row.prr_mps, -wl)):
+            want = ref.get(key + (obs + c,), math.nan) * scale
+            assert (math.isnan(want) and math.isnan(got)) or got == pytest.approx(want, abs=1e-9), (key, obs)
+        assert row.cn0 == ref[key + ("S" + c,)]
+        n_checked += 1
+    assert n_checked == len(f) > 50
+
+
+def test_fixture_time_flags_and_glonass():
+    f = read_rinex_obs(FIXTURE).frame
+    # 2021-04-28 22:19:22.4299102 GPS = week 2155, 3 days + 80362.4299102 s.
+    assert f.t_ns.iloc[0] == (2155 * 604800 + 3 * 86400 + 80362) * 10**9 + 429910200
+    assert np.all(np.diff(np.unique(f.t_ns)) == 10**9)
+    r21 = f[(f.const == "R") & (f.svid == 21)]
+    assert (r21.glo_k == 4).all() and np.allclose(r21.carrier_hz, 1602e6 + 4 * 0.5625e6)
+    # LLI 1 on G12 L1C in the second epoch: a slip there, none in the first.
+    g12 = f[(f.sat_id == 1012) & (f.signal == "GPS_L1")]
+    assert list(g12.adr_slip.iloc[:2]) == [False, True]
+    assert not f.clock_reset.any()
+    assert (f.adr_ok == np.isfinite(f.adr_m)).all()
+
+
+def test_gzip_same_as_plain(tmp_path):
+    gz = _write(tmp_path, gzip.compress(FIXTURE.read_bytes()), "x_MO.rnx.gz")
+    assert read_rinex_obs(gz).frame.equals(read_rinex_obs(FIXTURE).frame)
+
+
+def test_corrupt_gzip_is_one_line_error(tmp_path):
+    bad = _write(tmp_path, gzip.compress(FIXTURE.read_bytes())[:200], "x.21o.gz")
+    with pytest.raises(DataError, match=r"x\.21o\.gz: corrupt gzip"):
+        read_rinex_obs(bad)
+
+
+def _lines() -> list[str]:
+    return FIXTURE.read_text().splitlines(keepends=True)
+
+
+def test_bad_number_skips_line_and_names_it(tmp_path):
+    lines = _lines()
+    i = next(k for k, l in enumerate(lines) if l.startswith("G12"))
+    lines[i] = lines[i][:8] + "x" + lines[i][9:]
+    p = _write(tmp_path, "".join(lines))
+    with pytest.warns(UserWarning, match=rf"x\.21o:{i + 1}: unreadable number"):
+        raw = read_rinex_obs(p)
+    assert raw.skipped["sat_lines_bad_number"] == 1
+    assert len(raw.frame) == len(read_rinex_obs(FIXTURE).frame) - 1
+
+
+def test_bad_epoch_line_is_error_with_line(tmp_path):
+    lines = _lines()
+    i = next(k for k, l in enumerate(lines) if l.startswith(">"))
+    lines[i] = lines[i].replace(" 04 ", " 4x ", 1)
+    with pytest.raises(DataError, match=rf"x\.21o:{i + 1}: cannot read epoch line"):
+        read_rinex_obs(_write(tmp_path, "".join(lines)))
+
+
+def test_truncated_final_record_is_counted(tmp_path):
+    p = _write(tmp_path, "".join(_lines()[:-3]))
+    with pytest.warns(UserWarning, match="truncated"):
+        raw = read_rinex_obs(p)
+    assert raw.skipped["records_truncated"] == 1
+    assert raw.n_epochs == 4
+
+
+def test_event_and_power_failure_flags(tmp_path):
+    lines = _lines()
+    epochs = [k for k, l in enumerate(lines) if l.startswith(">")]
+    # Epoch 3 becomes a power-failure epoch; an event record (flag 5, one comment line) precedes epoch 2.
+    lines[epochs[3]] = lines[epochs[3]][:31] + "1" + lines[epochs[3]][32:]
+    event = ">                              5  1\n" + "SOME EVENT".ljust(60) + "COMMENT\n"
+    lines.insert(epochs[2], event)
+    raw = read_rinex_obs(_write(tmp_path, "".join(lines)))
+    assert raw.skipped["event_records"] == 1 and raw.n_epochs == 5
+    reset = raw.frame.groupby("t_ns").clock_reset.first().to_numpy()
+    assert list(reset) == [False, False, False, True, False]
+
+
+def test_garbage_header_only_and_rinex2(tmp_path):
+    with pytest.raises(DataError, match="END OF HEADER"):
+        read_rinex_obs(_write(tmp_path, bytes(range(256)) * 10))
+    head = "".join(l for l in _lines() if not l.startswith((">", "G", "R", "E")) or "OBS TYPES" in l
+                   or "SLOT" in l)
+    head = head[:head.index("END OF HEADER") + 73]
+    with pytest.raises(DataError, match="no epoch records"):
+        read_rinex_obs(_write(tmp_path, head))
+    v2 = "     2.11           OBSERVATION DATA    M (MIXED)           RINEX VERSION / TYPE\n" + \
+         "                                                            END OF HEADER\n"
+    with pytest.raises(DataError, match=r"x\.21o:1: RINEX version 2\.11"):
+        read_rinex_obs(_write(tmp_path, v2))
+    with pytest.raises(DataError, match="cannot read"):
+        read_rinex_obs(tmp_path / "missing.21o")
+
+
+def test_full_pixel5_file(shared_data):
+    path = shared_data / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5/supplemental/Pixel5_GnssLog.21o"
+    raw = read_rinex_obs(path)
+    assert raw.n_epochs == 1985
+    assert set(raw.frame.signal) == {"GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A"}
+    ok = raw.frame.pr_m.notna()
+    assert ((raw.frame.pr_m[ok] > 1.9e7) & (raw.frame.pr_m[ok] < 3e7)).all()
