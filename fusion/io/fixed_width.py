@@ -34,12 +34,12 @@ def char_matrix(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, width: in
     lines are cut at ``width``, shorter ones padded with spaces (RINEX writers strip trailing
     blanks, which mean "missing").
     """
-    cols = np.arange(width, dtype=np.int64)
-    idx = starts[:, None] + cols[None, :]
-    inside = idx < ends[:, None]
-    out = np.full((starts.size, width), SPACE, np.uint8)
-    out[inside] = buf[idx[inside]]
-    return out
+    # Positions past a line's end point at one appended space; int32 halves the index traffic.
+    pos_t = np.int32 if buf.size < 2**31 - 1 else np.int64
+    padded = np.append(buf, np.uint8(SPACE))
+    idx = starts.astype(pos_t)[:, None] + np.arange(width, dtype=pos_t)[None, :]
+    idx = np.where(idx < ends.astype(pos_t)[:, None], idx, pos_t(buf.size))
+    return np.take(padded, idx)
 
 
 def parse_decimal(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -86,16 +86,51 @@ def _parse_filled(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return mantissa, decimals, bad
 
 
-def parse_float(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def parse_float(chars: np.ndarray, dot_col: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fixed fields -> (N,) float64 values (NaN where blank or bad) and the (N,) bad mask.
 
-    chars: (N, w) uint8.  Dividing the exact integer mantissa by an exact power of ten rounds
-    once, so the result equals Python's ``float(text)``.
+    chars: (N, w) uint8.  dot_col: where the format puts the decimal point (Fortran Fw.d:
+    ``w - d - 1``); fields that follow it take a fast path, the others the general parser.
+    Dividing an exact integer mantissa by an exact power of ten rounds once, so the result
+    equals Python's ``float(text)``.
     """
-    mantissa, decimals, blank, bad = parse_decimal(chars)
-    value = mantissa / 10.0 ** decimals
-    value[blank | bad] = np.nan
+    value = np.full(chars.shape[0], np.nan)
+    bad = np.zeros(chars.shape[0], bool)
+    rest = np.ones(chars.shape[0], bool)
+    if dot_col is not None:
+        fast, fast_value = _parse_fixed_point(chars, dot_col)
+        value[fast] = fast_value[fast]
+        rest = ~fast
+    rows = np.flatnonzero(rest)
+    if rows.size:
+        mantissa, decimals, blank, bad_rest = parse_decimal(chars[rows])
+        v = mantissa / 10.0 ** decimals
+        v[blank | bad_rest] = np.nan
+        value[rows], bad[rows] = v, bad_rest
     return value, bad
+
+
+def _parse_fixed_point(chars: np.ndarray, dot_col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fast path for fields written exactly to format: optional spaces, optional minus, digits,
+    the point at ``dot_col``, digits to the end. Returns (N,) bool "parsed here" and (N,) values."""
+    w = chars.shape[1]
+    # Column-major: reductions over a field's w characters become w elementwise passes over N.
+    c = np.ascontiguousarray(chars.T)
+    space = c == SPACE
+    digit = (c - np.uint8(48)) < 10  # uint8 wrap-around sends everything below '0' high
+    minus = c == 45
+    started = np.logical_or.accumulate(~space, axis=0)
+    allowed = digit | space | minus
+    allowed[dot_col] = c[dot_col] == 46
+    ok = (allowed.all(axis=0) & ~(space[1:] & started[:-1]).any(axis=0)
+          & ~(minus[1:] & started[:-1]).any(axis=0) & ~minus[dot_col] & digit.any(axis=0))
+    dec = w - 1 - dot_col
+    power = np.concatenate((np.arange(dot_col - 1, -1, -1) + dec, [0], np.arange(dec - 1, -1, -1)))
+    weight = np.where(np.arange(w) == dot_col, 0.0, 10.0 ** power)
+    # Digits times exact powers of ten sum exactly in float64 while the mantissa is < 2**53.
+    mantissa = weight @ np.where(digit, c - np.uint8(48), np.uint8(0)).astype(np.float64)
+    value = np.where(minus.any(axis=0), -mantissa, mantissa) / 10.0 ** dec
+    return ok & (mantissa < 2.0 ** 53), value
 
 
 def parse_int(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -252,7 +252,7 @@ def _observations(body: np.ndarray, sat_lines: np.ndarray, epochs: dict[str, np.
     prn, prn_bad = parse_int(m[:, 1:3])
     n_obs = (width - 3) // _FIELD
     fields = m[:, 3:3 + _FIELD * n_obs].reshape(-1, n_obs, _FIELD)
-    values, bad = parse_float(np.ascontiguousarray(fields[:, :, :14]).reshape(-1, 14))
+    values, bad = parse_float(np.ascontiguousarray(fields[:, :, :14]).reshape(-1, 14), dot_col=10)
     values, bad = values.reshape(-1, n_obs), bad.reshape(-1, n_obs).any(axis=1) | prn_bad
     values[values == 0.0] = np.nan
     lli = fields[:, :, 14]
