@@ -142,8 +142,10 @@ def _numeric_columns(table: pd.DataFrame, path: Path, skipped: dict[str, int]) -
     bad &= ~no_time
     _warn_first(path, table["line"].to_numpy(), bad, "unreadable number")
     count_skip(skipped, "records_bad_number", bad)
-    keep = ~(bad | no_time | np.isnan(out["BiasNanos"]))
-    count_skip(skipped, "records_no_bias", ~(bad | no_time) & np.isnan(out["BiasNanos"]))
+    keep = ~(bad | no_time)
+    # An unreported sub-nanosecond BiasNanos is common to every satellite of the epoch: the
+    # receiver clock estimate absorbs it, so it reads as 0 rather than costing the epoch.
+    out["BiasNanos"] = np.nan_to_num(out["BiasNanos"])
     return {k: v[keep] for k, v in out.items()} | {"line": table["line"].to_numpy()[keep]}
 
 
@@ -178,7 +180,8 @@ def _pseudorange(c: dict[str, np.ndarray], const: np.ndarray,
     frac = np.nan_to_num(c["TimeOffsetNanos"]) - c["BiasNanos"]
     glo = const == "R"
     shift = np.where(const == "C", BDT_OFFSET_NS, 0)
-    # GLONASS time = UTC + 3 h; GPS - UTC from the table at this instant.
+    # GLONASS time = UTC + 3 h; GPS - UTC from the table (looked up at GPS time read as Unix time:
+    # off by the 18 s only in the seconds around a leap second).
     leap = leap_seconds_at_unix_ms(whole // 10**6 + GPS_EPOCH_UNIX_MS)
     shift = np.where(glo, leap * 10**9 - 3 * 3600 * 10**9, shift)
     period = np.where(glo, DAY_NS, WEEK_NS)
