@@ -161,3 +161,33 @@ def test_full_pixel5_file(shared_data):
     assert set(raw.frame.signal) == {"GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A"}
     ok = raw.frame.pr_m.notna()
     assert ((raw.frame.pr_m[ok] > 1.9e7) & (raw.frame.pr_m[ok] < 3e7)).all()
+
+
+def test_cut_inside_last_line_is_truncated_not_misread(tmp_path):
+    text = FIXTURE.read_text()
+    cut = text[:text.rstrip().rfind(".") - 2]  # inside the last number of the last line
+    with pytest.warns(UserWarning, match="truncated"):
+        raw = read_rinex_obs(_write(tmp_path, cut))
+    assert raw.skipped["records_truncated"] == 1 and raw.n_epochs == 4
+
+
+def test_glonass_channels_fill_missing_header_slots(tmp_path):
+    lines = [l for l in _lines() if "GLONASS SLOT / FRQ #" not in l]
+    path = _write(tmp_path, "".join(lines))
+    plain = read_rinex_obs(path)
+    glo = plain.frame[plain.frame.const == "R"]
+    assert len(glo) and (glo.glo_k == -99).all() and glo.prr_mps.isna().all() and glo.pr_m.notna().any()
+    assert plain.skipped["glonass_no_channel_doppler_phase"] > 0
+    filled = read_rinex_obs(path, glonass_channels={9: -2, 20: 2, 21: 4})
+    g = filled.frame[filled.frame.const == "R"]
+    ref = read_rinex_obs(FIXTURE).frame
+    assert g.reset_index(drop=True).equals(ref[ref.const == "R"].reset_index(drop=True))
+    assert "glonass_no_channel_doppler_phase" not in filled.skipped
+    # The header wins over the caller.
+    assert (read_rinex_obs(FIXTURE, glonass_channels={21: -5}).frame.query("svid == 21 and const == 'R'").glo_k == 4).all()
+
+
+def test_glonass_header_list_read_whole():
+    from fusion.io.rinex_obs import _parse_header
+    # GnssToRinex writes " 6 R05  1 R09 -2 ...": the list starts a column early.
+    assert _parse_header(FIXTURE.read_bytes(), FIXTURE).glo_k == {5: 1, 9: -2, 12: -1, 20: 2, 21: 4, 22: -3}

@@ -59,8 +59,12 @@ class ObsHeader:
     n_lines: int = 0
 
 
-def read_rinex_obs(path: str | Path) -> RawObs:
+def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = None) -> RawObs:
     """Read a RINEX 3.0x observation file (plain or gzip) into the raw contract.
+
+    glonass_channels: slot -> frequency channel k, for slots the header's ``GLONASS SLOT / FRQ #``
+    lacks (e.g. from a navigation file); without k a GLONASS row keeps its pseudorange but not
+    its Doppler and phase (counted in ``skipped``).
 
     Raises :class:`DataError` naming the file (and line) for an unreadable / corrupt file, an
     unsupported version, a malformed header or epoch line, or a file without epoch records.
@@ -70,6 +74,7 @@ def read_rinex_obs(path: str | Path) -> RawObs:
     path = Path(path)
     text = _read_bytes(path)
     header = _parse_header(text, path)
+    header.glo_k = {**(glonass_channels or {}), **header.glo_k}
     body = np.frombuffer(text, np.uint8)[_body_offset(text):]
     skipped: dict[str, int] = {}
     epochs, sat_lines = _epoch_records(body, header, path, skipped)
@@ -122,7 +127,8 @@ def _parse_header(text: bytes, path: Path) -> ObsHeader:
             system = line[0] if line[0] != " " else system
             head.obs_types.setdefault(system, []).extend(line[7:60].split())
         elif label == "GLONASS SLOT / FRQ #":
-            for slot, k in re.findall(r"R\s?(\d{1,2})\s+(-?\d+)", line[4:60]):
+            # Some writers (GnssToRinex) start the list one column early: search the whole field.
+            for slot, k in re.findall(r"R\s?(\d{1,2})\s+(-?\d+)", line[:60]):
                 head.glo_k[int(slot)] = int(k)
         elif label == "APPROX POSITION XYZ":
             head.approx_pos = _approx_pos(line, path, no)
@@ -158,6 +164,10 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     t_ns, flag, n_sat = _epoch_fields(char_matrix(body, starts[e_line], ends[e_line], 35), head, path, line_no)
     n_lines = np.diff(np.append(e_line, starts.size)) - 1
     _trim_trailing_blank(n_lines, starts, ends)
+    if body[-1] != 10 and n_lines[-1] > 0:
+        # No final newline: the last line may be cut inside a number, which would still parse
+        # (to a wrong value), so its record counts as truncated.
+        n_lines[-1] -= 1
     event = (flag >= 2) & (flag <= 6)
     count_skip(skipped, "event_records", (flag >= 2) & (flag <= 5))
     count_skip(skipped, "cycle_slip_records", flag == 6)
@@ -287,11 +297,13 @@ def _system_blocks(sys_letter: str, types: list[str], rows: np.ndarray, values: 
     """
     index = {t: i for i, t in enumerate(types)}
     used: set[str] = set()
+    done: set[str] = set()
     blocks = []
     for signal, band, attrs in SIGNAL_CODES[sys_letter]:
         attr = next((a for a in attrs if f"C{band}{a}" in index or f"L{band}{a}" in index), None)
-        if attr is None or signal in {b["signal"][0] for b in blocks if len(b["signal"])}:
+        if attr is None or signal in done:
             continue
+        done.add(signal)
         code = band + attr
         used |= {k + code for k in "CLDS"}
         col = {k: values[rows, index[k + code]] if k + code in index else np.full(rows.size, np.nan) for k in "CLDS"}
@@ -313,24 +325,21 @@ def _signal_columns(sys_letter: str, signal: str, rows: np.ndarray, col: dict[st
     n = rows.size
     svid = prn[rows] + _SVID_OFFSET.get(sys_letter, 0)
     if sys_letter == "R":
-        glo_k = np.array([head.glo_k.get(int(s), GLO_K_UNKNOWN) for s in np.unique(svid)])
-        glo_k = glo_k[np.searchsorted(np.unique(svid), svid)]
+        slots, inverse = np.unique(svid, return_inverse=True)
+        glo_k = np.array([head.glo_k.get(int(s), GLO_K_UNKNOWN) for s in slots], np.int64)[inverse.ravel()]
     else:
         glo_k = np.zeros(n, np.int64)
     sig = np.full(n, signal, dtype=object)
     wavelength = 299_792_458.0 / carrier_hz(sig, glo_k)
-    count_skip(skipped, "glonass_unknown_channel", np.isnan(wavelength))
+    # Without the channel, cycles and Hz cannot become metres: Doppler and phase are dropped.
+    count_skip(skipped, "glonass_no_channel_doppler_phase", np.isnan(wavelength) & ~(np.isnan(col["L"]) & np.isnan(col["D"])))
     adr = col["L"] * wavelength
     nan = np.full(n, np.nan)
     return {
-        "t_ns": epochs["t_ns"][rows_epoch(rows, epochs)], "const": np.full(n, sys_letter, dtype=object),
+        "t_ns": epochs["t_ns"][epochs["epoch_of"][rows]], "const": np.full(n, sys_letter, dtype=object),
         "svid": svid, "signal": sig, "pr_m": col["C"], "pr_sigma_m": nan,
         "prr_mps": -col["D"] * wavelength, "prr_sigma_mps": nan, "adr_m": adr, "adr_sigma_m": nan,
         "adr_ok": np.isfinite(adr), "adr_slip": slip & np.isfinite(adr), "cn0": col["S"], "glo_k": glo_k,
-        "clock_reset": epochs["clock_reset"][rows_epoch(rows, epochs)],
+        "clock_reset": epochs["clock_reset"][epochs["epoch_of"][rows]],
     }
 
-
-def rows_epoch(rows: np.ndarray, epochs: dict[str, np.ndarray]) -> np.ndarray:
-    """Epoch index of satellite-line rows. rows: (R,) int -> (R,) int."""
-    return epochs["epoch_of"][rows]
