@@ -191,3 +191,44 @@ def test_glonass_header_list_read_whole():
     from fusion.io.rinex_obs import _parse_header
     # GnssToRinex writes " 6 R05  1 R09 -2 ...": the list starts a column early.
     assert _parse_header(FIXTURE.read_bytes(), FIXTURE).glo_k == {5: 1, 9: -2, 12: -1, 20: 2, 21: 4, 22: -3}
+
+
+def _obs_file(tmp_path: Path) -> Path:
+    """A survey-receiver-like RINEX 3.04 file: BeiDou, QZSS, SBAS, NavIC, GPS L2 (not ours), and
+    GPS observation types continued on a second header line."""
+    g = "C1C L1C D1C S1C C2W L2W C5Q L5Q D5Q S5Q C2X L2X S2X C1W".split()
+    types = {"G": g, "C": "C2I L2I D2I S2I".split(), "J": "C1C L1C D1C S1C C5Q L5Q D5Q S5Q".split(),
+             "S": ["C1C", "L1C"], "I": ["C5A", "L5A"]}
+    head = ["     3.04           OBSERVATION DATA    M                   RINEX VERSION / TYPE",
+            "".join(f"{v:14.4f}" for v in (-2.7e6, -4.3e6, 3.85e6)).ljust(60) + "APPROX POSITION XYZ"]
+    for s, t in types.items():
+        head.append(f"{s}  {len(t):3d} " + " ".join(t[:13]).ljust(53) + "SYS / # / OBS TYPES")
+        if len(t) > 13:
+            head.append("       " + " ".join(t[13:]).ljust(53) + "SYS / # / OBS TYPES")
+    head.append("  2021     4    28    22    19   22.0000000     GPS         TIME OF FIRST OBS")
+    head.append(" " * 60 + "END OF HEADER")
+    f = lambda v, lli=" ": f"{v:14.3f}{lli}5"  # noqa: E731
+    body = ["> 2021 04 28 22 19 22.0000000  0  5",
+            "G07" + "".join(f(2.1e7 + i) for i in range(len(g))),
+            "C05" + f(3.8e7) + f(2.0e8, "1") + f(-1000.5) + f(40.25),
+            "J01" + f(3.7e7) + f(1.9e8) + f(250.0) + f(42.0) + f(3.7e7 + 2) + f(1.4e8) + f(190.0) + f(45.0),
+            "S31" + f(3.9e7) + f(2.1e8),
+            "I03" + f(3.6e7) + f(1.5e8)]
+    p = tmp_path / "SURV00USA_R_20211182219_01H_01S_MO.rnx"
+    p.write_text("\n".join(head + body) + "\n")
+    return p
+
+
+def test_other_constellations_and_codes(tmp_path):
+    raw = read_rinex_obs(_obs_file(tmp_path))
+    f = raw.frame.set_index(["sat_id", "signal"])
+    assert sorted(f.index) == [(1007, "GPS_L1"), (1007, "GPS_L5"), (4193, "QZS_J1"), (4193, "QZS_J5"),
+                               (5005, "BDS_B1I")]
+    assert np.allclose(raw.approx_pos, [-2.7e6, -4.3e6, 3.85e6])
+    assert f.loc[(1007, "GPS_L5"), "pr_m"] == 2.1e7 + 6  # C5Q is the 7th type
+    b = f.loc[(5005, "BDS_B1I")]
+    assert b.pr_m == 3.8e7 and b.cn0 == 40.25 and b.adr_slip and b.carrier_hz == 1561.098e6
+    assert b.adr_m == pytest.approx(2.0e8 * C / 1561.098e6) and b.prr_mps == pytest.approx(1000.5 * C / 1561.098e6)
+    assert f.loc[(4193, "QZS_J5"), "carrier_hz"] == 1176.45e6
+    # GPS L2 (C2W/C2X/C1W) is not one of ours; SBAS and NavIC lines are dropped; all counted.
+    assert raw.skipped == {"obs_other_signals": 1, "sat_lines_unsupported_system": 2}
