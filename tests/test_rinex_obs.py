@@ -232,3 +232,13 @@ def test_other_constellations_and_codes(tmp_path):
     assert f.loc[(4193, "QZS_J5"), "carrier_hz"] == 1176.45e6
     # GPS L2 (C2W/C2X/C1W) is not one of ours; SBAS and NavIC lines are dropped; all counted.
     assert raw.skipped == {"obs_other_signals": 1, "sat_lines_unsupported_system": 2}
+
+
+def test_repeated_satellite_line_is_counted_once(tmp_path):
+    lines = _lines()
+    e = next(k for k, l in enumerate(lines) if l.startswith(">"))
+    lines[e] = lines[e][:32] + f"{int(lines[e][32:35]) + 1:3d}" + lines[e][35:]
+    lines.insert(e + 2, lines[e + 1])
+    raw = read_rinex_obs(_write(tmp_path, "".join(lines)))
+    assert raw.skipped["duplicate_observations"] >= 1
+    assert raw.frame.equals(read_rinex_obs(FIXTURE).frame)

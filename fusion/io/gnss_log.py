@@ -223,10 +223,7 @@ def _to_contract(c: dict[str, np.ndarray], skipped: dict[str, int], fixed_full_b
         "adr_ok": adr_ok, "adr_slip": adr_ok & (state & (ADR_RESET | ADR_CYCLE_SLIP) != 0),
         "cn0": c["Cn0DbHz"], "glo_k": glo_k, "clock_reset": reset,
     }
-    frame = finish_raw({k: v[keep] for k, v in cols.items()})
-    dup = frame.duplicated(["t_ns", "sat_id", "signal"])
-    count_skip(skipped, "duplicate_records", dup)
-    return frame[~dup.to_numpy()].reset_index(drop=True)
+    return finish_raw({k: v[keep] for k, v in cols.items()}, skipped)
 
 
 def _clock_resets(time_nanos: np.ndarray, count: np.ndarray) -> np.ndarray:

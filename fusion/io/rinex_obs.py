@@ -26,7 +26,7 @@ import pandas as pd
 
 from fusion.errors import DataError
 from fusion.io.fixed_width import char_matrix, line_bounds, parse_decimal, parse_float, parse_int
-from fusion.io.raw import GLO_K_UNKNOWN, RawObs, carrier_hz, empty_raw, finish_raw
+from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
 #: System letter -> [(signal, band digit, tracking attributes in priority order)].
@@ -258,8 +258,8 @@ def _observations(body: np.ndarray, sat_lines: np.ndarray, epochs: dict[str, np.
         return empty_raw()
     width = 3 + _FIELD * max(len(t) for t in head.obs_types.values())
     m = char_matrix(body, sat_lines[:, 0], sat_lines[:, 1], width)
-    system = m[:, 0].view("S1").astype(str)
-    prn, prn_bad = parse_int(m[:, 1:3])
+    system = m[:, 0]
+    prn, prn_bad = _prn(m[:, 1:3])
     n_obs = (width - 3) // _FIELD
     fields = m[:, 3:3 + _FIELD * n_obs].reshape(-1, n_obs, _FIELD)
     values, bad = parse_float(np.ascontiguousarray(fields[:, :, :14]).reshape(-1, 14), dot_col=10)
@@ -272,20 +272,17 @@ def _observations(body: np.ndarray, sat_lines: np.ndarray, epochs: dict[str, np.
                       f"{bad.sum()} such line(s) skipped", stacklevel=3)
     count_skip(skipped, "sat_lines_bad_number", bad)
     ok = ~bad
-    unknown_sys = ok & ~np.isin(system, list(SIGNAL_CODES))
+    unknown_sys = ok & ~np.isin(system, [ord(s) for s in SIGNAL_CODES])
     count_skip(skipped, "sat_lines_unsupported_system", unknown_sys)
     blocks = []
     for sys_letter, types in head.obs_types.items():
-        rows = np.flatnonzero(ok & (system == sys_letter))
+        rows = np.flatnonzero(ok & (system == ord(sys_letter)))
         if sys_letter in SIGNAL_CODES and rows.size:
             blocks += _system_blocks(sys_letter, types, rows, values, lli, prn, epochs, head, skipped)
     if not blocks:
         return empty_raw()
     cols = {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
-    frame = finish_raw(cols)
-    dup = frame.duplicated(["t_ns", "sat_id", "signal"])
-    count_skip(skipped, "duplicate_observations", dup)
-    return frame[~dup.to_numpy()].reset_index(drop=True)
+    return finish_raw(cols, skipped)
 
 
 def _system_blocks(sys_letter: str, types: list[str], rows: np.ndarray, values: np.ndarray,
@@ -330,7 +327,9 @@ def _signal_columns(sys_letter: str, signal: str, rows: np.ndarray, col: dict[st
     else:
         glo_k = np.zeros(n, np.int64)
     sig = np.full(n, signal, dtype=object)
-    wavelength = 299_792_458.0 / carrier_hz(sig, glo_k)
+    freq = (1602.0e6 + glo_k * GLO_G1_STEP_HZ) if signal == "GLO_G1" else np.full(n, SIGNAL_CARRIER_HZ[signal])
+    freq = np.where(glo_k == GLO_K_UNKNOWN, np.nan, freq)
+    wavelength = 299_792_458.0 / freq
     # Without the channel, cycles and Hz cannot become metres: Doppler and phase are dropped.
     count_skip(skipped, "glonass_no_channel_doppler_phase", np.isnan(wavelength) & ~(np.isnan(col["L"]) & np.isnan(col["D"])))
     adr = col["L"] * wavelength
@@ -340,6 +339,13 @@ def _signal_columns(sys_letter: str, signal: str, rows: np.ndarray, col: dict[st
         "svid": svid, "signal": sig, "pr_m": col["C"], "pr_sigma_m": nan,
         "prr_mps": -col["D"] * wavelength, "prr_sigma_mps": nan, "adr_m": adr, "adr_sigma_m": nan,
         "adr_ok": np.isfinite(adr), "adr_slip": slip & np.isfinite(adr), "cn0": col["S"], "glo_k": glo_k,
-        "clock_reset": epochs["clock_reset"][epochs["epoch_of"][rows]],
+        "clock_reset": epochs["clock_reset"][epochs["epoch_of"][rows]], "carrier_hz": freq,
     }
 
+
+def _prn(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two-column satellite numbers ('05', ' 5') -> (M,) int64 and (M,) bad mask. m: (M, 2) uint8."""
+    tens, ones = m[:, 0] - np.uint8(48), m[:, 1] - np.uint8(48)
+    blank_tens = m[:, 0] == 32
+    bad = ~((tens < 10) | blank_tens) | ~(ones < 10)
+    return np.where(blank_tens, 0, tens).astype(np.int64) * 10 + ones, bad
