@@ -94,43 +94,66 @@ def parse_float(chars: np.ndarray, dot_col: int | None = None) -> tuple[np.ndarr
     Dividing an exact integer mantissa by an exact power of ten rounds once, so the result
     equals Python's ``float(text)``.
     """
-    value = np.full(chars.shape[0], np.nan)
-    bad = np.zeros(chars.shape[0], bool)
-    rest = np.ones(chars.shape[0], bool)
+    return parse_float_columns(np.ascontiguousarray(chars.T), dot_col)
+
+
+def parse_float_columns(columns: np.ndarray, dot_col: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`parse_float` on column-major fields: columns (w, N) uint8, character j of field i
+    at ``[j, i]`` (the layout the fast path wants, so readers can gather straight into it)."""
+    n = columns.shape[1]
+    value, bad, rest = np.full(n, np.nan), np.zeros(n, bool), np.ones(n, bool)
     if dot_col is not None:
-        fast, fast_value = _parse_fixed_point(chars, dot_col)
+        fast, fast_value = _parse_fixed_point(columns, dot_col)
         value[fast] = fast_value[fast]
         rest = ~fast
     rows = np.flatnonzero(rest)
     if rows.size:
-        mantissa, decimals, blank, bad_rest = parse_decimal(chars[rows])
+        mantissa, decimals, blank, bad_rest = parse_decimal(columns[:, rows].T)
         v = mantissa / 10.0 ** decimals
         v[blank | bad_rest] = np.nan
         value[rows], bad[rows] = v, bad_rest
     return value, bad
 
 
-def _parse_fixed_point(chars: np.ndarray, dot_col: int) -> tuple[np.ndarray, np.ndarray]:
-    """Fast path for fields written exactly to format: optional spaces, optional minus, digits,
-    the point at ``dot_col``, digits to the end. Returns (N,) bool "parsed here" and (N,) values."""
-    w = chars.shape[1]
-    # Column-major: reductions over a field's w characters become w elementwise passes over N.
-    c = np.ascontiguousarray(chars.T)
+def _parse_fixed_point(c: np.ndarray, dot_col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fast path for fields written exactly to format (optional spaces, optional minus, digits,
+    the point at ``dot_col``, digits to the end) and blank fields (NaN). c: (w, N) uint8 column-major fields (reductions
+    over a field's w characters are then w elementwise passes over N). Returns (N,) bool
+    "parsed here" and (N,) values."""
+    w = c.shape[0]
     space = c == SPACE
     digit = (c - np.uint8(48)) < 10  # uint8 wrap-around sends everything below '0' high
     minus = c == 45
-    started = np.logical_or.accumulate(~space, axis=0)
+    blank = space.all(axis=0)
     allowed = digit | space | minus
-    allowed[dot_col] = c[dot_col] == 46
-    ok = (allowed.all(axis=0) & ~(space[1:] & started[:-1]).any(axis=0)
-          & ~(minus[1:] & started[:-1]).any(axis=0) & ~minus[dot_col] & digit.any(axis=0))
+    allowed[dot_col] = (c[dot_col] == 46) | blank
+    # Text must be one run: no filled -> space step; a minus only right after the leading spaces.
+    filled_before = ~space[:-1]
+    ok = (allowed.all(axis=0) & ~(space[1:] & filled_before).any(axis=0)
+          & ~(minus[1:] & filled_before).any(axis=0) & ~minus[dot_col] & (digit.any(axis=0) | blank))
     dec = w - 1 - dot_col
     power = np.concatenate((np.arange(dot_col - 1, -1, -1) + dec, [0], np.arange(dec - 1, -1, -1)))
     weight = np.where(np.arange(w) == dot_col, 0.0, 10.0 ** power)
     # Digits times exact powers of ten sum exactly in float64 while the mantissa is < 2**53.
     mantissa = weight @ np.where(digit, c - np.uint8(48), np.uint8(0)).astype(np.float64)
     value = np.where(minus.any(axis=0), -mantissa, mantissa) / 10.0 ** dec
+    value[blank] = np.nan
     return ok & (mantissa < 2.0 ** 53), value
+
+
+def gather_fields(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, offsets: np.ndarray,
+                  width: int) -> np.ndarray:
+    """Characters of fields at ``offsets`` in every line, column-major, space-padded.
+
+    buf: (B,) uint8.  starts, ends: (N,) line offsets.  offsets: (K,) field start columns.
+    Returns (width, N, K) uint8: character j of field k of line i at ``[j, i, k]``.
+    """
+    pos_t = np.int32 if buf.size < 2**31 - 1 - width - int(offsets.max(initial=0)) else np.int64
+    padded = np.append(buf, np.uint8(SPACE))
+    idx = (starts.astype(pos_t)[None, :, None] + offsets.astype(pos_t)[None, None, :]
+           + np.arange(width, dtype=pos_t)[:, None, None])
+    idx = np.where(idx < ends.astype(pos_t)[None, :, None], idx, pos_t(buf.size))
+    return np.take(padded, idx)
 
 
 def parse_int(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

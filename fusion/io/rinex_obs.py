@@ -25,7 +25,8 @@ import numpy as np
 import pandas as pd
 
 from fusion.errors import DataError
-from fusion.io.fixed_width import char_matrix, line_bounds, parse_decimal, parse_float, parse_int
+from fusion.io.fixed_width import (char_matrix, gather_fields, line_bounds, parse_decimal, parse_float,
+                                   parse_float_columns, parse_int)
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
@@ -256,16 +257,17 @@ def _observations(body: np.ndarray, sat_lines: np.ndarray, epochs: dict[str, np.
     """
     if sat_lines.shape[0] == 0:
         return empty_raw()
-    width = 3 + _FIELD * max(len(t) for t in head.obs_types.values())
-    m = char_matrix(body, sat_lines[:, 0], sat_lines[:, 1], width)
+    n_obs = max(len(t) for t in head.obs_types.values())
+    starts, ends = sat_lines[:, 0], sat_lines[:, 1]
+    m = char_matrix(body, starts, ends, 3)
     system = m[:, 0]
     prn, prn_bad = _prn(m[:, 1:3])
-    n_obs = (width - 3) // _FIELD
-    fields = m[:, 3:3 + _FIELD * n_obs].reshape(-1, n_obs, _FIELD)
-    values, bad = parse_float(np.ascontiguousarray(fields[:, :, :14]).reshape(-1, 14), dot_col=10)
+    # (16, M, n_obs): F14.3 value, LLI, SSI of every observation, gathered column-major.
+    fields = gather_fields(body, starts, ends, 3 + _FIELD * np.arange(n_obs), _FIELD)
+    values, bad = parse_float_columns(fields[:14].reshape(14, -1), dot_col=10)
     values, bad = values.reshape(-1, n_obs), bad.reshape(-1, n_obs).any(axis=1) | prn_bad
     values[values == 0.0] = np.nan
-    lli = fields[:, :, 14]
+    lli = fields[14]
     if bad.any():
         line_no = epochs["line_no"][np.flatnonzero(bad)[0]]
         warnings.warn(f"{path}:{line_no}: unreadable number in satellite line; "
