@@ -146,10 +146,13 @@ def test_garbage_header_only_and_rinex2(tmp_path):
     head = head[:head.index("END OF HEADER") + 73]
     with pytest.raises(DataError, match="no epoch records"):
         read_rinex_obs(_write(tmp_path, head))
-    v2 = "     2.11           OBSERVATION DATA    M (MIXED)           RINEX VERSION / TYPE\n" + \
+    v1 = "     1.00           OBSERVATION DATA    M (MIXED)           RINEX VERSION / TYPE\n" + \
          "                                                            END OF HEADER\n"
-    with pytest.raises(DataError, match=r"x\.21o:1: RINEX version 2\.11"):
-        read_rinex_obs(_write(tmp_path, v2))
+    with pytest.raises(DataError, match=r"x\.21o:1: RINEX version 1\.0 "):
+        read_rinex_obs(_write(tmp_path, v1))
+    crx = "1.0                 COMPACT RINEX FORMAT                    CRINEX VERS   / TYPE\n" + v1
+    with pytest.raises(DataError, match="Hatanaka"):
+        read_rinex_obs(_write(tmp_path, crx))
     with pytest.raises(DataError, match="cannot read"):
         read_rinex_obs(tmp_path / "missing.21o")
 
@@ -242,3 +245,52 @@ def test_repeated_satellite_line_is_counted_once(tmp_path):
     raw = read_rinex_obs(_write(tmp_path, "".join(lines)))
     assert raw.skipped["duplicate_observations"] >= 1
     assert raw.frame.equals(read_rinex_obs(FIXTURE).frame)
+
+
+
+def _to_v2(r3: str) -> str:
+    """The fixture's RINEX 3 text (G/R/E, 8 types) rewritten as RINEX 2.11, value for value."""
+    lines = r3.splitlines()
+    end = next(i for i, l in enumerate(lines) if "END OF HEADER" in l)
+    keep = [l for l in lines[:end] if l[60:].strip() in ("GLONASS SLOT / FRQ #", "TIME OF FIRST OBS")]
+    head = ["     2.11           OBSERVATION DATA    M (MIXED)           RINEX VERSION / TYPE",
+            "     8    C1    L1    D1    S1    C5    L5    D5    S5      # / TYPES OF OBSERV"] + keep + [lines[end]]
+    out, i, body = [], 0, lines[end + 1:]
+    while i < len(body):
+        e = body[i]
+        y, mo, d, h, mi = (int(x) for x in e[2:18].split())
+        sec, flag, n = float(e[18:29]), int(e[29:32]), int(e[32:35])
+        ids = [l[:3] for l in body[i + 1:i + 1 + n]]
+        out.append(f" {y % 100:02d} {mo:2d} {d:2d} {h:2d} {mi:2d}{sec:11.7f}  {flag:1d}{n:3d}" + "".join(ids[:12]))
+        out += [" " * 32 + "".join(ids[k:k + 12]) for k in range(12, n, 12)]
+        for l in body[i + 1:i + 1 + n]:
+            f = l[3:].ljust(128)
+            out += [f[:80].rstrip(), f[80:128].rstrip()]  # 5 observations per line
+        i += 1 + n
+    return "\n".join(head + out) + "\n"
+
+
+def test_rinex2_same_as_rinex3(tmp_path):
+    v2 = _to_v2(FIXTURE.read_text())
+    assert "G25R09R21E01E13E15E21\n" + " " * 32 + "E26E27" in v2  # satellite list continued
+    raw = read_rinex_obs(_write(tmp_path, v2, "x.21o"))
+    ref = read_rinex_obs(FIXTURE)
+    assert raw.frame.equals(ref.frame) and raw.skipped == ref.skipped
+
+
+def test_rinex2_malformed(tmp_path):
+    lines = _to_v2(FIXTURE.read_text()).splitlines(keepends=True)
+    with pytest.warns(UserWarning, match="truncated"):
+        raw = read_rinex_obs(_write(tmp_path, "".join(lines[:-2])))
+    assert raw.skipped["records_truncated"] == 1 and raw.n_epochs == 4
+    i = next(k for k, l in enumerate(lines) if l.startswith(" 21"))
+    bad = lines[:i] + [lines[i][:29] + " x" + lines[i][31:]] + lines[i + 1:]
+    with pytest.raises(DataError, match=rf"x\.21o:{i + 1}: cannot read epoch line"):
+        read_rinex_obs(_write(tmp_path, "".join(bad)))
+    with pytest.raises(DataError, match="header only"):
+        read_rinex_obs(_write(tmp_path, "".join(lines[:i])))
+    j = i + 2  # the first satellite's first observation line
+    garbled = lines[:j] + [lines[j].replace("23738869.070", "2373886?.070")] + lines[j + 1:]
+    with pytest.warns(UserWarning, match=rf"x\.21o:{j + 1}: unreadable number"):
+        raw = read_rinex_obs(_write(tmp_path, "".join(garbled)))
+    assert raw.skipped["sat_lines_bad_number"] == 1
