@@ -49,7 +49,7 @@ def parse_decimal(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     ``(mantissa, decimals, blank, bad)``, each (N,): the value is ``mantissa / 10**decimals``
     exactly (int64 mantissa, so seconds or cycles keep every written digit); ``blank`` marks
     all-space fields; ``bad`` marks anything else that is not one optional leading minus, digits
-    and at most one point, without inner spaces (bad and blank rows hold mantissa 0).
+    (at most 19, within int64) and at most one point, without inner spaces (bad and blank rows hold mantissa 0).
     """
     n = chars.shape[0]
     blank = ~(chars != SPACE).any(axis=1)
@@ -73,7 +73,7 @@ def _parse_filled(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     n_dig = digit.sum(axis=1, dtype=np.int16)
     inner_space = space & (j > first[:, None]) & (j < last[:, None])
     stray = ~(digit | dot | space) & ~(minus & (j == first[:, None]))
-    bad = (inner_space | stray).any(axis=1) | (dot.sum(axis=1, dtype=np.int16) > 1) | (n_dig == 0) | (n_dig > 18)
+    bad = (inner_space | stray).any(axis=1) | (dot.sum(axis=1, dtype=np.int16) > 1) | (n_dig == 0) | (n_dig > 19)
     has_dot = dot.any(axis=1)
     dot_at = np.where(has_dot, np.argmax(dot, axis=1), last + 1)
     decimals = np.where(has_dot, last - dot_at, 0)
@@ -81,6 +81,7 @@ def _parse_filled(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     right = np.cumsum(digit[:, ::-1], axis=1, dtype=np.int8)[:, ::-1] - digit
     value = np.where(digit, chars - np.uint8(48), np.uint8(0))
     mantissa = (value * _POW10[np.minimum(right, 18)]).sum(axis=1)
+    bad |= mantissa < 0  # a 19-digit number past the int64 range wrapped around
     mantissa = np.where(chars[np.arange(chars.shape[0]), first] == 45, -mantissa, mantissa)
     mantissa[bad] = 0
     return mantissa, decimals, bad
