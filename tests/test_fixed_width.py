@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.io.fixed_width import char_matrix, line_bounds, parse_float, parse_int
+from fusion.io.fixed_width import char_matrix, line_bounds, parse_float, parse_int, parse_int_text
 
 
 def _fields(texts: list[bytes], width: int) -> np.ndarray:
@@ -50,3 +50,12 @@ def test_char_matrix_pads_and_cuts():
     s, e = line_bounds(buf)
     m = char_matrix(buf, s, e, 5)
     assert [bytes(r) for r in m] == [b"abc  ", b"     ", b"longe", b"xy   "]
+
+
+def test_parse_int_text():
+    text = np.array([b"-1378148348376188193", b" 42 ", b"", b"1.5", b"1_000", b"+5", b"4 2", b"-",
+                     b"9223372036854775807", b"9999999999999999999", b"5-"], dtype="S24")
+    value, empty, bad = parse_int_text(text)
+    assert list(value[:3]) == [-1378148348376188193, 42, 0] and value[8] == 2**63 - 1
+    assert list(empty) == [False, False, True] + [False] * 8
+    assert list(bad) == [False, False, False, True, True, True, True, True, False, True, True]

@@ -164,3 +164,31 @@ def parse_int(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     mantissa, decimals, _, bad = parse_decimal(chars)
     return mantissa, bad | (decimals != 0)
+
+
+def parse_int_text(text: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integers in delimited text (CSV cells) -> exact int64.
+
+    text: (N,) fixed-width bytes (dtype ``S<w>``), NUL-padded.  Returns (N,) int64 values
+    (0 where empty or bad), (N,) bool empty, (N,) bool bad (anything but optional spaces, an
+    optional minus and 1-19 digits in one run, or a value outside int64).
+    """
+    w = text.dtype.itemsize
+    c = np.ascontiguousarray(np.frombuffer(text.tobytes(), np.uint8).reshape(-1, w).T)  # (w, N)
+    space = (c == SPACE) | (c == 0)
+    digit = (c - np.uint8(48)) < 10
+    minus = c == 45
+    empty = space.all(axis=0)
+    runs = (~space[0]).astype(np.int16) + (~space[1:] & space[:-1]).sum(axis=0, dtype=np.int16)
+    n_dig = digit.sum(axis=0, dtype=np.int16)
+    ok = ((digit | space | minus).all(axis=0) & (runs == 1) & ~(minus[1:] & ~space[:-1]).any(axis=0)
+          & (n_dig >= 1) & (n_dig <= 19))
+    value = np.zeros(text.size, np.int64)
+    try:
+        value[ok] = text[ok].astype(np.int64)
+    except OverflowError:  # a 19-digit value past int64: the exact parser finds which
+        chars = np.where(c.T == 0, np.uint8(SPACE), c.T)
+        value, bad_slow = parse_int(chars)
+        ok &= ~bad_slow
+        value[~ok] = 0
+    return value, empty, ~ok & ~empty

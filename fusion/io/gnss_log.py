@@ -25,7 +25,7 @@ import pandas as pd
 
 from fusion.errors import DataError
 from fusion.gpstime import GPS_EPOCH_UNIX_MS, leap_seconds_at_unix_ms
-from fusion.io.fixed_width import SPACE, parse_int
+from fusion.io.fixed_width import parse_int_text
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
@@ -121,10 +121,7 @@ def _int_column(text: pd.Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     text: (N,) strings or NaN.  Returns (N,) int64 values, (N,) bool empty, (N,) bool bad.
     """
     raw = text.fillna("").to_numpy(dtype="S24")
-    chars = np.frombuffer(raw.tobytes(), np.uint8).reshape(-1, 24)
-    chars = np.where(chars == 0, np.uint8(SPACE), chars)
-    value, bad = parse_int(chars)
-    empty = (chars == SPACE).all(axis=1)
+    value, empty, bad = parse_int_text(raw)
     return value, empty, bad | (np.char.str_len(raw) >= 24)
 
 
