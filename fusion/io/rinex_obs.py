@@ -1,4 +1,4 @@
-"""RINEX 3.0x observation files (``.obs``, ``.YYo``, ``*_MO.rnx``, optionally ``.gz``) -> :class:`RawObs`.
+"""RINEX 3.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``, optionally ``.gz``) -> :class:`RawObs`.
 
 Every constellation is read; observation codes are mapped onto :data:`fusion.trace.SIGNALS`
 (:data:`SIGNAL_CODES`), other signals are dropped and counted. Units: C metres, L cycles
@@ -6,11 +6,14 @@ Every constellation is read; observation codes are mapped onto :data:`fusion.tra
 RINEX writes a missing observation as blank or 0.0; both read as NaN. LLI bit 0 (lost lock since
 the previous observation) on a phase sets ``adr_slip``. Epoch flag 1 (power failure) sets
 ``clock_reset``; flags 2-5 (event / header records) and 6 (cycle-slip records) are skipped and
-counted. RINEX 2 and Hatanaka-compressed files are refused with a one-line error.
+counted. RINEX 2 records are located by :mod:`fusion.io.rinex2_obs` and their two-character types
+mapped to RINEX 3 codes; other versions and Hatanaka-compressed files are refused with a
+one-line error.
 
-Speed: the body is read as one byte buffer and every satellite line is laid out in a byte
-matrix (:mod:`fusion.io.fixed_width`), so numbers are parsed with array arithmetic; the
-Pixel5 phone log (4 MB, 2000 epochs) reads in well under a second (``benchmarks/bench_rinex.py``).
+Speed: the body is read as one byte buffer and every observation field is gathered into a
+column-major byte array (:mod:`fusion.io.fixed_width`), so numbers are parsed with array
+arithmetic; the Pixel5 phone log (4 MB, 2000 epochs) reads in about 0.1-0.2 s
+(``benchmarks/bench_rinex.py``).
 """
 from __future__ import annotations
 
