@@ -33,7 +33,8 @@ clock_reset    bool     epoch-level (same on every row of an epoch): the receive
 carrier_hz     float64  carrier frequency [Hz]
 =============  =======  ===================================================================
 
-Rows are sorted by ``t_ns``, then ``sat_id``, then ``signal``.
+Rows are sorted by ``t_ns``, then ``sat_id``, then ``signal`` (in :data:`fusion.trace.SIGNALS` order); a
+(t_ns, sat_id, signal) triple appears at most once.
 """
 from __future__ import annotations
 
