@@ -34,6 +34,7 @@ import pandas as pd
 from fusion.errors import DataError
 from fusion.geometry import C_LIGHT
 from fusion.gpstime import unix_ms_to_gps_ms
+from fusion.io.device_optional import optional_row_columns
 from fusion.io.nmea import read_span_nmea
 from fusion.io.tables import check_increasing, drop_nan_rows, read_csv_table, to_numeric
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, TRUTH_TOL_MS, check_overlap, interp_gapped,
@@ -142,6 +143,10 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
         "sat_id": (1000 * rows["const"].to_numpy() + rows["svid"].to_numpy()).astype(np.int32),
         "signal": rows["signal"].to_numpy(np.int8),
     })
+    # Optional Trace fields ride along as "opt_<field>" columns through the filters above.
+    optional = {k[4:]: rows[k].to_numpy() for k in rows.columns if k.startswith("opt_")}
+    if optional:
+        packed |= {k: v for k, v in pack_rows(epoch, E, optional).items() if k != "mask"}
     clock_reset = np.zeros(E, bool)
     if clock_count is not None:
         # A change between consecutive *kept* epochs also flags jumps inside skipped epochs.
@@ -230,7 +235,9 @@ def load_device_gnss(device_csv: str | Path, truth_csv: str | Path | None = None
 
     Epoch time is ``utcTimeMillis`` converted to GPS ms; truth ``UnixTimeMillis`` is on the same
     clock (no shift) and its heights are ellipsoidal already. ``clock_reset`` marks epochs where
-    ``HardwareClockDiscontinuityCount`` changed since the previous kept epoch.
+    ``HardwareClockDiscontinuityCount`` changed since the previous kept epoch. The optional
+    fields (cn0, Doppler, carrier phase) are filled when their columns are present
+    (:mod:`fusion.io.device_optional`).
     """
     device_csv = Path(device_csv)
     skipped: dict[str, int] = {}
@@ -246,6 +253,8 @@ def load_device_gnss(device_csv: str | Path, truth_csv: str | Path | None = None
     rows = _standard_rows(df, _MEAS_COLS_2022, _VEL_COLS_2022, device_csv, skipped)
     check_increasing(rows["t"].to_numpy(), rows["row"].to_numpy(), device_csv, "utcTimeMillis")
     rows = rows.assign(t=unix_ms_to_gps_ms(rows["t"].to_numpy(np.int64)))
+    optional = optional_row_columns(df, rows["row"].to_numpy(), device_csv)
+    rows = rows.assign(**{f"opt_{k}": v for k, v in optional.items()})
     clk = None
     if has_clk:
         clk = df.set_index("_row")["HardwareClockDiscontinuityCount"].reindex(rows["row"]).to_numpy(float)

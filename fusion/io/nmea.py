@@ -90,47 +90,47 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     path = Path(path)
     skipped = {} if skipped is None else skipped
     lines = _read_lines(path)
-    talker = lines.str.slice(3, 6)
-    is_gga = lines.str.startswith("$") & (talker == "GGA")
-    is_rmc = lines.str.startswith("$") & (talker == "RMC")
+    is_rmc = lines.str.startswith("$") & (lines.str.slice(3, 6) == "RMC")
+    fix = _gga_fixes(lines, path, skipped)
+    # Day roll-over: time of day only ever wraps forward (23:59:59 -> 00:00:00).
+    tod = fix.pop("tod")
+    day = np.concatenate([[0], np.cumsum(np.diff(tod) < -DAY_MS / 2)])
+    unix_day0 = _first_day_unix_ms(lines[is_rmc], tod[0], ref_gps_ms, path)
+    t_ms = unix_ms_to_gps_ms((unix_day0 + day * DAY_MS + tod).astype(np.int64))
+    df = pd.DataFrame({
+        "t_ms": t_ms, "lat_deg": fix["lat"], "lon_deg": fix["lon"], "height_m": fix["alt"] + fix["sep"],
+        "alt_msl_m": fix["alt"], "geoid_sep_m": fix["sep"], "quality": fix["quality"].astype(np.int16),
+        "n_sats": np.nan_to_num(fix["n_sats"], nan=-1).astype(np.int16),
+    })
+    return _unique_forward(df, path, skipped)
+
+
+def _gga_fixes(lines: pd.Series, path: Path, skipped: dict[str, int]) -> dict[str, np.ndarray]:
+    """The GGA sentences with a good checksum, readable fields and a fix, as (F,) arrays
+    tod (ms of day), lat, lon, quality, n_sats, alt, sep; the others dropped and counted."""
+    is_gga = lines.str.startswith("$") & (lines.str.slice(3, 6) == "GGA")
     ok = _checksum_ok(lines)
     # RMC is read for its date only and its checksum is not enforced: every RMC sentence in the
     # GSDC 2021 SPAN logs has a wrong checksum (their GGA ones are right). The date is instead
     # cross-checked against ``ref_gps_ms`` when given.
-    bad_sum = int((is_gga & ~ok).sum())
-    count_skip(skipped, "nmea_bad_checksum", bad_sum)
+    count_skip(skipped, "nmea_bad_checksum", int((is_gga & ~ok).sum()))
     gga = lines[is_gga & ok].str.split("*").str[0].str.split(",", expand=True)
     if gga.empty or gga.shape[1] < 12:
         raise DataError(f"{path}: no valid GGA sentences")
-
-    tod = _tod_ms(gga[1])
-    lat = _deg(gga[2], gga[3], "S")
-    lon = _deg(gga[4], gga[5], "W")
-    quality = pd.to_numeric(gga[6], errors="coerce").to_numpy(float)
-    n_sats = pd.to_numeric(gga[7], errors="coerce").to_numpy(float)
-    alt = pd.to_numeric(gga[9], errors="coerce").to_numpy(float)
-    sep = pd.to_numeric(gga[11], errors="coerce").to_numpy(float)
-    good = np.isfinite(tod) & np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt) & np.isfinite(sep)
-    n_bad = int((~good).sum())
-    no_fix = good & ~(quality > 0)
-    count_skip(skipped, "nmea_bad_fields", n_bad)
-    count_skip(skipped, "nmea_no_fix", no_fix)
-    keep = good & (quality > 0)
+    num = lambda k: pd.to_numeric(gga[k], errors="coerce").to_numpy(float)  # noqa: E731
+    fix = {"tod": _tod_ms(gga[1]), "lat": _deg(gga[2], gga[3], "S"), "lon": _deg(gga[4], gga[5], "W"),
+           "quality": num(6), "n_sats": num(7), "alt": num(9), "sep": num(11)}
+    good = np.logical_and.reduce([np.isfinite(fix[k]) for k in ("tod", "lat", "lon", "alt", "sep")])
+    count_skip(skipped, "nmea_bad_fields", int((~good).sum()))
+    count_skip(skipped, "nmea_no_fix", good & ~(fix["quality"] > 0))
+    keep = good & (fix["quality"] > 0)
     if not keep.any():
         raise DataError(f"{path}: no GGA sentence with a valid fix")
+    return {k: v[keep] for k, v in fix.items()}
 
-    # Day roll-over: time of day only ever wraps forward (23:59:59 -> 00:00:00).
-    tod_k = tod[keep]
-    day = np.concatenate([[0], np.cumsum(np.diff(tod_k) < -DAY_MS / 2)])
-    unix_day0 = _first_day_unix_ms(lines[is_rmc], tod_k[0], ref_gps_ms, path)
-    unix_ms = unix_day0 + day * DAY_MS + tod_k
-    t_ms = unix_ms_to_gps_ms(unix_ms.astype(np.int64))
 
-    df = pd.DataFrame({
-        "t_ms": t_ms, "lat_deg": lat[keep], "lon_deg": lon[keep], "height_m": alt[keep] + sep[keep],
-        "alt_msl_m": alt[keep], "geoid_sep_m": sep[keep], "quality": quality[keep].astype(np.int16),
-        "n_sats": np.nan_to_num(n_sats[keep], nan=-1).astype(np.int16),
-    })
+def _unique_forward(df: pd.DataFrame, path: Path, skipped: dict[str, int]) -> pd.DataFrame:
+    """Drop (and count) repeated fix times; refuse times that go backwards."""
     dup = df.duplicated("t_ms")
     if dup.any():
         count_skip(skipped, "nmea_duplicate_times", dup.to_numpy())
