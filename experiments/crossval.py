@@ -78,7 +78,7 @@ def train_fold(fold: str, args) -> Path:
     torch.set_num_threads(1)
     drives = [d for f, ds in FOLDS.items() if f != fold for d in ds]
     parts = [drive_samples(args.data, d, args.out / "cache") for d in drives]
-    samples = concat_samples([replace(p, trace=np.full(len(p), i)) for i, p in enumerate(parts)])
+    samples = concat_samples([replace(p, trace=np.zeros(len(p), int)) for p in parts])
     # validation: one whole drive of the nine, so the best epoch is the one that generalises
     tr, va = split_traces(samples, 0.1, np.random.default_rng(args.seed))
     cfg = recipe(args, {"drives": drives})

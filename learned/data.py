@@ -251,9 +251,10 @@ def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0, real: list[b
     """Samples of every trace; ``real[i]`` tags trace i as phone data (default: none); ``with_graph``
     also solves each trace's no-prior factor graph (``Samples.graph``)."""
     real = [False] * len(traces) if real is None else list(real)
-    return concat_samples([samples_from_trace(t, elev_mask_deg, i, real=r, with_wls=with_wls,
+    # index 0 per part: concat_samples numbers the traces
+    return concat_samples([samples_from_trace(t, elev_mask_deg, 0, real=r, with_wls=with_wls,
                                               with_graph=with_graph)
-                           for i, (t, r) in enumerate(zip(traces, real, strict=True))])
+                           for t, r in zip(traces, real, strict=True)])
 
 
 def simulated_samples_with_clock(n_traces: int, epochs_per_trace: int, *, seed: int, bias: bool = False,
@@ -264,5 +265,4 @@ def simulated_samples_with_clock(n_traces: int, epochs_per_trace: int, *, seed: 
     traces as :func:`simulated_traces` with the same arguments.
     """
     res = simulate_dataset(n_traces, epochs_per_trace, seed=seed, config=SimConfig(nlos=bias), results=True)
-    return concat_samples([samples_from_trace(r.trace, elev_mask_deg, i, clock=r.clock_m)
-                           for i, r in enumerate(res)])
+    return concat_samples([samples_from_trace(r.trace, elev_mask_deg, 0, clock=r.clock_m) for r in res])

@@ -346,3 +346,14 @@ def test_fused_mode_switches_each_learned_part(tmp_path):
     d_c = estimate_dnn(tr, wls, RunOptions(weights=ckpt, dnn_output="correction"))
     assert d_w.info["output"] == "wls" and d_c.info["output"] == "correction"
     assert np.abs(d_w.pos - d_c.pos)[d_w.valid & d_c.valid].max() > 1e-3
+
+
+def test_build_samples_numbers_traces_and_split_traces_holds_out_whole_ones():
+    import numpy as np
+    from learned.data import build_samples, split_traces
+    from learned.toy import toy_dataset
+    s = build_samples(toy_dataset(5, 30, seed=0))
+    assert sorted(set(s.trace.tolist())) == [0, 1, 2, 3, 4]
+    tr, va = split_traces(s, 0.2, np.random.default_rng(0))
+    assert len(va) > 0 and len(tr) > 0
+    assert not set(tr.trace.tolist()) & set(va.trace.tolist())
