@@ -59,12 +59,14 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
     rows, st = rows[st["ok"]].reset_index(drop=True), {k: v[st["ok"]] for k, v in st.items()}
     rows, st, epoch, t_ns = _epochs(rows, st, min_sats, skipped, raw)
     pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
-    rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, raw)
+    ref = _reference_rows(rows)
+    rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, ref, raw)
     if np.nanmax(np.abs(clock_m), initial=0.0) > RETAG_CLOCK_M:
         st = _states(rows, nav, precise, -np.nan_to_num(clock_m)[epoch] / C_LIGHT)
         pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     el, az = _elev_az(st["pos"], rx[epoch])
     pr = pr - _atmosphere(rows, nav, rx[epoch], el, az)
+    pr = pr - _inter_signal_bias(rows, st["pos"], pr, rx[epoch], clock_m[epoch], ref)
     cols = _columns(rows, st, pr)
     packed = pack_rows(epoch, t_ns.size, cols)
     mask = packed.pop("mask")
@@ -137,14 +139,23 @@ def _epochs(rows: pd.DataFrame, st: dict, min_sats: int, skipped: dict[str, int]
     return rows, st, epoch, t_u[keep_e]
 
 
-def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: np.ndarray,
-                    raw: RawObs) -> tuple[np.ndarray, np.ndarray]:
-    """(E, 3) receiver position and (E,) clock [m] (NaN where unsolved) from a robust WLS on
-    clock-corrected pseudoranges; unsolved epochs take the nearest solved one's position.
+def _reference_rows(rows: pd.DataFrame) -> np.ndarray:
+    """(N,) bool: rows of the reference signal (GPS L1 when present, else the most common one),
+    whose receiver clock the other signals' inter-signal biases are measured against."""
+    sig = rows["signal"].to_numpy(object)
+    ref = "GPS_L1" if (sig == "GPS_L1").any() else pd.Series(sig).mode().iloc[0]
+    return sig == ref
 
-    epoch: (N,) epoch per row; sat_pos: (N, 3); pr: (N,).
+
+def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: np.ndarray,
+                    ref: np.ndarray, raw: RawObs) -> tuple[np.ndarray, np.ndarray]:
+    """(E, 3) receiver position and (E,) clock [m] (NaN where unsolved) from a robust WLS on the
+    reference signal's clock-corrected pseudoranges (one clock: the other signals carry unknown
+    inter-signal biases); unsolved epochs take the nearest solved one's position.
+
+    epoch: (N,) epoch per row; sat_pos: (N, 3); pr: (N,); ref: (N,) bool reference-signal rows.
     """
-    packed = pack_rows(epoch, n_epochs, {"sat_pos": sat_pos, "pr": pr})
+    packed = pack_rows(epoch[ref], n_epochs, {"sat_pos": sat_pos[ref], "pr": pr[ref]})
     w = solve_wls_arrays(packed["sat_pos"], packed["pr"], packed["mask"], elev_mask_deg=10.0, robust=True)
     pos, clock = w.pos, w.clock_m
     good = np.flatnonzero(w.valid)
@@ -157,6 +168,22 @@ def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: n
     prev = good[np.clip(np.searchsorted(good, np.arange(n_epochs)) - 1, 0, good.size - 1)]
     near = np.where(np.abs(prev - np.arange(n_epochs)) < np.abs(near - np.arange(n_epochs)), prev, near)
     return pos[near], clock
+
+
+def _inter_signal_bias(rows: pd.DataFrame, sat_pos: np.ndarray, pr: np.ndarray, rx: np.ndarray,
+                       clock_m: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(N,) inter-signal range bias [m] of each row: per signal (and GLONASS channel), the median
+    over the trace of ``pr - range - reference clock``; 0 on reference rows. Like GSDC's
+    ``isrbM``, it lets one receiver clock serve every signal in WLS (phones show L5 / E5a and
+    GLONASS biases of metres to hundreds of metres); the graph still estimates what is left.
+
+    sat_pos, rx: (N, 3); pr, clock_m: (N,) (NaN clock where the epoch was not solved); ref: (N,).
+    """
+    rng, _ = line_of_sight(sat_pos[:, None, :], rx)
+    resid = pr - rng[:, 0] - clock_m
+    key = pd.Series(rows["signal"].to_numpy(object)) + "/" + rows["glo_k"].astype(str).to_numpy(object)
+    bias = pd.Series(np.where(ref, np.nan, resid)).groupby(key.to_numpy()).transform("median").to_numpy()
+    return np.where(ref | ~np.isfinite(bias), 0.0, bias)
 
 
 def _elev_az(sat_pos: np.ndarray, rx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
