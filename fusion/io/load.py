@@ -130,12 +130,14 @@ def _raw_log(path: Path) -> tuple[Path, Path] | None:
     return (path, logs[0]) if logs else None
 
 
-def find_traces(root: str | Path) -> list[Path]:
+def find_traces(root: str | Path, include_raw: bool = False) -> list[Path]:
     """Every loadable trace under ``root`` (a Kaggle-layout folder such as ``train/``, or a trace).
 
     Returns ``<collection>/<phone>`` folders holding one measurement file; folders holding several
     (e.g. ``samples/``) contribute each file, which :func:`load_trace` also accepts. Sorted.
-    Raises :class:`DataError` when ``root`` does not exist or holds no trace.
+    Folders with only a raw log (RINEX observations, GnssLogger) need navigation data to load, so
+    they are listed only with ``include_raw`` - or when ``root`` itself is one (a trace the
+    caller named). Raises :class:`DataError` when ``root`` does not exist or holds no trace.
     """
     root = Path(root)
     if not root.exists():
@@ -147,7 +149,7 @@ def find_traces(root: str | Path) -> list[Path]:
         files = _measurement_files(folder)
         found.extend([folder] if len(files) == 1 else files)
         # a raw-log folder (its logs may sit in supplemental/, which is not a trace of its own)
-        if not files and folder.name != "supplemental" and raw_log_files(folder):
+        if (include_raw or folder == root) and not files and folder.name != "supplemental" and raw_log_files(folder):
             found.append(folder)
     if not found:
         raise DataError(f"{root}: no trace found (no *_derived.csv[.gz], device_gnss.csv[.gz], RINEX "
