@@ -96,7 +96,10 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
     pr = f["pr_m"].to_numpy()
     good = np.isfinite(pr) & (pr > _PR_RANGE_M[0]) & (pr < _PR_RANGE_M[1])
     count_skip(skipped, "rows_no_pseudorange", keep & ~good)
-    rows = f[keep & good].reset_index(drop=True)
+    # the ionosphere scales with the carrier: GLONASS rows of an unknown channel have none
+    known = np.isfinite(f["carrier_hz"].to_numpy())
+    count_skip(skipped, "rows_unknown_carrier_frequency", keep & good & ~known)
+    rows = f[keep & good & known].reset_index(drop=True)
     if rows.empty:
         raise DataError(f"{raw.path}: no pseudorange of signal(s) {', '.join(names)} "
                         f"(navigation covers {', '.join(sorted(_systems(nav, precise)))})")
