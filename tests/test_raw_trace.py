@@ -169,3 +169,24 @@ def test_pixel5_targets(shared_data):
     ok = np.isfinite(h)
     assert ok.mean() >= 0.95
     assert np.mean(np.percentile(h[ok], [50, 95])) <= 18.0
+
+
+def test_gnss_logger_log_matches_gsdc_derived(shared_data):
+    """GnssLogger path (2020-05-14 sample, nav of the day): our GPS L1 satellite positions match
+    the derived file's to a millimetre, corrected pseudoranges to decimetres (the derived file's
+    iono/tropo are at Google's position, ours at our WLS fix)."""
+    import pandas as pd
+    from fusion.io.gnss_log import read_gnss_log
+
+    raw = read_gnss_log(shared_data / "gsdc2021/samples/Pixel4_GnssLog.txt")
+    tr = raw_to_trace(raw, read_nav(shared_data / "ephemeris/gps_nav/hour1350.20n"), signals=["GPS_L1"])
+    d = pd.read_csv(shared_data / "gsdc2021/samples/Pixel4_derived.csv")
+    d = d[(d["signalType"] == "GPS_L1") & (d["millisSinceGpsEpoch"] - 1000 == tr.t_ms[0])].set_index("svid")
+    e, s = np.nonzero(tr.mask)
+    svid = tr.sat_id[e, s] % 1000
+    assert len(svid) == 8 and set(svid) <= set(d.index)
+    ref = d.loc[svid]
+    dpos = np.linalg.norm(tr.sat_pos[e, s] - ref[["xSatPosM", "ySatPosM", "zSatPosM"]].to_numpy(), axis=1)
+    assert dpos.max() < 0.005
+    ref_pr = (ref["rawPrM"] + ref["satClkBiasM"] - ref["isrbM"] - ref["ionoDelayM"] - ref["tropoDelayM"]).to_numpy()
+    assert np.abs(tr.pr[e, s] - ref_pr).max() < 0.5
