@@ -12,7 +12,7 @@ from fusion.errors import DataError
 from fusion.io.clk import read_clk
 from fusion.io.rinex_nav import GAMMA_L5, default_nav_path, read_nav
 from fusion.nav.glonass import glonass_state, select_glonass
-from fusion.nav.orbits import sat_state, select_ephemeris
+from fusion.nav.orbits import sat_state
 from fusion.nav.sat_states import broadcast_states
 from fusion.trace import SIGNALS
 

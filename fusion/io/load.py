@@ -59,11 +59,10 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
     """Load one trace: a ``<collection>/<phone>`` folder, or a measurement file inside one.
 
     Format is detected from the files (``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
-    -> GSDC 2022/23, else a RINEX observation file or GnssLogger log, directly or in
-    ``supplemental/``, whose satellites come from ``raw_sources`` or navigation files in the
-    folder). ``signals``: names, or None for the format's default (GPS L1 for GSDC files; every
-    signal with ephemerides for raw logs). ``truth``: ``"auto"`` (SPAN NMEA when present for 2021,
-    else ``ground_truth.csv``, else none), ``"csv"`` (ignore NMEA), ``"nmea"`` (require it), ``"none"``.
+    -> GSDC 2022/23, else a raw log with navigation from ``raw_sources`` or the folder, see
+    :mod:`fusion.io.raw_load`). ``signals``: names, or None for the format's default (GSDC: GPS L1;
+    raw logs: every signal with ephemerides). ``truth``: ``"auto"`` (SPAN NMEA when present, else
+    ``ground_truth.csv``, else none), ``"csv"`` (ignore NMEA), ``"nmea"`` (require it), ``"none"``.
     The trace is named ``<collection>/<phone>`` after its folder, or ``<folder>/<stem>`` when that
     folder holds several measurement files (e.g. ``samples/Pixel4_derived``).
     """

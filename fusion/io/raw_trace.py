@@ -25,8 +25,10 @@ from fusion.errors import DataError
 from fusion.estimate.wls import solve_wls_arrays
 from fusion.geometry import C_LIGHT, ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.gpstime import WEEK_S
-from fusion.io.raw import CONSTELLATION_TYPE, RawObs
+from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
+from fusion.nav.precise import precise_states
+from fusion.nav.sat_states import broadcast_states
 from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals
 
 #: Receiver clock bias [m] beyond which satellite states are recomputed at corrected times (1 us).
@@ -113,9 +115,6 @@ def _systems(nav, precise) -> set[str]:
 def _states(rows: pd.DataFrame, nav, precise, clock_shift_s: np.ndarray) -> dict[str, np.ndarray]:
     """(N,) satellite states at each row's transmit time (two passes: the second at the transmit
     time corrected by the first pass's satellite clock, which moves the satellite ~4 m per ms)."""
-    from fusion.nav.precise import precise_states
-    from fusion.nav.sat_states import broadcast_states
-
     t_ns = rows["t_ns"].to_numpy(np.int64)
     t_ms = t_ns // 1_000_000
     base = (t_ns - t_ms * 1_000_000) * 1e-9 + clock_shift_s - rows["pr_m"].to_numpy() / C_LIGHT
