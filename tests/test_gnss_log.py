@@ -133,6 +133,10 @@ def test_truncated_last_line_and_bad_number(tmp_path):
         v = lines[i].split(",")
         v[14] = "12x4"  # ReceivedSvTimeNanos
         lines[i] = ",".join(v)
+        j = _raw_index(lines, 5)
+        v = lines[j].split(",")
+        v[16] = "3O.5"  # Cn0DbHz with a letter O
+        lines[j] = ",".join(v)
         return lines + ["Raw,1589494245442,21091250000000,,,-12735083"]
     p = _edit(tmp_path, PIXEL4_LOG, edit)
     bad_line = _raw_index(p.read_text().splitlines(), 3) + 1
@@ -142,8 +146,8 @@ def test_truncated_last_line_and_bad_number(tmp_path):
     messages = " | ".join(str(w.message) for w in rec)
     assert f"gnss_log.txt:{n_lines}: wrong number of fields" in messages
     assert f"gnss_log.txt:{bad_line}: unreadable number" in messages
-    assert raw.skipped["records_wrong_field_count"] == 1 and raw.skipped["records_bad_number"] == 1
-    assert len(raw.frame) == len(read_gnss_log(PIXEL4_LOG).frame) - 1
+    assert raw.skipped["records_wrong_field_count"] == 1 and raw.skipped["records_bad_number"] == 2
+    assert len(raw.frame) == len(read_gnss_log(PIXEL4_LOG).frame) - 2
 
 
 def test_missing_gnss_time_is_counted(tmp_path):

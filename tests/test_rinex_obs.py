@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import gzip
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -146,10 +145,13 @@ def test_garbage_header_only_and_rinex2(tmp_path):
     head = head[:head.index("END OF HEADER") + 73]
     with pytest.raises(DataError, match="no epoch records"):
         read_rinex_obs(_write(tmp_path, head))
-    v2 = "     2.11           OBSERVATION DATA    M (MIXED)           RINEX VERSION / TYPE\n" + \
+    v1 = "     1.00           OBSERVATION DATA    M (MIXED)           RINEX VERSION / TYPE\n" + \
          "                                                            END OF HEADER\n"
-    with pytest.raises(DataError, match=r"x\.21o:1: RINEX version 2\.11"):
-        read_rinex_obs(_write(tmp_path, v2))
+    with pytest.raises(DataError, match=r"x\.21o:1: RINEX version 1\.0 "):
+        read_rinex_obs(_write(tmp_path, v1))
+    crx = "1.0                 COMPACT RINEX FORMAT                    CRINEX VERS   / TYPE\n" + v1
+    with pytest.raises(DataError, match="Hatanaka"):
+        read_rinex_obs(_write(tmp_path, crx))
     with pytest.raises(DataError, match="cannot read"):
         read_rinex_obs(tmp_path / "missing.21o")
 
@@ -161,3 +163,133 @@ def test_full_pixel5_file(shared_data):
     assert set(raw.frame.signal) == {"GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A"}
     ok = raw.frame.pr_m.notna()
     assert ((raw.frame.pr_m[ok] > 1.9e7) & (raw.frame.pr_m[ok] < 3e7)).all()
+
+
+def test_cut_inside_last_line_is_truncated_not_misread(tmp_path):
+    text = FIXTURE.read_text()
+    cut = text[:text.rstrip().rfind(".") - 2]  # inside the last number of the last line
+    with pytest.warns(UserWarning, match="truncated"):
+        raw = read_rinex_obs(_write(tmp_path, cut))
+    assert raw.skipped["records_truncated"] == 1 and raw.n_epochs == 4
+
+
+def test_glonass_channels_fill_missing_header_slots(tmp_path):
+    lines = [l for l in _lines() if "GLONASS SLOT / FRQ #" not in l]
+    path = _write(tmp_path, "".join(lines))
+    plain = read_rinex_obs(path)
+    glo = plain.frame[plain.frame.const == "R"]
+    assert len(glo) and (glo.glo_k == -99).all() and glo.prr_mps.isna().all() and glo.pr_m.notna().any()
+    assert plain.skipped["glonass_no_channel_doppler_phase"] > 0
+    filled = read_rinex_obs(path, glonass_channels={9: -2, 20: 2, 21: 4})
+    g = filled.frame[filled.frame.const == "R"]
+    ref = read_rinex_obs(FIXTURE).frame
+    assert g.reset_index(drop=True).equals(ref[ref.const == "R"].reset_index(drop=True))
+    assert "glonass_no_channel_doppler_phase" not in filled.skipped
+    # The header wins over the caller.
+    assert (read_rinex_obs(FIXTURE, glonass_channels={21: -5}).frame.query("svid == 21 and const == 'R'").glo_k == 4).all()
+
+
+def test_glonass_header_list_read_whole():
+    from fusion.io.rinex_obs import _parse_header
+    # GnssToRinex writes " 6 R05  1 R09 -2 ...": the list starts a column early.
+    assert _parse_header(FIXTURE.read_bytes(), FIXTURE).glo_k == {5: 1, 9: -2, 12: -1, 20: 2, 21: 4, 22: -3}
+
+
+def _obs_file(tmp_path: Path) -> Path:
+    """A survey-receiver-like RINEX 3.04 file: BeiDou, QZSS, SBAS, NavIC, GPS L2 (not ours), and
+    GPS observation types continued on a second header line."""
+    g = "C1C L1C D1C S1C C2W L2W C5Q L5Q D5Q S5Q C2X L2X S2X C1W".split()
+    types = {"G": g, "C": "C2I L2I D2I S2I".split(), "J": "C1C L1C D1C S1C C5Q L5Q D5Q S5Q".split(),
+             "S": ["C1C", "L1C"], "I": ["C5A", "L5A"]}
+    head = ["     3.04           OBSERVATION DATA    M                   RINEX VERSION / TYPE",
+            "".join(f"{v:14.4f}" for v in (-2.7e6, -4.3e6, 3.85e6)).ljust(60) + "APPROX POSITION XYZ"]
+    for s, t in types.items():
+        head.append(f"{s}  {len(t):3d} " + " ".join(t[:13]).ljust(53) + "SYS / # / OBS TYPES")
+        if len(t) > 13:
+            head.append("       " + " ".join(t[13:]).ljust(53) + "SYS / # / OBS TYPES")
+    head.append("  2021     4    28    22    19   22.0000000     GPS         TIME OF FIRST OBS")
+    head.append(" " * 60 + "END OF HEADER")
+    f = lambda v, lli=" ": f"{v:14.3f}{lli}5"  # noqa: E731
+    body = ["> 2021 04 28 22 19 22.0000000  0  5",
+            "G07" + "".join(f(2.1e7 + i) for i in range(len(g))),
+            "C05" + f(3.8e7) + f(2.0e8, "1") + f(-1000.5) + f(40.25),
+            "J01" + f(3.7e7) + f(1.9e8) + f(250.0) + f(42.0) + f(3.7e7 + 2) + f(1.4e8) + f(190.0) + f(45.0),
+            "S31" + f(3.9e7) + f(2.1e8),
+            "I03" + f(3.6e7) + f(1.5e8)]
+    p = tmp_path / "SURV00USA_R_20211182219_01H_01S_MO.rnx"
+    p.write_text("\n".join(head + body) + "\n")
+    return p
+
+
+def test_other_constellations_and_codes(tmp_path):
+    raw = read_rinex_obs(_obs_file(tmp_path))
+    f = raw.frame.set_index(["sat_id", "signal"])
+    assert sorted(f.index) == [(1007, "GPS_L1"), (1007, "GPS_L5"), (4193, "QZS_J1"), (4193, "QZS_J5"),
+                               (5005, "BDS_B1I")]
+    assert np.allclose(raw.approx_pos, [-2.7e6, -4.3e6, 3.85e6])
+    assert f.loc[(1007, "GPS_L5"), "pr_m"] == 2.1e7 + 6  # C5Q is the 7th type
+    b = f.loc[(5005, "BDS_B1I")]
+    assert b.pr_m == 3.8e7 and b.cn0 == 40.25 and b.adr_slip and b.carrier_hz == 1561.098e6
+    assert b.adr_m == pytest.approx(2.0e8 * C / 1561.098e6) and b.prr_mps == pytest.approx(1000.5 * C / 1561.098e6)
+    assert f.loc[(4193, "QZS_J5"), "carrier_hz"] == 1176.45e6
+    # GPS L2 (C2W/C2X/C1W) is not one of ours; SBAS and NavIC lines are dropped; all counted.
+    assert raw.skipped == {"obs_other_signals": 1, "sat_lines_unsupported_system": 2}
+
+
+def test_repeated_satellite_line_is_counted_once(tmp_path):
+    lines = _lines()
+    e = next(k for k, l in enumerate(lines) if l.startswith(">"))
+    lines[e] = lines[e][:32] + f"{int(lines[e][32:35]) + 1:3d}" + lines[e][35:]
+    lines.insert(e + 2, lines[e + 1])
+    raw = read_rinex_obs(_write(tmp_path, "".join(lines)))
+    assert raw.skipped["duplicate_observations"] >= 1
+    assert raw.frame.equals(read_rinex_obs(FIXTURE).frame)
+
+
+
+def _to_v2(r3: str) -> str:
+    """The fixture's RINEX 3 text (G/R/E, 8 types) rewritten as RINEX 2.11, value for value."""
+    lines = r3.splitlines()
+    end = next(i for i, l in enumerate(lines) if "END OF HEADER" in l)
+    keep = [l for l in lines[:end] if l[60:].strip() in ("GLONASS SLOT / FRQ #", "TIME OF FIRST OBS")]
+    head = ["     2.11           OBSERVATION DATA    M (MIXED)           RINEX VERSION / TYPE",
+            "     8    C1    L1    D1    S1    C5    L5    D5    S5      # / TYPES OF OBSERV"] + keep + [lines[end]]
+    out, i, body = [], 0, lines[end + 1:]
+    while i < len(body):
+        e = body[i]
+        y, mo, d, h, mi = (int(x) for x in e[2:18].split())
+        sec, flag, n = float(e[18:29]), int(e[29:32]), int(e[32:35])
+        ids = [l[:3] for l in body[i + 1:i + 1 + n]]
+        out.append(f" {y % 100:02d} {mo:2d} {d:2d} {h:2d} {mi:2d}{sec:11.7f}  {flag:1d}{n:3d}" + "".join(ids[:12]))
+        out += [" " * 32 + "".join(ids[k:k + 12]) for k in range(12, n, 12)]
+        for l in body[i + 1:i + 1 + n]:
+            f = l[3:].ljust(128)
+            out += [f[:80].rstrip(), f[80:128].rstrip()]  # 5 observations per line
+        i += 1 + n
+    return "\n".join(head + out) + "\n"
+
+
+def test_rinex2_same_as_rinex3(tmp_path):
+    v2 = _to_v2(FIXTURE.read_text())
+    assert "G25R09R21E01E13E15E21\n" + " " * 32 + "E26E27" in v2  # satellite list continued
+    raw = read_rinex_obs(_write(tmp_path, v2, "x.21o"))
+    ref = read_rinex_obs(FIXTURE)
+    assert raw.frame.equals(ref.frame) and raw.skipped == ref.skipped
+
+
+def test_rinex2_malformed(tmp_path):
+    lines = _to_v2(FIXTURE.read_text()).splitlines(keepends=True)
+    with pytest.warns(UserWarning, match="truncated"):
+        raw = read_rinex_obs(_write(tmp_path, "".join(lines[:-2])))
+    assert raw.skipped["records_truncated"] == 1 and raw.n_epochs == 4
+    i = next(k for k, l in enumerate(lines) if l.startswith(" 21"))
+    bad = lines[:i] + [lines[i][:29] + " x" + lines[i][31:]] + lines[i + 1:]
+    with pytest.raises(DataError, match=rf"x\.21o:{i + 1}: cannot read epoch line"):
+        read_rinex_obs(_write(tmp_path, "".join(bad)))
+    with pytest.raises(DataError, match="header only"):
+        read_rinex_obs(_write(tmp_path, "".join(lines[:i])))
+    j = i + 2  # the first satellite's first observation line
+    garbled = lines[:j] + [lines[j].replace("23738869.070", "2373886?.070")] + lines[j + 1:]
+    with pytest.warns(UserWarning, match=rf"x\.21o:{j + 1}: unreadable number"):
+        raw = read_rinex_obs(_write(tmp_path, "".join(garbled)))
+    assert raw.skipped["sat_lines_bad_number"] == 1

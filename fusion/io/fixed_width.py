@@ -34,12 +34,12 @@ def char_matrix(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, width: in
     lines are cut at ``width``, shorter ones padded with spaces (RINEX writers strip trailing
     blanks, which mean "missing").
     """
-    cols = np.arange(width, dtype=np.int64)
-    idx = starts[:, None] + cols[None, :]
-    inside = idx < ends[:, None]
-    out = np.full((starts.size, width), SPACE, np.uint8)
-    out[inside] = buf[idx[inside]]
-    return out
+    # Positions past a line's end point at one appended space; int32 halves the index traffic.
+    pos_t = np.int32 if buf.size < 2**31 - 1 else np.int64
+    padded = np.append(buf, np.uint8(SPACE))
+    idx = starts.astype(pos_t)[:, None] + np.arange(width, dtype=pos_t)[None, :]
+    idx = np.where(idx < ends.astype(pos_t)[:, None], idx, pos_t(buf.size))
+    return np.take(padded, idx)
 
 
 def parse_decimal(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -49,7 +49,7 @@ def parse_decimal(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     ``(mantissa, decimals, blank, bad)``, each (N,): the value is ``mantissa / 10**decimals``
     exactly (int64 mantissa, so seconds or cycles keep every written digit); ``blank`` marks
     all-space fields; ``bad`` marks anything else that is not one optional leading minus, digits
-    and at most one point, without inner spaces (bad and blank rows hold mantissa 0).
+    (at most 19, within int64) and at most one point, without inner spaces (bad and blank rows hold mantissa 0).
     """
     n = chars.shape[0]
     blank = ~(chars != SPACE).any(axis=1)
@@ -73,7 +73,7 @@ def _parse_filled(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     n_dig = digit.sum(axis=1, dtype=np.int16)
     inner_space = space & (j > first[:, None]) & (j < last[:, None])
     stray = ~(digit | dot | space) & ~(minus & (j == first[:, None]))
-    bad = (inner_space | stray).any(axis=1) | (dot.sum(axis=1, dtype=np.int16) > 1) | (n_dig == 0) | (n_dig > 18)
+    bad = (inner_space | stray).any(axis=1) | (dot.sum(axis=1, dtype=np.int16) > 1) | (n_dig == 0) | (n_dig > 19)
     has_dot = dot.any(axis=1)
     dot_at = np.where(has_dot, np.argmax(dot, axis=1), last + 1)
     decimals = np.where(has_dot, last - dot_at, 0)
@@ -81,21 +81,80 @@ def _parse_filled(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     right = np.cumsum(digit[:, ::-1], axis=1, dtype=np.int8)[:, ::-1] - digit
     value = np.where(digit, chars - np.uint8(48), np.uint8(0))
     mantissa = (value * _POW10[np.minimum(right, 18)]).sum(axis=1)
+    bad |= mantissa < 0  # a 19-digit number past the int64 range wrapped around
     mantissa = np.where(chars[np.arange(chars.shape[0]), first] == 45, -mantissa, mantissa)
     mantissa[bad] = 0
     return mantissa, decimals, bad
 
 
-def parse_float(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def parse_float(chars: np.ndarray, dot_col: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fixed fields -> (N,) float64 values (NaN where blank or bad) and the (N,) bad mask.
 
-    chars: (N, w) uint8.  Dividing the exact integer mantissa by an exact power of ten rounds
-    once, so the result equals Python's ``float(text)``.
+    chars: (N, w) uint8.  dot_col: where the format puts the decimal point (Fortran Fw.d:
+    ``w - d - 1``); fields that follow it take a fast path, the others the general parser.
+    Dividing an exact integer mantissa by an exact power of ten rounds once, so the result
+    equals Python's ``float(text)``.
     """
-    mantissa, decimals, blank, bad = parse_decimal(chars)
-    value = mantissa / 10.0 ** decimals
-    value[blank | bad] = np.nan
+    return parse_float_columns(np.ascontiguousarray(chars.T), dot_col)
+
+
+def parse_float_columns(columns: np.ndarray, dot_col: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`parse_float` on column-major fields: columns (w, N) uint8, character j of field i
+    at ``[j, i]`` (the layout the fast path wants, so readers can gather straight into it)."""
+    n = columns.shape[1]
+    value, bad, rest = np.full(n, np.nan), np.zeros(n, bool), np.ones(n, bool)
+    if dot_col is not None:
+        fast, fast_value = _parse_fixed_point(columns, dot_col)
+        value[fast] = fast_value[fast]
+        rest = ~fast
+    rows = np.flatnonzero(rest)
+    if rows.size:
+        mantissa, decimals, blank, bad_rest = parse_decimal(columns[:, rows].T)
+        v = mantissa / 10.0 ** decimals
+        v[blank | bad_rest] = np.nan
+        value[rows], bad[rows] = v, bad_rest
     return value, bad
+
+
+def _parse_fixed_point(c: np.ndarray, dot_col: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fast path for fields written exactly to format (optional spaces, optional minus, digits,
+    the point at ``dot_col``, digits to the end) and blank fields (NaN). c: (w, N) uint8 column-major fields (reductions
+    over a field's w characters are then w elementwise passes over N). Returns (N,) bool
+    "parsed here" and (N,) values."""
+    w = c.shape[0]
+    space = c == SPACE
+    digit = (c - np.uint8(48)) < 10  # uint8 wrap-around sends everything below '0' high
+    minus = c == 45
+    blank = space.all(axis=0)
+    allowed = digit | space | minus
+    allowed[dot_col] = (c[dot_col] == 46) | blank
+    # Text must be one run: no filled -> space step; a minus only right after the leading spaces.
+    filled_before = ~space[:-1]
+    ok = (allowed.all(axis=0) & ~(space[1:] & filled_before).any(axis=0)
+          & ~(minus[1:] & filled_before).any(axis=0) & ~minus[dot_col] & (digit.any(axis=0) | blank))
+    dec = w - 1 - dot_col
+    power = np.concatenate((np.arange(dot_col - 1, -1, -1) + dec, [0], np.arange(dec - 1, -1, -1)))
+    weight = np.where(np.arange(w) == dot_col, 0.0, 10.0 ** power)
+    # Digits times exact powers of ten sum exactly in float64 while the mantissa is < 2**53.
+    mantissa = weight @ np.where(digit, c - np.uint8(48), np.uint8(0)).astype(np.float64)
+    value = np.where(minus.any(axis=0), -mantissa, mantissa) / 10.0 ** dec
+    value[blank] = np.nan
+    return ok & (mantissa < 2.0 ** 53), value
+
+
+def gather_fields(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, offsets: np.ndarray,
+                  width: int) -> np.ndarray:
+    """Characters of fields at ``offsets`` in every line, column-major, space-padded.
+
+    buf: (B,) uint8.  starts, ends: (N,) line offsets.  offsets: (K,) field start columns.
+    Returns (width, N, K) uint8: character j of field k of line i at ``[j, i, k]``.
+    """
+    pos_t = np.int32 if buf.size < 2**31 - 1 - width - int(offsets.max(initial=0)) else np.int64
+    padded = np.append(buf, np.uint8(SPACE))
+    idx = (starts.astype(pos_t)[None, :, None] + offsets.astype(pos_t)[None, None, :]
+           + np.arange(width, dtype=pos_t)[:, None, None])
+    idx = np.where(idx < ends.astype(pos_t)[None, :, None], idx, pos_t(buf.size))
+    return np.take(padded, idx)
 
 
 def parse_int(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -105,3 +164,31 @@ def parse_int(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """
     mantissa, decimals, _, bad = parse_decimal(chars)
     return mantissa, bad | (decimals != 0)
+
+
+def parse_int_text(text: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integers in delimited text (CSV cells) -> exact int64.
+
+    text: (N,) fixed-width bytes (dtype ``S<w>``), NUL-padded.  Returns (N,) int64 values
+    (0 where empty or bad), (N,) bool empty, (N,) bool bad (anything but optional spaces, an
+    optional minus and 1-19 digits in one run, or a value outside int64).
+    """
+    w = text.dtype.itemsize
+    c = np.ascontiguousarray(np.frombuffer(text.tobytes(), np.uint8).reshape(-1, w).T)  # (w, N)
+    space = (c == SPACE) | (c == 0)
+    digit = (c - np.uint8(48)) < 10
+    minus = c == 45
+    empty = space.all(axis=0)
+    runs = (~space[0]).astype(np.int16) + (~space[1:] & space[:-1]).sum(axis=0, dtype=np.int16)
+    n_dig = digit.sum(axis=0, dtype=np.int16)
+    ok = ((digit | space | minus).all(axis=0) & (runs == 1) & ~(minus[1:] & ~space[:-1]).any(axis=0)
+          & (n_dig >= 1) & (n_dig <= 19))
+    value = np.zeros(text.size, np.int64)
+    try:
+        value[ok] = text[ok].astype(np.int64)
+    except OverflowError:  # a 19-digit value past int64: the exact parser finds which
+        chars = np.where(c.T == 0, np.uint8(SPACE), c.T)
+        value, bad_slow = parse_int(chars)
+        ok &= ~bad_slow
+        value[~ok] = 0
+    return value, empty, ~ok & ~empty

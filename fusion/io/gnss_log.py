@@ -25,6 +25,7 @@ import pandas as pd
 
 from fusion.errors import DataError
 from fusion.gpstime import GPS_EPOCH_UNIX_MS, leap_seconds_at_unix_ms
+from fusion.io.fixed_width import parse_int_text
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
@@ -72,14 +73,15 @@ def read_gnss_log(path: str | Path, *, fixed_full_bias: bool = False) -> RawObs:
     """
     path = Path(path)
     skipped: dict[str, int] = {}
-    table = _raw_table(path, skipped)
-    cols = _numeric_columns(table, path, skipped)
+    table, line_no = _raw_table(path, skipped)
+    cols = _numeric_columns(table, line_no, path, skipped)
     frame = _to_contract(cols, skipped, fixed_full_bias)
     return RawObs(frame=frame, path=path, skipped=skipped, approx_pos=None)
 
 
-def _raw_table(path: Path, skipped: dict[str, int]) -> pd.DataFrame:
-    """The ``Raw`` records as strings, one column per header name, plus ``line`` (file line number)."""
+def _raw_table(path: Path, skipped: dict[str, int]) -> tuple[pd.DataFrame, np.ndarray]:
+    """The ``Raw`` records with the columns we use (integer-nanosecond ones as text) and their
+    (N,) file line numbers; records with the wrong number of fields are dropped and counted."""
     try:
         text = path.read_bytes().decode("utf-8", errors="replace")
     except OSError as exc:
@@ -96,15 +98,14 @@ def _raw_table(path: Path, skipped: dict[str, int]) -> pd.DataFrame:
     if line_no.size == 0:
         raise DataError(f"{path}: no 'Raw,' records (header only?)")
     records = [lines[i - 1] for i in line_no]
-    n_fields = np.array([r.count(",") for r in records])
-    wrong = n_fields != len(names)
+    wrong = np.array([r.count(",") for r in records]) != len(names)
     _warn_first(path, line_no, wrong, "wrong number of fields")
     count_skip(skipped, "records_wrong_field_count", wrong)
-    keep = ~wrong
-    body = "\n".join(r[4:] for r, k in zip(records, keep) if k)
-    table = pd.read_csv(io.StringIO(body), header=None, names=names, dtype=str, keep_default_na=False)
-    table["line"] = line_no[keep]
-    return table
+    body = "\n".join(r[4:] for r, w in zip(records, wrong) if not w)
+    use = [c for c in _NEEDED + _OPTIONAL if c in names]
+    table = pd.read_csv(io.StringIO(body), header=None, names=names, usecols=use,
+                        dtype={c: str for c in _INT_COLS}, skipinitialspace=True, low_memory=False)
+    return table, line_no[~wrong]
 
 
 def _warn_first(path: Path, line_no: np.ndarray, bad: np.ndarray, what: str) -> None:
@@ -114,37 +115,51 @@ def _warn_first(path: Path, line_no: np.ndarray, bad: np.ndarray, what: str) -> 
                       f"{int(np.sum(bad))} record(s) skipped", stacklevel=4)
 
 
-def _numeric_columns(table: pd.DataFrame, path: Path, skipped: dict[str, int]) -> dict[str, np.ndarray]:
-    """String columns -> numbers; integer-nanosecond columns stay exact int64.
+def _int_column(text: pd.Series) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Integer nanoseconds exactly (a float64 would lose up to 256 ns of a 1e18 FullBiasNanos).
 
-    Returns name -> (N,) array over the records that parsed (``line`` kept for messages).
-    Empty fields read as NaN (floats) and are legal; a field that is not a number is not.
+    text: (N,) strings or NaN.  Returns (N,) int64 values, (N,) bool empty, (N,) bool bad.
+    """
+    raw = text.fillna("").to_numpy(dtype="S24")
+    value, empty, bad = parse_int_text(raw)
+    return value, empty, bad | (np.char.str_len(raw) >= 24)
+
+
+def _numeric_columns(table: pd.DataFrame, line_no: np.ndarray, path: Path,
+                     skipped: dict[str, int]) -> dict[str, np.ndarray]:
+    """Record columns -> numbers (integer-nanosecond columns exact int64).
+
+    Returns name -> (N,) array over the records that parsed, plus ``line``. Empty fields read as
+    NaN and are legal, except in TimeNanos / ReceivedSvTimeNanos; text that is not a number is not.
     """
     n = len(table)
     bad = np.zeros(n, bool)
     out: dict[str, np.ndarray] = {}
     for name in _INT_COLS:
-        s = table[name].str.strip()
-        ok = s.str.fullmatch(r"-?\d{1,19}").to_numpy(bool)
-        bad |= ~ok
-        out[name] = np.where(ok, pd.to_numeric(s.where(ok, "0"), errors="coerce"), 0).astype(np.int64)
+        out[name], empty, b = _int_column(table[name])
+        bad |= b | (empty if name != "FullBiasNanos" else False)
+        if name == "FullBiasNanos":
+            no_time = empty  # the phone has no GNSS time yet: no pseudorange can be formed
     for name in _NEEDED[len(_INT_COLS):] + _OPTIONAL:
         if name not in table:
             out[name] = np.full(n, np.nan)
             continue
-        s = table[name].str.strip()
-        v = pd.to_numeric(s, errors="coerce").to_numpy(float)
-        bad |= np.isnan(v) & (s != "").to_numpy(bool)
+        col = table[name]
+        if pd.api.types.is_numeric_dtype(col):
+            out[name] = col.to_numpy(float)
+            continue
+        v = pd.to_numeric(col, errors="coerce").to_numpy(float)
+        bad |= np.isnan(v) & (col.fillna("").astype(str).str.strip() != "").to_numpy(bool)
         out[name] = v
-    # FullBiasNanos empty = the phone has no GNSS time yet: no pseudorange can be formed.
-    no_time = (table["FullBiasNanos"].str.strip() == "").to_numpy(bool)
     count_skip(skipped, "records_no_gnss_time", no_time)
     bad &= ~no_time
-    _warn_first(path, table["line"].to_numpy(), bad, "unreadable number")
+    _warn_first(path, line_no, bad, "unreadable number")
     count_skip(skipped, "records_bad_number", bad)
-    keep = ~(bad | no_time | np.isnan(out["BiasNanos"]))
-    count_skip(skipped, "records_no_bias", ~(bad | no_time) & np.isnan(out["BiasNanos"]))
-    return {k: v[keep] for k, v in out.items()} | {"line": table["line"].to_numpy()[keep]}
+    keep = ~(bad | no_time)
+    # An unreported sub-nanosecond BiasNanos is common to every satellite of the epoch: the
+    # receiver clock estimate absorbs it, so it reads as 0 rather than costing the epoch.
+    out["BiasNanos"] = np.nan_to_num(out["BiasNanos"])
+    return {k: v[keep] for k, v in out.items()} | {"line": line_no[keep]}
 
 
 def _signals(const: np.ndarray, freq_hz: np.ndarray, svid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -178,7 +193,8 @@ def _pseudorange(c: dict[str, np.ndarray], const: np.ndarray,
     frac = np.nan_to_num(c["TimeOffsetNanos"]) - c["BiasNanos"]
     glo = const == "R"
     shift = np.where(const == "C", BDT_OFFSET_NS, 0)
-    # GLONASS time = UTC + 3 h; GPS - UTC from the table at this instant.
+    # GLONASS time = UTC + 3 h; GPS - UTC from the table (looked up at GPS time read as Unix time:
+    # off by the 18 s only in the seconds around a leap second).
     leap = leap_seconds_at_unix_ms(whole // 10**6 + GPS_EPOCH_UNIX_MS)
     shift = np.where(glo, leap * 10**9 - 3 * 3600 * 10**9, shift)
     period = np.where(glo, DAY_NS, WEEK_NS)
@@ -220,10 +236,7 @@ def _to_contract(c: dict[str, np.ndarray], skipped: dict[str, int], fixed_full_b
         "adr_ok": adr_ok, "adr_slip": adr_ok & (state & (ADR_RESET | ADR_CYCLE_SLIP) != 0),
         "cn0": c["Cn0DbHz"], "glo_k": glo_k, "clock_reset": reset,
     }
-    frame = finish_raw({k: v[keep] for k, v in cols.items()})
-    dup = frame.duplicated(["t_ns", "sat_id", "signal"])
-    count_skip(skipped, "duplicate_records", dup)
-    return frame[~dup.to_numpy()].reset_index(drop=True)
+    return finish_raw({k: v[keep] for k, v in cols.items()}, skipped)
 
 
 def _clock_resets(time_nanos: np.ndarray, count: np.ndarray) -> np.ndarray:

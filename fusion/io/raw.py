@@ -33,7 +33,8 @@ clock_reset    bool     epoch-level (same on every row of an epoch): the receive
 carrier_hz     float64  carrier frequency [Hz]
 =============  =======  ===================================================================
 
-Rows are sorted by ``t_ns``, then ``sat_id``, then ``signal``.
+Rows are sorted by ``t_ns``, then ``sat_id``, then ``signal`` (in :data:`fusion.trace.SIGNALS` order); a
+(t_ns, sat_id, signal) triple appears at most once.
 """
 from __future__ import annotations
 
@@ -44,7 +45,7 @@ import numpy as np
 import pandas as pd
 
 from fusion.errors import DataError
-from fusion.trace import SIGNALS
+from fusion.trace import SIGNALS, count_skip
 
 #: Column name -> numpy dtype kind required ("i" int, "f" float, "b" bool, "O" str).
 RAW_COLUMNS: dict[str, str] = {
@@ -136,9 +137,10 @@ def check_raw(frame: pd.DataFrame, path: str | Path = "raw frame") -> None:
         raise DataError(f"{path}: raw frame has unknown constellation {frame['const'][bad_const].iloc[0]!r}")
 
 
-def finish_raw(columns: dict[str, np.ndarray]) -> pd.DataFrame:
+def finish_raw(columns: dict[str, np.ndarray], skipped: dict[str, int] | None = None) -> pd.DataFrame:
     """Assemble reader columns into a sorted contract frame; ``sat_id`` and ``carrier_hz``
-    are derived here when absent.
+    are derived here when absent. Repeated (t_ns, sat_id, signal) rows after the first are
+    dropped and counted in ``skipped['duplicate_observations']``.
 
     columns: name -> (N,) array, every contract column except possibly sat_id / carrier_hz.
     """
@@ -150,7 +152,15 @@ def finish_raw(columns: dict[str, np.ndarray]) -> pd.DataFrame:
         cols["sat_id"] = 1000 * ctype + np.asarray(cols["svid"], np.int64)
     if "carrier_hz" not in cols:
         cols["carrier_hz"] = carrier_hz(np.asarray(cols["signal"], dtype=object), cols["glo_k"])
+    codes, names = pd.factorize(np.asarray(cols["signal"], dtype=object))
+    sig = np.array([SIGNALS.index(n) if n in SIGNALS else len(SIGNALS) for n in names] + [-1])[codes]
+    t_ns, sat_id = np.asarray(cols["t_ns"], np.int64), np.asarray(cols["sat_id"], np.int64)
+    order = np.lexsort((sig, sat_id, t_ns))
+    key = np.stack([t_ns[order], sat_id[order], sig[order]])
+    dup = np.zeros(order.size, bool)
+    dup[1:] = (key[:, 1:] == key[:, :-1]).all(axis=0)
+    if skipped is not None:
+        count_skip(skipped, "duplicate_observations", dup)
+    order = order[~dup]
     dtypes = {"i": np.int64, "f": np.float64, "b": bool, "O": object}
-    frame = pd.DataFrame({c: np.asarray(cols[c], dtype=dtypes[k]) for c, k in RAW_COLUMNS.items()})
-    frame = frame.sort_values(["t_ns", "sat_id", "signal"], kind="stable").reset_index(drop=True)
-    return frame
+    return pd.DataFrame({c: np.asarray(cols[c], dtype=dtypes[k])[order] for c, k in RAW_COLUMNS.items()})

@@ -1,4 +1,4 @@
-"""RINEX 3.0x observation files (``.obs``, ``.YYo``, ``*_MO.rnx``, optionally ``.gz``) -> :class:`RawObs`.
+"""RINEX 3.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``, optionally ``.gz``) -> :class:`RawObs`.
 
 Every constellation is read; observation codes are mapped onto :data:`fusion.trace.SIGNALS`
 (:data:`SIGNAL_CODES`), other signals are dropped and counted. Units: C metres, L cycles
@@ -6,11 +6,14 @@ Every constellation is read; observation codes are mapped onto :data:`fusion.tra
 RINEX writes a missing observation as blank or 0.0; both read as NaN. LLI bit 0 (lost lock since
 the previous observation) on a phase sets ``adr_slip``. Epoch flag 1 (power failure) sets
 ``clock_reset``; flags 2-5 (event / header records) and 6 (cycle-slip records) are skipped and
-counted. RINEX 2 and Hatanaka-compressed files are refused with a one-line error.
+counted. RINEX 2 records are located by :mod:`fusion.io.rinex2_obs` and their two-character types
+mapped to RINEX 3 codes; other versions and Hatanaka-compressed files are refused with a
+one-line error.
 
-Speed: the body is read as one byte buffer and every satellite line is laid out in a byte
-matrix (:mod:`fusion.io.fixed_width`), so numbers are parsed with array arithmetic; the
-Pixel5 phone log (4 MB, 2000 epochs) reads in well under a second (``benchmarks/bench_rinex.py``).
+Speed: the body is read as one byte buffer and every observation field is gathered into a
+column-major byte array (:mod:`fusion.io.fixed_width`), so numbers are parsed with array
+arithmetic; the Pixel5 phone log (4 MB, 2000 epochs) reads in about 0.1-0.2 s
+(``benchmarks/bench_rinex.py``).
 """
 from __future__ import annotations
 
@@ -25,8 +28,10 @@ import numpy as np
 import pandas as pd
 
 from fusion.errors import DataError
-from fusion.io.fixed_width import char_matrix, line_bounds, parse_decimal, parse_float, parse_int
-from fusion.io.raw import GLO_K_UNKNOWN, RawObs, carrier_hz, empty_raw, finish_raw
+from fusion.io.fixed_width import (char_matrix, gather_fields, line_bounds, parse_decimal, parse_float,
+                                   parse_float_columns, parse_int)
+from fusion.io.rinex2_obs import satellite_fields, walk_records
+from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
 #: System letter -> [(signal, band digit, tracking attributes in priority order)].
@@ -59,8 +64,12 @@ class ObsHeader:
     n_lines: int = 0
 
 
-def read_rinex_obs(path: str | Path) -> RawObs:
-    """Read a RINEX 3.0x observation file (plain or gzip) into the raw contract.
+def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = None) -> RawObs:
+    """Read a RINEX 3.0x (or 2.10-2.12) observation file (plain or gzip) into the raw contract.
+
+    glonass_channels: slot -> frequency channel k, for slots the header's ``GLONASS SLOT / FRQ #``
+    lacks (e.g. from a navigation file); without k a GLONASS row keeps its pseudorange but not
+    its Doppler and phase (counted in ``skipped``).
 
     Raises :class:`DataError` naming the file (and line) for an unreadable / corrupt file, an
     unsupported version, a malformed header or epoch line, or a file without epoch records.
@@ -70,10 +79,14 @@ def read_rinex_obs(path: str | Path) -> RawObs:
     path = Path(path)
     text = _read_bytes(path)
     header = _parse_header(text, path)
+    header.glo_k = {**(glonass_channels or {}), **header.glo_k}
     body = np.frombuffer(text, np.uint8)[_body_offset(text):]
     skipped: dict[str, int] = {}
-    epochs, sat_lines = _epoch_records(body, header, path, skipped)
-    frame = _observations(body, sat_lines, epochs, header, path, skipped)
+    if header.version < 3:
+        frame = _v2_frame(body, header, path, skipped)
+    else:
+        epochs, sat_lines = _epoch_records(body, header, path, skipped)
+        frame = _observations(body, sat_lines, epochs, header, path, skipped)
     return RawObs(frame=frame, path=path, skipped=skipped, approx_pos=header.approx_pos)
 
 
@@ -112,25 +125,44 @@ def _parse_header(text: bytes, path: Path) -> ObsHeader:
         raise DataError(f"{path}:1: cannot read the RINEX version from {first[:9]!r}") from None
     if first[20:21] != "O":
         raise DataError(f"{path}:1: file type {first[20:21]!r} is not 'O' (observation)")
-    if not 3.0 <= head.version < 4.0:
+    if not (3.0 <= head.version < 4.0 or 2.10 <= head.version < 2.2):
         raise DataError(f"{path}:1: RINEX version {head.version} observation files are not supported "
-                        "(RINEX 3.0x only; convert RINEX 2 with gfzrnx or RTKLIB convbin)")
-    system = ""
+                        "(RINEX 3.0x and 2.10-2.12; convert others with gfzrnx or RTKLIB convbin)")
+    system, types_v2 = "", []
     for no, line in enumerate(lines, start=1):
         label = line[60:].strip()
-        if label == "SYS / # / OBS TYPES":
+        if label == "# / TYPES OF OBSERV":
+            types_v2 += line[6:60].split()
+        elif label == "SYS / # / OBS TYPES":
             system = line[0] if line[0] != " " else system
             head.obs_types.setdefault(system, []).extend(line[7:60].split())
         elif label == "GLONASS SLOT / FRQ #":
-            for slot, k in re.findall(r"R\s?(\d{1,2})\s+(-?\d+)", line[4:60]):
+            # Some writers (GnssToRinex) start the list one column early: search the whole field.
+            for slot, k in re.findall(r"R\s?(\d{1,2})\s+(-?\d+)", line[:60]):
                 head.glo_k[int(slot)] = int(k)
         elif label == "APPROX POSITION XYZ":
             head.approx_pos = _approx_pos(line, path, no)
         elif label == "TIME OF FIRST OBS":
             head.time_system = line[48:51].strip()
+    if head.version < 3 and types_v2:
+        head.obs_types = {s: [v2_type_as_v3(s, t) for t in types_v2] for s in "GRESJC"}
     if not head.obs_types:
-        raise DataError(f"{path}: header has no 'SYS / # / OBS TYPES' lines")
+        raise DataError(f"{path}: header has no 'SYS / # / OBS TYPES' (RINEX 2: '# / TYPES OF OBSERV') lines")
     return head
+
+
+#: RINEX 2 two-character types -> the RINEX 3 tracking attribute our signal table expects, by
+#: (system, band); anything else gets "?" and is dropped as another signal.
+_V2_ATTR = {("G", "1"): "C", ("G", "5"): "X", ("R", "1"): "C", ("E", "1"): "X", ("E", "5"): "X",
+            ("J", "1"): "C", ("J", "5"): "X", ("C", "2"): "I"}
+
+
+def v2_type_as_v3(system: str, code: str) -> str:
+    """RINEX 2 observation type (``C1``, ``L5``, ``P2``) -> a RINEX 3 code for ``system``
+    (``C1C``, ``L5X``; P code -> ``C<band>P``, never one of our signals)."""
+    if code[:1] == "P":
+        return f"C{code[1:2]}P"
+    return f"{code[:2]}{_V2_ATTR.get((system, code[1:2]), '?')}"
 
 
 def _approx_pos(line: str, path: Path, no: int) -> np.ndarray | None:
@@ -155,9 +187,13 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     if e_line.size == 0:
         raise DataError(f"{path}: no epoch records after the header (header only?)")
     line_no = head.n_lines + 1 + e_line  # 1-based file line numbers of epoch lines
-    t_ns, flag, n_sat = _epoch_fields(char_matrix(body, starts[e_line], ends[e_line], 35), head, path, line_no)
+    t_ns, flag, n_sat = epoch_fields(char_matrix(body, starts[e_line], ends[e_line], 35), head, path, line_no)
     n_lines = np.diff(np.append(e_line, starts.size)) - 1
     _trim_trailing_blank(n_lines, starts, ends)
+    if body[-1] != 10 and n_lines[-1] > 0:
+        # No final newline: the last line may be cut inside a number, which would still parse
+        # (to a wrong value), so its record counts as truncated.
+        n_lines[-1] -= 1
     event = (flag >= 2) & (flag <= 6)
     count_skip(skipped, "event_records", (flag >= 2) & (flag <= 5))
     count_skip(skipped, "cycle_slip_records", flag == 6)
@@ -174,16 +210,38 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
                       f"{n_lines[i]} lines follow; {bad.sum()} such record(s) skipped", stacklevel=3)
     count_skip(skipped, "records_bad_satellite_count", bad)
     keep = ~(event | wrong)
-    if np.any(np.diff(t_ns[keep]) <= 0):
-        i = np.flatnonzero(keep)[1:][np.diff(t_ns[keep]) <= 0][0]
-        raise DataError(f"{path}:{line_no[i]}: epoch time does not increase")
     kept = np.flatnonzero(keep)
+    _check_increasing(t_ns[kept], line_no[kept], path)
     epoch_of = np.repeat(np.arange(kept.size), n_sat[kept])
     first = np.repeat(e_line[kept] + 1, n_sat[kept])
     sat = first + (np.arange(first.size) - np.repeat(np.cumsum(n_sat[kept]) - n_sat[kept], n_sat[kept]))
     epochs = {"t_ns": t_ns[kept], "clock_reset": flag[kept] == 1, "epoch_of": epoch_of,
               "line_no": head.n_lines + 1 + sat}
     return epochs, np.column_stack([starts[sat], ends[sat], epoch_of])
+
+
+def _check_increasing(t_ns: np.ndarray, line_no: np.ndarray, path: Path) -> None:
+    """Epoch times (K,) must increase; line_no (K,) names the first that does not."""
+    back = np.flatnonzero(np.diff(t_ns) <= 0)
+    if back.size:
+        raise DataError(f"{path}:{line_no[back[0] + 1]}: epoch time does not increase")
+
+
+def _v2_frame(body: np.ndarray, head: ObsHeader, path: Path, skipped: dict[str, int]) -> pd.DataFrame:
+    """A RINEX 2 body (B,) uint8 -> contract frame (record layout: :mod:`fusion.io.rinex2_obs`)."""
+    n_types = len(head.obs_types["G"])
+    first_no = head.n_lines + 1
+    epoch_line, n_sat, flag, obs_start = walk_records(body, n_types, first_no, path, skipped)
+    if epoch_line.size == 0:
+        raise DataError(f"{path}: no epoch records after the header (header only?)")
+    starts, ends = line_bounds(body)
+    t_ns, _, _ = epoch_fields(char_matrix(body, starts[epoch_line], ends[epoch_line], 35), head, path,
+                              first_no + epoch_line)
+    _check_increasing(t_ns, first_no + epoch_line, path)
+    epoch_of, system, prn_chars, fields, first = satellite_fields(body, epoch_line, n_sat, obs_start, n_types)
+    prn, prn_bad = sat_number(prn_chars)
+    epochs = {"t_ns": t_ns, "clock_reset": flag == 1, "epoch_of": epoch_of, "line_no": first_no + first}
+    return observation_frame(system, prn, prn_bad, fields, epochs, head, path, skipped)
 
 
 def _trim_trailing_blank(n_lines: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> None:
@@ -194,20 +252,32 @@ def _trim_trailing_blank(n_lines: np.ndarray, starts: np.ndarray, ends: np.ndarr
     n_lines[-1] -= tail
 
 
-def _epoch_fields(m: np.ndarray, head: ObsHeader, path: Path,
-                  line_no: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+#: Epoch-line columns (RINEX 3: ``> yyyy mm dd hh mm ss.sssssss  f nnn``; RINEX 2: 2-digit year,
+#: no ``>``), seconds last.
+EPOCH_COLUMNS = {
+    3: {"year": (2, 6), "month": (7, 9), "day": (10, 12), "hour": (13, 15), "minute": (16, 18),
+        "flag": (29, 32), "n_sat": (32, 35), "sec": (18, 29)},
+    2: {"year": (1, 3), "month": (4, 6), "day": (7, 9), "hour": (10, 12), "minute": (13, 15),
+        "flag": (28, 29), "n_sat": (29, 32), "sec": (15, 26)},
+}
+
+
+def epoch_fields(m: np.ndarray, head: ObsHeader, path: Path,
+                 line_no: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Epoch lines -> receive time [GPS ns], epoch flag and satellite count, each (K,).
 
     m: (K, 35) uint8 epoch lines.  line_no: (K,) their file line numbers (for errors).
     """
-    cols = {"year": (2, 6), "month": (7, 9), "day": (10, 12), "hour": (13, 15), "minute": (16, 18),
-            "flag": (29, 32), "n_sat": (32, 35)}
+    cols = dict(EPOCH_COLUMNS[int(head.version)])
+    sec_cols = cols.pop("sec")
     v, bad = {}, np.zeros(m.shape[0], bool)
     for name, (a, b) in cols.items():
         v[name], b_ = parse_int(m[:, a:b])
         bad |= b_
-    sec, sec_bad = parse_float(m[:, 18:29])
-    mant, dec, _, _ = parse_decimal(m[:, 18:29])
+    if head.version < 3:  # two-digit years: 80-99 -> 19xx
+        v["year"] = v["year"] + np.where(v["year"] < 80, 2000, 1900)
+    sec, sec_bad = parse_float(m[:, sec_cols[0]:sec_cols[1]])
+    mant, dec, _, _ = parse_decimal(m[:, sec_cols[0]:sec_cols[1]])
     bad |= sec_bad | (dec > 9) | ~np.isfinite(sec) | (v["month"] < 1) | (v["month"] > 12) | (v["day"] < 1) \
         | (v["day"] > 31) | (v["hour"] > 23) | (v["minute"] > 59) | (sec >= 61)
     # Event records (flags 2-5) may leave the time blank; they are skipped anyway.
@@ -246,36 +316,45 @@ def _observations(body: np.ndarray, sat_lines: np.ndarray, epochs: dict[str, np.
     """
     if sat_lines.shape[0] == 0:
         return empty_raw()
-    width = 3 + _FIELD * max(len(t) for t in head.obs_types.values())
-    m = char_matrix(body, sat_lines[:, 0], sat_lines[:, 1], width)
-    system = m[:, 0].view("S1").astype(str)
-    prn, prn_bad = parse_int(m[:, 1:3])
-    n_obs = (width - 3) // _FIELD
-    fields = m[:, 3:3 + _FIELD * n_obs].reshape(-1, n_obs, _FIELD)
-    values, bad = parse_float(np.ascontiguousarray(fields[:, :, :14]).reshape(-1, 14))
+    n_obs = max(len(t) for t in head.obs_types.values())
+    starts, ends = sat_lines[:, 0], sat_lines[:, 1]
+    m = char_matrix(body, starts, ends, 3)
+    prn, prn_bad = sat_number(m[:, 1:3])
+    # (16, M, n_obs): F14.3 value, LLI, SSI of every observation, gathered column-major.
+    fields = gather_fields(body, starts, ends, 3 + _FIELD * np.arange(n_obs), _FIELD)
+    return observation_frame(m[:, 0], prn, prn_bad, fields, epochs, head, path, skipped)
+
+
+def observation_frame(system: np.ndarray, prn: np.ndarray, prn_bad: np.ndarray, fields: np.ndarray,
+                      epochs: dict[str, np.ndarray], head: ObsHeader, path: Path,
+                      skipped: dict[str, int]) -> pd.DataFrame:
+    """Satellite records -> contract frame, one block of rows per (system, signal).
+
+    system: (M,) uint8 letters.  prn, prn_bad: (M,) satellite numbers and their parse failures.
+    fields: (16, M, n_obs) uint8, column-major F14.3 + LLI + SSI of each observation type.
+    """
+    n_obs = fields.shape[2]
+    values, bad = parse_float_columns(fields[:14].reshape(14, -1), dot_col=10)
     values, bad = values.reshape(-1, n_obs), bad.reshape(-1, n_obs).any(axis=1) | prn_bad
     values[values == 0.0] = np.nan
-    lli = fields[:, :, 14]
+    lli = fields[14]
     if bad.any():
         line_no = epochs["line_no"][np.flatnonzero(bad)[0]]
         warnings.warn(f"{path}:{line_no}: unreadable number in satellite line; "
                       f"{bad.sum()} such line(s) skipped", stacklevel=3)
     count_skip(skipped, "sat_lines_bad_number", bad)
     ok = ~bad
-    unknown_sys = ok & ~np.isin(system, list(SIGNAL_CODES))
+    unknown_sys = ok & ~np.isin(system, [ord(s) for s in SIGNAL_CODES])
     count_skip(skipped, "sat_lines_unsupported_system", unknown_sys)
     blocks = []
     for sys_letter, types in head.obs_types.items():
-        rows = np.flatnonzero(ok & (system == sys_letter))
+        rows = np.flatnonzero(ok & (system == ord(sys_letter)))
         if sys_letter in SIGNAL_CODES and rows.size:
             blocks += _system_blocks(sys_letter, types, rows, values, lli, prn, epochs, head, skipped)
     if not blocks:
         return empty_raw()
     cols = {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
-    frame = finish_raw(cols)
-    dup = frame.duplicated(["t_ns", "sat_id", "signal"])
-    count_skip(skipped, "duplicate_observations", dup)
-    return frame[~dup.to_numpy()].reset_index(drop=True)
+    return finish_raw(cols, skipped)
 
 
 def _system_blocks(sys_letter: str, types: list[str], rows: np.ndarray, values: np.ndarray,
@@ -287,11 +366,13 @@ def _system_blocks(sys_letter: str, types: list[str], rows: np.ndarray, values: 
     """
     index = {t: i for i, t in enumerate(types)}
     used: set[str] = set()
+    done: set[str] = set()
     blocks = []
     for signal, band, attrs in SIGNAL_CODES[sys_letter]:
         attr = next((a for a in attrs if f"C{band}{a}" in index or f"L{band}{a}" in index), None)
-        if attr is None or signal in {b["signal"][0] for b in blocks if len(b["signal"])}:
+        if attr is None or signal in done:
             continue
+        done.add(signal)
         code = band + attr
         used |= {k + code for k in "CLDS"}
         col = {k: values[rows, index[k + code]] if k + code in index else np.full(rows.size, np.nan) for k in "CLDS"}
@@ -313,24 +394,30 @@ def _signal_columns(sys_letter: str, signal: str, rows: np.ndarray, col: dict[st
     n = rows.size
     svid = prn[rows] + _SVID_OFFSET.get(sys_letter, 0)
     if sys_letter == "R":
-        glo_k = np.array([head.glo_k.get(int(s), GLO_K_UNKNOWN) for s in np.unique(svid)])
-        glo_k = glo_k[np.searchsorted(np.unique(svid), svid)]
+        slots, inverse = np.unique(svid, return_inverse=True)
+        glo_k = np.array([head.glo_k.get(int(s), GLO_K_UNKNOWN) for s in slots], np.int64)[inverse.ravel()]
     else:
         glo_k = np.zeros(n, np.int64)
     sig = np.full(n, signal, dtype=object)
-    wavelength = 299_792_458.0 / carrier_hz(sig, glo_k)
-    count_skip(skipped, "glonass_unknown_channel", np.isnan(wavelength))
+    freq = (1602.0e6 + glo_k * GLO_G1_STEP_HZ) if signal == "GLO_G1" else np.full(n, SIGNAL_CARRIER_HZ[signal])
+    freq = np.where(glo_k == GLO_K_UNKNOWN, np.nan, freq)
+    wavelength = 299_792_458.0 / freq
+    # Without the channel, cycles and Hz cannot become metres: Doppler and phase are dropped.
+    count_skip(skipped, "glonass_no_channel_doppler_phase", np.isnan(wavelength) & ~(np.isnan(col["L"]) & np.isnan(col["D"])))
     adr = col["L"] * wavelength
     nan = np.full(n, np.nan)
     return {
-        "t_ns": epochs["t_ns"][rows_epoch(rows, epochs)], "const": np.full(n, sys_letter, dtype=object),
+        "t_ns": epochs["t_ns"][epochs["epoch_of"][rows]], "const": np.full(n, sys_letter, dtype=object),
         "svid": svid, "signal": sig, "pr_m": col["C"], "pr_sigma_m": nan,
         "prr_mps": -col["D"] * wavelength, "prr_sigma_mps": nan, "adr_m": adr, "adr_sigma_m": nan,
         "adr_ok": np.isfinite(adr), "adr_slip": slip & np.isfinite(adr), "cn0": col["S"], "glo_k": glo_k,
-        "clock_reset": epochs["clock_reset"][rows_epoch(rows, epochs)],
+        "clock_reset": epochs["clock_reset"][epochs["epoch_of"][rows]], "carrier_hz": freq,
     }
 
 
-def rows_epoch(rows: np.ndarray, epochs: dict[str, np.ndarray]) -> np.ndarray:
-    """Epoch index of satellite-line rows. rows: (R,) int -> (R,) int."""
-    return epochs["epoch_of"][rows]
+def sat_number(m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two-column satellite numbers ('05', ' 5') -> (M,) int64 and (M,) bad mask. m: (M, 2) uint8."""
+    tens, ones = m[:, 0] - np.uint8(48), m[:, 1] - np.uint8(48)
+    blank_tens = m[:, 0] == 32
+    bad = ~((tens < 10) | blank_tens) | ~(ones < 10)
+    return np.where(blank_tens, 0, tens).astype(np.int64) * 10 + ones, bad
