@@ -27,9 +27,17 @@ COMMANDS: dict[str, tuple[str, str]] = {
 def add_run_options(p: argparse.ArgumentParser) -> None:
     """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
     p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
-    p.add_argument("--signals", default="GPS_L1",
+    p.add_argument("--signals", default=None,
                    help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
-                        "too), or all")
+                        "too), or all; default GPS_L1 for GSDC files, every signal with ephemerides "
+                        "for RINEX / GnssLogger logs")
+    p.add_argument("--nav", type=Path, nargs="+", default=(), metavar="FILE",
+                   help="RINEX / GnssLogger traces: broadcast navigation file(s) (RINEX 2 .YYn/.YYg, "
+                        "RINEX 3 *_MN.rnx; default: those in the trace folder or supplemental/)")
+    p.add_argument("--sp3", type=Path, default=None, metavar="FILE",
+                   help="RINEX / GnssLogger traces: precise orbits (SP3) instead of broadcast ones")
+    p.add_argument("--clk", type=Path, default=None, metavar="FILE",
+                   help="with --sp3: precise satellite clocks (RINEX clock file)")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
@@ -51,22 +59,35 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
 def options_from_args(args: argparse.Namespace) -> RunOptions:
     """The :class:`RunOptions` of parsed :func:`add_run_options` arguments."""
     # The loader's vocabulary: our names, GSDC 2023 spellings (GPS_L1_CA, ...) or "all".
-    names = [s.strip() for s in args.signals.split(",") if s.strip()]
-    signals = tuple(SIGNALS[i] for i in resolve_signals(names))
+    signals = None
+    if args.signals is not None:
+        names = [s.strip() for s in args.signals.split(",") if s.strip()]
+        signals = tuple(SIGNALS[i] for i in resolve_signals(names))
     if args.dnn_passes < 1:
         raise GnssfuseError("--dnn-passes must be >= 1")
+    if args.clk is not None and args.sp3 is None:
+        raise GnssfuseError("--clk needs --sp3 (precise clocks go with precise orbits)")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
                       wls_robust=args.robust_wls, learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
-                      use_doppler=not args.no_doppler, use_carrier=not args.no_carrier)
+                      use_doppler=not args.no_doppler, use_carrier=not args.no_carrier,
+                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk)
+
+
+def load_options(opts: RunOptions) -> dict:
+    """Keyword arguments of :func:`fusion.io.load.load_trace` that come from the run options."""
+    from fusion.io.raw_load import RawSources
+
+    return {"signals": opts.signals, "raw_sources": RawSources(opts.nav, opts.sp3, opts.clk)}
 
 
 def build_run_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
     from fusion.modes import MODES
 
     p = argparse.ArgumentParser(prog=prog, description="Solve one trace in one mode and write estimates.csv.")
-    p.add_argument("trace_dir", type=Path, help="a <collection>/<phone> folder (GSDC 2021 derived or 2022/23 device_gnss)")
+    p.add_argument("trace_dir", type=Path, help="a <collection>/<phone> folder (GSDC 2021 derived, 2022/23 device_gnss, or a RINEX "
+                   "observation file / GnssLogger log, directly or in supplemental/)")
     p.add_argument("--mode", default="wls", choices=list(MODES))
     p.add_argument("--out", type=Path, required=True, help="output folder")
     add_run_options(p)
@@ -84,8 +105,8 @@ def run_main(argv: list[str], prog: str = "gnssfuse run") -> int:
     opts = options_from_args(args)
     # min_sats=1: keep epochs with 1-3 satellites; WLS/dnn leave them unsolved (counted in info),
     # the fused modes carry them with the prior and the motion model
-    trace = load_trace(args.trace_dir, signals=opts.signals, fix_truth_height=not args.no_truth_height_fix,
-                       min_sats=1)
+    trace = load_trace(args.trace_dir, fix_truth_height=not args.no_truth_height_fix, min_sats=1,
+                       **load_options(opts))
     result = run_modes(trace, [args.mode], opts)[args.mode]
     record = write_outputs(args.out, trace, args.mode, result, mode_metrics(trace, result))
     print(f"{trace.name}: {record['epochs_solved']}/{trace.n_epochs} epochs solved in mode {args.mode}"

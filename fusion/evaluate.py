@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from fusion.cli import add_run_options, options_from_args
+from fusion.cli import add_run_options, load_options, options_from_args
 from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.wls import WlsResult
 from fusion.eval.metrics import mode_metrics, trace_errors
@@ -73,7 +73,8 @@ def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="Compare modes on traces: tables, CDFs, box "
                                 "plots, trajectories and report.md.")
     p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR",
-                   help="<collection>/<phone> folders (GSDC 2021 derived or 2022/23 device_gnss)")
+                   help="<collection>/<phone> folders (GSDC 2021 derived, 2022/23 device_gnss, RINEX obs or "
+                   "GnssLogger log)")
     p.add_argument("--modes", default="wls", help=f"comma-separated, from {','.join(MODES)}")
     p.add_argument("--out", type=Path, required=True, help="report folder")
     add_run_options(p)
@@ -102,9 +103,10 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     for d in tqdm(trace_dirs, desc="traces", disable=not progress):
         try:
             # min_sats=1: epochs with < 4 satellites reach the modes (the fused ones carry them)
-            trace = load_trace(d, signals=opts.signals, fix_truth_height=fix_truth_height, min_sats=1)
+            trace = load_trace(d, fix_truth_height=fix_truth_height, min_sats=1, **load_options(opts))
             if trace.n_epochs == 0:
-                raise DataError(f"{d}: no epochs with {', '.join(opts.signals)} measurements")
+                raise DataError(f"{d}: no epochs with {', '.join(opts.signals or ['the default signals'])} "
+                                "measurements")
         except GnssfuseError as exc:
             failures[str(d)] = str(exc)
             continue

@@ -20,7 +20,11 @@ class RunOptions:
     device: str = "cpu"
     dnn_passes: int = 1                  # DNN applied iteratively, features recomputed each pass
     incremental: bool = False            # fused modes: ISAM2 / fixed-lag instead of batch LM
-    signals: tuple[str, ...] = ("GPS_L1",)
+    signals: tuple[str, ...] | None = ("GPS_L1",)   # None: the format's default (GPS L1 for GSDC
+                                                  # files, every signal with ephemerides for raw logs)
+    nav: tuple[Path, ...] = ()           # raw logs: broadcast navigation files (else the folder's)
+    sp3: Path | None = None              # raw logs: precise orbits (+ clocks) instead of broadcast
+    clk: Path | None = None              # raw logs: precise clocks (RINEX clock file) with sp3
     wls_weighting: str = "elevation"
     wls_robust: bool = False
     # fused mode: which learned parts enter the graph (the report isolates what each adds)

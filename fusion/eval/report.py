@@ -172,7 +172,7 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
     lines = [
         "# gnssfuse evaluation report", "",
         f"Command: `gnssfuse evaluate {' '.join(argv)}`", "",
-        f"Modes: {', '.join(modes)}. Signals: {', '.join(opts.signals)}. Elevation mask: "
+        f"Modes: {', '.join(modes)}. Signals: {', '.join(opts.signals or ['format default'])}. Elevation mask: "
         f"{opts.elev_mask_deg:g} deg. DNN weights: {opts.weights or 'shipped'}; DNN passes: "
         f"{opts.dnn_passes}; incremental graph: {opts.incremental}.", "",
         "Every mode starts from the same WLS solution (receiver clock estimated, never taken from "

@@ -1,8 +1,10 @@
 """Find and load traces: a ``<collection>/<phone>`` folder (or a file in one) -> :class:`~fusion.trace.Trace`.
 
 The format is detected from the files: ``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
--> GSDC 2022/23 (:mod:`fusion.io.gsdc`). Truth comes from the folder's ``ground_truth.csv`` or
-SPAN NMEA log (:mod:`fusion.io.truth`).
+-> GSDC 2022/23 (:mod:`fusion.io.gsdc`); failing those, a RINEX observation file or GnssLogger
+log in the folder or its ``supplemental/`` (:mod:`fusion.io.raw_load`, with navigation from the
+folder or the caller). Truth comes from the folder's ``ground_truth.csv`` or SPAN NMEA log
+(:mod:`fusion.io.truth`).
 """
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from pathlib import Path
 
 from fusion.errors import DataError, GnssfuseError
 from fusion.io.gsdc import load_derived_2021, load_device_gnss
+from fusion.io.raw_load import RawSources, load_raw_trace, raw_log_files
 from fusion.io.truth import TRUTH_TOL_MS
 from fusion.trace import Trace
 
@@ -51,11 +54,14 @@ def _span_file(folder: Path, phone: str) -> Path | None:
 
 
 def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = True, truth: str = "auto",
-               *, min_sats: int = 4, truth_tol_ms: float = TRUTH_TOL_MS) -> Trace:
+               *, min_sats: int = 4, truth_tol_ms: float = TRUTH_TOL_MS,
+               raw_sources: RawSources | None = None) -> Trace:
     """Load one trace: a ``<collection>/<phone>`` folder, or a measurement file inside one.
 
     Format is detected from the files (``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
-    -> GSDC 2022/23). ``truth``: ``"auto"`` (SPAN NMEA when present for 2021, else
+    -> GSDC 2022/23, else a raw log with navigation from ``raw_sources`` or the folder, see
+    :mod:`fusion.io.raw_load`). ``signals``: names, or None for the format's default (GSDC: GPS L1;
+    raw logs: every signal with ephemerides). ``truth``: ``"auto"`` (SPAN NMEA when present, else
     ``ground_truth.csv``, else none), ``"csv"`` (ignore NMEA), ``"nmea"`` (require it), ``"none"``.
     The trace is named ``<collection>/<phone>`` after its folder, or ``<folder>/<stem>`` when that
     folder holds several measurement files (e.g. ``samples/Pixel4_derived``).
@@ -63,10 +69,16 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
     path = Path(path)
     if truth not in ("auto", "csv", "nmea", "none"):
         raise GnssfuseError(f"truth must be 'auto', 'csv', 'nmea' or 'none', got {truth!r}")
+    raw = _raw_log(path)
+    if raw is not None:
+        return load_raw_trace(raw[0], raw[1], raw_sources or RawSources(), signals=signals, truth=truth,
+                              fix_truth_height=fix_truth_height, min_sats=min_sats)
+    signals = ("GPS_L1",) if signals is None else signals
     if path.is_dir():
         files = _measurement_files(path)
         if not files:
-            raise DataError(f"{path}: no *_derived.csv[.gz] or device_gnss.csv[.gz] measurement file")
+            raise DataError(f"{path}: no *_derived.csv[.gz] or device_gnss.csv[.gz] measurement file, "
+                            "RINEX observation file or GnssLogger log (also looked in supplemental/)")
         if len(files) > 1:
             raise DataError(f"{path}: several measurement files ({', '.join(p.name for p in files)}); "
                             f"pass one of them")
@@ -103,12 +115,28 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
                              min_sats=min_sats, truth_tol_ms=truth_tol_ms, name=name)
 
 
-def find_traces(root: str | Path) -> list[Path]:
+def _raw_log(path: Path) -> tuple[Path, Path] | None:
+    """(trace folder, raw log) when ``path`` is a raw log or a folder with one and no GSDC file."""
+    if path.is_file() and path in raw_log_files(path.parent):
+        return path.parent, path
+    if path.is_file() and path.parent.name == "supplemental" and path in raw_log_files(path.parent.parent):
+        return path.parent.parent, path
+    if not path.is_dir() or _measurement_files(path):
+        return None
+    logs = raw_log_files(path)
+    if len(logs) > 1:
+        raise DataError(f"{path}: several raw logs ({', '.join(p.name for p in logs)}); pass one of them")
+    return (path, logs[0]) if logs else None
+
+
+def find_traces(root: str | Path, include_raw: bool = False) -> list[Path]:
     """Every loadable trace under ``root`` (a Kaggle-layout folder such as ``train/``, or a trace).
 
     Returns ``<collection>/<phone>`` folders holding one measurement file; folders holding several
     (e.g. ``samples/``) contribute each file, which :func:`load_trace` also accepts. Sorted.
-    Raises :class:`DataError` when ``root`` does not exist or holds no trace.
+    Folders with only a raw log (RINEX observations, GnssLogger) need navigation data to load, so
+    they are listed only with ``include_raw`` - or when ``root`` itself is one (a trace the
+    caller named). Raises :class:`DataError` when ``root`` does not exist or holds no trace.
     """
     root = Path(root)
     if not root.exists():
@@ -119,8 +147,12 @@ def find_traces(root: str | Path) -> list[Path]:
     for folder in sorted({root, *(p for p in root.rglob("*") if p.is_dir())}):
         files = _measurement_files(folder)
         found.extend([folder] if len(files) == 1 else files)
+        # a raw-log folder (its logs may sit in supplemental/, which is not a trace of its own)
+        if (include_raw or folder == root) and not files and folder.name != "supplemental" and raw_log_files(folder):
+            found.append(folder)
     if not found:
-        raise DataError(f"{root}: no trace found (no *_derived.csv[.gz] or device_gnss.csv[.gz] below it)")
+        raise DataError(f"{root}: no trace found (no *_derived.csv[.gz], device_gnss.csv[.gz], RINEX "
+                        "observation file or GnssLogger log below it)")
     return sorted(found)
 
 

@@ -1,30 +1,46 @@
-"""GPS broadcast ephemerides from RINEX 2 and 3 navigation files.
+"""Broadcast navigation files: RINEX 3 mixed / single-system (``*_MN.rnx``, ``*_GN.rnx``, ...),
+RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too.
 
-Only GPS (``G``) records are kept; other systems in a RINEX 3 mixed file are skipped by their
-known record lengths. The result is a struct-of-arrays :class:`GpsNav` (one entry per record,
-``N`` records) so that :mod:`fusion.nav.orbits` can evaluate many (epoch, satellite) pairs at once.
+:func:`read_nav` keeps every system we model: Keplerian records of GPS, QZSS, Galileo and BeiDou
+in one :class:`~fusion.nav.orbits.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
+:class:`~fusion.nav.glonass.GloNav`, plus the header's GPS Klobuchar coefficients and leap
+seconds. SBAS and IRNSS records are skipped and counted. :func:`read_rinex_nav` is the GPS-only
+view the simulator uses.
 
-Times: ``toc_ms`` / ``toe_ms`` are absolute GPS milliseconds since the GPS epoch (1980-01-06).
-The RINEX GPS week is resolved against the clock epoch ``toc`` rather than trusted, because
-some writers store it modulo 1024.
+Times: every ``*_ms`` is absolute GPS milliseconds since 1980-01-06. BeiDou epochs (BDT) are
+moved by +14 s, GLONASS epochs (UTC) by the leap seconds. The week of ``toe`` is resolved against
+the clock epoch ``toc`` rather than trusted, because some writers store it modulo 1024.
+Group delays are kept per signal class: ``tgd`` (L1 class: GPS/QZSS TGD, Galileo BGD(E1,E5b),
+BeiDou TGD1) and ``tgd_l5`` (GPS/QZSS ``(f1/f5)^2 TGD``, Galileo ``(f1/f5)^2 BGD(E1,E5a)``).
 """
 from __future__ import annotations
 
+import gzip
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from fusion.errors import DataError
-from fusion.gpstime import WEEK_S, gps_ms_from_calendar
+from fusion.gpstime import WEEK_S, gps_ms_from_calendar, leap_seconds_at_unix_ms, GPS_EPOCH_UNIX_MS
+from fusion.nav.glonass import GloNav
 from fusion.nav.orbits import GpsNav
 from fusion.trace import count_skip
-#: Fit interval used when a record leaves it blank or zero (IS-GPS-200: 4 hours).
-DEFAULT_FIT_H = 4.0
 
+#: Fit interval [h] by system when a record leaves it blank (GPS: IS-GPS-200, 4 h); Galileo and
+#: BeiDou carry none: RTKLIB's limits (4 h, 6 h either side of toe) are used.
+DEFAULT_FIT_H = {"G": 4.0, "J": 4.0, "E": 8.0, "C": 12.0}
 #: Lines per record (first line included) in RINEX 3 navigation files, by system letter.
 _R3_RECORD_LINES = {"G": 8, "E": 8, "C": 8, "J": 8, "I": 8, "R": 4, "S": 4}
+_KEPLER = ("G", "J", "E", "C")
+#: Android constellation type and svid offset per RINEX system letter.
+_CTYPE = {"G": 1, "R": 3, "J": 4, "C": 5, "E": 6}
+_SVID_OFFSET = {"J": 192}
+#: (f_L1 / f_L5)^2, the L5 / E5a group-delay scale.
+GAMMA_L5 = (1575.42 / 1176.45) ** 2
 
-#: Broadcast-orbit fields in file order (lines 1-7 of a GPS record, 4 per line).
+#: Broadcast-orbit fields in file order (lines 1-7 of a Keplerian record, 4 per line); Galileo
+#: and BeiDou put their group delays in the ``tgd`` / ``iodc`` slots.
 _ORBIT_FIELDS = (
     "iode", "crs", "delta_n", "m0",
     "cuc", "e", "cus", "sqrt_a",
@@ -34,7 +50,55 @@ _ORBIT_FIELDS = (
     "accuracy", "health", "tgd", "iodc",
     "t_transmit", "fit_h",
 )
-_KEEP = ("af0", "af1", "af2") + tuple(f for f in _ORBIT_FIELDS if f not in ("l2_codes", "l2p_flag"))
+_NAMES = ("af0", "af1", "af2") + _ORBIT_FIELDS
+_KEEP = tuple(f for f in _NAMES if f not in ("l2_codes", "l2p_flag"))
+#: GLONASS record fields in file order.
+_GLO_FIELDS = ("tau", "gamma", "tk", "x", "vx", "ax", "health", "y", "vy", "ay", "k", "z", "vz", "az", "age")
+
+
+@dataclass
+class Navigation:
+    """Everything read from one or more navigation files.
+
+    kepler:  GPS / QZSS / Galileo / BeiDou records (may be empty).
+    glonass: GLONASS records (may be empty).
+    klobuchar: (8,) GPS alpha0..3, beta0..3 from a header, or None.
+    leap_s:  GPS - UTC [s] from a header, or None.
+    """
+
+    kepler: GpsNav
+    glonass: GloNav
+    klobuchar: np.ndarray | None = None
+    leap_s: int | None = None
+    sources: list[str] = field(default_factory=list)
+    skipped: dict[str, int] = field(default_factory=dict)
+
+    def systems(self) -> set[str]:
+        """Constellation letters with at least one record."""
+        inv = {v: k for k, v in _CTYPE.items()}
+        out = {inv[int(c)] for c in np.unique(self.kepler.sat_id // 1000)}
+        return out | ({"R"} if len(self.glonass) else set())
+
+
+@dataclass
+class _Header:
+    version: float
+    file_type: str
+    system: str
+    body: int
+    klobuchar: np.ndarray | None
+    leap_s: int | None
+
+
+# ---------------------------------------------------------------------------- lines and header
+def _read_lines(path: Path) -> list[str]:
+    if not path.is_file():
+        raise DataError(f"{path}: navigation file not found")
+    try:
+        raw = gzip.decompress(path.read_bytes()) if path.name.endswith(".gz") else path.read_bytes()
+    except (OSError, EOFError, gzip.BadGzipFile) as exc:
+        raise DataError(f"{path}: cannot read navigation file ({exc})") from None
+    return raw.decode("ascii", errors="replace").splitlines()
 
 
 def _num(text: str, path: Path, line_no: int) -> float:
@@ -47,126 +111,226 @@ def _num(text: str, path: Path, line_no: int) -> float:
         raise DataError(f"{path}:{line_no}: cannot read number {text!r}") from None
 
 
-def _fields(line: str, start: int, count: int, path: Path, line_no: int) -> list[float]:
-    """``count`` 19-character numeric fields starting at column ``start`` (blank -> 0)."""
-    line = line.rstrip("\n").ljust(start + 19 * count)
-    return [_num(line[start + 19 * k: start + 19 * (k + 1)], path, line_no) for k in range(count)]
-
-
-def read_rinex_nav(path: str | Path) -> GpsNav:
-    """Parse a RINEX 2.x GPS or 3.x (GPS / mixed) navigation file.
-
-    Raises :class:`DataError` (naming the file and line) for unreadable files, unsupported
-    versions, truncated records, or a file without a single healthy GPS record.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: navigation file not found")
-    try:
-        lines = path.read_text(errors="replace").splitlines()
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read navigation file ({exc})") from None
+def _header(lines: list[str], path: Path) -> _Header:
+    """Version, file type, system, first body line, Klobuchar coefficients and leap seconds."""
     if not lines or "RINEX VERSION" not in lines[0]:
         raise DataError(f"{path}:1: not a RINEX file (no 'RINEX VERSION / TYPE' header line)")
     try:
         version = float(lines[0][:9])
     except ValueError:
         raise DataError(f"{path}:1: cannot read RINEX version {lines[0][:9]!r}") from None
-    file_type = lines[0][20:21].upper()
-    system = lines[0][40:41].upper() if version >= 3 else "G"
-    if file_type != "N":
-        raise DataError(f"{path}: RINEX type {file_type!r} is not GPS navigation data (need 'N'); "
-                        "no GPS records")
     if version >= 4 or version < 2:
-        raise DataError(f"{path}: RINEX navigation version {version} is not supported (2.x or 3.x)")
-    try:
-        body = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
-    except StopIteration:
-        raise DataError(f"{path}: no 'END OF HEADER' line") from None
+        raise DataError(f"{path}:1: RINEX navigation version {version} is not supported (2.x or 3.x)")
+    file_type = lines[0][20:21].upper()
+    # RINEX 2: type N is GPS, G is GLONASS; RINEX 3: type N with the system in column 41.
+    system = {"N": "G", "G": "R"}.get(file_type, "") if version < 3 else (lines[0][40:41].upper() or "M")
+    if file_type not in ("N", "G") or (version >= 3 and file_type != "N"):
+        raise DataError(f"{path}:1: RINEX type {file_type!r} is not navigation data")
+    alpha = beta = leap = None
+    for no, ln in enumerate(lines):
+        label = ln[60:].strip()
+        if label == "END OF HEADER":
+            klob = np.r_[alpha, beta] if alpha is not None and beta is not None else None
+            return _Header(version, file_type, system, no + 1, klob, leap)
+        if label in ("ION ALPHA", "ION BETA") or (label == "IONOSPHERIC CORR" and ln[:4] in ("GPSA", "GPSB")):
+            start = 2 if label.startswith("ION ") else 5
+            vals = np.array([_num(ln[start + 12 * k: start + 12 * (k + 1)], path, no + 1) for k in range(4)])
+            if label == "ION ALPHA" or ln[:4] == "GPSA":
+                alpha = vals
+            else:
+                beta = vals
+        elif label == "LEAP SECONDS" and ln[:6].strip():
+            leap = int(_num(ln[:6], path, no + 1))
+    raise DataError(f"{path}: no 'END OF HEADER' line")
 
-    rows: list[list[float]] = []
-    prns: list[int] = []
-    tocs: list[int] = []
-    i = body
-    n = len(lines)
-    skipped_other = 0
+
+# ---------------------------------------------------------------------------- records
+def _records(lines: list[str], head: _Header, path: Path, skipped: dict[str, int]
+             ) -> list[tuple[str, int, int, list[float]]]:
+    """(system letter, svid, toc in the system's own time [ms], values) per Keplerian or GLONASS
+    record; other systems are skipped and counted."""
+    out = []
+    i, n = head.body, len(lines)
     while i < n:
-        head = lines[i]
-        if not head.strip():
+        line = lines[i]
+        if not line.strip():
             i += 1
             continue
-        if version >= 3:
-            sys_letter = head[0].upper()
+        if head.version >= 3:
+            sys_letter = line[0].upper()
             if sys_letter not in _R3_RECORD_LINES:
-                raise DataError(f"{path}:{i + 1}: unknown satellite system {head[0]!r} in record")
-            n_lines = _R3_RECORD_LINES[sys_letter]
-            if sys_letter != "G":
-                skipped_other += 1
-                i += n_lines
-                continue
-            prn_txt, date_txt, clk_col, cont = head[1:3], head[4:23].split(), 23, 4
+                raise DataError(f"{path}:{i + 1}: unknown satellite system {line[0]!r} in record")
         else:
-            n_lines = 8
-            prn_txt, date_txt, clk_col, cont = head[0:2], head[3:22].split(), 22, 3
-        if i + n_lines > n:
-            raise DataError(f"{path}:{i + 1}: truncated ephemeris record "
-                            f"({n - i} of {n_lines} lines present)")
-        try:
-            prn = int(prn_txt)
-            y, mo, d, hh, mi = (int(v) for v in date_txt[:5])
-            sec = float(date_txt[5])
-        except (ValueError, IndexError):
-            raise DataError(f"{path}:{i + 1}: cannot read PRN / epoch from {head[:23]!r}") from None
-        if version < 3:
-            y += 2000 if y < 80 else 1900
-        try:
-            toc = gps_ms_from_calendar(y, mo, d, hh, mi, sec)
-        except ValueError as exc:
-            raise DataError(f"{path}:{i + 1}: invalid epoch ({exc})") from None
-        vals = _fields(head, clk_col, 3, path, i + 1)
-        for k in range(1, 8):
-            vals += _fields(lines[i + k], cont, 4, path, i + k + 1)
-        rows.append(vals)
-        prns.append(prn)
-        tocs.append(toc)
-        i += n_lines
+            sys_letter = head.system
+        n_lines = _R3_RECORD_LINES[sys_letter]
+        span = _record_span(lines, i, n_lines) if head.version >= 3 else min(n_lines, n - i)
+        if span < n_lines:
+            raise DataError(f"{path}:{i + 1}: truncated ephemeris record ({span} of {n_lines} lines present)")
+        if sys_letter in _KEPLER or sys_letter == "R":
+            out.append(_record(lines[i:i + n_lines], sys_letter, head.version, path, i + 1))
+        else:
+            count_skip(skipped, f"records_{sys_letter}_not_modelled", 1)
+        i += span
+    return out
 
-    if not rows:
-        raise DataError(f"{path}: no GPS records in navigation file (system {system!r})")
-    names = ("af0", "af1", "af2") + _ORBIT_FIELDS
-    table = np.asarray(rows, float)
-    params = {name: table[:, k] for k, name in enumerate(names) if name in _KEEP}
-    prn = np.asarray(prns, int)
-    toc_ms = np.asarray(tocs, np.int64)
-    params["fit_h"] = np.where(params["fit_h"] > 0, params["fit_h"], DEFAULT_FIT_H)
 
-    # Resolve the week from toc: the toe lies within half a week of the clock epoch.
+def _record_span(lines: list[str], i: int, n_lines: int) -> int:
+    """Lines of the RINEX 3 record starting at line ``i``: up to the next line that starts with a
+    system letter (RINEX 3.05 GLONASS records carry a fifth line, read past here)."""
+    j = i + 1
+    while j < len(lines) and (lines[j][:1] == " " or not lines[j].strip()):
+        j += 1
+    return j - i
+
+
+def _record(rec: list[str], sys_letter: str, version: float, path: Path, line_no: int
+            ) -> tuple[str, int, int, list[float]]:
+    head = rec[0]
+    if version >= 3:
+        prn_txt, date_txt, clk_col, cont = head[1:3], head[4:23].split(), 23, 4
+    else:
+        prn_txt, date_txt, clk_col, cont = head[0:2], head[3:22].split(), 22, 3
+    try:
+        svid = int(prn_txt) + _SVID_OFFSET.get(sys_letter, 0)
+        y, mo, d, hh, mi = (int(v) for v in date_txt[:5])
+        sec = float(date_txt[5])
+    except (ValueError, IndexError):
+        raise DataError(f"{path}:{line_no}: cannot read PRN / epoch from {head[:23]!r}") from None
+    if version < 3:
+        y += 2000 if y < 80 else 1900
+    try:
+        toc = gps_ms_from_calendar(y, mo, d, hh, mi, sec)
+    except ValueError as exc:
+        raise DataError(f"{path}:{line_no}: invalid epoch ({exc})") from None
+    vals = _fields(head, clk_col, 3, path, line_no)
+    for k, ln in enumerate(rec[1:], 1):
+        vals += _fields(ln, cont, 4, path, line_no + k)
+    return sys_letter, svid, toc, vals
+
+
+def _fields(line: str, start: int, count: int, path: Path, line_no: int) -> list[float]:
+    """``count`` 19-character numeric fields starting at column ``start`` (blank -> 0)."""
+    line = line.rstrip("\n").ljust(start + 19 * count)
+    return [_num(line[start + 19 * k: start + 19 * (k + 1)], path, line_no) for k in range(count)]
+
+
+# ---------------------------------------------------------------------------- tables
+def _kepler_table(recs: list, path: str, skipped: dict[str, int]) -> GpsNav:
+    """Keplerian records -> healthy, de-duplicated :class:`GpsNav` sorted by (sat_id, toe)."""
+    recs = [r for r in recs if r[0] in _KEPLER]
+    if not recs:
+        return GpsNav(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                      {k: np.zeros(0) for k in _KEEP + ("tgd_l5",)}, path, skipped, np.zeros(0, np.int64))
+    letters = np.array([r[0] for r in recs])
+    svid = np.array([r[1] for r in recs], np.int64)
+    table = np.asarray([r[3] for r in recs], float)
+    params = {name: table[:, k] for k, name in enumerate(_NAMES) if name in _KEEP}
+    params["tgd_l5"] = GAMMA_L5 * params["tgd"]
+    gal = letters == "E"
+    # Galileo: the tgd slot is BGD(E1,E5a), the iodc slot BGD(E1,E5b), which the E1 I/NAV user applies.
+    params["tgd_l5"][gal] = GAMMA_L5 * params["tgd"][gal]
+    params["tgd"] = np.where(gal, params["iodc"], params["tgd"])
+    params["tgd_l5"][letters == "C"] = 0.0
+    default_fit = np.array([DEFAULT_FIT_H[s] for s in letters])
+    # QZSS writes a fit flag (0/1), Galileo and BeiDou no fit interval at all.
+    use_file_fit = np.isin(letters, ["G"]) & (params["fit_h"] > 1)
+    params["fit_h"] = np.where(use_file_fit, params["fit_h"], default_fit)
+    # BeiDou times are BDT = GPST - 14 s; the week-of-toe logic runs in the system's own time.
+    offset_ms = np.where(letters == "C", 14_000, 0)
+    toc_sys = np.array([r[2] for r in recs], np.int64)
     toe_sow = params["toe_sow"]
-    week = np.round((toc_ms / 1000.0 - toe_sow) / WEEK_S)
-    toe_ms = (week * WEEK_S * 1000).astype(np.int64) + np.round(toe_sow * 1000).astype(np.int64)
+    week = np.round((toc_sys / 1000.0 - toe_sow) / WEEK_S)
+    toe_ms = (week * WEEK_S * 1000).astype(np.int64) + np.round(toe_sow * 1000).astype(np.int64) + offset_ms
+    toc_ms = toc_sys + offset_ms
+    sat_id = np.array([_CTYPE[s] for s in letters], np.int64) * 1000 + svid
+    keep = _healthy_unique(sat_id, toe_ms, params["health"], skipped)
+    sel = np.flatnonzero(keep)
+    sel = sel[np.lexsort((toe_ms[sel], sat_id[sel]))]
+    return GpsNav(prn=svid[sel], toc_ms=toc_ms[sel], toe_ms=toe_ms[sel],
+                  params={k: v[sel] for k, v in params.items()}, source=path, skipped=skipped,
+                  sat_id=sat_id[sel])
 
-    skipped: dict[str, int] = {}
-    count_skip(skipped, "non_gps_records", skipped_other)
-    keep = params["health"] == 0
-    bad_prn = (prn < 1) | (prn > 32)
-    keep &= ~bad_prn
+
+def _healthy_unique(sat_id: np.ndarray, toe_ms: np.ndarray, health: np.ndarray,
+                    skipped: dict[str, int]) -> np.ndarray:
+    """(N,) bool: healthy, first of its (sat_id, toe) (re-broadcasts carry the same orbit)."""
+    keep = health == 0
     count_skip(skipped, "unhealthy_or_bad_prn", ~keep)
-    # Duplicates (same PRN and toe, re-broadcast) carry the same orbit: keep the first.
-    key = prn.astype(np.int64) * 10**13 + toe_ms
-    order = np.lexsort((np.arange(len(prn)), key))
-    first = np.zeros(len(prn), bool)
+    key = sat_id * 10**13 + toe_ms
+    order = np.lexsort((np.arange(len(key)), key))
+    first = np.zeros(len(key), bool)
     k_sorted = key[order]
     first[order[np.r_[True, k_sorted[1:] != k_sorted[:-1]]]] = True
     count_skip(skipped, "duplicate_records", ~first & keep)
-    keep &= first
-    if not keep.any():
-        raise DataError(f"{path}: no healthy GPS records in navigation file")
+    return keep & first
+
+
+def _glonass_table(recs: list, leap_s: int, path: str, skipped: dict[str, int]) -> GloNav:
+    """GLONASS records (epochs in UTC) -> healthy, de-duplicated :class:`GloNav`."""
+    recs = [r for r in recs if r[0] == "R"]
+    t = np.array([r[2] for r in recs], np.int64) + 1000 * leap_s
+    svid = np.array([r[1] for r in recs], np.int64)
+    v = {k: np.asarray([r[3][i] for r in recs], float) for i, k in enumerate(_GLO_FIELDS)}
+    keep = _healthy_unique(3000 + svid, t, v["health"] if recs else np.zeros(0), skipped) if recs else np.zeros(0, bool)
     sel = np.flatnonzero(keep)
-    sel = sel[np.lexsort((toe_ms[sel], prn[sel]))]
-    return GpsNav(
-        prn=prn[sel], toc_ms=toc_ms[sel], toe_ms=toe_ms[sel],
-        params={k: v[sel] for k, v in params.items()}, source=str(path), skipped=skipped,
-    )
+    sel = sel[np.lexsort((t[sel], svid[sel]))]
+    xyz = lambda a, b, c: np.stack([v[a], v[b], v[c]], axis=1)[sel] * 1000.0 if recs else np.zeros((0, 3))  # noqa: E731
+    return GloNav(svid=svid[sel], toe_ms=t[sel], pos=xyz("x", "y", "z"), vel=xyz("vx", "vy", "vz"),
+                  acc=xyz("ax", "ay", "az"), tau=v["tau"][sel] if recs else np.zeros(0),
+                  gamma=v["gamma"][sel] if recs else np.zeros(0),
+                  k=v["k"][sel].astype(np.int64) if recs else np.zeros(0, np.int64), source=path)
+
+
+# ---------------------------------------------------------------------------- public API
+def read_nav(paths: str | Path | list) -> Navigation:
+    """Read one or more navigation files into one :class:`Navigation` (records of every file
+    merged; header values from the first file that has them)."""
+    paths = [Path(p) for p in (paths if isinstance(paths, (list, tuple)) else [paths])]
+    if not paths:
+        raise DataError("no navigation file given")
+    skipped: dict[str, int] = {}
+    recs: list = []
+    klob = leap = None
+    for path in paths:
+        lines = _read_lines(path)
+        head = _header(lines, path)
+        recs += _records(lines, head, path, skipped)
+        klob = klob if klob is not None else head.klobuchar
+        leap = leap if leap is not None else head.leap_s
+    name = ", ".join(str(p) for p in paths)
+    if not recs:
+        raise DataError(f"{name}: no GPS, QZSS, Galileo, BeiDou or GLONASS records in navigation file")
+    glo_leap = leap if leap is not None else _leap_at_gps_ms(min(r[2] for r in recs))
+    return Navigation(kepler=_kepler_table(recs, name, skipped), glonass=_glonass_table(recs, glo_leap, name, skipped),
+                      klobuchar=klob, leap_s=leap, sources=[str(p) for p in paths], skipped=skipped)
+
+
+def _leap_at_gps_ms(t_ms: int) -> int:
+    """GPS - UTC [s] at a GPS time (the table in :mod:`fusion.gpstime`), when no header says."""
+    return int(leap_seconds_at_unix_ms(np.int64(t_ms) + GPS_EPOCH_UNIX_MS))
+
+
+def read_rinex_nav(path: str | Path) -> GpsNav:
+    """GPS records only of a RINEX 2.x GPS or 3.x (GPS / mixed) navigation file (the simulator's
+    view). Raises :class:`DataError` (naming the file and line) for unreadable files, unsupported
+    versions, truncated records, or a file without a single healthy GPS record."""
+    path = Path(path)
+    lines = _read_lines(path)
+    if lines and "RINEX VERSION" in lines[0] and lines[0][:9].strip().startswith("2") and lines[0][20:21] != "N":
+        raise DataError(f"{path}:1: RINEX 2 type {lines[0][20:21]!r} file has no GPS records")
+    head = _header(lines, path)
+    skipped: dict[str, int] = {}
+    recs = _records(lines, head, path, skipped)
+    count_skip(skipped, "non_gps_records", sum(r[0] != "G" for r in recs))
+    for k in [k for k in skipped if k.startswith("records_")]:
+        count_skip(skipped, "non_gps_records", skipped.pop(k))
+    recs = [r for r in recs if r[0] == "G" and 1 <= r[1] <= 32]
+    if not recs:
+        raise DataError(f"{path}: no GPS records in navigation file (system {head.system!r})")
+    nav = _kepler_table(recs, str(path), skipped)
+    if not len(nav):
+        raise DataError(f"{path}: no healthy GPS records in navigation file")
+    return nav
 
 
 def default_nav_path() -> Path:

@@ -1,4 +1,4 @@
-"""Minimal SP3-c/d precise-orbit reader (positions only), used to check broadcast orbits.
+"""Minimal SP3-c/d precise-orbit reader (positions and clocks), for checks and precise states.
 
 SP3 positions are ECEF in km at the satellite centre of mass; epochs are in the file's time
 system (GPS for the IGS/CODE products we use). Bad or missing values become NaN.
@@ -16,12 +16,14 @@ from fusion.gpstime import gps_ms_from_calendar
 
 @dataclass
 class Sp3Orbits:
-    """t_ms: (T,) GPS ms; sats: (N,) ids like ``"G01"``; pos: (T, N, 3) ECEF [m], NaN if missing."""
+    """t_ms: (T,) GPS ms; sats: (N,) ids like ``"G01"``; pos: (T, N, 3) ECEF [m], NaN if missing;
+    clock: (T, N) satellite clock offset [s], NaN if missing (None from older callers)."""
 
     t_ms: np.ndarray
     sats: np.ndarray
     pos: np.ndarray
     source: str
+    clock: np.ndarray | None = None
 
 
 def read_sp3(path: str | Path) -> Sp3Orbits:
@@ -39,6 +41,7 @@ def read_sp3(path: str | Path) -> Sp3Orbits:
             break
     times: list[int] = []
     recs: dict[tuple[int, str], tuple[float, float, float]] = {}
+    clks: dict[tuple[int, str], float] = {}
     for no, ln in enumerate(lines, 1):
         if ln.startswith("* "):
             f = ln[1:].split()
@@ -53,6 +56,10 @@ def read_sp3(path: str | Path) -> Sp3Orbits:
             except ValueError:
                 raise DataError(f"{path}:{no}: cannot read position record {ln[:46]!r}") from None
             recs[(len(times) - 1, ln[1:4].replace(" ", "0"))] = xyz
+            try:
+                clks[(len(times) - 1, ln[1:4].replace(" ", "0"))] = float(ln[46:60])
+            except ValueError:  # a blank clock field is "no clock", not an error
+                pass
     if not times:
         raise DataError(f"{path}: no epochs in SP3 file")
     sats = np.array(sorted({s for _, s in recs}))
@@ -63,4 +70,9 @@ def read_sp3(path: str | Path) -> Sp3Orbits:
     # 0.000000 or 999999.999999 mark a missing position.
     bad = np.all(pos == 0.0, axis=-1) | np.any(np.abs(pos) > 999_999.0, axis=-1)
     pos[bad] = np.nan
-    return Sp3Orbits(np.asarray(times, np.int64), sats, pos * 1000.0, str(path))
+    clock = np.full((len(times), len(sats)), np.nan)
+    for (ti, sat), c in clks.items():
+        clock[ti, col[sat]] = c
+    # 999999.999999 (or more) marks a missing clock; values are microseconds.
+    clock[~(np.abs(clock) < 999_999.0)] = np.nan
+    return Sp3Orbits(np.asarray(times, np.int64), sats, pos * 1000.0, str(path), clock * 1e-6)

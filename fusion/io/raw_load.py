@@ -1,0 +1,128 @@
+"""Load a trace folder holding raw receiver logs: a RINEX observation file or a GnssLogger log
+(directly or in ``supplemental/``), navigation from the folder or given, truth from
+``ground_truth.csv`` (GSDC 2021 or 2022/23 columns) or a SPAN NMEA log, interpolated to the
+receiver's epochs (a phone's epochs are not on the truth's whole seconds).
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fusion.errors import DataError
+from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, check_overlap, interp_gapped, llh_ecef,
+                             read_truth_csv, warn_outside_bay_area)
+from fusion.trace import Trace
+
+#: RINEX observation names: .obs, .YYo, *_MO.rnx / *_GO.rnx ..., optionally .gz.
+_OBS = re.compile(r"(\.obs|\.\d\do|_[A-Z]O\.rnx)(\.gz)?$", re.IGNORECASE)
+#: GnssLogger logs.
+_LOG = re.compile(r"(gnss_?log.*\.txt)(\.gz)?$", re.IGNORECASE)
+#: Broadcast navigation: .YYn / .YYg, *_MN.rnx / *_GN.rnx ..., .nav, optionally .gz.
+_NAV = re.compile(r"(\.\d\d[ng]|_[A-Z]N\.rnx|\.nav)(\.gz)?$", re.IGNORECASE)
+_SP3 = re.compile(r"\.sp3(\.gz)?$", re.IGNORECASE)
+_CLK = re.compile(r"\.clk(\.gz)?$", re.IGNORECASE)
+#: Truth CSV rows are 1 Hz: interpolate across gaps up to this long [ms].
+CSV_MAX_GAP_MS = 1500
+
+
+@dataclass
+class RawSources:
+    """Navigation given by the user (``--nav``, ``--sp3``, ``--clk``); empty: search the folder."""
+
+    nav: tuple[Path, ...] = ()
+    sp3: Path | None = None
+    clk: Path | None = None
+
+
+def _files(folder: Path, pattern: re.Pattern) -> list[Path]:
+    """Files in ``folder`` and ``folder/supplemental`` whose names match ``pattern``."""
+    out = []
+    for d in (folder, folder / "supplemental"):
+        if d.is_dir():
+            out += sorted(p for p in d.iterdir() if p.is_file() and pattern.search(p.name))
+    return out
+
+
+def raw_log_files(folder: Path) -> list[Path]:
+    """RINEX observation files and GnssLogger logs in ``folder`` or its ``supplemental/``."""
+    return _files(folder, _OBS) + _files(folder, _LOG)
+
+
+def read_raw(path: Path):
+    """A RINEX observation file or a GnssLogger log -> :class:`~fusion.io.raw.RawObs`."""
+    if _LOG.search(path.name):
+        from fusion.io.gnss_log import read_gnss_log
+        return read_gnss_log(path)
+    from fusion.io.rinex_obs import read_rinex_obs
+    return read_rinex_obs(path)
+
+
+def _navigation(folder: Path, src: RawSources):
+    """(broadcast Navigation or None, PreciseOrbits or None) from the options or the folder."""
+    from fusion.io.rinex_nav import read_nav
+
+    nav_files = list(src.nav) or _files(folder, _NAV)
+    sp3 = src.sp3 or next(iter(_files(folder, _SP3)), None)
+    clk = src.clk or (next(iter(_files(folder, _CLK)), None) if sp3 is not None else None)
+    if src.clk is not None and sp3 is None:
+        raise DataError(f"{src.clk}: a clock file needs SP3 orbits too (--sp3)")
+    nav = read_nav(nav_files) if nav_files else None
+    precise = None
+    if sp3 is not None:
+        from fusion.io.clk import read_clk
+        from fusion.io.sp3 import read_sp3
+        from fusion.nav.precise import PreciseOrbits
+        precise = PreciseOrbits(read_sp3(sp3), read_clk(clk) if clk is not None else None)
+    if nav is None and precise is None:
+        raise DataError(f"{folder}: no navigation data: put a RINEX navigation file (.YYn, .YYg, *_MN.rnx) "
+                        "in the folder or supplemental/, or pass --nav FILE (or --sp3 FILE [--clk FILE])")
+    return nav, precise
+
+
+def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, truth: str = "auto",
+                   fix_truth_height: bool = True, min_sats: int = 1, name: str | None = None) -> Trace:
+    """Read ``log``, compute satellite states from the navigation, attach interpolated truth."""
+    from fusion.io.raw_trace import raw_to_trace
+
+    nav, precise = _navigation(folder, src)
+    raw = read_raw(log)
+    trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats,
+                         name=name or f"{folder.parent.name}/{folder.name}")
+    if truth != "none":
+        trace.truth = _truth(folder, trace, truth, fix_truth_height)
+    return trace
+
+
+def _truth(folder: Path, trace: Trace, truth: str, fix_truth_height: bool) -> np.ndarray | None:
+    """(E, 3) truth interpolated at the epochs (SPAN NMEA first when ``truth`` is auto/nmea)."""
+    from fusion.io.load import _span_file
+    from fusion.io.nmea import read_span_nmea
+
+    t = trace.t_ms
+    nmea = _span_file(folder, folder.name) if truth in ("auto", "nmea") else None
+    if truth == "nmea" and nmea is None:
+        raise DataError(f"{folder}: truth='nmea' but no supplemental/SPAN_*.nmea[.gz] file")
+    if nmea is not None:
+        span = read_span_nmea(nmea, ref_gps_ms=int(t[0]), skipped=trace.skipped)
+        out = interp_gapped(t, span["t_ms"].to_numpy(), llh_ecef(span))
+        check_overlap(t, span["t_ms"].to_numpy(), out, Path(trace.name), nmea)
+        return out
+    csv = next((folder / n for n in ("ground_truth.csv", "ground_truth.csv.gz") if (folder / n).is_file()), None)
+    if csv is None:
+        return None
+    df = read_truth_csv(csv, trace.skipped)
+    if fix_truth_height and _is_gsdc2021(csv):
+        warn_outside_bay_area(df, csv)
+        df = df.assign(height_m=df["height_m"] - GSDC2021_TRUTH_HEIGHT_ERROR_M)
+    out = interp_gapped(t, df["t_ms"].to_numpy(), llh_ecef(df), CSV_MAX_GAP_MS)
+    check_overlap(t, df["t_ms"].to_numpy(), out, Path(trace.name), csv)
+    return out
+
+
+def _is_gsdc2021(csv: Path) -> bool:
+    """GSDC 2021 truth (millisSinceGpsEpoch column) carries the 63 m height error; 2022/23 does not."""
+    import pandas as pd
+    return "millisSinceGpsEpoch" in pd.read_csv(csv, nrows=0).columns

@@ -1,0 +1,232 @@
+"""Raw receiver observations (:class:`~fusion.io.raw.RawObs`) + navigation -> :class:`~fusion.trace.Trace`.
+
+Per row (epoch x satellite x signal): the transmit time is the receiver's time tag minus the
+pseudorange's flight time (``t_rx - pr / c``, then minus the satellite clock); the satellite state
+comes from broadcast navigation or SP3 (+ CLK). The pseudorange is corrected for the satellite
+clock (relativity included, group delay removed: ``+ c dt_sv``), the Klobuchar ionosphere
+(scaled to the carrier) and the Saastamoinen troposphere; the Doppler for the satellite clock
+drift (``+ c d(dt_sv)/dt``) and the carrier phase for the satellite clock (``+ c dt_sv``), as the
+:class:`~fusion.trace.Trace` docstring asks. The atmosphere needs the receiver's position and the
+satellites' elevations: a batched WLS on the clock-corrected pseudoranges gives them (epochs it
+cannot solve take the nearest solved epoch's position).
+
+The receiver's time tag is the phone's estimate of GPS time; its residual bias (the WLS clock)
+moves the transmit time and so the satellite by ``|v_sat| * bias`` (4 mm per microsecond). Where
+the WLS clock exceeds :data:`RETAG_CLOCK_M` the states are recomputed at the corrected times.
+Rows of a satellite without ephemeris at that time, without a pseudorange, or of unselected
+signals are dropped and counted in ``Trace.skipped``.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from fusion.errors import DataError
+from fusion.estimate.wls import solve_wls_arrays
+from fusion.geometry import C_LIGHT, ecef2geodetic, elevation_azimuth, line_of_sight
+from fusion.gpstime import WEEK_S
+from fusion.io.raw import RawObs
+from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
+from fusion.nav.precise import precise_states
+from fusion.nav.sat_states import broadcast_states
+from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals
+
+#: Receiver clock bias [m] beyond which satellite states are recomputed at corrected times (1 us).
+RETAG_CLOCK_M = 300.0
+#: Pseudorange sigma when the file gives none: SIGMA_PR_M at C/N0 >= CN0_REF, growing as
+#: 10^((CN0_REF - cn0) / 20) below it (amplitude-noise scaling of code tracking), capped.
+SIGMA_PR_M, CN0_REF, SIGMA_PR_MAX_M = 3.0, 35.0, 100.0
+#: Doppler and carrier-phase sigmas when the file gives none [m/s], [m].
+SIGMA_PRR_MPS, SIGMA_ADR_M = 0.1, 0.01
+#: Plausible raw pseudoranges [m] (GNSS orbits: 19,000-26,000 km slant ranges, GEO up to 42,000 km).
+_PR_RANGE_M = (1.0e7, 5.0e7)
+
+
+def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str | None = None,
+                 min_sats: int = 1) -> Trace:
+    """Build a :class:`Trace` from raw observations.
+
+    nav:     :class:`~fusion.io.rinex_nav.Navigation` (broadcast states, Klobuchar coefficients).
+    precise: optional :class:`~fusion.nav.precise.PreciseOrbits` used instead of ``nav`` for
+             satellite states (``nav`` then only supplies the ionosphere, and may be None).
+    signals: names to keep; None keeps every signal whose constellation has ephemerides.
+    min_sats: epochs with fewer rows are dropped and counted.
+    """
+    if nav is None and precise is None:
+        raise DataError(f"{raw.path}: no navigation data (pass broadcast navigation or SP3 orbits)")
+    skipped = dict(raw.skipped)
+    rows = _select_rows(raw, nav, precise, signals, skipped)
+    st = _states(rows, nav, precise, np.zeros(len(rows)))
+    count_skip(skipped, "rows_no_ephemeris", ~st["ok"])
+    rows, st = rows[st["ok"]].reset_index(drop=True), {k: v[st["ok"]] for k, v in st.items()}
+    rows, st, epoch, t_ns = _epochs(rows, st, min_sats, skipped, raw)
+    pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
+    ref = _reference_rows(rows)
+    rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, ref, raw)
+    if np.nanmax(np.abs(clock_m), initial=0.0) > RETAG_CLOCK_M:
+        st = _states(rows, nav, precise, -np.nan_to_num(clock_m)[epoch] / C_LIGHT)
+        pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
+    el, az = _elev_az(st["pos"], rx[epoch])
+    pr = pr - _atmosphere(rows, nav, rx[epoch], el, az)
+    pr = pr - _inter_signal_bias(rows, st["pos"], pr, rx[epoch], clock_m[epoch], ref)
+    cols = _columns(rows, st, pr)
+    packed = pack_rows(epoch, t_ns.size, cols)
+    mask = packed.pop("mask")
+    reset = np.zeros(t_ns.size, bool)
+    np.logical_or.at(reset, epoch, rows["clock_reset"].to_numpy(bool))
+    reset[0] = False
+    t_ms = np.round(t_ns / 1e6).astype(np.int64)
+    return Trace(t_ms=t_ms, mask=mask, clock_reset=reset, name=name or raw.path.stem, skipped=skipped, **packed)
+
+
+def default_signals(nav, precise) -> tuple[str, ...]:
+    """Every signal whose constellation has ephemerides in ``nav`` / ``precise``."""
+    letters = precise.systems() if precise is not None else nav.systems()
+    prefix = {"G": "GPS", "R": "GLO", "E": "GAL", "C": "BDS", "J": "QZS"}
+    return tuple(s for s in SIGNALS if any(s.startswith(prefix[c]) for c in letters))
+
+
+def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) -> pd.DataFrame:
+    """Rows of selected signals with a plausible pseudorange."""
+    f = raw.frame
+    names = default_signals(nav, precise) if signals is None else tuple(SIGNALS[i] for i in resolve_signals(signals))
+    keep = f["signal"].isin(names).to_numpy()
+    if signals is None:
+        count_skip(skipped, "rows_constellation_without_navigation", ~keep)
+    else:
+        count_skip(skipped, "rows_signal_not_selected", ~keep)
+    pr = f["pr_m"].to_numpy()
+    good = np.isfinite(pr) & (pr > _PR_RANGE_M[0]) & (pr < _PR_RANGE_M[1])
+    count_skip(skipped, "rows_no_pseudorange", keep & ~good)
+    # the ionosphere scales with the carrier: GLONASS rows of an unknown channel have none
+    known = np.isfinite(f["carrier_hz"].to_numpy())
+    count_skip(skipped, "rows_unknown_carrier_frequency", keep & good & ~known)
+    rows = f[keep & good & known].reset_index(drop=True)
+    if rows.empty:
+        raise DataError(f"{raw.path}: no pseudorange of signal(s) {', '.join(names)} "
+                        f"(navigation covers {', '.join(sorted(_systems(nav, precise)))})")
+    return rows
+
+
+def _systems(nav, precise) -> set[str]:
+    return precise.systems() if precise is not None else nav.systems()
+
+
+def _states(rows: pd.DataFrame, nav, precise, clock_shift_s: np.ndarray) -> dict[str, np.ndarray]:
+    """(N,) satellite states at each row's transmit time (two passes: the second at the transmit
+    time corrected by the first pass's satellite clock, which moves the satellite ~4 m per ms)."""
+    t_ns = rows["t_ns"].to_numpy(np.int64)
+    t_ms = t_ns // 1_000_000
+    base = (t_ns - t_ms * 1_000_000) * 1e-9 + clock_shift_s - rows["pr_m"].to_numpy() / C_LIGHT
+    sat_id, sig = rows["sat_id"].to_numpy(), pd.Index(SIGNALS).get_indexer(rows["signal"]).astype(np.int8)
+    fn = (lambda dt: precise_states(precise, sat_id, sig, t_ms, dt, nav)) if precise is not None else \
+         (lambda dt: broadcast_states(nav, sat_id, sig, t_ms, dt))
+    st = fn(base)
+    st = fn(base - st["clock_s"])
+    st["signal"] = sig
+    return st
+
+
+def _epochs(rows: pd.DataFrame, st: dict, min_sats: int, skipped: dict[str, int], raw: RawObs):
+    """Epoch index per row, dropping (and counting) epochs with fewer than ``min_sats`` rows."""
+    t_u, epoch, counts = np.unique(rows["t_ns"].to_numpy(np.int64), return_inverse=True, return_counts=True)
+    keep_e = counts >= min_sats
+    count_skip(skipped, f"epochs_lt{min_sats}_sats", ~keep_e)
+    if not keep_e.any():
+        raise DataError(f"{raw.path}: no epoch has >= {min_sats} measurements with ephemerides")
+    keep = keep_e[epoch]
+    rows = rows[keep].reset_index(drop=True)
+    st = {k: v[keep] for k, v in st.items()}
+    epoch = (np.cumsum(keep_e) - 1)[epoch[keep]]
+    return rows, st, epoch, t_u[keep_e]
+
+
+def _reference_rows(rows: pd.DataFrame) -> np.ndarray:
+    """(N,) bool: rows of the reference signal (GPS L1 when present, else the most common one),
+    whose receiver clock the other signals' inter-signal biases are measured against."""
+    sig = rows["signal"].to_numpy(object)
+    ref = "GPS_L1" if (sig == "GPS_L1").any() else pd.Series(sig).mode().iloc[0]
+    return sig == ref
+
+
+def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: np.ndarray,
+                    ref: np.ndarray, raw: RawObs) -> tuple[np.ndarray, np.ndarray]:
+    """(E, 3) receiver position and (E,) clock [m] (NaN where unsolved) from a robust WLS on the
+    reference signal's clock-corrected pseudoranges (one clock: the other signals carry unknown
+    inter-signal biases); unsolved epochs take the nearest solved one's position.
+
+    epoch: (N,) epoch per row; sat_pos: (N, 3); pr: (N,); ref: (N,) bool reference-signal rows.
+    """
+    packed = pack_rows(epoch[ref], n_epochs, {"sat_pos": sat_pos[ref], "pr": pr[ref]})
+    w = solve_wls_arrays(packed["sat_pos"], packed["pr"], packed["mask"], elev_mask_deg=10.0, robust=True)
+    pos, clock = w.pos, w.clock_m
+    good = np.flatnonzero(w.valid)
+    if good.size == 0:
+        if raw.approx_pos is None:
+            raise DataError(f"{raw.path}: no epoch could be solved for the approximate receiver position "
+                            "the atmosphere models need")
+        return np.broadcast_to(raw.approx_pos, (n_epochs, 3)).copy(), np.full(n_epochs, np.nan)
+    near = good[np.clip(np.searchsorted(good, np.arange(n_epochs)), 0, good.size - 1)]
+    prev = good[np.clip(np.searchsorted(good, np.arange(n_epochs)) - 1, 0, good.size - 1)]
+    near = np.where(np.abs(prev - np.arange(n_epochs)) < np.abs(near - np.arange(n_epochs)), prev, near)
+    return pos[near], clock
+
+
+def _inter_signal_bias(rows: pd.DataFrame, sat_pos: np.ndarray, pr: np.ndarray, rx: np.ndarray,
+                       clock_m: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """(N,) inter-signal range bias [m] of each row: per signal (and GLONASS channel), the median
+    over the trace of ``pr - range - reference clock``; 0 on reference rows. Like GSDC's
+    ``isrbM``, it lets one receiver clock serve every signal in WLS (phones show L5 / E5a and
+    GLONASS biases of metres to hundreds of metres); the graph still estimates what is left.
+
+    sat_pos, rx: (N, 3); pr, clock_m: (N,) (NaN clock where the epoch was not solved); ref: (N,).
+    """
+    rng, _ = line_of_sight(sat_pos[:, None, :], rx)
+    resid = pr - rng[:, 0] - clock_m
+    key = pd.Series(rows["signal"].to_numpy(object)) + "/" + rows["glo_k"].astype(str).to_numpy(object)
+    bias = pd.Series(np.where(ref, np.nan, resid)).groupby(key.to_numpy()).transform("median").to_numpy()
+    return np.where(ref | ~np.isfinite(bias), 0.0, bias)
+
+
+def _elev_az(sat_pos: np.ndarray, rx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) elevation and azimuth [deg] of satellites (N, 3) seen from receivers (N, 3)."""
+    _, los = line_of_sight(sat_pos[:, None, :], rx)
+    el, az = elevation_azimuth(los, rx)
+    return el[:, 0], az[:, 0]
+
+
+def _atmosphere(rows: pd.DataFrame, nav, rx: np.ndarray, el: np.ndarray, az: np.ndarray) -> np.ndarray:
+    """(N,) ionospheric (when the navigation header has Klobuchar coefficients) + tropospheric
+    delay [m] per row; rx: (N, 3) receiver ECEF, el/az: (N,) [deg]."""
+    llh = ecef2geodetic(rx)
+    delay = tropo_delay(llh[:, 0], llh[:, 2], el)
+    klob = getattr(nav, "klobuchar", None)
+    if klob is not None:
+        tow = (rows["t_ns"].to_numpy(np.int64) // 1_000_000 % (WEEK_S * 1000)) / 1000.0
+        l1 = klobuchar_l1(klob, llh[:, 0], llh[:, 1], az, el, tow)
+        delay = delay + l1 * iono_scale(rows["carrier_hz"].to_numpy())
+    return delay
+
+
+def _columns(rows: pd.DataFrame, st: dict[str, np.ndarray], pr: np.ndarray) -> dict[str, np.ndarray]:
+    """Trace per-row columns (N,) / (N, 3) for :func:`fusion.trace.pack_rows`."""
+    cn0 = rows["cn0"].to_numpy()
+    sigma = rows["pr_sigma_m"].to_numpy()
+    model = np.clip(SIGMA_PR_M * 10 ** ((CN0_REF - np.nan_to_num(cn0, nan=CN0_REF - 10)) / 20),
+                    SIGMA_PR_M, SIGMA_PR_MAX_M)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, model)
+    prr = rows["prr_mps"].to_numpy() + C_LIGHT * st["clock_drift"]
+    prr_ok = np.isfinite(prr)
+    adr = rows["adr_m"].to_numpy() + C_LIGHT * st["clock_s"]
+    adr_ok = rows["adr_ok"].to_numpy(bool) & np.isfinite(adr)
+    prr_sig, adr_sig = rows["prr_sigma_mps"].to_numpy(), rows["adr_sigma_m"].to_numpy()
+    return {
+        "sat_pos": st["pos"], "sat_vel": st["vel"], "pr": pr, "pr_sigma": sigma,
+        "sat_id": rows["sat_id"].to_numpy(np.int32), "signal": st["signal"],
+        "cn0": np.nan_to_num(cn0, nan=0.0),
+        "prr": np.where(prr_ok, prr, 0.0), "prr_ok": prr_ok,
+        "prr_sigma": np.where(prr_ok & np.isfinite(prr_sig) & (prr_sig > 0), prr_sig, np.where(prr_ok, SIGMA_PRR_MPS, 1.0)),
+        "adr": np.where(adr_ok, adr, 0.0), "adr_ok": adr_ok,
+        "adr_sigma": np.where(adr_ok & np.isfinite(adr_sig) & (adr_sig > 0), adr_sig, np.where(adr_ok, SIGMA_ADR_M, 1.0)),
+        "adr_slip": rows["adr_slip"].to_numpy(bool),
+    }

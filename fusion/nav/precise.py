@@ -1,0 +1,143 @@
+"""Satellite states from precise products: SP3 orbits (Lagrange interpolation) and clocks from a
+RINEX clock file where it covers the time, else from the SP3 file's own clock column.
+
+Conventions and what is left out (all at the metre / nanosecond level that broadcast data has
+anyway): SP3 positions are the satellite's centre of mass, not its antenna phase centre (no
+PCO applied, up to ~1-2 m along the radial for some satellites); precise clocks refer to the
+ionosphere-free code combination, so single-frequency pseudoranges need the broadcast group
+delay (TGD / BGD) - taken from the broadcast navigation when given, else left out (a few ns);
+the relativistic periodic term, excluded from precise clocks by convention, is added
+(``-2 r.v / c^2``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.errors import DataError
+from fusion.geometry import C_LIGHT
+from fusion.io.clk import PreciseClocks
+from fusion.io.sp3 import Sp3Orbits
+from fusion.nav.orbits import select_ephemeris
+from fusion.nav.sat_states import L5_SIGNALS
+
+#: Lagrange interpolation uses this many SP3 samples around the query (order 9 over 5-min samples
+#: is at the millimetre level for GNSS orbits).
+N_LAGRANGE = 10
+_LETTER_CTYPE = {"G": 1, "R": 3, "J": 4, "C": 5, "E": 6}
+_SVID_OFFSET = {"J": 192}
+
+
+@dataclass
+class PreciseOrbits:
+    """An SP3 file (positions, clocks) and optionally a finer clock file."""
+
+    sp3: Sp3Orbits
+    clk: PreciseClocks | None = None
+
+    def systems(self) -> set[str]:
+        return {str(s)[0] for s in self.sp3.sats if str(s)[0] in _LETTER_CTYPE}
+
+
+def sat_ids(names: np.ndarray) -> np.ndarray:
+    """SP3 / CLK names (``"G01"``, ``"J02"``) -> (N,) sat_id (-1 for systems we do not model)."""
+    out = np.full(len(names), -1, np.int64)
+    for k, n in enumerate(names):
+        n = str(n)
+        if n[0] in _LETTER_CTYPE and n[1:].strip().isdigit():
+            out[k] = _LETTER_CTYPE[n[0]] * 1000 + int(n[1:]) + _SVID_OFFSET.get(n[0], 0)
+    return out
+
+
+def _columns(names: np.ndarray, sat_id: np.ndarray) -> np.ndarray:
+    """(N,) column of each row's satellite in a product with satellites ``names``, -1 if absent."""
+    ids = sat_ids(names)
+    order = np.argsort(ids)
+    pos = np.clip(np.searchsorted(ids[order], sat_id), 0, ids.size - 1)
+    col = order[pos]
+    return np.where(ids[col] == sat_id, col, -1)
+
+
+def _lagrange(t_ms: np.ndarray, t_ref: np.ndarray, values: np.ndarray, col: np.ndarray,
+              t_q: np.ndarray) -> np.ndarray:
+    """Interpolate (T, N, k) ``values`` of column ``col`` (Q,) at times ``t_q`` (Q,) [s since
+    t_ms[0]] with :data:`N_LAGRANGE` samples; NaN where any sample is missing or outside."""
+    T = t_ms.size
+    start = np.clip(np.searchsorted(t_ref, t_q) - N_LAGRANGE // 2, 0, max(T - N_LAGRANGE, 0))
+    win = start[:, None] + np.arange(min(N_LAGRANGE, T))[None, :]           # (Q, n)
+    tw = t_ref[win]                                                          # (Q, n)
+    vw = values[win, col[:, None]]                                           # (Q, n, k)
+    diff = t_q[:, None] - tw
+    n = tw.shape[1]
+    w = np.ones_like(tw)
+    for j in range(n):
+        others = np.arange(n) != j
+        w[:, j] = np.prod(diff[:, others] / (tw[:, j:j + 1] - tw[:, others]), axis=1)
+    out = np.einsum("qn,qnk->qk", w, vw)
+    inside = (t_q >= t_ref[0]) & (t_q <= t_ref[-1])
+    return np.where(inside[:, None], out, np.nan)
+
+
+def precise_states(prec: PreciseOrbits, sat_id: np.ndarray, signal: np.ndarray, t_ms: np.ndarray,
+                   dt_s: np.ndarray, nav=None) -> dict[str, np.ndarray]:
+    """States from SP3 (+ CLK); same shapes and outputs as
+    :func:`fusion.nav.sat_states.broadcast_states`. ``nav``: optional broadcast
+    :class:`~fusion.io.rinex_nav.Navigation` for the group delays."""
+    sp3 = prec.sp3
+    if sp3.clock is None:
+        raise DataError(f"{sp3.source}: SP3 orbits were read without clocks")
+    sat_id, t_ms = np.asarray(sat_id, np.int64), np.asarray(t_ms, np.int64)
+    dt_s = np.broadcast_to(np.asarray(dt_s, float), sat_id.shape)
+    col = _columns(sp3.sats, sat_id)
+    t0 = sp3.t_ms[0]
+    t_ref = (sp3.t_ms - t0) * 1e-3
+    t_q = (t_ms - t0) * 1e-3 + dt_s
+    c = np.maximum(col, 0)
+    pos = _lagrange(sp3.t_ms, t_ref, sp3.pos, c, t_q)
+    vel = (_lagrange(sp3.t_ms, t_ref, sp3.pos, c, t_q + 0.5) - _lagrange(sp3.t_ms, t_ref, sp3.pos, c, t_q - 0.5))
+    clock, drift = _clock(prec, sat_id, t_ms, dt_s, c, t_q)
+    clock = clock - 2.0 * np.sum(pos * vel, axis=1) / C_LIGHT**2 - _group_delay(nav, sat_id, signal, t_ms)
+    ok = (col >= 0) & np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1) & np.isfinite(clock)
+    z = lambda a: np.where(ok.reshape(ok.shape + (1,) * (a.ndim - 1)), a, 0.0)  # noqa: E731
+    return {"pos": z(pos), "vel": z(vel), "clock_s": z(clock), "clock_drift": z(drift), "ok": ok}
+
+
+def _clock(prec: PreciseOrbits, sat_id, t_ms, dt_s, sp3_col, t_q) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) clock [s] and drift [s/s]: linear interpolation in the CLK file where it covers the
+    time, else in the SP3 clock column."""
+    sp3 = prec.sp3
+    clock, drift = _linear(sp3.t_ms, sp3.clock, sp3_col, t_ms, dt_s)
+    if prec.clk is not None:
+        ccol = _columns(prec.clk.sats, sat_id)
+        c2, d2 = _linear(prec.clk.t_ms, prec.clk.bias, np.maximum(ccol, 0), t_ms, dt_s)
+        use = (ccol >= 0) & np.isfinite(c2)
+        clock, drift = np.where(use, c2, clock), np.where(use, d2, drift)
+    return clock, drift
+
+
+def _linear(t_ref_ms: np.ndarray, values: np.ndarray, col: np.ndarray, t_ms: np.ndarray, dt_s: np.ndarray):
+    """Linear interpolation of (T, N) ``values`` at column ``col`` (Q,); NaN outside or missing."""
+    t_q = (t_ms - t_ref_ms[0]) * 1e-3 + dt_s
+    t_ref = (t_ref_ms - t_ref_ms[0]) * 1e-3
+    hi = np.clip(np.searchsorted(t_ref, t_q), 1, max(t_ref.size - 1, 1))
+    lo = hi - 1
+    span = t_ref[hi] - t_ref[lo]
+    v0, v1 = values[lo, col], values[hi, col]
+    slope = (v1 - v0) / np.where(span > 0, span, np.nan)
+    val = v0 + slope * (t_q - t_ref[lo])
+    inside = (t_q >= t_ref[0]) & (t_q <= t_ref[-1])
+    return np.where(inside, val, np.nan), np.where(inside, slope, np.nan)
+
+
+def _group_delay(nav, sat_id: np.ndarray, signal: np.ndarray, t_ms: np.ndarray) -> np.ndarray:
+    """(N,) broadcast group delay [s] of each row's signal (0 without navigation or record)."""
+    out = np.zeros(sat_id.shape)
+    if nav is None or len(nav.kepler) == 0:
+        return out
+    idx = select_ephemeris(nav.kepler, sat_id, t_ms, by_sat_id=True)
+    ok = idx >= 0
+    p = nav.kepler.params
+    l5 = L5_SIGNALS[np.asarray(signal)]
+    out[ok] = np.where(l5[ok], p["tgd_l5"][idx[ok]], p["tgd"][idx[ok]])
+    return out

@@ -1,0 +1,215 @@
+"""Multi-system broadcast navigation: RINEX 3 mixed / RINEX 2 readers, Keplerian orbits of every
+system (BeiDou GEO included), GLONASS RK4, precise SP3 + CLK states, malformed files."""
+from __future__ import annotations
+
+import gzip
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fusion.errors import DataError
+from fusion.io.clk import read_clk
+from fusion.io.rinex_nav import GAMMA_L5, default_nav_path, read_nav
+from fusion.nav.glonass import glonass_state, select_glonass
+from fusion.nav.orbits import sat_state
+from fusion.nav.sat_states import broadcast_states
+from fusion.trace import SIGNALS
+
+MIXED = Path(__file__).parent / "data" / "brdc_2023073_mixed_305.rnx"
+
+
+@pytest.fixture(scope="module")
+def mixed():
+    return read_nav(MIXED)
+
+
+def _consecutive_gap(nav, ids, toe, state_fn):
+    """Position [m] and clock [ns] differences of consecutive records of a satellite at the
+    midpoint of their reference times (each extrapolated half-way)."""
+    i = np.flatnonzero((ids[1:] == ids[:-1]) & (toe[1:] - toe[:-1] <= 4 * 3_600_000))
+    tm = (toe[i] + toe[i + 1]) // 2
+    a, b = state_fn(nav, i, tm), state_fn(nav, i + 1, tm)
+    return ids[i], np.linalg.norm(a["pos"] - b["pos"], axis=1), np.abs(a["clock_s"] - b["clock_s"]) * 1e9
+
+
+def test_mixed_305_fixture(mixed):
+    """Every modelled system is read, GLONASS 3.05 five-line records included; header values kept."""
+    assert mixed.systems() == {"G", "E", "C", "J", "R"}
+    assert set(mixed.kepler.sat_id // 1000) == {1, 4, 5, 6}
+    assert 4194 in mixed.kepler.sat_id                  # QZSS J02 is Android svid 194
+    assert mixed.leap_s == 18 and mixed.klobuchar.shape == (8,) and mixed.klobuchar[4] == 1.2902e5
+    g = mixed.glonass
+    assert len(g) == 2 and set(g.k) == {1, -4}          # R02 channel -4, R01 channel 1 (file values)
+    np.testing.assert_allclose(np.linalg.norm(g.pos, axis=1), 25.5e6, rtol=5e-3)
+    # GLONASS epochs are UTC: + 18 s leap to GPS
+    assert np.all(g.toe_ms % 60_000 == 18_000)
+    # BeiDou epochs are BDT: toc and toe move to GPS time by +14 s
+    bds = mixed.kepler.sat_id // 1000 == 5
+    assert np.all(mixed.kepler.toc_ms[bds] % 60_000 == 14_000)
+    gal = mixed.kepler.sat_id // 1000 == 6
+    # Galileo E1 uses BGD(E1,E5b) (the record's iodc slot), E5a (f1/f5)^2 BGD(E1,E5a) (its tgd slot)
+    par = mixed.kepler.params
+    np.testing.assert_array_equal(par["tgd"][gal], par["iodc"][gal])
+
+
+def test_keplerian_records_continuous_every_system(shared_data):
+    """Consecutive records of one satellite agree where both are valid: the orbit and clock
+    equations (per-system constants, BDT, the BeiDou GEO rotation) are right to < 1.5 m / 2 ns."""
+    nav = read_nav(shared_data / "ephemeris/gnss_lib_py_nav/BRDM00DLR_S_20230730000_01D_MN.rnx")
+    k = nav.kepler
+    ids, dpos, dclk = _consecutive_gap(k, k.sat_id, k.toe_ms, sat_state)
+    assert {1, 4, 5, 6} <= set(ids // 1000) and {5001, 5002} <= set(ids)   # C01/C02 are GEO
+    assert dpos.max() < 1.5 and dclk.max() < 2.0
+    gids, gpos, gclk = _consecutive_gap(nav.glonass, nav.glonass.sat_id, nav.glonass.toe_ms, glonass_state)
+    assert gids.size >= 3 and gpos.max() < 3.0 and gclk.max() < 3.0
+
+
+def test_beidou_geo_is_geostationary(mixed, shared_data):
+    nav = read_nav(shared_data / "ephemeris/gnss_lib_py_nav/BRDM00DLR_S_20230730000_01D_MN.rnx")
+    k = nav.kepler
+    geo = np.flatnonzero(np.isin(k.sat_id, [5001, 5002]))
+    st = sat_state(k, geo, k.toe_ms[geo] + 900_000)
+    r = np.linalg.norm(st["pos"], axis=1)
+    lat = np.degrees(np.arcsin(st["pos"][:, 2] / r))
+    np.testing.assert_allclose(r, 42.17e6, rtol=1e-3)
+    assert np.all(np.abs(lat) < 2) and np.all(np.linalg.norm(st["vel"], axis=1) < 200)
+    # the MEO/IGSO equations on the same elements put the satellite kilometres away, 5 degrees off
+    k.prn = k.prn.copy()
+    k.prn[geo] += 10                                     # C11/C12: not GEO numbers
+    wrong = sat_state(k, geo, k.toe_ms[geo] + 900_000)["pos"]
+    assert np.linalg.norm(wrong - st["pos"], axis=1).min() > 1000
+
+
+def test_glonass_rk4_matches_record_after_integration(mixed):
+    g = mixed.glonass
+    st = glonass_state(g, np.array([0, 0]), g.toe_ms[[0, 0]], np.array([0.0, 1e-9]))
+    np.testing.assert_allclose(st["pos"], g.pos[[0, 0]], atol=1e-3)
+    assert select_glonass(g, np.array([3001, 3001, 3009]), g.toe_ms[[0, 0, 0]] + [0, 10**8, 0]).tolist()[1:] == [-1, -1]
+
+
+def test_broadcast_states_group_delays_and_skips(mixed):
+    """L5-class signals take tgd_l5 instead of the L1 group delay; no record -> ok False."""
+    k = mixed.kepler
+    gps = int(np.flatnonzero(k.sat_id == 1001)[0])
+    t = np.full(3, k.toe_ms[gps])
+    sig = np.array([SIGNALS.index("GPS_L1"), SIGNALS.index("GPS_L5"), SIGNALS.index("GPS_L1")], np.int8)
+    st = broadcast_states(mixed, np.array([1001, 1001, 1030]), sig, t, 0.0)
+    assert st["ok"].tolist() == [True, True, False] and np.all(st["pos"][2] == 0)
+    tgd = k.params["tgd"][gps]
+    np.testing.assert_allclose(st["clock_s"][1] - st["clock_s"][0], tgd - GAMMA_L5 * tgd, atol=1e-15)
+
+
+def test_rinex2_and_gzip_and_multiple_files(tmp_path):
+    nav = read_nav(default_nav_path())
+    assert nav.systems() == {"G"} and nav.klobuchar is not None and nav.leap_s == 18
+    gz = tmp_path / "hour1180.21n.gz"
+    gz.write_bytes(gzip.compress(default_nav_path().read_bytes()))
+    both = read_nav([gz, MIXED])
+    assert len(both.kepler) == len(nav.kepler) + len(read_nav(MIXED).kepler)
+    np.testing.assert_array_equal(both.klobuchar, nav.klobuchar)       # first file's header wins
+
+
+def test_rinex2_glonass_file(tmp_path):
+    """A RINEX 2 .g file: 4-line records, PRN in columns 1-2, UTC epochs."""
+    rec = ["R02 2023 03 14 00 15 00-2.314336597919e-05 0.000000000000e+00 1.728000000000e+05",
+           "     1.433783544922e+04-1.395797729492e+00 0.000000000000e+00 0.000000000000e+00",
+           "    -6.566218261719e+03 2.361273765564e+00-9.313225746155e-10-4.000000000000e+00",
+           "     2.012003320313e+04 1.763606071472e+00-9.313225746155e-10 0.000000000000e+00"]
+    v2 = [" 2 23  3 14  0 15  0.0" + rec[0][23:].replace("e", "D")] + ["   " + ln[4:].replace("e", "D") for ln in rec[1:]]
+    p = tmp_path / "brdc0730.23g"
+    p.write_text("     2.01           G: GLONASS NAV DATA                     RINEX VERSION / TYPE\n"
+                 "    18                                                      LEAP SECONDS\n"
+                 "                                                            END OF HEADER\n" + "\n".join(v2) + "\n")
+    g2, g3 = read_nav(p).glonass, read_nav(MIXED).glonass
+    j = int(np.flatnonzero(g3.svid == 2)[0])
+    assert len(g2) == 1 and g2.k[0] == -4 and g2.toe_ms[0] == g3.toe_ms[j]
+    np.testing.assert_array_equal(g2.pos[0], g3.pos[j])
+
+
+def test_malformed_navigation(tmp_path):
+    lines = MIXED.read_text().splitlines()
+    body = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    trunc = tmp_path / "trunc_MN.rnx"
+    trunc.write_text("\n".join(lines[:body + 3]) + "\n")
+    with pytest.raises(DataError, match=r"trunc_MN\.rnx:\d+: truncated"):
+        read_nav(trunc)
+    bad = tmp_path / "bad_MN.rnx"
+    bad.write_text("\n".join(lines[:body] + [lines[body]] + [lines[body + 1].replace("e", "x", 1)] + lines[body + 2:]) + "\n")
+    with pytest.raises(DataError, match=rf"bad_MN\.rnx:{body + 2}: cannot read number"):
+        read_nav(bad)
+    sbas = tmp_path / "sbas_MN.rnx"
+    sbas.write_text("\n".join(lines[:body] + ["S20 2023 03 14 00 00 00 0.0 0.0 0.0"] + ["     0.0"] * 3) + "\n")
+    with pytest.raises(DataError, match="no GPS, QZSS, Galileo, BeiDou or GLONASS records"):
+        read_nav(sbas)
+    v4 = tmp_path / "v4.rnx"
+    v4.write_text("     4.00           N: GNSS NAV DATA    M: MIXED            RINEX VERSION / TYPE\n")
+    with pytest.raises(DataError, match="version 4.0 is not supported"):
+        read_nav(v4)
+    gzbad = tmp_path / "x_MN.rnx.gz"
+    gzbad.write_bytes(b"not gzip")
+    with pytest.raises(DataError, match="cannot read navigation file"):
+        read_nav(gzbad)
+    with pytest.raises(DataError, match="not found"):
+        read_nav(tmp_path / "none.rnx")
+
+
+def test_gps_broadcast_vs_precise_states(shared_data):
+    """Broadcast (brdc1180.21n) vs CODE MGEX SP3 + CLK through the same per-row interfaces:
+    metre-level orbits, nanosecond-level clocks after removing the per-epoch common offset
+    (precise clocks have their own reference)."""
+    from fusion.io.sp3 import read_sp3
+    from fusion.nav.precise import PreciseOrbits, precise_states
+
+    pre = shared_data / "ephemeris/precise"
+    prec = PreciseOrbits(read_sp3(pre / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3"),
+                         read_clk(pre / "COD0MGXFIN_20211180000_01D_30S_CLK.CLK"))
+    nav = read_nav(shared_data / "ephemeris/gnss_lib_py_nav/brdc1180.21n")
+    assert prec.systems() == {"G", "R", "E", "C", "J"}
+    t0 = prec.clk.t_ms[0] + 600_000                     # inside both the SP3 and the CLK spans
+    ids = np.arange(1001, 1033)
+    t = np.full(ids.size, t0)
+    sig = np.zeros(ids.size, np.int8)
+    b, p = broadcast_states(nav, ids, sig, t, 0.0), precise_states(prec, ids, sig, t, 0.0, nav)
+    ok = b["ok"] & p["ok"]
+    assert ok.sum() >= 25
+    dpos = np.linalg.norm(b["pos"][ok] - p["pos"][ok], axis=1)
+    dclk = (b["clock_s"][ok] - p["clock_s"][ok]) * 1e9
+    assert np.median(dpos) < 2.0 and dpos.max() < 6.0
+    assert np.median(np.abs(dclk - np.median(dclk))) < 2.0
+    np.testing.assert_allclose(np.linalg.norm(p["vel"][ok], axis=1), np.linalg.norm(b["vel"][ok], axis=1), atol=0.05)
+
+
+def test_precise_states_every_constellation(shared_data):
+    """SP3 + CLK give states for GLONASS, Galileo, BeiDou and QZSS too (no broadcast file of that
+    day exists here to compare against: orbit radius and clock plausibility instead)."""
+    from fusion.io.sp3 import read_sp3
+    from fusion.nav.precise import PreciseOrbits, precise_states, sat_ids
+
+    pre = shared_data / "ephemeris/precise"
+    prec = PreciseOrbits(read_sp3(pre / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3"),
+                         read_clk(pre / "COD0MGXFIN_20211180000_01D_30S_CLK.CLK"))
+    ids = sat_ids(prec.sp3.sats)
+    t = np.full(ids.size, prec.clk.t_ms[0] + 123_456)
+    st = precise_states(prec, ids, np.zeros(ids.size, np.int8), t, 0.0)
+    assert st["ok"].mean() > 0.9 and set(ids[st["ok"]] // 1000) == {1, 3, 4, 5, 6}
+    r = np.linalg.norm(st["pos"][st["ok"]], axis=1)
+    # Galileo E14/E18 fly eccentric orbits (17,000-26,000 km), QZSS IGSO up to ~45,000 km
+    assert r.min() > 17e6 and r.max() < 46e6
+    assert np.abs(st["clock_s"][st["ok"]]).max() < 1e-2
+    # outside the SP3 span: counted as not ok, never extrapolated
+    late = precise_states(prec, ids[:3], np.zeros(3, np.int8), np.full(3, prec.sp3.t_ms[-1] + 3_600_000), 0.0)
+    assert not late["ok"].any()
+
+
+def test_clk_malformed(tmp_path):
+    p = tmp_path / "x.clk"
+    p.write_text("     3.00           C                                       RINEX VERSION / TYPE\n"
+                 "                                                            END OF HEADER\n"
+                 "AS G01  2021 04 28 19 30  0.000000  2    abc\n")
+    with pytest.raises(DataError, match=r"x\.clk:3: cannot read satellite clock record"):
+        read_clk(p)
+    q = tmp_path / "y.clk"
+    q.write_text("hello\n")
+    with pytest.raises(DataError, match="not a RINEX clock file"):
+        read_clk(q)
