@@ -22,7 +22,7 @@ import numpy as np
 from fusion.estimate.graph import build
 from fusion.estimate.graph.build import build_graph
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import _ranges_and_gradients, robust_model
+from fusion.estimate.graph.factors import _ranges_and_gradients, robust_model, sagnac_rows
 from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, drift_key, pos_key, vel_key
 from fusion.estimate.wls import solve_wls
@@ -37,11 +37,12 @@ def tdcp_per_satellite(k, trace, inp, cfg) -> list:
         p = int(raw.tdcp_prev[k, s])
         keys = [pos_key(k - 1), pos_key(k), clock_key(k - 1), clock_key(k)]
         sj, sk = trace.sat_pos[k - 1, p][None], trace.sat_pos[k, s][None]
+        mj, mk = sagnac_rows(sj), sagnac_rows(sk)
         z = float(trace.adr[k, s] - trace.adr[k - 1, p])
 
-        def error(this, v, H, keys=keys, sj=sj, sk=sk, z=z):
-            rj, gj = _ranges_and_gradients(sj, v.atPoint3(keys[0]))
-            rk, gk = _ranges_and_gradients(sk, v.atPoint3(keys[1]))
+        def error(this, v, H, keys=keys, sj=sj, sk=sk, mj=mj, mk=mk, z=z):
+            rj, gj = _ranges_and_gradients(sj, mj, v.atPoint3(keys[0]))
+            rk, gk = _ranges_and_gradients(sk, mk, v.atPoint3(keys[1]))
             if H is not None:
                 H[0], H[1], H[2], H[3] = -gj, gk, np.array([[-C_LIGHT]]), np.array([[C_LIGHT]])
             return rk - rj + C_LIGHT * (v.atDouble(keys[3]) - v.atDouble(keys[2])) - z

@@ -100,14 +100,19 @@ def doppler_factor_vcd(k: int, prr_mps: float, sat_pos: np.ndarray, sat_vel: np.
                                np.asarray(rx_guess, float), DRIFT_HORIZON_S, 0.0, model)
 
 
-def _ranges_and_gradients(sat: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """GTSAM's pseudorange geometry, |sat - x| + OMEGA_E / c (x_sat y - y_sat x), (n,), and its
-    gradient in x, (n,3). sat (n,3) transmit-time ECEF, x (3,) receiver ECEF."""
-    d = sat - x
-    r = np.sqrt(np.einsum("ij,ij->i", d, d))
+def sagnac_rows(sat: np.ndarray) -> np.ndarray:
+    """(n,3) rows m with m . x = OMEGA_E / c (x_sat y - y_sat x), the first-order Earth-rotation range
+    term of GTSAM's pseudorange factors for receiver x (3,); also its gradient in x. sat (n,3) ECEF."""
     w = OMEGA_E / C_LIGHT
-    sagnac_grad = w * np.stack([-sat[:, 1], sat[:, 0], np.zeros(len(sat))], axis=1)
-    return r + w * (sat[:, 0] * x[1] - sat[:, 1] * x[0]), sagnac_grad - d / r[:, None]
+    return w * np.stack([-sat[:, 1], sat[:, 0], np.zeros(len(sat))], axis=1)
+
+
+def _ranges_and_gradients(sat: np.ndarray, sagnac: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """GTSAM's pseudorange geometry |sat - x| + sagnac . x, (n,), and its gradient in x, (n,3).
+    sat (n,3) transmit-time ECEF, sagnac (n,3) from :func:`sagnac_rows`, x (3,) receiver ECEF."""
+    d = sat - x
+    r = np.sqrt((d * d).sum(axis=1))
+    return r + sagnac @ x, sagnac - d / r[:, None]
 
 
 def robust_rows(e: np.ndarray, kind: str, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -134,24 +139,26 @@ def tdcp_factor_xxcc(j: int, k: int, delta_adr_m: np.ndarray, sat_j: np.ndarray,
     ``adr(k) - adr(j) = range(x(k), sat_k) - range(x(j), sat_j) + c * (c(k) - c(j))``; the ambiguity
     cancels. GTSAM 4.3 has no C++ factor of this form, so it is a Python ``CustomFactor`` with
     analytic Jacobians; one factor per epoch pair (its rows vectorised, each row with its own robust
-    loss, :func:`robust_rows`; the factor's own noise model is the unit one), because per-satellite Python factors cost ~10x more in GTSAM's
-    multithreaded linearisation (benchmarks/bench_doppler_carrier.py).
+    loss, :func:`robust_rows`; the factor's own noise model is the unit one), because per-satellite
+    Python factors cost ~6x more (benchmarks/bench_doppler_carrier.py).
     delta_adr_m (n,) [m]; sat_j, sat_k (n,3) ECEF at transmit time; sigma_m (n,) [m]."""
+    robust_rows(np.zeros(1), robust, robust_k)                 # an unknown loss fails here, not in GTSAM
     keys = [pos_key(j), pos_key(k), clock_key(j), clock_key(k)]
     sj, sk = np.array(sat_j, float), np.array(sat_k, float)
+    mj, mk = sagnac_rows(sj), sagnac_rows(sk)
     z, inv = np.array(delta_adr_m, float), 1.0 / np.asarray(sigma_m, float)
-    d_clock = C_LIGHT * np.ones((len(z), 1))
+    d_clock = C_LIGHT * inv[:, None]
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        rj, gj = _ranges_and_gradients(sj, values.atPoint3(keys[0]))
-        rk, gk = _ranges_and_gradients(sk, values.atPoint3(keys[1]))
+        rj, gj = _ranges_and_gradients(sj, mj, values.atPoint3(keys[0]))
+        rk, gk = _ranges_and_gradients(sk, mk, values.atPoint3(keys[1]))
         e = (rk - rj + C_LIGHT * (values.atDouble(keys[3]) - values.atDouble(keys[2])) - z) * inv
         cost_rows, sqrt_w = robust_rows(e, robust, robust_k)
         if H is None:                      # error(): the robust cost itself
             return cost_rows
         # linearize(): the reweighted rows and Jacobians, like GTSAM's Robust::WhitenSystem
-        s = (sqrt_w * inv)[:, None]
-        H[0], H[1], H[2], H[3] = -s * gj, s * gk, -s * d_clock, s * d_clock
+        s = sqrt_w[:, None]
+        H[0], H[1], H[2], H[3] = -(s * inv[:, None]) * gj, (s * inv[:, None]) * gk, -s * d_clock, s * d_clock
         return sqrt_w * e
 
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(len(z)), gtsam.KeyVector(keys), error)
