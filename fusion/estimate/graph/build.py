@@ -16,15 +16,20 @@ import gtsam
 import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_cc, doppler_factor_vcd,
-                                           drift_prior_factor_cd, drift_walk_factor_cdcd, isb_prior_factor_i,
-                                           position_prior_factor_x, prior_noise_model, pseudorange_factor_xc,
-                                           pseudorange_factor_xci, robust_model, tdcp_factor_xxcc)
+from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_cc, displacement_factor_xxu,
+                                           doppler_factor_vcd, drift_prior_factor_cd, drift_walk_factor_cdcd,
+                                           isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
+                                           pseudorange_factor_xc, pseudorange_factor_xci, robust_model,
+                                           tdcp_factor_ucc)
 from fusion.estimate.graph.inputs import EpochInputs
-from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, drift_key, isb_key, pos_key
+from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, disp_key, drift_key, isb_key, pos_key
 from fusion.estimate.graph.motion import motion_model
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
+
+#: u(k) = x(k) - x(k-1) is a definition, held to 1 mm (far below the carrier factors' 2 cm floor);
+#: 0.1 mm made ISAM2's Cholesky report an indeterminant system next to the clocks' c/sigma weights
+DISPLACEMENT_SIGMA_M = 1e-3
 
 
 def pseudorange_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
@@ -85,16 +90,21 @@ def doppler_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) ->
     return out
 
 
-def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
-    """The time-differenced carrier factor from epoch ``k - 1`` to ``k`` (on x, x, c, c), robust per
-    satellite; none when no satellite kept its carrier chain."""
+def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values) -> list:
+    """Robust time-differenced carrier factors from epoch ``k - 1`` to ``k`` on the displacement u(k)
+    (its variable and definition added here when some satellite kept its carrier chain)."""
     raw = inp.raw
     cur = np.flatnonzero(raw.tdcp_prev[k] >= 0)
     if cur.size == 0:
         return []
-    prev = raw.tdcp_prev[k, cur]
-    return [tdcp_factor_xxcc(k - 1, k, trace.adr[k, cur] - trace.adr[k - 1, prev], trace.sat_pos[k - 1, prev],
-                             trace.sat_pos[k, cur], raw.tdcp_sigma[k, cur], cfg.robust, cfg.robust_k)]
+    values.insert(disp_key(k), inp.init_pos[k] - inp.init_pos[k - 1])
+    out = [displacement_factor_xxu(k, DISPLACEMENT_SIGMA_M)]
+    for s in cur:                                   # ~10 satellites
+        p = int(raw.tdcp_prev[k, s])
+        model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.tdcp_sigma[k, s])))
+        out.append(tdcp_factor_ucc(k, trace.adr[k, s] - trace.adr[k - 1, p], trace.sat_pos[k - 1, p],
+                                   trace.sat_pos[k, s], inp.init_pos[k - 1], inp.init_pos[k], model))
+    return out
 
 
 def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConfig
@@ -109,7 +119,7 @@ def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConf
         factors += pseudorange_factors(k, trace, inp, cfg)
         factors += clock_link(k, inp, cfg)
         if inp.raw is not None:
-            factors += doppler_factors(k, trace, inp, cfg) + tdcp_factors(k, trace, inp, cfg)
+            factors += doppler_factors(k, trace, inp, cfg) + tdcp_factors(k, trace, inp, cfg, values)
     if inp.prior_ok[k]:
         model = prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k)
         factors.append(position_prior_factor_x(k, inp.prior_mean[k], model))
