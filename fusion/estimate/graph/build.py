@@ -97,13 +97,14 @@ def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig, value
     cur = np.flatnonzero(raw.tdcp_prev[k] >= 0)
     if cur.size == 0:
         return []
+    lin = inp.init_pos if raw.lin_pos is None else raw.lin_pos
     values.insert(disp_key(k), inp.init_pos[k] - inp.init_pos[k - 1])
     out = [displacement_factor_xxu(k, DISPLACEMENT_SIGMA_M)]
     for s in cur:                                   # ~10 satellites
         p = int(raw.tdcp_prev[k, s])
         model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.tdcp_sigma[k, s])))
         out.append(tdcp_factor_ucc(k, trace.adr[k, s] - trace.adr[k - 1, p], trace.sat_pos[k - 1, p],
-                                   trace.sat_pos[k, s], inp.init_pos[k - 1], inp.init_pos[k], model))
+                                   trace.sat_pos[k, s], lin[k - 1], lin[k], model))
     return out
 
 
