@@ -4,7 +4,7 @@ same run on the same simulated trace (Doppler + carrier, 1 Hz, ~10 satellites pe
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/bench_doppler_carrier.py [--epochs 600]
 
 1. Time-differenced carrier: ours (GTSAM's C++ ``DopplerFactor`` on the displacement u(k),
-   :func:`fusion.estimate.graph.factors.tdcp_factor_ucc`, linearised at the WLS track or at the
+   :func:`fusion.estimate.graph.factors.tdcp_factor_uqq`, linearised at the WLS track or at the
    carrier-free graph's solution, the default) vs the exact model as a vectorised Python
    ``CustomFactor`` per epoch pair on (x, x, c, c) with a robust loss per row (below):
    Levenberg-Marquardt time and the position error p50 of each against the truth.

@@ -7,7 +7,7 @@ a clock random walk to the previous clocked epoch; the position prior where the 
 and the motion model's link to ``k - 1``. Where the trace carries them: a robust Doppler factor per
 satellite on the velocity and a clock-drift state ``d(k)`` (the clock chain then carries the drift,
 itself a random walk), and a robust time-differenced carrier-phase factor per satellite tracked
-without a slip since ``k - 1``. Links point backwards only, so the same per-epoch factors feed the
+without a slip since ``k - 1``, on a displacement state ``u(k) = x(k) - x(k-1)``. Links point backwards only, so the same per-epoch factors feed the
 batch graph and the incremental smoother.
 """
 from __future__ import annotations
@@ -20,16 +20,17 @@ from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_
                                            doppler_factor_vcd, drift_prior_factor_cd, drift_walk_factor_cdcd,
                                            isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
                                            pseudorange_factor_xc, pseudorange_factor_xci, robust_model,
-                                           tdcp_factor_ucc)
+                                           tdcp_factor_uqq)
 from fusion.estimate.graph.inputs import EpochInputs
-from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, disp_key, drift_key, isb_key, pos_key
+from fusion.estimate.graph.keys import DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, isb_key, pos_key
 from fusion.estimate.graph.motion import motion_model
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
 
-#: u(k) = x(k) - x(k-1) is a definition, held to 1 mm (far below the carrier factors' 2 cm floor);
-#: 0.1 mm made ISAM2's Cholesky report an indeterminant system next to the clocks' c/sigma weights
-DISPLACEMENT_SIGMA_M = 1e-3
+#: u(k) = x(k) - x(k-1) is a definition, held to 3 mm per axis (below the carrier factors' 2 cm floor);
+#: 0.1 and 1 mm made ISAM2's Cholesky report indeterminant systems on simulated traces with Doppler
+#: (too stiff next to the other factors' weights); 3 and 10 mm gave the same accuracy
+DISPLACEMENT_SIGMA_M = 3e-3
 
 
 def pseudorange_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
@@ -100,10 +101,16 @@ def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig, value
     lin = inp.init_pos if raw.lin_pos is None else raw.lin_pos
     values.insert(disp_key(k), inp.init_pos[k] - inp.init_pos[k - 1])
     out = [displacement_factor_xxu(k, DISPLACEMENT_SIGMA_M)]
+    # carrier clocks [m] are known up to a constant per chain, which a prior at the chain start fixes
+    values.insert(carrier_clock_key(k), float(inp.init_clock_m[k]))
+    if not (raw.tdcp_prev[k - 1] >= 0).any():
+        values.insert(carrier_clock_key(k - 1), float(inp.init_clock_m[k - 1]))
+        out.append(gtsam.PriorFactorDouble(carrier_clock_key(k - 1), float(inp.init_clock_m[k - 1]),
+                                           gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
     for s in cur:                                   # ~10 satellites
         p = int(raw.tdcp_prev[k, s])
         model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.tdcp_sigma[k, s])))
-        out.append(tdcp_factor_ucc(k, trace.adr[k, s] - trace.adr[k - 1, p], trace.sat_pos[k - 1, p],
+        out.append(tdcp_factor_uqq(k, trace.adr[k, s] - trace.adr[k - 1, p], trace.sat_pos[k - 1, p],
                                    trace.sat_pos[k, s], lin[k - 1], lin[k], model))
     return out
 

@@ -18,7 +18,8 @@ import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
-from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, disp_key, drift_key, isb_key, pos_key, vel_key
+from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, isb_key,
+                                        pos_key, vel_key)
 from fusion.geometry import C_LIGHT, OMEGA_E
 
 
@@ -100,19 +101,20 @@ def doppler_factor_vcd(k: int, prr_mps: float, sat_pos: np.ndarray, sat_vel: np.
                                np.asarray(rx_guess, float), DRIFT_HORIZON_S, 0.0, model)
 
 
-def tdcp_factor_ucc(k: int, delta_adr_m: float, sat_j: np.ndarray, sat_k: np.ndarray, guess_j: np.ndarray,
+def tdcp_factor_uqq(k: int, delta_adr_m: float, sat_j: np.ndarray, sat_k: np.ndarray, guess_j: np.ndarray,
                     guess_k: np.ndarray, model: gtsam.noiseModel.Base) -> gtsam.DopplerFactor:
     """Time-differenced carrier phase of one satellite from epoch ``k - 1`` to ``k`` (no slip between),
-    on the displacement u(k) = x(k) - x(k-1) and the clocks c(k-1), c(k):
-    ``adr(k) - adr(k-1) = R_k(x(k)) - R_{k-1}(x(k-1)) + c (c(k) - c(k-1))``, R the pseudorange
-    geometry (range + first-order Sagnac term); the ambiguity cancels.
+    on the displacement u(k) = x(k) - x(k-1) and the carrier clocks q(k-1), q(k) [m]:
+    ``adr(k) - adr(k-1) = R_k(x(k)) - R_{k-1}(x(k-1)) + q(k) - q(k-1)``, R the pseudorange geometry
+    (range + first-order Sagnac term); the ambiguity cancels. (Why q and not c: :mod:`keys`.)
 
     Linearised at the initial positions guess_j, guess_k (3,): ``R_k(x(k)) - R_{k-1}(x(k-1)) ~=
     R_k(guess_k) - R_{k-1}(guess_j) + g_k . (u(k) - (guess_k - guess_j))`` with g_k the gradient of
     R_k. What this drops, (g_k - g_{k-1}) . (x(k-1) - guess_j), is ~1e-4 of the initial position error
-    per second of epoch gap (1 mm for a 10 m WLS error at 1 Hz). ``g . u + c (c(k) - c(k-1))`` is
-    exactly GTSAM's C++ ``DopplerFactor`` model with the displacement as the velocity over dt = 1 s and a
-    zero satellite velocity (carrier phase is integrated Doppler), so the factor runs in C++ with its
+    per second of epoch gap (1 mm for a 10 m WLS error at 1 Hz). ``g . u + q(k) - q(k-1)`` is exactly
+    GTSAM's C++ ``DopplerFactor`` model with the displacement as its velocity, a zero satellite velocity
+    (carrier phase is integrated Doppler) and dt = c (its clock term is c * (clock_b - clock_a) / dt,
+    so clocks in metres enter as they are), so the factor runs in C++ with its
     own robust loss (a Python ``CustomFactor`` costs ~6-70x more, benchmarks/bench_doppler_carrier.py).
     sat_j, sat_k (3,) ECEF at transmit time; model 1-D [m]."""
     sat_j, sat_k = np.asarray(sat_j, float), np.asarray(sat_k, float)
@@ -120,8 +122,8 @@ def tdcp_factor_ucc(k: int, delta_adr_m: float, sat_j: np.ndarray, sat_k: np.nda
     geom_j, _ = _range_and_gradient(sat_j, guess_j)
     geom_k, grad_k = _range_and_gradient(sat_k, guess_k)
     measured = float(delta_adr_m) - geom_k + geom_j + grad_k @ (guess_k - guess_j)
-    return gtsam.DopplerFactor(disp_key(k), clock_key(k - 1), clock_key(k), -measured, 1.0, sat_k,
-                               np.zeros(3), guess_k, 1.0, 0.0, model)
+    return gtsam.DopplerFactor(disp_key(k), carrier_clock_key(k - 1), carrier_clock_key(k), -measured, 1.0, sat_k,
+                               np.zeros(3), guess_k, C_LIGHT, 0.0, model)
 
 
 def _range_and_gradient(sat: np.ndarray, x: np.ndarray) -> tuple[float, np.ndarray]:
