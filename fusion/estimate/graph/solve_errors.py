@@ -18,7 +18,7 @@ def epoch_label(trace: Trace, k: int) -> str:
 def geometry_error(trace: Trace, exc: Exception) -> GeometryError:
     """Turn GTSAM's indeterminant-system exception into our error, naming the epoch."""
     msg = str(exc)
-    m = re.search(r"Symbol: ([xcvid])(\d+)", msg)
+    m = re.search(r"Symbol: ([xcviudq])(\d+)", msg)
     if m and m.group(1) == "i":
         idx = int(m.group(2))
         return GeometryError(f"{trace.name}: the graph cannot determine the inter-system bias of signal group "
