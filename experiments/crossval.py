@@ -190,6 +190,8 @@ def parse_args(argv=None):
     p.add_argument("--inputs", default=",".join(CHANNELS))
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
     p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")
+    p.add_argument("--from-results", action="store_true",
+                   help="no training or evaluation: reprint the tables of <out>/results.pkl (and store calibration)")
     p.add_argument("--store-calibration", type=Path, default=None, help="write pooled unseen scales into this checkpoint")
     return p.parse_args(argv)
 
@@ -198,8 +200,11 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     (args.out / "cache").mkdir(parents=True, exist_ok=True)
     folds = args.folds.split(",")
-    with ProcessPoolExecutor(args.jobs) as ex:
-        results = dict(zip(folds, ex.map(run_fold, folds, [args] * len(folds))))
+    if args.from_results:
+        results = pickle.loads((args.out / "results.pkl").read_bytes())
+    else:
+        with ProcessPoolExecutor(args.jobs) as ex:
+            results = dict(zip(folds, ex.map(run_fold, folds, [args] * len(folds))))
     text = tables(results)
     print(text)
     (args.out / "crossval.md").write_text(text + "\n")

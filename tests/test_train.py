@@ -122,7 +122,7 @@ def test_cli_writes_checkpoint_with_config(tmp_path, capsys):
     # the defaults: every context channel, learned-weight WLS output, three-loss mix, box/wls/graph guesses
     assert cfg["features"]["inputs"] == list(CHANNELS) and cfg["model"]["hparams"]["d_in"] == 10
     assert cfg["output"] == "wls" and cfg["loss"]["sat"] == 0.1 and cfg["loss"]["wls"] == 1.0
-    assert cfg["guess_mix"] == {"box": 0.2, "wls": 0.5, "graph": 0.3} and cfg["data"]["val_split"] == "blocks"
+    assert cfg["guess_mix"] == {"box": 0.2, "wls": 0.5, "graph": 0.3} and cfg["data"]["val_split"] == "traces"
     assert set(cfg["calibration"]) == {"wls", "correction"}
     assert all(len(c["scale_ned"]) == 3 for c in cfg["calibration"].values())
     assert len(cfg["input_ranges"]["lo"]) == len(cfg["input_ranges"]["hi"]) == 10
@@ -137,7 +137,7 @@ def test_cli_inputs_output_and_loss_options(tmp_path, capsys):
     cfg = read_checkpoint(out)["config"]
     assert cfg["features"]["inputs"] == ["res", "los", "cn0"] and cfg["model"]["hparams"]["d_in"] == 6
     assert cfg["output"] == "correction" and cfg["loss"] == {"correction": 1.0, "sat": 0.0, "wls": 0.5,
-                                                             "wls_scale": 5.0}
+                                                             "wls_scale": 5.0, "shrink": 1.0}
     assert Corrector.load(out).output == "correction"
     capsys.readouterr()
     with pytest.raises(DataError, match="--loss: unknown term 'nll'"):
@@ -156,7 +156,7 @@ def test_train_config_checkpoint_config_follows_the_inputs():
     c = cfg.to_checkpoint_config()
     assert c["model"]["hparams"] == {"d_model": 32, "d_in": 6} and c["features"]["inputs"] == ["res", "los",
                                                                                              "pr_sigma", "arc"]
-    assert c["output"] == "wls" and set(c["loss"]) == {"correction", "sat", "wls", "wls_scale"}
+    assert c["output"] == "wls" and set(c["loss"]) == {"correction", "sat", "wls", "wls_scale", "shrink"}
     assert TrainConfig().to_checkpoint_config()["model"]["hparams"]["d_in"] == 4      # the paper's inputs
     with pytest.raises(DataError, match="output must be one of"):
         train(build_samples(toy_dataset(1, 10, seed=1)), build_samples(toy_dataset(1, 10, seed=2)),
