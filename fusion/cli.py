@@ -33,7 +33,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
-    p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
+    p.add_argument("--wls-plain", action="store_true",
+                   help="plain WLS, the paper's baseline (default: WLS with fault detection and exclusion)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-truth-height-fix", action="store_true",
                    help="keep GSDC 2021 truth heights as published (~63 m too high)")
@@ -48,7 +49,7 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
         raise GnssfuseError("--dnn-passes must be >= 1")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
-                      wls_robust=args.robust_wls)
+                      wls_robust=False if args.wls_plain else "exclude")
 
 
 def build_run_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:

@@ -22,7 +22,7 @@ class RunOptions:
     incremental: bool = False            # fused modes: ISAM2 / fixed-lag instead of batch LM
     signals: tuple[str, ...] = ("GPS_L1",)
     wls_weighting: str = "elevation"
-    wls_robust: bool = False
+    wls_robust: bool | str = "exclude"   # fault detection and exclusion; False = plain (--wls-plain)
 
 
 @dataclass
