@@ -287,6 +287,10 @@ def test_three_satellite_epoch_solved_with_interpolated_clock():
     across_reset, _ = _drive_with_three_sat_epoch(reset_at=3)
     res = solve_wls(across_reset)
     assert not res.valid[2] and res.reasons == {"three_sats_no_clock": 1}
+    unflagged_jump, _ = _drive_with_three_sat_epoch()
+    unflagged_jump.pr[3:] += 5000.0                    # a clock jump the file does not flag
+    res = solve_wls(unflagged_jump)
+    assert not res.valid[2] and res.reasons == {"three_sats_no_clock": 1}
 
 
 def test_wls_mode_reports_exclusions():

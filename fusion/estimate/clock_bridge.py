@@ -3,8 +3,11 @@
 Four unknowns need four satellites; with three, the clock can come from the epochs around: a phone's
 clock drifts smoothly (metres per second, nearly constant over seconds), so a straight line between
 the last good epoch before and the first good epoch after predicts it to about a metre. The
-prediction is used only when both neighbours are within ``max_gap_ms`` and no clock reset lies
-between them; otherwise the epoch stays unsolved with the reason ``three_sats_no_clock``.
+prediction is used only when both neighbours are within ``max_gap_ms``, no clock reset lies between
+them, and the line between them agrees (within ``JUMP_TOL_M``) with the clock extrapolated from the
+good epoch before the earlier neighbour or after the later one - a jump the file does not flag
+(GSDC 2021 derived files carry no discontinuity column) would otherwise be spread over the gap.
+Otherwise the epoch stays unsolved with the reason ``three_sats_no_clock``.
 """
 from __future__ import annotations
 
@@ -14,6 +17,9 @@ from fusion.geometry import line_of_sight
 
 #: Furthest a neighbouring good epoch may be for its clock to be used [ms].
 MAX_GAP_MS = 3000
+#: Largest disagreement between interpolated and extrapolated clock that is not a jump [m]
+#: (WLS clocks are good to a few metres; phone clock jumps are hundreds of metres and more).
+JUMP_TOL_M = 50.0
 
 
 def interpolate_clock(t_ms: np.ndarray, clock_m: np.ndarray, valid: np.ndarray, clock_reset: np.ndarray,
@@ -38,6 +44,16 @@ def interpolate_clock(t_ms: np.ndarray, clock_m: np.ndarray, valid: np.ndarray, 
     span = np.where(ok, t[nxt] - t[prev], 1.0)
     a = (t[targets] - t[prev]) / span
     clock = clock_m[prev] + a * (clock_m[nxt] - clock_m[prev])
+    # the line prev -> nxt checked against each side's own drift (one more good epoch outward)
+    before = good[np.clip(j - 2, 0, good.size - 1)]
+    after = good[np.clip(j + 1, 0, good.size - 1)]
+    agree = np.zeros(K, bool)
+    for far, near, other in ((before, prev, nxt), (after, nxt, prev)):
+        has = (far != near) & (seg[far] == seg[near]) & (np.abs(t[near] - t[far]) <= max_gap_ms)
+        drift = (clock_m[near] - clock_m[far]) / np.where(has, t[near] - t[far], 1.0)
+        predicted = clock_m[near] + drift * (t[other] - t[near])
+        agree |= has & (np.abs(predicted - clock_m[other]) <= JUMP_TOL_M)
+    ok &= agree
     return np.where(ok, clock, np.nan), ok
 
 
