@@ -7,13 +7,15 @@ Fault detection and exclusion (:func:`exclude_faults`), every epoch at once:
    that passes keeps every satellite.
 2. *Identify*: for k = 1, 2, ... ``max_exclusions``, every set of k satellites is removed in turn
    (one linear step from the current solution) while ``n - k >= 5`` satellites remain; the first k
-   for which the best set (least ``T``) passes the test wins, and that set is excluded. Searching
+   for which the best set (least ``T``) passes the test wins, and that set is excluded - provided
+   the runner-up set's ``T`` is at least ``SEPARATION`` times larger, else the fault is ambiguous
+   (typical of multipath spread over several satellites) and nothing is excluded. Searching
    sets rather than dropping the largest residual one at a time finds two faults that drag the fit
    toward each other, where the largest standardised residual often points at a good satellite.
 3. Re-solve the epochs that lost satellites.
 
-An epoch whose test fails and that no allowed exclusion repairs (5 satellites, or more faults
-than ``max_exclusions``) is *flagged*: the test cannot decide which measurement is wrong. Its
+An epoch whose test fails and that no allowed exclusion repairs (5 satellites, more faults
+than ``max_exclusions``, or an ambiguous best set) is *flagged*: the test cannot decide which measurement is wrong. Its
 solution is kept (the least-squares answer on everything) and the flag is counted in the report.
 """
 from __future__ import annotations
@@ -27,6 +29,9 @@ from fusion.trace import count_skip
 
 #: Normal quantile of the default false-alarm probability 1e-3 (one-sided).
 Z_PFA_1E3 = 3.0902
+#: A set is identified as the fault only when the runner-up set's SSE is at least this many times
+#: its own; otherwise the epoch is flagged, not guessed at.
+SEPARATION = 4.0
 
 
 def chi2_threshold(dof: np.ndarray, z: float = Z_PFA_1E3) -> np.ndarray:
@@ -74,14 +79,18 @@ def subset_sse(H: np.ndarray, r: np.ndarray, w: np.ndarray, used: np.ndarray, k:
     return np.where(removable & ~sing, sse, np.inf), sets
 
 
-def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions):
+def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation):
     """For failing epochs: the smallest set of satellites (up to ``max_exclusions``) whose removal
-    passes the test, the set with the least SSE among those of that size.
+    passes the test, the set with the least SSE among those of that size, if it stands out from the
+    runner-up by ``separation``.
 
-    Returns (E, S) bool of slots to remove (empty rows where no set passes) and (E,) bool decided.
+    sat_pos: (E, S, 3); pr, w, used: (E, S); x: (E, 4); fails: (E,) bool.
+    Returns (E, S) bool of slots to remove (empty rows where none is identified) and (E,) bool
+    decided (passed, or repaired by a clearly identified set).
     """
     E, S = used.shape
     remove = np.zeros((E, S), bool)
+    ambiguous = np.zeros(E, bool)
     decided = ~fails
     n = used.sum(1)
     _, _, r, H = normal_equations(sat_pos, pr, w, x)
@@ -92,15 +101,20 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions):
         sse, sets = subset_sse(H[idx], r[idx], w[idx], used[idx], k)
         best = np.argmin(sse, axis=1)
         best_sse = sse[np.arange(idx.size), best]
-        ok = np.isfinite(best_sse) & (best_sse <= chi2_threshold(n[idx] - k - 4))
-        rows = idx[ok]
-        remove[rows[:, None], sets[best[ok]]] = True
-        decided[rows] = True
-    return remove, decided
+        runner_up = np.partition(sse, 1, axis=1)[:, 1] if sse.shape[1] > 1 else np.full(idx.size, np.inf)
+        passes = np.isfinite(best_sse) & (best_sse <= chi2_threshold(n[idx] - k - 4))
+        # identified only when no other set explains the data nearly as well
+        clear = runner_up >= separation * np.maximum(best_sse, 1e-9)
+        rows = idx[passes & clear]
+        remove[rows[:, None], sets[best[passes & clear]]] = True
+        decided[idx[passes]] = True
+        ambiguous[idx[passes & ~clear]] = True
+    return remove, decided & ~ambiguous
 
 
 def exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, *, max_exclusions: int,
-                   max_iter: int, tol: float, max_cond: float, n_iter, dropped):
+                   max_iter: int, tol: float, max_cond: float, n_iter, dropped,
+                   separation: float = SEPARATION):
     """Fault detection and exclusion (module docstring) on the epochs in ``eligible``.
 
     sat_pos: (E, S, 3); pr, used, w_prior: (E, S); x: (E, 4) converged states; eligible, conv, bad,
@@ -110,7 +124,7 @@ def exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, 
     w = np.where(used, w_prior, 0.0)
     _, fails = chi2_test(sat_pos, pr, w, x, used)
     fails &= eligible
-    remove, decided = _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions)
+    remove, decided = _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation)
     used = used & ~remove
     n_excl = remove.sum(1)
     count_skip(dropped, "outlier", remove)
