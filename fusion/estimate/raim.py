@@ -16,7 +16,8 @@ Fault detection and exclusion (:func:`exclude_faults`), every epoch at once:
 
 An epoch whose test fails and that no allowed exclusion repairs (5 satellites, more faults
 than ``max_exclusions``, or an ambiguous best set) is *flagged*: the test cannot decide which measurement is wrong. Its
-solution is kept (the least-squares answer on everything) and the flag is counted in the report.
+solution is kept (the caller, :func:`fusion.estimate.wls.solve_wls_arrays`, re-solves it with Huber
+weights) and the flag is counted in the report.
 """
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ from fusion.trace import count_skip
 Z_PFA_1E3 = 3.0902
 #: A set is identified as the fault only when the runner-up set's SSE is at least this many times
 #: its own; otherwise the epoch is flagged, not guessed at.
-SEPARATION = 4.0
+SEPARATION = 2.0
 
 
 def chi2_threshold(dof: np.ndarray, z: float = Z_PFA_1E3) -> np.ndarray:

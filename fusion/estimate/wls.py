@@ -22,7 +22,7 @@ Procedure
    :func:`solve_wls` and of the pipeline): RAIM-style fault detection and exclusion - a chi-square
    test on the weighted residuals, then the smallest set of satellites (at most ``max_exclusions``,
    never below 5 left) whose removal passes it excluded; an epoch no allowed exclusion repairs is
-   kept and ``flagged``. ``robust="huber"``: iteratively reweighted least
+   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. ``robust="huber"``: iteratively reweighted least
    squares with Huber weights ``min(1, huber_k / |z|)`` on the standardised residuals ``z``.
    ``robust=False``: the paper's plain WLS.
 5. Three-satellite epochs (with ``t_ms``): solved for position alone with the receiver clock
@@ -212,6 +212,9 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
         x, used, conv, bad, runaway, w_fit, flagged, n_excluded = exclude_faults(
             sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, max_exclusions=max_exclusions,
             max_iter=max_iter, tol=tol_m, max_cond=max_cond, n_iter=n_iter, dropped=dropped)
+        if flagged.any():
+            x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, flagged, conv, bad,
+                                                      runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
     elif robust_mode == "huber":
         x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, eligible, conv, bad,
                                                   runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
