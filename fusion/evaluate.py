@@ -21,9 +21,9 @@ from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.wls import WlsResult
 from fusion.eval.metrics import mode_metrics, trace_errors
 from fusion.eval.report import (ALL, TraceEval, markdown_table, metrics_table, write_figures,
-                                write_report_md)
+                                write_report_md, write_trace_figures)
 from fusion.io.estimates import write_outputs
-from fusion.io.load import load_trace
+from fusion.io.load import load_trace, trace_name
 from fusion.modes import MODES, get_mode, run_modes, solve_initial
 from fusion.parallel import map_traces
 from fusion.run_types import RunOptions
@@ -81,10 +81,11 @@ def evaluate_trace(trace: Trace, modes: list[str], opts: RunOptions, out_dir: Pa
     return write_trace(run_trace(trace, modes, opts, wls, progress), out_dir, slug)
 
 
-def load_and_run(d: Path, modes: list[str], opts: RunOptions, max_epochs: int | None,
-                 fix_truth_height: bool, progress: bool = False) -> TraceEval | str:
-    """One trace folder start to finish (what a worker process does): the :class:`TraceEval`, or
-    the one-line reason it could not be loaded."""
+def load_and_run(d: Path, slug: str, modes: list[str], opts: RunOptions, max_epochs: int | None,
+                 fix_truth_height: bool, out_dir: Path, progress: bool = False) -> TraceEval | str:
+    """One trace folder start to finish (what a worker process does): load, run every mode, write
+    its estimates and figures under ``out_dir``; the :class:`TraceEval`, or the one-line reason the
+    trace could not be loaded."""
     try:
         # min_sats=1: epochs with < 4 satellites reach the modes (the fused ones carry them)
         trace = load_trace(d, signals=opts.signals, fix_truth_height=fix_truth_height, min_sats=1)
@@ -94,13 +95,18 @@ def load_and_run(d: Path, modes: list[str], opts: RunOptions, max_epochs: int | 
         return str(exc)
     if max_epochs is not None and trace.n_epochs > max_epochs:
         trace = trace.select(np.arange(max_epochs))
-    return run_trace(trace, modes, opts, progress=progress)
+    ev = write_trace(run_trace(trace, modes, opts, progress=progress), out_dir, slug)
+    ev.figures = write_trace_figures(ev, out_dir / "figures")
+    return ev
 
 
 def run_all(trace_dirs: list[Path], modes: list[str], opts: RunOptions, max_epochs: int | None,
-            fix_truth_height: bool, progress: bool, jobs: int) -> list[TraceEval | str]:
-    """:func:`load_and_run` on every folder, in order; in ``jobs`` processes when > 1."""
-    args = [(Path(d), modes, opts, max_epochs, fix_truth_height) for d in trace_dirs]
+            fix_truth_height: bool, progress: bool, jobs: int, out_dir: Path) -> list[TraceEval | str]:
+    """:func:`load_and_run` on every folder, in order; in ``jobs`` processes when > 1. Output
+    folders are named (slugs) here, before any work, so that they do not depend on ``jobs``."""
+    taken: set[str] = set()
+    args = [(Path(d), _slug(trace_name(d), taken), modes, opts, max_epochs, fix_truth_height, out_dir)
+            for d in trace_dirs]
     if jobs == 1:
         return [load_and_run(*a, progress=progress) for a in tqdm(args, desc="traces", disable=not progress)]
     return map_traces(load_and_run, args, jobs, progress)
@@ -142,13 +148,9 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
         raise GnssfuseError("--jobs must be >= 1")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    outcomes = run_all(trace_dirs, modes, opts, max_epochs, fix_truth_height, progress, jobs)
-    evals, failures, taken = [], {}, set()
-    for d, outcome in zip(trace_dirs, outcomes):
-        if isinstance(outcome, str):
-            failures[str(d)] = outcome
-        else:
-            evals.append(write_trace(outcome, out_dir, _slug(outcome.trace.name, taken)))
+    outcomes = run_all(trace_dirs, modes, opts, max_epochs, fix_truth_height, progress, jobs, out_dir)
+    evals = [o for o in outcomes if not isinstance(o, str)]
+    failures = {str(d): o for d, o in zip(trace_dirs, outcomes) if isinstance(o, str)}
     if not evals:
         raise DataError("no trace could be loaded: " + "; ".join(failures.values()))
     df = metrics_table(evals, modes)

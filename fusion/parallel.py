@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
@@ -20,14 +21,13 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "N
 
 
 def _one_thread() -> None:
-    """Worker initialiser: one thread for BLAS/OpenMP, and for torch if it gets imported."""
+    """Worker initialiser: one thread for BLAS/OpenMP and torch, which read these variables when
+    first imported (after this, in a fresh spawned process; importing torch here would cost every
+    worker seconds even when no mode needs it)."""
     for var in _THREAD_VARS:
         os.environ[var] = "1"
-    try:
-        import torch
-    except ImportError:  # pragma: no cover - torch is a dependency, but a wls-only run needs none
-        return
-    torch.set_num_threads(1)
+    if "torch" in sys.modules:  # pragma: no cover - not in a spawned worker, but cheap to be sure
+        sys.modules["torch"].set_num_threads(1)
 
 
 def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool = False) -> list:
