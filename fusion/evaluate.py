@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from fusion.cli import add_run_options, options_from_args
 from fusion.errors import DataError, GnssfuseError
-from fusion.estimate.wls import WlsResult
+from fusion.estimate.wls import WlsResult, wls_counts
 from fusion.eval.metrics import mode_metrics, trace_errors
 from fusion.eval.report import (ALL, TraceEval, markdown_table, metrics_table, write_figures,
                                 write_report_md, write_trace_figures)
@@ -55,6 +55,8 @@ def run_trace(trace: Trace, modes: list[str], opts: RunOptions, wls: WlsResult |
     ev = TraceEval(trace=trace, slug="")
     wls = solve_initial(trace, opts) if wls is None else wls
     ev.wls_reasons = dict(getattr(wls, "reasons", {}) or {})
+    if isinstance(wls, WlsResult):
+        ev.wls_counts = wls_counts(wls)
     for mode in tqdm(modes, desc=f"  {trace.name}", leave=False, disable=not progress):
         try:
             ev.results[mode] = run_modes(trace, [mode], opts, wls=wls)[mode]

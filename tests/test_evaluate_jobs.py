@@ -34,6 +34,7 @@ def test_jobs_2_gives_the_metrics_of_jobs_1_and_a_bad_trace_stops_nothing(tmp_pa
         tables[jobs] = pd.read_csv(out / "metrics.csv")
         assert set(tables[jobs].trace) == {"a/Pixel4", "b/Pixel4", "ALL"}   # ... the others are not lost
         assert (out / "a_Pixel4" / "wls" / "metrics.json").is_file()
+        assert "WLS fault detection and exclusion:" in (out / "report.md").read_text()
     pd.testing.assert_frame_equal(tables[1], tables[2])
 
 

@@ -44,6 +44,7 @@ class TraceEval:
     failed: dict[str, str] = field(default_factory=dict)
     wls_reasons: dict[str, int] = field(default_factory=dict)
     figures: dict[str, Path] = field(default_factory=dict)   # kind -> PNG, once drawn
+    wls_counts: dict[str, int] = field(default_factory=dict)  # fusion.estimate.wls.wls_counts
 
 
 # ---------------------------------------------------------------------------- tables
@@ -216,6 +217,12 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
         if ev.wls_reasons:
             lines += ["WLS epochs not solved, by reason: "
                       + ", ".join(f"{k} {v}" for k, v in ev.wls_reasons.items()), ""]
+        if ev.wls_counts:
+            c = ev.wls_counts
+            lines += [f"WLS fault detection and exclusion: {c['excluded_measurements']} measurements excluded "
+                      f"in {c['epochs_with_exclusions']} epochs; {c['epochs_fault_undecided']} epochs where the "
+                      f"test could not decide (kept, Huber-weighted); {c['epochs_clock_predicted']} three-satellite "
+                      "epochs solved with the clock interpolated from their neighbours.", ""]
         if not ev.errors:
             lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
         lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
