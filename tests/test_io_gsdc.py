@@ -317,7 +317,7 @@ def test_missing_and_empty_files(tmp_path):
         load_derived_2021(h)
     g = tmp_path / "g_derived.csv.gz"
     g.write_bytes(b"\x1f\x8b\x08\x00garbage")
-    with pytest.raises(DataError, match=str(g.name)):
+    with pytest.raises(DataError, match=f"{g.name}: corrupt gzip"):
         load_derived_2021(g)
 
 

@@ -54,6 +54,8 @@ def _gunzip(path: Path, raw: bytes, what: str, skipped: dict[str, int]) -> bytes
         part = zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(raw)
     except zlib.error as exc:
         raise DataError(f"{path}: corrupt gzip {what} file ({exc})") from exc
+    if not part:
+        raise DataError(f"{path}: corrupt gzip {what} file (ends before any data)")
     count_skip(skipped, "truncated_gzip", 1)
     warnings.warn(f"{path}: gzip stream ends early; reading the {len(part)} bytes before the cut",
                   stacklevel=3)
