@@ -1,8 +1,10 @@
 """``gnssfuse evaluate --jobs N``: four traces with one worker process against two, same run.
 
 Each setting runs the real command in a fresh process (``python -m fusion.cli evaluate ... --jobs N``,
-imports and report writing included, ``OMP_NUM_THREADS=1`` so that one job is one core), twice, and
-the better time counts (the machine may be shared). The metrics tables of the two settings must be
+imports and report writing included, ``OMP_NUM_THREADS=1`` so that one job is one core), twice,
+alternating, and the better time counts (the machine may be shared; the CPU seconds of each setting,
+workers included, and the load average are printed so that a slow wall clock can be told from
+extra work). The metrics tables of the two settings must be
 identical; the script says so.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/bench_evaluate.py            # full traces
@@ -15,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -43,18 +46,22 @@ def four_traces(tmp: Path) -> tuple[list[Path], str]:
     return copies, "four copies of the shipped trace"
 
 
-def timed_evaluate(traces: list[Path], out: Path, jobs: int, max_epochs: int | None) -> float:
+def timed_evaluate(traces: list[Path], out: Path, jobs: int, max_epochs: int | None) -> tuple[float, float]:
+    """(wall seconds, CPU seconds of the command and its workers)."""
     cmd = [sys.executable, "-m", "fusion.cli", "evaluate", *map(str, traces), "--modes", MODES,
            "--out", str(out), "--no-progress", "--jobs", str(jobs)]
     if max_epochs:
         cmd += ["--max-epochs", str(max_epochs)]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
+    cpu0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO)
     elapsed = time.perf_counter() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     if proc.returncode != 0:
         raise RuntimeError(f"evaluate --jobs {jobs} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
-    return elapsed
+    return elapsed, cpu
 
 
 def run(quick: bool = False, repeats: int = 2) -> list[dict]:
@@ -62,15 +69,23 @@ def run(quick: bool = False, repeats: int = 2) -> list[dict]:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         traces, what = four_traces(tmp)
-        times = {jobs: min(timed_evaluate(traces, tmp / f"r{jobs}_{k}", jobs, max_epochs) for k in range(repeats))
-                 for jobs in (1, 2)}
+        # alternate the settings so that a change in the machine's load hits both alike
+        runs = {1: [], 2: []}
+        for k in range(repeats):
+            for jobs in (1, 2):
+                runs[jobs].append(timed_evaluate(traces, tmp / f"r{jobs}_{k}", jobs, max_epochs))
+        times = {j: min(w for w, _ in r) for j, r in runs.items()}
+        cpu = {j: min(c for _, c in r) for j, r in runs.items()}
         same = pd.read_csv(tmp / "r1_0" / "metrics.csv").equals(pd.read_csv(tmp / "r2_0" / "metrics.csv"))
-    note = (f"{what}, modes {MODES}, {'first 300 epochs' if quick else 'all epochs'}, {os.cpu_count()} CPUs "
-            f"(best of {repeats}); metrics.csv identical: {same}")
+    load = os.getloadavg()[0]
+    note = (f"{what}, modes {MODES}, {'first 300 epochs' if quick else 'all epochs'}, {os.cpu_count()} CPUs, "
+            f"load average {load:.1f} after the runs (best of {repeats}); metrics.csv identical: {same}")
     return [{"name": "evaluate --jobs 1", "value": round(times[1], 2), "unit": "s", "note": note},
             {"name": "evaluate --jobs 2", "value": round(times[2], 2), "unit": "s", "note": note},
             {"name": "evaluate speed-up --jobs 2 vs 1", "value": round(times[1] / times[2], 2), "unit": "x",
-             "note": note}]
+             "note": note},
+            {"name": "evaluate CPU time --jobs 1", "value": round(cpu[1], 2), "unit": "s", "note": note},
+            {"name": "evaluate CPU time --jobs 2", "value": round(cpu[2], 2), "unit": "s", "note": note}]
 
 
 def main() -> None:

@@ -80,6 +80,11 @@ def run_main(argv: list[str], prog: str = "gnssfuse run") -> int:
     record = write_outputs(args.out, trace, args.mode, result, mode_metrics(trace, result))
     print(f"{trace.name}: {record['epochs_solved']}/{trace.n_epochs} epochs solved in mode {args.mode}"
           + (f"; skipped while loading: {record['skipped']}" if record["skipped"] else ""))
+    info = result.info
+    if info.get("excluded_measurements") or info.get("epochs_fault_undecided"):
+        print(f"WLS fault detection: {info['excluded_measurements']} measurements excluded in "
+              f"{info['epochs_with_exclusions']} epochs; {info['epochs_fault_undecided']} epochs undecided"
+              " (see metrics.json 'info'; --wls-plain for the plain baseline)")
     print(format_table({args.mode: record["metrics"]}))
     print(f"wrote {args.out / 'estimates.csv'}" + (" and metrics.json" if record["metrics"] else ""))
     return 0

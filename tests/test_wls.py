@@ -303,3 +303,16 @@ def test_wls_mode_reports_exclusions():
     assert info["excluded_measurements"] == 1 and info["epochs_with_exclusions"] == 1
     assert info["epochs_clock_predicted"] == 1 and info["unsolved"] == 0
     assert RunOptions().wls_robust == "exclude"
+
+
+def test_pipeline_default_wls_is_the_robust_one():
+    """dnn and the fused modes start from fusion.modes.solve_initial: robust under RunOptions()."""
+    from fusion.modes import solve_initial
+    from fusion.run_types import RunOptions
+
+    tr, rx = _drive_with_three_sat_epoch()
+    tr.pr[1, 2] += 200.0
+    robust = solve_initial(tr, RunOptions())
+    plain = solve_initial(tr, RunOptions(wls_robust=False))
+    assert robust.n_excluded.tolist() == [0, 1, 0, 0, 0] and not plain.n_excluded.any()
+    assert np.linalg.norm(robust.pos[1] - rx[1]) < 1e-3 < np.linalg.norm(plain.pos[1] - rx[1])
