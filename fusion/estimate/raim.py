@@ -5,8 +5,9 @@ Fault detection and exclusion (:func:`exclude_faults`), every epoch at once:
 1. *Detect*: the weighted sum of squared residuals ``T = v^T W v`` (a-priori weights) against the
    chi-square threshold for ``n - 4`` degrees of freedom at false-alarm probability 1e-3. An epoch
    that passes keeps every satellite.
-2. *Identify*: for k = 1, 2, ... ``max_exclusions``, every set of k satellites is removed in turn
-   (one linear step from the current solution) while ``n - k >= 5`` satellites remain; the first k
+2. *Identify*: for k = 1, 2, ... ``max_exclusions``, every set of k satellites (for k >= 2, of the
+   :data:`MAX_SUSPECTS` whose single removal helps most) is removed in turn (one linear step from
+   the current solution) while ``n - k >= 5`` satellites remain; the first k
    for which the best set (least ``T``) passes the test wins, and that set is excluded - provided
    the runner-up set's ``T`` is at least ``SEPARATION`` times larger, else the fault is ambiguous
    (typical of multipath spread over several satellites) and nothing is excluded. Searching
@@ -14,14 +15,15 @@ Fault detection and exclusion (:func:`exclude_faults`), every epoch at once:
    toward each other, where the largest standardised residual often points at a good satellite.
 3. Re-solve the epochs that lost satellites.
 
-An epoch whose test fails and that no allowed exclusion repairs (5 satellites, more faults
-than ``max_exclusions``, or an ambiguous best set) is *flagged*: the test cannot decide which measurement is wrong. Its
-solution is kept (the caller, :func:`fusion.estimate.wls.solve_wls_arrays`, re-solves it with Huber
+An epoch whose test fails and that no allowed exclusion repairs (5 satellites, more faults than
+``max_exclusions``, or an ambiguous best set) is *flagged*: the test cannot decide which measurement
+is wrong. Its solution is kept (the caller, :func:`fusion.estimate.wls.solve_wls_arrays`, re-solves it with Huber
 weights) and the flag is counted in the report.
 """
 from __future__ import annotations
 
 from itertools import combinations
+from math import comb
 
 import numpy as np
 
@@ -33,6 +35,9 @@ Z_PFA_1E3 = 3.0902
 #: A set is identified as the fault only when the runner-up set's SSE is at least this many times
 #: its own; otherwise the epoch is flagged, not guessed at.
 SEPARATION = 2.0
+#: Sets of two or more satellites are searched among this many suspects per epoch (those whose
+#: single removal lowers the SSE most), which bounds the search on multi-constellation epochs.
+MAX_SUSPECTS = 12
 
 
 def chi2_threshold(dof: np.ndarray, z: float = Z_PFA_1E3) -> np.ndarray:
@@ -56,15 +61,18 @@ def chi2_test(sat_pos, pr, w, x, used):
     return T, (dof > 0) & (T > chi2_threshold(dof))
 
 
-def subset_sse(H: np.ndarray, r: np.ndarray, w: np.ndarray, used: np.ndarray, k: int):
+def subset_sse(H: np.ndarray, r: np.ndarray, w: np.ndarray, used: np.ndarray, k: int,
+               among: int | None = None):
     """Weighted SSE after removing each set of ``k`` used satellites (one linear step).
 
     H: (E, S, 4) design matrix, r: (E, S) residuals, w: (E, S) weights, used: (E, S) bool.
+    ``among``: remove only slots from the first ``among`` (every slot still enters the fit).
     Returns (sse (E, C) with inf where a removed slot is unused or the rest is singular,
     removal sets (C, k) slot indices).
     """
     E, S = r.shape
-    sets = np.array(list(combinations(range(S), k)), dtype=np.int64).reshape(-1, k)
+    pool = S if among is None else min(S, among)
+    sets = np.array(list(combinations(range(pool), k)), dtype=np.int64).reshape(-1, k)
     keep = np.ones((sets.shape[0], S))
     np.put_along_axis(keep, sets, 0.0, axis=1)
     wc = w[:, None, :] * keep[None]                                   # (E, C, S)
@@ -78,6 +86,24 @@ def subset_sse(H: np.ndarray, r: np.ndarray, w: np.ndarray, used: np.ndarray, k:
     sse = np.sum(wc * v**2, axis=2)
     removable = used[:, sets].all(-1)                                 # (E, C)
     return np.where(removable & ~sing, sse, np.inf), sets
+
+
+def _chunked_subset_sse(H, r, w, used, k, among, max_elements: int = 20_000_000):
+    """:func:`subset_sse` over blocks of epochs, so that (epochs x sets x slots) stays bounded in
+    memory."""
+    E, S = r.shape
+    n_sets = comb(min(S, among), k)
+    step = max(1, max_elements // max(1, n_sets * S * 4))
+    parts = [subset_sse(H[a:a + step], r[a:a + step], w[a:a + step], used[a:a + step], k, among)
+             for a in range(0, E, step)]
+    return np.concatenate([p[0] for p in parts], axis=0), parts[0][1]
+
+
+def _suspects_first(H, r, w, used):
+    """Per-epoch slot order (E, S): the slots whose single removal lowers the SSE most come first
+    (sets of two or three are searched among the first :data:`MAX_SUSPECTS` only)."""
+    sse1, _ = subset_sse(H, r, w, used, 1)
+    return np.argsort(sse1, axis=1, kind="stable")
 
 
 def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation):
@@ -95,19 +121,27 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation):
     decided = ~fails
     n = used.sum(1)
     _, _, r, H = normal_equations(sat_pos, pr, w, x)
+    # slots reordered per epoch, suspects first: the k-sets come from the first MAX_SUSPECTS
+    order = np.tile(np.arange(S), (E, 1))
+    cand = np.flatnonzero(fails & (n >= 6))
+    if cand.size:
+        order[cand] = _suspects_first(H[cand], r[cand], w[cand], used[cand])
+    H, r, w, used_o = (np.take_along_axis(a, order[..., None] if a.ndim == 3 else order, axis=1)
+                       for a in (H, r, w, used))
     for k in range(1, max_exclusions + 1):
         idx = np.flatnonzero(~decided & (n - k >= 5))
         if idx.size == 0:
             break
-        sse, sets = subset_sse(H[idx], r[idx], w[idx], used[idx], k)
+        sse, sets = _chunked_subset_sse(H[idx], r[idx], w[idx], used_o[idx], k, MAX_SUSPECTS if k > 1 else S)
         best = np.argmin(sse, axis=1)
         best_sse = sse[np.arange(idx.size), best]
         runner_up = np.partition(sse, 1, axis=1)[:, 1] if sse.shape[1] > 1 else np.full(idx.size, np.inf)
         passes = np.isfinite(best_sse) & (best_sse <= chi2_threshold(n[idx] - k - 4))
         # identified only when no other set explains the data nearly as well
         clear = runner_up >= separation * np.maximum(best_sse, 1e-9)
-        rows = idx[passes & clear]
-        remove[rows[:, None], sets[best[passes & clear]]] = True
+        ok = passes & clear
+        rows = idx[ok]
+        remove[rows[:, None], order[rows[:, None], sets[best[ok]]]] = True
         decided[idx[passes]] = True
         ambiguous[idx[passes & ~clear]] = True
     return remove, decided & ~ambiguous

@@ -175,7 +175,7 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
                      sigma: np.ndarray | None = None, x0: np.ndarray | None = None, *,
                      elev_mask_deg: float = 10.0, weighting: str = "elevation",
                      robust: bool | str = False, max_iter: int = 10, max_cond: float = 1e7,
-                     max_exclusions: int = 2, huber_k: float = 1.5, sigma0: float = SIGMA0_M,
+                     max_exclusions: int = 3, huber_k: float = 1.5, sigma0: float = SIGMA0_M,
                      cov_scale: str = "posterior", tol_m: float = 1e-4, t_ms: np.ndarray | None = None,
                      clock_reset: np.ndarray | None = None) -> WlsResult:
     """Batched WLS on raw padded arrays (the engine behind :func:`solve_wls`).
