@@ -316,3 +316,24 @@ def test_pipeline_default_wls_is_the_robust_one():
     plain = solve_initial(tr, RunOptions(wls_robust=False))
     assert robust.n_excluded.tolist() == [0, 1, 0, 0, 0] and not plain.n_excluded.any()
     assert np.linalg.norm(robust.pos[1] - rx[1]) < 1e-3 < np.linalg.norm(plain.pos[1] - rx[1])
+
+
+def test_fault_test_calibrated_on_the_trace():
+    """Noise 3x the a-priori model: the test's variance factor finds ~9 and stops firing on clean
+    epochs; a pessimistic model keeps factor 1."""
+    sat, pr, mask, rx, _ = synthetic(E=300)
+    noisy = pr + np.random.default_rng(8).normal(0, 9.0, pr.shape)
+    prior = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude")
+    calib = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude", test_scale="trace")
+    assert prior.n_excluded.sum() > 50 and calib.n_excluded.sum() < 10
+    from fusion.estimate.raim import variance_factor
+    from fusion.estimate.lsq import gauss_newton
+
+    def factor(p):
+        x = np.zeros((300, 4))
+        x[:, :3] = rx
+        w = np.full(p.shape, 1 / 9.0)
+        x, *_ = gauss_newton(sat, p, w, x, np.ones(300, bool), 10, 1e-4, 1e7, np.zeros(300, np.int64))
+        return variance_factor(sat, p, w, x, mask, np.ones(300, bool))
+    assert 7.0 < factor(noisy) < 11.0
+    assert factor(pr + np.random.default_rng(9).normal(0, 1.0, pr.shape)) == 1.0

@@ -50,15 +50,36 @@ def chi2_threshold(dof: np.ndarray, z: float = Z_PFA_1E3) -> np.ndarray:
     return k * (1.0 - 2.0 / (9.0 * k) + z * np.sqrt(2.0 / (9.0 * k))) ** 3
 
 
-def chi2_test(sat_pos, pr, w, x, used):
+def chi2_test(sat_pos, pr, w, x, used, scale: float = 1.0):
     """(E,) weighted SSE ``T`` and (E,) bool ``fails`` of the chi-square test at state x (E, 4).
 
     sat_pos: (E, S, 3), pr / w / used: (E, S). Epochs with no redundancy (n <= 4) never fail.
+    ``scale``: variance factor of the weights (the threshold is multiplied by it).
     """
     _, _, r, _ = normal_equations(sat_pos, pr, w, x)
     T = np.sum(np.where(used, w * r**2, 0.0), axis=1)
     dof = used.sum(1) - 4
-    return T, (dof > 0) & (T > chi2_threshold(dof))
+    return T, (dof > 0) & (T > scale * chi2_threshold(dof))
+
+
+def variance_factor(sat_pos, pr, w, x, used, epochs) -> float:
+    """How much larger than the a-priori model the trace's own residuals are (never below 1).
+
+    sat_pos: (E, S, 3); pr, w, used: (E, S); x: (E, 4); epochs: (E,) bool, the epochs to use.
+    A robust (median) estimate over every used measurement of those epochs, corrected for the
+    redundancy a least-squares residual loses: ``(median |v| sqrt(w) / 0.6745)^2 / mean((n-4)/n)``.
+    The median ignores a minority of faulty measurements; the floor at 1 keeps the a-priori
+    model wherever it is pessimistic (most open-sky drives), so it only relaxes the test on traces
+    whose noise the model underrates (urban multipath), where it would otherwise fire on clean epochs.
+    """
+    _, _, r, _ = normal_equations(sat_pos, pr, w, x)
+    sel = used & epochs[:, None]
+    n = used.sum(1)[epochs]
+    if not sel.any() or not np.any(n > 4):
+        return 1.0
+    z = np.abs(r[sel]) * np.sqrt(w[sel])
+    redundancy = np.mean(np.maximum(n - 4, 0) / np.maximum(n, 1))
+    return float(max(1.0, (np.median(z) / 0.6745) ** 2 / max(redundancy, 1e-3)))
 
 
 def subset_sse(H: np.ndarray, r: np.ndarray, w: np.ndarray, used: np.ndarray, k: int,
@@ -106,7 +127,7 @@ def _suspects_first(H, r, w, used):
     return np.argsort(sse1, axis=1, kind="stable")
 
 
-def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation):
+def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, scale):
     """For failing epochs: the smallest set of satellites (up to ``max_exclusions``) whose removal
     passes the test, the set with the least SSE among those of that size, if it stands out from the
     runner-up by ``separation``.
@@ -136,7 +157,7 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation):
         best = np.argmin(sse, axis=1)
         best_sse = sse[np.arange(idx.size), best]
         runner_up = np.partition(sse, 1, axis=1)[:, 1] if sse.shape[1] > 1 else np.full(idx.size, np.inf)
-        passes = np.isfinite(best_sse) & (best_sse <= chi2_threshold(n[idx] - k - 4))
+        passes = np.isfinite(best_sse) & (best_sse <= scale * chi2_threshold(n[idx] - k - 4))
         # identified only when no other set explains the data nearly as well
         clear = runner_up >= separation * np.maximum(best_sse, 1e-9)
         ok = passes & clear
@@ -149,17 +170,18 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation):
 
 def exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, *, max_exclusions: int,
                    max_iter: int, tol: float, max_cond: float, n_iter, dropped,
-                   separation: float = SEPARATION):
+                   separation: float = SEPARATION, scale: float = 1.0):
     """Fault detection and exclusion (module docstring) on the epochs in ``eligible``.
 
     sat_pos: (E, S, 3); pr, used, w_prior: (E, S); x: (E, 4) converged states; eligible, conv, bad,
-    runaway: (E,) bool. Returns (x, used, conv, bad, runaway, w_fit, flagged, n_excluded), the last two
+    runaway: (E,) bool. ``scale``: variance factor of ``w_prior`` for the test (:func:`variance_factor`).
+    Returns (x, used, conv, bad, runaway, w_fit, flagged, n_excluded), the last two
     (E,) bool and int. Excluded slots are counted in ``dropped["outlier"]``.
     """
     w = np.where(used, w_prior, 0.0)
-    _, fails = chi2_test(sat_pos, pr, w, x, used)
+    _, fails = chi2_test(sat_pos, pr, w, x, used, scale)
     fails &= eligible
-    remove, decided = _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation)
+    remove, decided = _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, scale)
     used = used & ~remove
     n_excl = remove.sum(1)
     count_skip(dropped, "outlier", remove)

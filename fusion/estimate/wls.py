@@ -70,7 +70,7 @@ import numpy as np
 from fusion.errors import DataError
 from fusion.estimate.clock_bridge import interpolate_clock, solve_fixed_clock
 from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations
-from fusion.estimate.raim import exclude_faults, huber_irls
+from fusion.estimate.raim import exclude_faults, huber_irls, variance_factor
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.run_types import ModeResult
 from fusion.trace import count_skip
@@ -161,11 +161,13 @@ def solve_wls(trace, *, x0: np.ndarray | None = None, elev_mask_deg: float = 10.
               **kwargs) -> WlsResult:
     """WLS over every epoch of a :class:`fusion.trace.Trace` (see :func:`solve_wls_arrays`), with
     fault detection and exclusion by default (``robust=False`` / ``"none"``: the plain baseline) and
-    three-satellite epochs solved with the clock interpolated from their neighbours.
+    three-satellite epochs solved with the clock interpolated from their neighbours. The fault test's
+    variance is calibrated on the trace (``test_scale="trace"``, :func:`fusion.estimate.raim.variance_factor`).
 
     x0: optional (E, 3) ECEF starting positions (NaN rows fall back to the coarse start); it is
     a *starting point* only - the result does not depend on it when Gauss-Newton converges.
     """
+    kwargs.setdefault("test_scale", "trace")
     return solve_wls_arrays(trace.sat_pos, trace.pr, trace.mask, trace.pr_sigma, x0,
                             elev_mask_deg=elev_mask_deg, weighting=weighting, robust=robust,
                             max_iter=max_iter, t_ms=trace.t_ms, clock_reset=trace.clock_reset, **kwargs)
@@ -177,7 +179,7 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
                      robust: bool | str = False, max_iter: int = 10, max_cond: float = 1e7,
                      max_exclusions: int = 3, huber_k: float = 1.5, sigma0: float = SIGMA0_M,
                      cov_scale: str = "posterior", tol_m: float = 1e-4, t_ms: np.ndarray | None = None,
-                     clock_reset: np.ndarray | None = None) -> WlsResult:
+                     clock_reset: np.ndarray | None = None, test_scale: float | str = 1.0) -> WlsResult:
     """Batched WLS on raw padded arrays (the engine behind :func:`solve_wls`).
 
     sat_pos:     (E, S, 3) transmit-time satellite ECEF [m].
@@ -188,6 +190,8 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     t_ms:        (E,)      epoch times; with it, three-satellite epochs are solved with the clock
                            interpolated from neighbouring valid epochs (:mod:`fusion.estimate.clock_bridge`).
     clock_reset: (E,)      bool, known clock jumps (no clock is interpolated across one).
+    test_scale:  variance factor of the a-priori sigmas for the fault test: a number, or ``"trace"``
+                 to estimate it from this batch's residuals (then epochs are no longer independent).
 
     Real slots with non-finite inputs (or a non-positive sigma under ``"uncertainty"``) are not
     used and are counted in ``dropped``; wrong shapes or option values raise :class:`DataError`.
@@ -209,9 +213,11 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     flagged, n_excluded = np.zeros(E, bool), np.zeros(E, np.int64)
     w_fit = w_prior
     if robust_mode == "exclude":
+        scale = (variance_factor(sat_pos, pr, w_prior, x, used, eligible) if test_scale == "trace"
+                 else float(test_scale))
         x, used, conv, bad, runaway, w_fit, flagged, n_excluded = exclude_faults(
             sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, max_exclusions=max_exclusions,
-            max_iter=max_iter, tol=tol_m, max_cond=max_cond, n_iter=n_iter, dropped=dropped)
+            max_iter=max_iter, tol=tol_m, max_cond=max_cond, n_iter=n_iter, dropped=dropped, scale=scale)
         if flagged.any():
             x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, flagged, conv, bad,
                                                       runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
