@@ -319,13 +319,14 @@ def test_pipeline_default_wls_is_the_robust_one():
 
 
 def test_fault_test_calibrated_on_the_trace():
-    """Noise 3x the a-priori model: the test's variance factor finds ~9 and stops firing on clean
-    epochs; a pessimistic model keeps factor 1."""
+    """Noise 3x the a-priori model: the variance factor finds ~9 and the calibrated test (factor
+    from a first pass's settled epochs) excludes far fewer good measurements; a pessimistic model
+    keeps factor 1."""
     sat, pr, mask, rx, _ = synthetic(E=300)
     noisy = pr + np.random.default_rng(8).normal(0, 9.0, pr.shape)
     prior = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude")
     calib = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude", test_scale="trace")
-    assert prior.n_excluded.sum() > 50 and calib.n_excluded.sum() < 10
+    assert prior.n_excluded.sum() > 100 and calib.n_excluded.sum() < 0.5 * prior.n_excluded.sum()
     from fusion.estimate.raim import variance_factor
     from fusion.estimate.lsq import gauss_newton
 
@@ -335,5 +336,5 @@ def test_fault_test_calibrated_on_the_trace():
         w = np.full(p.shape, 1 / 9.0)
         x, *_ = gauss_newton(sat, p, w, x, np.ones(300, bool), 10, 1e-4, 1e7, np.zeros(300, np.int64))
         return variance_factor(sat, p, w, x, mask, np.ones(300, bool))
-    assert 7.0 < factor(noisy) < 11.0
+    assert factor(noisy) in (2.0 ** 3, 2.0 ** 3.5)      # ~9, in half-octave steps
     assert factor(pr + np.random.default_rng(9).normal(0, 1.0, pr.shape)) == 1.0

@@ -65,10 +65,12 @@ def chi2_test(sat_pos, pr, w, x, used, scale: float = 1.0):
 def variance_factor(sat_pos, pr, w, x, used, epochs) -> float:
     """How much larger than the a-priori model the trace's own residuals are (never below 1).
 
-    sat_pos: (E, S, 3); pr, w, used: (E, S); x: (E, 4); epochs: (E,) bool, the epochs to use.
+    sat_pos: (E, S, 3); pr, w, used: (E, S); x: (E, 4); epochs: (E,) bool, the epochs to use
+    (best: those a first exclusion pass settled, so that faults do not inflate the estimate).
     A robust (median) estimate over every used measurement of those epochs, corrected for the
-    redundancy a least-squares residual loses: ``(median |v| sqrt(w) / 0.6745)^2 / mean((n-4)/n)``.
-    The median ignores a minority of faulty measurements; the floor at 1 keeps the a-priori
+    redundancy a least-squares residual loses: ``(median |v| sqrt(w) / 0.6745)^2 / mean((n-4)/n)``,
+    rounded to a power of sqrt(2).
+    The median ignores the few faults left; the floor at 1 keeps the a-priori
     model wherever it is pessimistic (most open-sky drives), so it only relaxes the test on traces
     whose noise the model underrates (urban multipath), where it would otherwise fire on clean epochs.
     """
@@ -79,7 +81,10 @@ def variance_factor(sat_pos, pr, w, x, used, epochs) -> float:
         return 1.0
     z = np.abs(r[sel]) * np.sqrt(w[sel])
     redundancy = np.mean(np.maximum(n - 4, 0) / np.maximum(n, 1))
-    return float(max(1.0, (np.median(z) / 0.6745) ** 2 / max(redundancy, 1e-3)))
+    f = max(1.0, (np.median(z) / 0.6745) ** 2 / max(redundancy, 1e-3))
+    # in half-octave steps: a coarse calibration, and a few changed rows elsewhere in the file must
+    # not move every epoch's test
+    return float(2.0 ** (np.round(2.0 * np.log2(f)) / 2.0))
 
 
 def subset_sse(H: np.ndarray, r: np.ndarray, w: np.ndarray, used: np.ndarray, k: int,

@@ -213,11 +213,10 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     flagged, n_excluded = np.zeros(E, bool), np.zeros(E, np.int64)
     w_fit = w_prior
     if robust_mode == "exclude":
-        scale = (variance_factor(sat_pos, pr, w_prior, x, used, eligible) if test_scale == "trace"
-                 else float(test_scale))
-        x, used, conv, bad, runaway, w_fit, flagged, n_excluded = exclude_faults(
-            sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, max_exclusions=max_exclusions,
-            max_iter=max_iter, tol=tol_m, max_cond=max_cond, n_iter=n_iter, dropped=dropped, scale=scale)
+        x, used, conv, bad, runaway, w_fit, flagged, n_excluded = _fde(
+            sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale,
+            dict(max_exclusions=max_exclusions, max_iter=max_iter, tol=tol_m, max_cond=max_cond,
+                 n_iter=n_iter), dropped)
         if flagged.any():
             x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, flagged, conv, bad,
                                                       runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
@@ -235,6 +234,26 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
 
 
 # ------------------------------------------------------------------------------------- the stages
+def _fde(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped):
+    """Fault detection and exclusion (:func:`fusion.estimate.raim.exclude_faults`). With
+    ``test_scale="trace"`` a first pass at the a-priori variance gives the residuals of the epochs
+    it settled, whose robust variance factor (:func:`fusion.estimate.raim.variance_factor`) sets the
+    test of the second, final pass; a factor of 1 keeps the first pass."""
+    scale = 1.0 if test_scale == "trace" else float(test_scale)
+    first = exclude_faults(sat_pos, pr, used, w_prior, x.copy(), eligible, conv, bad.copy(), runaway.copy(),
+                           dropped=dropped if test_scale != "trace" else {}, scale=scale, **kw)
+    if test_scale != "trace":
+        return first
+    x1, used1, _, bad1, run1, w1, flagged1, _ = first
+    settled = eligible & ~flagged1 & ~bad1 & ~run1
+    scale = variance_factor(sat_pos, pr, w1, x1, used1, settled)
+    if scale == 1.0:
+        count_skip(dropped, "outlier", first[-1])
+        return first
+    return exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, dropped=dropped,
+                          scale=scale, **kw)
+
+
 def _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped):
     """Real slots with finite inputs (and a usable sigma under "uncertainty"), counted when not.
 
