@@ -41,7 +41,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
-    p.add_argument("--robust-wls", action="store_true", help="WLS with outlier exclusion")
+    p.add_argument("--wls-plain", action="store_true",
+                   help="plain WLS, the paper's baseline (default: WLS with fault detection and exclusion)")
     p.add_argument("--no-doppler", action="store_true",
                    help="fused modes: ignore the trace's Doppler (pseudorange rates)")
     p.add_argument("--no-carrier", action="store_true",
@@ -69,7 +70,7 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
         raise GnssfuseError("--clk needs --sp3 (precise clocks go with precise orbits)")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
-                      wls_robust=args.robust_wls, learned_prior=not args.no_learned_prior,
+                      wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
                       use_doppler=not args.no_doppler, use_carrier=not args.no_carrier,
                       nav=tuple(args.nav), sp3=args.sp3, clk=args.clk)
@@ -111,6 +112,11 @@ def run_main(argv: list[str], prog: str = "gnssfuse run") -> int:
     record = write_outputs(args.out, trace, args.mode, result, mode_metrics(trace, result))
     print(f"{trace.name}: {record['epochs_solved']}/{trace.n_epochs} epochs solved in mode {args.mode}"
           + (f"; skipped while loading: {record['skipped']}" if record["skipped"] else ""))
+    info = result.info
+    if info.get("excluded_measurements") or info.get("epochs_fault_undecided"):
+        print(f"WLS fault detection: {info['excluded_measurements']} measurements excluded in "
+              f"{info['epochs_with_exclusions']} epochs; {info['epochs_fault_undecided']} epochs undecided"
+              " (see metrics.json 'info'; --wls-plain for the plain baseline)")
     print(format_table({args.mode: record["metrics"]}))
     print(f"wrote {args.out / 'estimates.csv'}" + (" and metrics.json" if record["metrics"] else ""))
     return 0

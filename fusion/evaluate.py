@@ -18,13 +18,14 @@ from tqdm import tqdm
 
 from fusion.cli import add_run_options, load_options, options_from_args
 from fusion.errors import DataError, GnssfuseError
-from fusion.estimate.wls import WlsResult
+from fusion.estimate.wls import WlsResult, wls_counts
 from fusion.eval.metrics import mode_metrics, trace_errors
 from fusion.eval.report import (ALL, TraceEval, markdown_table, metrics_table, write_figures,
-                                write_report_md)
+                                write_report_md, write_trace_figures)
 from fusion.io.estimates import write_outputs
-from fusion.io.load import load_trace
+from fusion.io.load import load_trace, trace_name
 from fusion.modes import MODES, get_mode, run_modes, solve_initial
+from fusion.parallel import map_traces
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
 
@@ -44,28 +45,74 @@ def _slug(name: str, taken: set[str]) -> str:
     return slug
 
 
-def evaluate_trace(trace: Trace, modes: list[str], opts: RunOptions, out_dir: Path, slug: str,
-                   wls: WlsResult | None = None, progress: bool = True) -> TraceEval:
-    """Run every mode on ``trace`` (one shared WLS), write estimates, collect errors.
+def run_trace(trace: Trace, modes: list[str], opts: RunOptions, wls: WlsResult | None = None,
+              progress: bool = True) -> TraceEval:
+    """Run every mode on ``trace`` (one shared WLS) and keep the results; writes nothing.
 
     A mode that raises one of our input errors on this trace is recorded in ``failed`` and the
     others still run: one bad mode must not lose the rest of the report.
     """
-    ev = TraceEval(trace=trace, slug=slug)
+    ev = TraceEval(trace=trace, slug="")
     wls = solve_initial(trace, opts) if wls is None else wls
     ev.wls_reasons = dict(getattr(wls, "reasons", {}) or {})
+    if isinstance(wls, WlsResult):
+        ev.wls_counts = wls_counts(wls)
     for mode in tqdm(modes, desc=f"  {trace.name}", leave=False, disable=not progress):
         try:
-            result = run_modes(trace, [mode], opts, wls=wls)[mode]
+            ev.results[mode] = run_modes(trace, [mode], opts, wls=wls)[mode]
         except GnssfuseError as exc:
             ev.failed[mode] = str(exc)
-            continue
-        ev.results[mode] = result
-        ev.records[mode] = write_outputs(out_dir / slug / mode, trace, mode, result, mode_metrics(trace, result))
-        err = trace_errors(trace, result)
+    return ev
+
+
+def write_trace(ev: TraceEval, out_dir: Path, slug: str) -> TraceEval:
+    """Write each mode's estimates (+ metrics.json) under ``out_dir/slug`` and collect its errors."""
+    ev.slug = slug
+    for mode, result in ev.results.items():
+        ev.records[mode] = write_outputs(out_dir / slug / mode, ev.trace, mode, result,
+                                         mode_metrics(ev.trace, result))
+        err = trace_errors(ev.trace, result)
         if err is not None:
             ev.errors[mode] = err
     return ev
+
+
+def evaluate_trace(trace: Trace, modes: list[str], opts: RunOptions, out_dir: Path, slug: str,
+                   wls: WlsResult | None = None, progress: bool = True) -> TraceEval:
+    """:func:`run_trace` then :func:`write_trace`."""
+    return write_trace(run_trace(trace, modes, opts, wls, progress), out_dir, slug)
+
+
+def load_and_run(d: Path, slug: str, modes: list[str], opts: RunOptions, max_epochs: int | None,
+                 fix_truth_height: bool, out_dir: Path, progress: bool = False) -> TraceEval | str:
+    """One trace folder start to finish (what a worker process does): load, run every mode, write
+    its estimates and figures under ``out_dir``; the :class:`TraceEval`, or the one-line reason the
+    trace could not be loaded."""
+    try:
+        # min_sats=1: epochs with < 4 satellites reach the modes (the fused ones carry them)
+        trace = load_trace(d, fix_truth_height=fix_truth_height, min_sats=1, **load_options(opts))
+        if trace.n_epochs == 0:
+            raise DataError(f"{d}: no epochs with {', '.join(opts.signals or ['the default signals'])} "
+                            "measurements")
+    except GnssfuseError as exc:
+        return str(exc)
+    if max_epochs is not None and trace.n_epochs > max_epochs:
+        trace = trace.select(np.arange(max_epochs))
+    ev = write_trace(run_trace(trace, modes, opts, progress=progress), out_dir, slug)
+    ev.figures = write_trace_figures(ev, out_dir / "figures")
+    return ev
+
+
+def run_all(trace_dirs: list[Path], modes: list[str], opts: RunOptions, max_epochs: int | None,
+            fix_truth_height: bool, progress: bool, jobs: int, out_dir: Path) -> list[TraceEval | str]:
+    """:func:`load_and_run` on every folder, in order; in ``jobs`` processes when > 1. Output
+    folders are named (slugs) here, before any work, so that they do not depend on ``jobs``."""
+    taken: set[str] = set()
+    args = [(Path(d), _slug(trace_name(d), taken), modes, opts, max_epochs, fix_truth_height, out_dir)
+            for d in trace_dirs]
+    if jobs == 1:
+        return [load_and_run(*a, progress=progress) for a in tqdm(args, desc="traces", disable=not progress)]
+    return map_traces(load_and_run, args, jobs, progress)
 
 
 # ---------------------------------------------------------------------------- CLI
@@ -81,15 +128,19 @@ def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
     p.add_argument("--max-epochs", type=int, default=None,
                    help="use only the first N epochs of each trace (quick looks, tests)")
     p.add_argument("--no-progress", action="store_true", help="no tqdm progress bars")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="traces in this many parallel processes (one thread each; default 1)")
     return p
 
 
 def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
              max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
-             argv: list[str] | None = None) -> tuple[pd.DataFrame, dict[str, str]]:
+             argv: list[str] | None = None, jobs: int = 1) -> tuple[pd.DataFrame, dict[str, str]]:
     """Load, run, tabulate, plot and write the report. Returns (metrics table, load failures).
 
     A trace that fails to load is reported and skipped; only when none loads is it an error.
+    ``jobs`` > 1 runs traces in that many worker processes (:mod:`fusion.parallel`); the tables are
+    the same as with one.
     """
     check_modes(modes)
     missing = [str(d) for d in trace_dirs if not Path(d).is_dir()]
@@ -97,23 +148,13 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
         raise DataError(f"trace folder(s) not found: {', '.join(missing)}")
     if max_epochs is not None and max_epochs < 1:
         raise GnssfuseError("--max-epochs must be >= 1")
+    if jobs < 1:
+        raise GnssfuseError("--jobs must be >= 1")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    evals, failures, taken = [], {}, set()
-    for d in tqdm(trace_dirs, desc="traces", disable=not progress):
-        try:
-            # min_sats=1: epochs with < 4 satellites reach the modes (the fused ones carry them)
-            trace = load_trace(d, fix_truth_height=fix_truth_height, min_sats=1, **load_options(opts))
-            if trace.n_epochs == 0:
-                raise DataError(f"{d}: no epochs with {', '.join(opts.signals or ['the default signals'])} "
-                                "measurements")
-        except GnssfuseError as exc:
-            failures[str(d)] = str(exc)
-            continue
-        if max_epochs is not None and trace.n_epochs > max_epochs:
-            trace = trace.select(np.arange(max_epochs))
-        evals.append(evaluate_trace(trace, modes, opts, out_dir, _slug(trace.name, taken),
-                                    progress=progress))
+    outcomes = run_all(trace_dirs, modes, opts, max_epochs, fix_truth_height, progress, jobs, out_dir)
+    evals = [o for o in outcomes if not isinstance(o, str)]
+    failures = {str(d): o for d, o in zip(trace_dirs, outcomes) if isinstance(o, str)}
     if not evals:
         raise DataError("no trace could be loaded: " + "; ".join(failures.values()))
     df = metrics_table(evals, modes)
@@ -132,7 +173,7 @@ def main(argv: list[str], prog: str = "gnssfuse evaluate") -> int:
         raise GnssfuseError("--modes is empty")
     df, failures = evaluate(args.trace_dirs, modes, args.out, opts, max_epochs=args.max_epochs,
                             fix_truth_height=not args.no_truth_height_fix,
-                            progress=not args.no_progress, argv=argv)
+                            progress=not args.no_progress, argv=argv, jobs=args.jobs)
     print(markdown_table(df))
     print(f"wrote {args.out / 'report.md'}, metrics.csv, metrics.md and figures/")
     # The report for the good part is written; still exit non-zero so scripts notice the rest.

@@ -26,7 +26,7 @@ class RunOptions:
     sp3: Path | None = None              # raw logs: precise orbits (+ clocks) instead of broadcast
     clk: Path | None = None              # raw logs: precise clocks (RINEX clock file) with sp3
     wls_weighting: str = "elevation"
-    wls_robust: bool = False
+    wls_robust: bool | str = "exclude"   # fault detection and exclusion; False = plain (--wls-plain)
     # fused mode: which learned parts enter the graph (the report isolates what each adds)
     learned_prior: bool = True           # the network's position prior per epoch
     learned_sigmas: bool = True          # the per-satellite head's pseudorange sigma and bias

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from fusion.estimate.wls import WlsResult
+from fusion.modes import solve_initial
+from fusion.run_types import RunOptions
 from fusion.trace import Trace
 
 #: Longest step between epochs [s] that still counts as "the previous epoch" (1 Hz logs: 1 s).
@@ -79,6 +81,14 @@ def _arc_ages(t_s: np.ndarray, keys: np.ndarray, prev: np.ndarray) -> np.ndarray
     out = np.zeros(keys.shape)
     out[e, s] = t_s[e] - t_s[e[first]]
     return np.minimum(out, MAX_ARC_S)
+
+
+def context_wls(trace: Trace, elev_mask_deg: float) -> WlsResult:
+    """The WLS solution the context (and the training guesses) are defined on: plain elevation-weighted
+    WLS, without fault exclusion, so that a residual the pipeline's robust WLS would exclude still shows
+    its jump to the network, and so that training and inference see the same definition whatever the
+    pipeline's WLS options."""
+    return solve_initial(trace, RunOptions(elev_mask_deg=elev_mask_deg, wls_robust=False))
 
 
 def slot_context(trace: Trace, wls: WlsResult) -> SlotContext:

@@ -8,7 +8,7 @@ the training epochs (:func:`split_random`) or of contiguous blocks of them (:fun
 1 Hz epochs share multipath and geometry, so a random split validates on near-copies of training epochs).
 
 Each sample also carries the WLS position of *its own measurements* (``wls``, no truth involved: the
-pipeline's own :func:`fusion.modes.solve_initial`, so training WLS is inference WLS by construction),
+same :func:`learned.context.context_wls` the corrector computes its context from, so training WLS is inference WLS),
 computed once here, so training can draw
 initial guesses from the distribution the network meets at inference (:mod:`learned.augment`).
 With ``with_graph`` it also carries the solution of the factor graph without the learned prior
@@ -29,7 +29,7 @@ from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate_dataset
 from fusion.trace import Trace
-from learned.context import CONTEXT_KEYS, slot_context
+from learned.context import CONTEXT_KEYS, context_wls, slot_context
 from learned.features import compact_slots, elevation_mask
 from learned.toy import toy_dataset
 
@@ -91,8 +91,8 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
                        ) -> Samples:
     """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth).
 
-    ``with_wls``: also solve WLS on the whole trace (``fusion.modes.solve_initial`` with
-    ``RunOptions(elev_mask_deg=...)``: the inference WLS, no truth) and keep each sample's position; ``real`` tags the samples as phone data.
+    ``with_wls``: also solve WLS on the whole trace (:func:`learned.context.context_wls`, no truth), keep each
+    sample's position and the per-slot context; ``real`` tags the samples as phone data.
     ``clock``: (E,) true receiver clock of a simulated trace, kept per sample (experiment only).
     ``with_graph``: also solve the no-prior factor graph on the whole trace (:func:`graph_positions`);
     samples without a graph position (unsolved epoch, or a trace the graph cannot solve) are counted in
@@ -108,7 +108,7 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     enough = mask.sum(1) >= 4
     skipped["lt4_sats"] = int((~enough).sum())
     idx, mask, truth = idx[enough], mask[enough], truth[enough]
-    w = solve_initial(trace, RunOptions(elev_mask_deg=elev_mask_deg)) if (with_wls or with_graph) else None
+    w = context_wls(trace, elev_mask_deg) if (with_wls or with_graph) else None
     ctx = slot_context(trace, w).as_dict() if w is not None else None
     # Real slots first, padding trimmed; padded slots zeroed so no stale measurement lingers there.
     extra = [ctx[k][idx] for k in CONTEXT_KEYS] if ctx is not None else []
@@ -121,7 +121,8 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
         wls = np.where(w.valid[idx, None], w.pos[idx], np.nan)
         skipped["wls_invalid"] = int((~np.isfinite(wls).all(1)).sum())
     if with_graph:
-        graph = graph_positions(trace, w, RunOptions(elev_mask_deg=elev_mask_deg))[idx]
+        opts = RunOptions(elev_mask_deg=elev_mask_deg)       # the pipeline's own WLS starts the graph
+        graph = graph_positions(trace, solve_initial(trace, opts), opts)[idx]
         skipped["graph_invalid"] = int((~np.isfinite(graph).all(1)).sum())
     if clock is not None and np.shape(clock) != (trace.n_epochs,):
         raise DataError(f"{trace.name}: clock must have shape ({trace.n_epochs},), got {np.shape(clock)}")

@@ -12,11 +12,9 @@ import numpy as np
 import torch
 
 from fusion.errors import CheckpointError, GeometryError
-from fusion.modes import solve_initial
-from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, Trace
 from learned.checkpoint import load_model
-from learned.context import slot_context
+from learned.context import context_wls, slot_context
 from learned.features import FeatureConfig, context_channels, elevation_mask, features_torch
 from learned.forward import outputs
 from learned.guard import slot_out_of_range, trust
@@ -118,7 +116,7 @@ class Corrector:
     def _context(self, trace: Trace) -> dict[str, np.ndarray]:
         """The trace's per-slot context (E,S) from its own default WLS (as in training), cached per trace."""
         if self._ctx_cache is None or self._ctx_cache[0] != id(trace):
-            wls = solve_initial(trace, RunOptions(elev_mask_deg=self.features.elev_mask_deg))
+            wls = context_wls(trace, self.features.elev_mask_deg)
             self._ctx_cache = (id(trace), slot_context(trace, wls).as_dict())
         return self._ctx_cache[1]
 

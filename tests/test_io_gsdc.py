@@ -211,7 +211,8 @@ def test_gsdc2022_and_2023_samples(shared_data):
     assert np.isfinite(t22.truth).all() and not t22.clock_reset.any()
     arrival = raw.groupby("utcTimeMillis")["ArrivalTimeNanosSinceGpsEpoch"].first().to_numpy() / 1e6
     assert np.abs(t22.t_ms - arrival).max() < 1.0               # Unix -> GPS with 18 leap seconds
-    assert t22.skipped["rows_missing_values"] == raw["RawPseudorangeMeters"].isna().sum()
+    n_missing = sum(v for k, v in t22.skipped.items() if k.startswith("rows_missing:"))
+    assert n_missing == raw["RawPseudorangeMeters"].isna().sum()
     # truth heights are ellipsoidal already (Mountain View: near 0), no 63 m correction
     assert -15 < np.median(ecef2geodetic(t22.truth)[:, 2]) < 10
 
@@ -316,7 +317,7 @@ def test_missing_and_empty_files(tmp_path):
         load_derived_2021(h)
     g = tmp_path / "g_derived.csv.gz"
     g.write_bytes(b"\x1f\x8b\x08\x00garbage")
-    with pytest.raises(DataError, match=str(g.name)):
+    with pytest.raises(DataError, match=f"{g.name}: corrupt gzip"):
         load_derived_2021(g)
 
 
@@ -330,26 +331,32 @@ def test_missing_columns_named(tmp_path):
         read_truth_csv(t)
 
 
-def test_non_numeric_named(tmp_path):
-    df = _derived_rows().astype({"rawPrM": object})
+def test_non_numeric_row_skipped_and_counted_per_column(tmp_path):
+    df = _derived_rows(n_epochs=3, n_sats=6).astype({"rawPrM": object, "ionoDelayM": object})
     df.loc[7, "rawPrM"] = "abc"
-    with pytest.raises(DataError, match=r"'rawPrM', data row 8: non-numeric value 'abc'"):
-        load_trace(_write(tmp_path, df))
+    df.loc[3, "ionoDelayM"] = "inf"
+    df.loc[3, "rawPrM"] = "x"                       # counted once, under its first bad column
+    tr = load_trace(_write(tmp_path, df))
+    assert tr.skipped == {"rows_nonnumeric:rawPrM": 2}
+    assert tr.n_epochs == 3 and tr.mask.sum() == 16
+    df.loc[3, "rawPrM"] = 2.2e7
+    tr = load_trace(_write(tmp_path, df, folder="b/Pixel4"))
+    assert tr.skipped == {"rows_nonnumeric:rawPrM": 1, "rows_nonfinite:ionoDelayM": 1}
 
 
 def test_nan_rows_dropped_and_counted(tmp_path):
     df = _derived_rows(n_epochs=3, n_sats=6)
     df.loc[[0, 8], "ionoDelayM"] = np.nan
     tr = load_trace(_write(tmp_path, df))
-    assert tr.skipped["rows_missing_values"] == 2 and tr.n_epochs == 3 and tr.mask.sum() == 16
+    assert tr.skipped["rows_missing:ionoDelayM"] == 2 and tr.n_epochs == 3 and tr.mask.sum() == 16
     # a row missing only the satellite velocity (used by no estimator) keeps its pseudorange
     vel = _derived_rows(n_epochs=3, n_sats=6)
     vel.loc[[2], ["xSatVelMps", "ySatVelMps"]] = np.nan
     tv = load_trace(_write(tmp_path, vel, folder="v/Pixel4"))
-    assert "rows_missing_values" not in tv.skipped and tv.mask.sum() == 18
+    assert not tv.skipped and tv.mask.sum() == 18
     assert (tv.sat_vel[tv.mask][:, 2] == 300.0).all() and (tv.sat_vel[tv.mask][:, 0] == 0.0).sum() == 1
     df["rawPrM"] = np.nan
-    with pytest.raises(DataError, match="every measurement row"):
+    with pytest.raises(DataError, match=r"no usable measurement row .*rows_missing:rawPrM: 18"):
         load_trace(_write(tmp_path, df))
 
 
@@ -359,6 +366,10 @@ def test_duplicates_and_bad_values_counted(tmp_path):
     df.loc[df.index[1], ["xSatPosM", "ySatPosM", "zSatPosM"]] = 0.0   # satellite at the Earth's centre
     tr = load_trace(_write(tmp_path, df), min_sats=0)
     assert tr.skipped == {"duplicate_rows": 1, "rows_bad_values": 1}
+    conflicting = _derived_rows(n_epochs=2, n_sats=5)
+    conflicting = pd.concat([conflicting, conflicting.iloc[[3]].assign(rawPrM=2.3e7)])
+    tc = load_trace(_write(tmp_path, conflicting, folder="c/Pixel4"))
+    assert tc.skipped == {"conflicting_duplicate_rows": 1} and tc.mask.sum() == 10
     assert tr.mask.sum() == 9
 
 
@@ -386,18 +397,37 @@ def test_truth_matching_and_no_overlap(tmp_path):
     nan_truth = _truth_rows(t_true)
     nan_truth.loc[1, "latDeg"] = np.nan
     tr = load_trace(_write(tmp_path, df, truth=nan_truth, folder="c3/Pixel4"))
-    assert tr.skipped["truth_rows_missing_values"] == 1 and np.isnan(tr.truth[1]).all()
+    assert tr.skipped["truth_rows_missing:latDeg"] == 1 and np.isnan(tr.truth[1]).all()
 
 
-def test_times_not_increasing(tmp_path):
+def test_rows_out_of_time_order_are_reordered(tmp_path):
     df = _derived_rows(n_epochs=3)
-    df = pd.concat([df.iloc[5:], df.iloc[:5]])
-    with pytest.raises(DataError, match="not increasing: data row 11"):
-        load_trace(_write(tmp_path, df))
+    ref = load_trace(_write(tmp_path, df))
+    by_sat = load_trace(_write(tmp_path, df.sort_values(["svid", "millisSinceGpsEpoch"]), folder="s/Pixel4"))
+    shuffled = load_trace(_write(tmp_path, df.sample(frac=1.0, random_state=1), folder="r/Pixel4"))
+    for tr in (by_sat, shuffled):
+        assert not tr.skipped
+        np.testing.assert_array_equal(tr.t_ms, ref.t_ms)
+        np.testing.assert_array_equal(tr.pr, ref.pr)
+        np.testing.assert_array_equal(tr.sat_id, ref.sat_id)
     dev = _device_rows()
-    dev = pd.concat([dev.iloc[5:], dev.iloc[:5]])
-    with pytest.raises(DataError, match="utcTimeMillis times are not increasing"):
-        load_trace(_write(tmp_path, dev, "device_gnss.csv", folder="d/Pixel4"))
+    ref = load_trace(_write(tmp_path, dev, "device_gnss.csv", folder="d/Pixel4"))
+    rev = load_trace(_write(tmp_path, dev.iloc[::-1], "device_gnss.csv", folder="e/Pixel4"))
+    np.testing.assert_array_equal(rev.t_ms, ref.t_ms)
+    np.testing.assert_array_equal(rev.pr, ref.pr)
+
+
+def test_truth_out_of_order_and_duplicated(tmp_path):
+    t = 1_303_683_548_434 + 1000 * np.arange(5)
+    truth = _truth_rows(t)
+    truth["latDeg"] = 37.4 + 1e-4 * np.arange(5)
+    p = tmp_path / "gt.csv"
+    pd.concat([truth.iloc[::-1], truth.iloc[[2]]]).to_csv(p, index=False)
+    skipped = {}
+    out = read_truth_csv(p, skipped)
+    assert skipped == {"truth_duplicate_rows": 1}
+    np.testing.assert_array_equal(out["t_ms"], t)
+    np.testing.assert_allclose(out["lat_deg"], truth["latDeg"])
 
 
 def test_find_traces_and_load_dataset(tmp_path, shipped_trace_dir):

@@ -69,7 +69,7 @@ def test_table_metrics_equal_summarize_of_estimates(wls_report):
     from fusion.io.load import load_trace
 
     _, out, trace_dir = wls_report
-    trace = load_trace(trace_dir)
+    trace = load_trace(trace_dir, min_sats=1)          # as evaluate loads it
     trace = trace.select(np.arange(min(N_EPOCHS, trace.n_epochs)))
     est = pd.read_csv(out / "2021-04-28-US-MTV-1_Pixel4" / "wls" / "estimates.csv")
     assert list(est.columns) == ESTIMATE_COLUMNS + SIGMA_COLUMNS          # WLS gives a covariance
@@ -81,7 +81,8 @@ def test_table_metrics_equal_summarize_of_estimates(wls_report):
     table = pd.read_csv(out / "metrics.csv").set_index("trace")
     for key in METRIC_KEYS:
         for row in ("2021-04-28-US-MTV-1/Pixel4", ALL):  # one trace: pooled == per-trace
-            assert table.loc[row, key] == pytest.approx(expected[key], abs=2e-4), (row, key)
+            # estimates.csv keeps 10 significant digits: ~1 mm at ECEF scale
+            assert table.loc[row, key] == pytest.approx(expected[key], abs=2e-3), (row, key)
     assert table.loc[ALL, "epochs_scored"] == expected["n"]
     assert table.loc[ALL, "epochs_total"] == trace.n_epochs
     solved = len(est)

@@ -237,3 +237,104 @@ def test_not_converged_and_garbage_are_reported():
     assert not res.valid.any()
     assert set(res.reasons) <= {"diverged", "not_converged", "degenerate", "few_sats_after_mask"}
     assert sum(res.reasons.values()) == 3
+
+
+# ---------------------------------------------------------------------------- fault detection and exclusion
+def test_fde_finds_two_faults_and_leaves_clean_epochs_alone():
+    sat, pr, mask, rx, _ = synthetic(E=6)
+    pr = pr + np.random.default_rng(7).normal(0, 1.0, pr.shape)
+    pr[1, [0, 3]] += 200.0
+    pr[2, [2, 6]] += 150.0
+    res = solve_wls_arrays(sat, pr, mask, None, robust="exclude")
+    assert res.n_excluded.tolist() == [0, 2, 2, 0, 0, 0] and res.dropped["outlier"] == 4
+    assert not res.used[1, [0, 3]].any() and not res.used[2, [2, 6]].any()
+    assert np.linalg.norm(res.pos - rx, axis=1).max() < 5.0 and not res.flagged.any()
+
+
+def test_fde_flags_what_it_cannot_decide():
+    sat, pr, mask, rx, _ = synthetic(E=2, sky=SKY[:5])
+    pr[0, 1] += 200.0                                  # five satellites: detected, not identifiable
+    res = solve_wls_arrays(sat, pr, mask, None, robust="exclude")
+    assert res.flagged.tolist() == [True, False] and res.valid.all() and res.n_excluded.sum() == 0
+    sat, pr, mask, rx, _ = synthetic(E=1)
+    pr[0, [0, 2, 4]] += [200.0, -300.0, 250.0]          # three faults, two exclusions allowed
+    res = solve_wls_arrays(sat, pr, mask, None, robust="exclude", max_exclusions=2)
+    assert res.flagged.tolist() == [True]
+    with pytest.raises(DataError, match="max_exclusions"):
+        solve_wls_arrays(sat, pr, mask, None, robust="exclude", max_exclusions=-1)
+
+
+def _drive_with_three_sat_epoch(reset_at=None):
+    """Five epochs, 1 s apart, the clock drifting 100 m/s; epoch 2 keeps 3 satellites."""
+    sat, pr, mask, rx, clocks = synthetic(E=5)
+    clocks = 1000.0 + 100.0 * np.arange(5)
+    pr = pseudoranges(sat, rx, 0.0) + clocks[:, None]
+    mask[2, 3:] = False
+    kw = empty_trace(5, sat.shape[1])
+    kw.update(t_ms=1_000_000 + 1000 * np.arange(5), sat_pos=sat, pr=pr, mask=mask)
+    if reset_at is not None:
+        kw["clock_reset"][reset_at] = True
+    return Trace(**kw), rx
+
+
+def test_three_satellite_epoch_solved_with_interpolated_clock():
+    tr, rx = _drive_with_three_sat_epoch()
+    res = solve_wls(tr)
+    assert res.valid.all() and res.clock_predicted.tolist() == [False, False, True, False, False]
+    assert np.linalg.norm(res.pos[2] - rx[2]) < 1e-3 and res.n_used[2] == 3
+    plain = solve_wls_arrays(tr.sat_pos, tr.pr, tr.mask, None)          # no times: not solved
+    assert plain.reasons == {"few_sats": 1}
+    across_reset, _ = _drive_with_three_sat_epoch(reset_at=3)
+    res = solve_wls(across_reset)
+    assert not res.valid[2] and res.reasons == {"three_sats_no_clock": 1}
+    unflagged_jump, _ = _drive_with_three_sat_epoch()
+    unflagged_jump.pr[3:] += 5000.0                    # a clock jump the file does not flag
+    res = solve_wls(unflagged_jump)
+    assert not res.valid[2] and res.reasons == {"three_sats_no_clock": 1}
+
+
+def test_wls_mode_reports_exclusions():
+    from fusion.estimate.wls import estimate_wls
+    from fusion.run_types import RunOptions
+
+    tr, _ = _drive_with_three_sat_epoch()
+    tr.pr[0, 0] += 200.0
+    info = estimate_wls(tr, solve_wls(tr), RunOptions()).info
+    assert info["excluded_measurements"] == 1 and info["epochs_with_exclusions"] == 1
+    assert info["epochs_clock_predicted"] == 1 and info["unsolved"] == 0
+    assert RunOptions().wls_robust == "exclude"
+
+
+def test_pipeline_default_wls_is_the_robust_one():
+    """dnn and the fused modes start from fusion.modes.solve_initial: robust under RunOptions()."""
+    from fusion.modes import solve_initial
+    from fusion.run_types import RunOptions
+
+    tr, rx = _drive_with_three_sat_epoch()
+    tr.pr[1, 2] += 200.0
+    robust = solve_initial(tr, RunOptions())
+    plain = solve_initial(tr, RunOptions(wls_robust=False))
+    assert robust.n_excluded.tolist() == [0, 1, 0, 0, 0] and not plain.n_excluded.any()
+    assert np.linalg.norm(robust.pos[1] - rx[1]) < 1e-3 < np.linalg.norm(plain.pos[1] - rx[1])
+
+
+def test_fault_test_calibrated_on_the_trace():
+    """Noise 3x the a-priori model: the variance factor finds ~9 and the calibrated test (factor
+    from a first pass's settled epochs) excludes far fewer good measurements; a pessimistic model
+    keeps factor 1."""
+    sat, pr, mask, rx, _ = synthetic(E=300)
+    noisy = pr + np.random.default_rng(8).normal(0, 9.0, pr.shape)
+    prior = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude")
+    calib = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude", test_scale="trace")
+    assert prior.n_excluded.sum() > 100 and calib.n_excluded.sum() < 0.5 * prior.n_excluded.sum()
+    from fusion.estimate.raim import variance_factor
+    from fusion.estimate.lsq import gauss_newton
+
+    def factor(p):
+        x = np.zeros((300, 4))
+        x[:, :3] = rx
+        w = np.full(p.shape, 1 / 9.0)
+        x, *_ = gauss_newton(sat, p, w, x, np.ones(300, bool), 10, 1e-4, 1e7, np.zeros(300, np.int64))
+        return variance_factor(sat, p, w, x, mask, np.ones(300, bool))
+    assert factor(noisy) in (2.0 ** 3, 2.0 ** 3.5)      # ~9, in half-octave steps
+    assert factor(pr + np.random.default_rng(9).normal(0, 1.0, pr.shape)) == 1.0

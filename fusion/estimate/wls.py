@@ -18,11 +18,16 @@ Procedure
    ``elev_mask_deg`` are dropped. Weights are fixed from these elevations (the elevation of a
    20,000 km distant satellite does not move measurably with a metre-level position change).
 3. Fine stage: weighted Gauss-Newton to a 0.1 mm step, at most ``max_iter`` iterations.
-4. Optional robust stage (``robust=True`` / ``"exclude"``): while the largest standardised
-   residual of an epoch exceeds ``outlier_k`` and at least 5 satellites would remain, drop that
-   satellite and re-solve (fault detection and exclusion; with 5 satellites a single fault cannot be
-   told apart, hence >= 6 before a drop). ``robust="huber"``: iteratively reweighted least squares
-   with Huber weights ``min(1, huber_k / |z|)`` on the standardised residuals ``z``.
+4. Robust stage (:mod:`fusion.estimate.raim`). ``robust="exclude"`` (``True``; the default of
+   :func:`solve_wls` and of the pipeline): RAIM-style fault detection and exclusion - a chi-square
+   test on the weighted residuals, then the smallest set of satellites (at most ``max_exclusions``,
+   never below 5 left) whose removal passes it excluded; an epoch no allowed exclusion repairs is
+   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. ``robust="huber"``: iteratively reweighted least
+   squares with Huber weights ``min(1, huber_k / |z|)`` on the standardised residuals ``z``.
+   ``robust=False``: the paper's plain WLS.
+5. Three-satellite epochs (with ``t_ms``): solved for position alone with the receiver clock
+   interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`); flagged in
+   ``clock_predicted``, or left unsolved as ``three_sats_no_clock``.
 
 Weighting (``weighting=``)
 --------------------------
@@ -50,7 +55,8 @@ coplanar and cone geometries), a converged fine stage, and a
 plausible result (finite, ellipsoidal height within [-2 km, 100 km]). ``status`` holds a code per
 epoch (:data:`STATUS_NAMES`) and ``reasons`` counts the epochs per failure reason, so a caller can
 report "12 epochs: few_sats" instead of silently losing them. Invalid epochs get NaN position, clock
-and covariance; the batch never raises for a bad epoch.
+and covariance; the batch never raises for a bad epoch. Epochs are independent of each other except
+for step 5, which reads its neighbours' clocks.
 
 All satellites share one receiver clock: the loaders' corrected pseudoranges already remove the
 inter-signal range bias (``isrbM``), so one clock serves every constellation in the trace.
@@ -62,6 +68,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.errors import DataError
+from fusion.estimate.clock_bridge import interpolate_clock, solve_fixed_clock
+from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations
+from fusion.estimate.raim import exclude_faults, huber_irls, variance_factor
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.run_types import ModeResult
 from fusion.trace import count_skip
@@ -70,16 +79,16 @@ from fusion.trace import count_skip
 SIGMA0_M = 3.0
 #: Mean Earth radius used for the coarse start [m].
 _R_EARTH = 6_371_000.0
-#: Positions farther than this from the Earth's centre mean Gauss-Newton has run away [m].
-_R_RUNAWAY = 1.0e8
 #: Plausible ellipsoidal heights of a phone (a car, a walker, an aircraft) [m].
 _H_MIN, _H_MAX = -2_000.0, 100_000.0
 
 #: Per-epoch status codes (``WlsResult.status``); 0 is the only valid one.
 STATUS_NAMES: tuple[str, ...] = (
     "ok", "few_sats", "few_sats_after_mask", "degenerate", "diverged", "not_converged",
+    "three_sats_no_clock",
 )
-OK, FEW_SATS, FEW_SATS_AFTER_MASK, DEGENERATE, DIVERGED, NOT_CONVERGED = range(len(STATUS_NAMES))
+(OK, FEW_SATS, FEW_SATS_AFTER_MASK, DEGENERATE, DIVERGED, NOT_CONVERGED,
+ THREE_SATS_NO_CLOCK) = range(len(STATUS_NAMES))
 _WEIGHTINGS = ("elevation", "uncertainty", "none")
 
 
@@ -102,7 +111,11 @@ class WlsResult:
     n_iter:    (E,)      int, Gauss-Newton iterations spent (all stages).
     reasons:   epoch counts per failure status name (only non-zero ones).
     dropped:   slot counts by reason: ``nonfinite_input``, ``bad_sigma``, ``below_mask``,
-               ``outlier``.
+               ``outlier`` (excluded by fault detection).
+    flagged:   (E,) bool, valid epochs whose fault test still fails after the exclusions it was
+               allowed (too few satellites or the cap reached): the test cannot decide.
+    clock_predicted: (E,) bool, three-satellite epochs solved with an interpolated clock.
+    n_excluded: (E,) int, measurements excluded by fault detection.
     """
 
     pos: np.ndarray
@@ -118,6 +131,18 @@ class WlsResult:
     n_iter: np.ndarray
     reasons: dict[str, int] = field(default_factory=dict)
     dropped: dict[str, int] = field(default_factory=dict)
+    flagged: np.ndarray | None = None
+    clock_predicted: np.ndarray | None = None
+    n_excluded: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        E = self.valid.shape[0]
+        if self.n_excluded is None:
+            self.n_excluded = np.zeros(E, np.int64)
+        if self.flagged is None:
+            self.flagged = np.zeros(E, bool)
+        if self.clock_predicted is None:
+            self.clock_predicted = np.zeros(E, bool)
 
     @property
     def n_epochs(self) -> int:
@@ -132,45 +157,108 @@ class WlsResult:
 
 # ---------------------------------------------------------------------------------------- public API
 def solve_wls(trace, *, x0: np.ndarray | None = None, elev_mask_deg: float = 10.0,
-              weighting: str = "elevation", robust: bool | str = False, max_iter: int = 10,
+              weighting: str = "elevation", robust: bool | str = "exclude", max_iter: int = 10,
               **kwargs) -> WlsResult:
-    """WLS over every epoch of a :class:`fusion.trace.Trace` (see :func:`solve_wls_arrays`).
+    """WLS over every epoch of a :class:`fusion.trace.Trace` (see :func:`solve_wls_arrays`), with
+    fault detection and exclusion by default (``robust=False`` / ``"none"``: the plain baseline) and
+    three-satellite epochs solved with the clock interpolated from their neighbours. The fault test's
+    variance is calibrated on the trace (``test_scale="trace"``, :func:`fusion.estimate.raim.variance_factor`).
 
     x0: optional (E, 3) ECEF starting positions (NaN rows fall back to the coarse start); it is
     a *starting point* only - the result does not depend on it when Gauss-Newton converges.
     """
+    kwargs.setdefault("test_scale", "trace")
     return solve_wls_arrays(trace.sat_pos, trace.pr, trace.mask, trace.pr_sigma, x0,
                             elev_mask_deg=elev_mask_deg, weighting=weighting, robust=robust,
-                            max_iter=max_iter, **kwargs)
+                            max_iter=max_iter, t_ms=trace.t_ms, clock_reset=trace.clock_reset, **kwargs)
 
 
 def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
                      sigma: np.ndarray | None = None, x0: np.ndarray | None = None, *,
                      elev_mask_deg: float = 10.0, weighting: str = "elevation",
                      robust: bool | str = False, max_iter: int = 10, max_cond: float = 1e7,
-                     outlier_k: float = 4.0, huber_k: float = 1.5, sigma0: float = SIGMA0_M,
-                     cov_scale: str = "posterior", tol_m: float = 1e-4) -> WlsResult:
+                     max_exclusions: int = 3, huber_k: float = 1.5, sigma0: float = SIGMA0_M,
+                     cov_scale: str = "posterior", tol_m: float = 1e-4, t_ms: np.ndarray | None = None,
+                     clock_reset: np.ndarray | None = None, test_scale: float | str = 1.0) -> WlsResult:
     """Batched WLS on raw padded arrays (the engine behind :func:`solve_wls`).
 
-    sat_pos: (E, S, 3) transmit-time satellite ECEF [m].
-    pr:      (E, S)    corrected pseudoranges [m].
-    mask:    (E, S)    bool, real slots.
-    sigma:   (E, S)    1-sigma pseudorange uncertainty [m]; needed only for ``"uncertainty"``.
-    x0:      (E, 3)    optional starting positions (NaN rows -> coarse start).
+    sat_pos:     (E, S, 3) transmit-time satellite ECEF [m].
+    pr:          (E, S)    corrected pseudoranges [m].
+    mask:        (E, S)    bool, real slots.
+    sigma:       (E, S)    1-sigma pseudorange uncertainty [m]; needed only for ``"uncertainty"``.
+    x0:          (E, 3)    optional starting positions (NaN rows -> coarse start).
+    t_ms:        (E,)      epoch times; with it, three-satellite epochs are solved with the clock
+                           interpolated from neighbouring valid epochs (:mod:`fusion.estimate.clock_bridge`).
+    clock_reset: (E,)      bool, known clock jumps (no clock is interpolated across one).
+    test_scale:  variance factor of the a-priori sigmas for the fault test: a number, or ``"trace"``
+                 to estimate it from this batch's residuals (then epochs are no longer independent).
 
     Real slots with non-finite inputs (or a non-positive sigma under ``"uncertainty"``) are not
     used and are counted in ``dropped``; wrong shapes or option values raise :class:`DataError`.
     """
     sat_pos, pr, mask, sigma, x0 = _check_inputs(sat_pos, pr, mask, sigma, x0, weighting)
     robust_mode = _robust_mode(robust)
-    if cov_scale not in ("posterior", "prior"):
-        raise DataError(f"cov_scale must be 'posterior' or 'prior', got {cov_scale!r}")
-    if max_iter < 1:
-        raise DataError(f"max_iter must be >= 1, got {max_iter}")
-    E, S = pr.shape
+    _check_options(cov_scale, max_iter, max_exclusions)
     dropped: dict[str, int] = {}
+    sat_pos, pr, real = _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped)
+    E = pr.shape[0]
+    status = np.where(real.sum(1) < 4, FEW_SATS, OK).astype(np.int8)
+    n_iter = np.zeros(E, np.int64)
+    x, used, el, w_prior = _coarse_and_mask(sat_pos, pr, real, x0, status, elev_mask_deg, weighting,
+                                            sigma, sigma0, max_iter, max_cond, n_iter, dropped)
+    # fine stage: weighted, to the step tolerance
+    alive = status == OK
+    x, conv, bad, runaway = gauss_newton(sat_pos, pr, w_prior, x, alive, max_iter, tol_m, max_cond, n_iter)
+    eligible = alive & conv & ~bad & ~runaway
+    flagged, n_excluded = np.zeros(E, bool), np.zeros(E, np.int64)
+    w_fit = w_prior
+    if robust_mode == "exclude":
+        x, used, conv, bad, runaway, w_fit, flagged, n_excluded = _fde(
+            sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale,
+            dict(max_exclusions=max_exclusions, max_iter=max_iter, tol=tol_m, max_cond=max_cond,
+                 n_iter=n_iter), dropped)
+        if flagged.any():
+            x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, flagged, conv, bad,
+                                                      runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
+    elif robust_mode == "huber":
+        x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, eligible, conv, bad,
+                                                  runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
+    res = _finish(sat_pos, pr, real, used, w_fit, x, el, status, alive, conv, bad, runaway, n_iter,
+                  max_cond, cov_scale, dropped)
+    res.flagged = flagged & res.valid
+    res.n_excluded = n_excluded
+    if t_ms is not None:
+        _bridge_three_sat_epochs(res, sat_pos, pr, real, np.asarray(t_ms), clock_reset, elev_mask_deg,
+                                 weighting, sigma, sigma0, max_iter, tol_m)
+    return res
 
-    # Slots we cannot use at all: counted, never silently.
+
+# ------------------------------------------------------------------------------------- the stages
+def _fde(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped):
+    """Fault detection and exclusion (:func:`fusion.estimate.raim.exclude_faults`). With
+    ``test_scale="trace"`` a first pass at the a-priori variance gives the residuals of the epochs
+    it settled, whose robust variance factor (:func:`fusion.estimate.raim.variance_factor`) sets the
+    test of the second, final pass; a factor of 1 keeps the first pass."""
+    scale = 1.0 if test_scale == "trace" else float(test_scale)
+    first = exclude_faults(sat_pos, pr, used, w_prior, x.copy(), eligible, conv, bad.copy(), runaway.copy(),
+                           dropped=dropped if test_scale != "trace" else {}, scale=scale, **kw)
+    if test_scale != "trace":
+        return first
+    x1, used1, _, bad1, run1, w1, flagged1, _ = first
+    settled = eligible & ~flagged1 & ~bad1 & ~run1
+    scale = variance_factor(sat_pos, pr, w1, x1, used1, settled)
+    if scale == 1.0:
+        count_skip(dropped, "outlier", first[-1])
+        return first
+    return exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, dropped=dropped,
+                          scale=scale, **kw)
+
+
+def _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped):
+    """Real slots with finite inputs (and a usable sigma under "uncertainty"), counted when not.
+
+    Returns sat_pos (E,S,3) and pr (E,S) with harmless finite filler on unusable slots, and real (E,S).
+    """
     finite = np.isfinite(pr) & np.isfinite(sat_pos).all(-1)
     count_skip(dropped, "nonfinite_input", mask & ~finite)
     real = mask & finite
@@ -179,215 +267,102 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
         count_skip(dropped, "bad_sigma", real & ~good_sigma)
         real &= good_sigma
     # Padding gets harmless finite values so the vectorised maths never meets NaN.
-    sat_pos = np.where(real[..., None], sat_pos, 0.0)
-    pr = np.where(real, pr, 0.0)
+    return np.where(real[..., None], sat_pos, 0.0), np.where(real, pr, 0.0), real
 
-    status = np.zeros(E, np.int8)
-    status[real.sum(1) < 4] = FEW_SATS
-    n_iter = np.zeros(E, np.int64)
 
-    # ---- 1. coarse stage: all satellites, unit weights. 100 m is ample: elevations only need km
-    # accuracy, and one Gauss-Newton step from 100 m off lands within ~1e-6 m.
+def _coarse_and_mask(sat_pos, pr, real, x0, status, elev_mask_deg, weighting, sigma, sigma0, max_iter,
+                     max_cond, n_iter, dropped):
+    """Coarse fix (all satellites, unit weights), then the elevation mask and a-priori weights.
+
+    ``status`` (E,) is updated in place. Returns x (E,4), used (E,S), elevations (E,S) [deg] and
+    weights (E,S). 100 m is ample for the coarse stage: elevations only need km accuracy, and one
+    Gauss-Newton step from 100 m off lands within ~1e-6 m.
+    """
     x = _start_state(sat_pos, pr, real, x0)
-    w1 = real.astype(float)
     alive = status == OK
-    x, _, bad, runaway = _gauss_newton(sat_pos, pr, w1, x, alive, max(max_iter, 10), 100.0,
-                                       max_cond, n_iter)
-    status[alive & runaway] = DIVERGED
+    x, _, _, runaway = gauss_newton(sat_pos, pr, real.astype(float), x, alive, max(max_iter, 10), 100.0,
+                                    max_cond, n_iter)
     # An ill-conditioned coarse stage may still recover once weights and mask change: the fine
     # stage decides about degeneracy.
-
-    # ---- 2. elevation mask and weights, fixed from the coarse position
+    status[alive & runaway] = DIVERGED
     alive = status == OK
-    _, los = line_of_sight(sat_pos, x[:, :3])
-    el, _ = elevation_azimuth(los, x[:, :3])
-    el = np.where(real & alive[:, None], el, 0.0)
+    el = _elevations(sat_pos, x[:, :3], real & alive[:, None])
     used = real & (el >= elev_mask_deg)
     count_skip(dropped, "below_mask", real & ~used & alive[:, None])
     status[alive & (used.sum(1) < 4)] = FEW_SATS_AFTER_MASK
     used &= (status == OK)[:, None]
-    sig = _sigmas(weighting, el, sigma, sigma0)
-    w_prior = np.where(used, 1.0 / sig**2, 0.0)
+    w_prior = np.where(used, 1.0 / _sigmas(weighting, el, sigma, sigma0) ** 2, 0.0)
+    return x, used, el, w_prior
 
-    # ---- 3. fine stage
-    alive = status == OK
-    x, conv, bad, runaway = _gauss_newton(sat_pos, pr, w_prior, x, alive, max_iter, tol_m,
-                                          max_cond, n_iter)
 
-    # ---- 4. robust stage
-    w_fit = w_prior
-    if robust_mode == "exclude":
-        x, used, conv, bad, runaway, w_fit = _exclude_outliers(
-            sat_pos, pr, used, w_prior, x, alive & conv & ~bad & ~runaway, conv, bad, runaway,
-            outlier_k, max_iter, tol_m, max_cond, n_iter, dropped)
-    elif robust_mode == "huber":
-        x, conv, bad, runaway, w_fit = _huber_irls(
-            sat_pos, pr, used, w_prior, x, alive & conv & ~bad & ~runaway, conv, bad, runaway,
-            huber_k, max_iter, tol_m, max_cond, n_iter)
+def _elevations(sat_pos, pos, where):
+    """(E,S) elevation [deg] of each satellite seen from pos (E,3); 0 outside ``where`` (E,S)."""
+    _, los = line_of_sight(sat_pos, pos)
+    el, _ = elevation_azimuth(los, pos)
+    return np.where(where, el, 0.0)
 
-    # ---- final evaluation at the solution: residuals, conditioning, covariance, plausibility
-    N, b, r, H = _normal_equations(sat_pos, pr, w_fit, x)
-    bad |= alive & _ill_conditioned(N, max_cond)
-    plausible = _plausible(x)
+
+def _finish(sat_pos, pr, real, used, w_fit, x, el, status, alive, conv, bad, runaway, n_iter, max_cond,
+            cov_scale, dropped) -> WlsResult:
+    """Final evaluation at the solution: residuals, conditioning, plausibility, covariance."""
+    N, _, r, _ = normal_equations(sat_pos, pr, w_fit, x)
+    bad = bad | (alive & ill_conditioned(N, max_cond))
     status[alive & bad] = DEGENERATE
-    status[(status == OK) & (runaway | ~plausible)] = DIVERGED
+    status[(status == OK) & (runaway | ~_plausible(x))] = DIVERGED
     status[(status == OK) & ~conv] = NOT_CONVERGED
     valid = status == OK
-
-    cov = np.full((E, 4, 4), np.nan)
+    cov = np.full((x.shape[0], 4, 4), np.nan)
     if valid.any():
-        Ninv = np.linalg.inv(N[valid])
         n = used[valid].sum(1)
         chi2 = np.sum(w_fit[valid] * r[valid] ** 2, axis=1)
         f = np.ones(n.shape)
         if cov_scale == "posterior":
             red = n > 4
             f[red] = np.maximum(1.0, chi2[red] / (n[red] - 4))
-        cov[valid] = f[:, None, None] * Ninv
-
-    pos = np.where(valid[:, None], x[:, :3], np.nan)
-    clock = np.where(valid, x[:, 3], np.nan)
-    used &= valid[:, None]
-    resid = np.where(real & valid[:, None], r, 0.0)
-    reasons = {STATUS_NAMES[k]: int(np.sum(status == k)) for k in range(1, len(STATUS_NAMES))}
+        cov[valid] = f[:, None, None] * np.linalg.inv(N[valid])
+    used = used & valid[:, None]
     return WlsResult(
-        pos=pos, clock_m=clock, cov=cov, valid=valid, converged=conv,
-        used=used, n_used=used.sum(1), resid=resid, elev_deg=el, status=status, n_iter=n_iter,
-        reasons={k: v for k, v in reasons.items() if v}, dropped=dropped,
-    )
+        pos=np.where(valid[:, None], x[:, :3], np.nan), clock_m=np.where(valid, x[:, 3], np.nan), cov=cov,
+        valid=valid, converged=conv, used=used, n_used=used.sum(1),
+        resid=np.where(real & valid[:, None], r, 0.0), elev_deg=el, status=status, n_iter=n_iter,
+        reasons=_reasons(status), dropped=dropped)
 
 
-# ------------------------------------------------------------------------------------- the engine
-def _normal_equations(sat_pos, pr, w, x):
-    """Linearise at state x (E, 4): returns N (E,4,4), b (E,4), residuals r (E,S), H (E,S,4)."""
-    rng, los = line_of_sight(sat_pos, x[:, :3])
-    H = np.concatenate([-los, np.ones(los.shape[:-1] + (1,))], axis=-1)
-    r = pr - rng - x[:, 3:4]
-    Hw = H * w[..., None]
-    N = np.matmul(Hw.transpose(0, 2, 1), H)
-    b = np.matmul(Hw.transpose(0, 2, 1), r[..., None])[..., 0]
-    return N, b, r, H
+def _reasons(status: np.ndarray) -> dict[str, int]:
+    counts = {STATUS_NAMES[k]: int(np.sum(status == k)) for k in range(1, len(STATUS_NAMES))}
+    return {k: v for k, v in counts.items() if v}
 
 
-def _ill_conditioned(N: np.ndarray, max_cond: float) -> np.ndarray:
-    """(E,) True where the normal matrix is singular or badly conditioned.
-
-    The test is on the Jacobi-scaled matrix C = D^-1/2 N D^-1/2 (unit diagonal), so it does not
-    depend on how the weights are scaled. A cheap determinant screens every epoch: with trace(C) = 4,
-    cond(C) <= 4^4 / det(C), so det(C) >= 256 / max_cond proves the epoch fine; only the few
-    epochs that fail the screen pay for an eigen-decomposition.
-    """
-    out = np.ones(N.shape[0], bool)
-    d = np.diagonal(N, axis1=1, axis2=2)
-    ok = np.isfinite(N).all(axis=(1, 2)) & (d > 0).all(1)
-    if not ok.any():
-        return out
-    s = 1.0 / np.sqrt(d[ok])
-    C = N[ok] * s[:, :, None] * s[:, None, :]
-    fine = np.linalg.det(C) >= 256.0 / max_cond
-    if not fine.all():
-        ev = np.linalg.eigvalsh(C[~fine])
-        fine[~fine] = ev[:, 0] * max_cond >= ev[:, -1]
-    out[ok] = ~fine
-    return out
-
-
-def _gauss_newton(sat_pos, pr, w, x, active, max_iter, tol, max_cond, n_iter):
-    """Iterate the epochs in ``active`` until the state step is below ``tol`` [m].
-
-    x: (E, 4) updated in place for active epochs. n_iter: (E,) incremented in place.
-    Returns (x, converged, ill_conditioned, runaway), each flag (E,) bool.
-    """
-    E = x.shape[0]
-    active = active.copy()
-    conv = np.zeros(E, bool)
-    bad = np.zeros(E, bool)
-    runaway = np.zeros(E, bool)
-    eye = np.eye(4)
-    for _ in range(max_iter):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
-            break
-        N, b, _, _ = _normal_equations(sat_pos[idx], pr[idx], w[idx], x[idx])
-        sing = _ill_conditioned(N, max_cond)
-        N[sing] = eye
-        b[sing] = 0.0
-        dx = np.linalg.solve(N, b[..., None])[..., 0]
-        x[idx] += dx
-        n_iter[idx] += 1
-        step = np.linalg.norm(dx, axis=1)
-        lost = ~np.isfinite(x[idx]).all(1) | (np.linalg.norm(x[idx, :3], axis=1) > _R_RUNAWAY)
-        done = (step < tol) & ~sing & ~lost
-        conv[idx[done]] = True
-        bad[idx[sing]] = True
-        runaway[idx[lost]] = True
-        active[idx[done | sing | lost]] = False
-    # A runaway state must not poison later stages with inf / NaN.
-    x[runaway] = 0.0
-    return x, conv, bad, runaway
-
-
-def _standardised_residuals(sat_pos, pr, w, x, used):
-    """|v| / sqrt(Qv_ii) with Qv = W^-1 - H N^-1 H^T (the residuals' own covariance).
-
-    Unlike |v| * sqrt(w), this accounts for the fit pulling the residual of a faulty satellite
-    toward zero. Returns (E, S) with 0 on unused slots.
-    """
-    N, _, r, H = _normal_equations(sat_pos, pr, w, x)
-    safe = np.where(_ill_conditioned(N, 1e12)[:, None, None], np.eye(4), N)
-    Ninv = np.linalg.inv(safe)
-    hnh = np.einsum("esi,eij,esj->es", H, Ninv, H)
-    qv = np.where(used, 1.0 / np.where(used, w, 1.0) - hnh, 1.0)
-    z = np.abs(r) / np.sqrt(np.maximum(qv, 1e-12))
-    return np.where(used, z, 0.0)
-
-
-def _exclude_outliers(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, k, max_iter,
-                      tol, max_cond, n_iter, dropped):
-    """Fault detection and exclusion, one satellite per epoch per round, all epochs at once."""
-    used = used.copy()
-    x_cur = x
-    for _ in range(used.shape[1]):
-        w = np.where(used, w_prior, 0.0)
-        z = _standardised_residuals(sat_pos, pr, w, x_cur, used)
-        worst = np.argmax(z, axis=1)
-        zmax = z[np.arange(z.shape[0]), worst]
-        drop = eligible & (zmax > k) & (used.sum(1) >= 6)
-        if not drop.any():
-            break
-        idx = np.flatnonzero(drop)
-        used[idx, worst[idx]] = False
-        count_skip(dropped, "outlier", idx.size)
-        w = np.where(used, w_prior, 0.0)
-        x_cur, c2, b2, r2 = _gauss_newton(sat_pos, pr, w, x_cur, drop, max_iter, tol, max_cond,
-                                          n_iter)
-        conv = np.where(drop, c2, conv)
-        bad = bad | (drop & b2)
-        runaway = runaway | (drop & r2)
-        eligible = eligible & ~(drop & (~c2 | b2 | r2))
-    return x_cur, used, conv, bad, runaway, np.where(used, w_prior, 0.0)
-
-
-def _huber_irls(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, k, max_iter, tol,
-                max_cond, n_iter, rounds: int = 8):
-    """Iteratively reweighted LS with Huber weights on standardised residuals."""
-    w = np.where(used, w_prior, 0.0)
-    for _ in range(rounds):
-        # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
-        # residual would look small next round and the weights would oscillate.
-        z = _standardised_residuals(sat_pos, pr, np.where(used, w_prior, 0.0), x, used)
-        w_new = np.where(used, w_prior * np.minimum(1.0, k / np.maximum(z, 1e-12)), 0.0)
-        w_new = np.where(eligible[:, None], w_new, w)
-        changed = eligible & (np.abs(w_new - w).max(1) > 1e-3 * w_prior.max(1, initial=0))
-        w = w_new
-        if not changed.any():
-            break
-        x, c2, b2, r2 = _gauss_newton(sat_pos, pr, w, x, changed, max_iter, tol, max_cond, n_iter)
-        conv = np.where(changed, c2, conv)
-        bad = bad | (changed & b2)
-        runaway = runaway | (changed & r2)
-        eligible = eligible & ~(changed & (~c2 | b2 | r2))
-    return x, conv, bad, runaway, w
+def _bridge_three_sat_epochs(res: WlsResult, sat_pos, pr, real, t_ms, clock_reset, elev_mask_deg, weighting,
+                             sigma, sigma0, max_iter, tol) -> None:
+    """Solve (in place) epochs left with exactly three satellites above the mask, the clock
+    interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`)."""
+    few = np.flatnonzero(np.isin(res.status, (FEW_SATS, FEW_SATS_AFTER_MASK)) & (real.sum(1) >= 3))
+    good = np.flatnonzero(res.valid)
+    if few.size == 0 or good.size == 0:
+        return
+    near = good[np.clip(np.searchsorted(good, few), 1, good.size) - 1]   # a valid neighbour's position
+    pos0 = res.pos[near]
+    el = _elevations(sat_pos[few], pos0, real[few])
+    used = real[few] & (el >= elev_mask_deg)
+    few, pos0, el, used = (a[used.sum(1) == 3] for a in (few, pos0, el, used))
+    resets = np.zeros(res.n_epochs, bool) if clock_reset is None else np.asarray(clock_reset, bool)
+    clock, ok = interpolate_clock(t_ms, res.clock_m, res.valid, resets, few)
+    res.status[few[~ok]] = THREE_SATS_NO_CLOCK
+    w = np.where(used, 1.0 / _sigmas(weighting, el, sigma[few], sigma0) ** 2, 0.0)
+    pos, conv, cov3 = solve_fixed_clock(sat_pos[few], pr[few], w, pos0, np.where(ok, clock, 0.0), max_iter, tol)
+    good_fix = ok & conv & _plausible(np.concatenate([pos, clock[:, None]], axis=1))
+    e = few[good_fix]
+    res.status[e] = OK
+    res.valid[e] = True
+    res.clock_predicted[e] = True
+    res.pos[e], res.clock_m[e] = pos[good_fix], clock[good_fix]
+    res.cov[e] = np.nan
+    res.cov[e, :3, :3] = cov3[good_fix]
+    res.used[e] = used[good_fix]
+    res.n_used[e] = 3
+    res.elev_deg[e] = el[good_fix]
+    res.reasons = _reasons(res.status)
 
 
 # ------------------------------------------------------------------------------------- helpers
@@ -424,6 +399,15 @@ def _plausible(x):
         h = ecef2geodetic(x[ok, :3])[:, 2]
         out[ok] = (h > _H_MIN) & (h < _H_MAX)
     return out
+
+
+def _check_options(cov_scale, max_iter, max_exclusions) -> None:
+    if cov_scale not in ("posterior", "prior"):
+        raise DataError(f"cov_scale must be 'posterior' or 'prior', got {cov_scale!r}")
+    if max_iter < 1:
+        raise DataError(f"max_iter must be >= 1, got {max_iter}")
+    if max_exclusions < 0:
+        raise DataError(f"max_exclusions must be >= 0, got {max_exclusions}")
 
 
 def _robust_mode(robust) -> str:
@@ -471,5 +455,16 @@ def estimate_wls(trace, wls: WlsResult, opts) -> ModeResult:
     return ModeResult(pos=wls.pos.copy(), valid=wls.valid.copy(), cov=wls.cov[:, :3, :3].copy(),
                       info={"unsolved": int((~wls.valid).sum()),
                             # epochs loaded with < 4 measurements (CLI loads with min_sats=1 so the
-                            # fused modes can carry them; WLS cannot solve them)
-                            "lt4_sats": int((trace.n_sats < 4).sum())})
+                            # fused modes can carry them; WLS solves only 3-satellite ones, below)
+                            "lt4_sats": int((trace.n_sats < 4).sum()),
+                            **wls_counts(wls)})
+
+
+def wls_counts(wls: WlsResult) -> dict[str, int]:
+    """What the robust WLS did, for a mode's ``info`` (and so the report and metrics.json)."""
+    out = {"excluded_measurements": int(wls.dropped.get("outlier", 0)),
+           "epochs_with_exclusions": int(np.sum(wls.valid & (wls.n_excluded > 0))),
+           "epochs_fault_undecided": int(np.sum(wls.flagged)),
+           "epochs_clock_predicted": int(np.sum(wls.clock_predicted))}
+    out.update({f"unsolved_{k}": v for k, v in wls.reasons.items()})
+    return out

@@ -43,6 +43,8 @@ class TraceEval:
     records: dict[str, dict] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
     wls_reasons: dict[str, int] = field(default_factory=dict)
+    figures: dict[str, Path] = field(default_factory=dict)   # kind -> PNG, once drawn
+    wls_counts: dict[str, int] = field(default_factory=dict)  # fusion.estimate.wls.wls_counts
 
 
 # ---------------------------------------------------------------------------- tables
@@ -122,34 +124,45 @@ def markdown_table(df: pd.DataFrame) -> str:
 
 
 # ---------------------------------------------------------------------------- figures
-def write_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, dict[str, Path]]:
-    """All PNGs: per trace (CDF, box, trajectory, error vs time) and pooled (CDF, box).
+def write_trace_figures(ev: TraceEval, fig_dir: Path) -> dict[str, Path]:
+    """One trace's PNGs (CDF, box, error vs time with truth; trajectory always): kind -> path."""
+    f: dict[str, Path] = {}
+    title = ev.trace.name
+    t_s = (ev.trace.t_ms - ev.trace.t_ms[0]) / 1000.0
+    if ev.errors:
+        f["cdf"] = plots.plot_error_cdfs(ev.errors, fig_dir / f"{ev.slug}_cdf.png", title)
+        f["box"] = plots.plot_error_boxes(ev.errors, fig_dir / f"{ev.slug}_box.png", title)
+        f["time"] = plots.plot_error_vs_time(t_s, ev.errors, fig_dir / f"{ev.slug}_time.png", title)
+    positions = {m: np.where(r.valid[:, None], r.pos, np.nan) for m, r in ev.results.items()}
+    truth = ev.trace.truth if ev.trace.has_truth else None
+    f["traj"] = plots.plot_trajectories(positions, truth, fig_dir / f"{ev.slug}_traj.png", title, t_s=t_s)
+    return f
 
-    Returns section -> figure kind -> path; section is a trace slug or ``ALL``.
-    """
-    figs: dict[str, dict[str, Path]] = {}
-    for ev in evals:
-        f: dict[str, Path] = {}
-        title = ev.trace.name
-        t_s = (ev.trace.t_ms - ev.trace.t_ms[0]) / 1000.0
-        if ev.errors:
-            f["cdf"] = plots.plot_error_cdfs(ev.errors, fig_dir / f"{ev.slug}_cdf.png", title)
-            f["box"] = plots.plot_error_boxes(ev.errors, fig_dir / f"{ev.slug}_box.png", title)
-            f["time"] = plots.plot_error_vs_time(t_s, ev.errors, fig_dir / f"{ev.slug}_time.png", title)
-        positions = {m: np.where(r.valid[:, None], r.pos, np.nan) for m, r in ev.results.items()}
-        truth = ev.trace.truth if ev.trace.has_truth else None
-        f["traj"] = plots.plot_trajectories(positions, truth, fig_dir / f"{ev.slug}_traj.png", title, t_s=t_s)
-        figs[ev.slug] = f
-    pooled = {}
+
+def write_pooled_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, Path]:
+    """Every trace's epochs together (CDF, box): kind -> path; empty without truth."""
+    pooled: dict[str, list[np.ndarray]] = {}
     for ev in evals:
         for m, e in ev.errors.items():
             pooled.setdefault(m, []).append(e)
+    if not pooled:
+        return {}
+    errors = {m: np.concatenate(v) for m, v in pooled.items()}
+    title = f"all traces with truth ({sum(1 for ev in evals if ev.errors)})"
+    return {"cdf": plots.plot_error_cdfs(errors, fig_dir / "all_cdf.png", title),
+            "box": plots.plot_error_boxes(errors, fig_dir / "all_box.png", title)}
+
+
+def write_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, dict[str, Path]]:
+    """All PNGs: per trace (CDF, box, trajectory, error vs time) and pooled (CDF, box).
+
+    Returns section -> figure kind -> path; section is a trace slug or ``ALL``. Per-trace figures
+    already drawn (``TraceEval.figures``, e.g. by a worker process) are not drawn again.
+    """
+    figs = {ev.slug: ev.figures or write_trace_figures(ev, fig_dir) for ev in evals}
+    pooled = write_pooled_figures(evals, fig_dir)
     if pooled:
-        pooled = {m: np.concatenate(v) for m, v in pooled.items()}
-        n = sum(1 for ev in evals if ev.errors)
-        title = f"all traces with truth ({n})"
-        figs[ALL] = {"cdf": plots.plot_error_cdfs(pooled, fig_dir / "all_cdf.png", title),
-                     "box": plots.plot_error_boxes(pooled, fig_dir / "all_box.png", title)}
+        figs[ALL] = pooled
     return figs
 
 
@@ -204,6 +217,12 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
         if ev.wls_reasons:
             lines += ["WLS epochs not solved, by reason: "
                       + ", ".join(f"{k} {v}" for k, v in ev.wls_reasons.items()), ""]
+        if ev.wls_counts:
+            c = ev.wls_counts
+            lines += [f"WLS fault detection and exclusion: {c['excluded_measurements']} measurements excluded "
+                      f"in {c['epochs_with_exclusions']} epochs; {c['epochs_fault_undecided']} epochs where the "
+                      f"test could not decide (kept, Huber-weighted); {c['epochs_clock_predicted']} three-satellite "
+                      "epochs solved with the clock interpolated from their neighbours.", ""]
         if not ev.errors:
             lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
         lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]

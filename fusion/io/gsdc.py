@@ -36,7 +36,8 @@ from fusion.geometry import C_LIGHT
 from fusion.gpstime import unix_ms_to_gps_ms
 from fusion.io.device_optional import optional_row_columns
 from fusion.io.nmea import read_span_nmea
-from fusion.io.tables import check_increasing, drop_nan_rows, read_csv_table, to_numeric
+from fusion.io.clean import ROW, coerce_numeric, require_rows, sort_rows
+from fusion.io.tables import read_csv_table
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, TRUTH_TOL_MS, check_overlap, interp_gapped,
                              llh_ecef, match_nearest, read_truth_csv, warn_outside_bay_area)
 from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals, signal_index
@@ -76,12 +77,14 @@ def _standard_rows(df: pd.DataFrame, cols: dict[str, str], vel_cols: Sequence[st
     """
     numeric = [v for k, v in cols.items() if k != "signal"]
     vel = [c for c in vel_cols if c in df.columns]
-    to_numeric(df, numeric + vel, path)
-    if "_row" not in df.columns:
-        df = df.assign(_row=np.arange(1, len(df) + 1))
+    sig = cols["signal"]
+    missing_sig = df[sig].isna().to_numpy()
+    count_skip(skipped, f"rows_missing:{sig}", missing_sig)
+    df = coerce_numeric(df[~missing_sig], numeric, skipped)
     # Satellite velocity feeds no estimator here, so a row missing only it keeps its pseudorange and
     # gets the Trace's "unknown" velocity (zeros) instead of being dropped.
-    df = drop_nan_rows(df, numeric + [cols["signal"]], path, "measurement", skipped, "rows_missing_values")
+    df = coerce_numeric(df, vel, skipped, required=False)
+    require_rows(df, path, "measurement", skipped)
     if vel:
         df = df.assign(**{c: df[c].fillna(0.0) for c in vel})
     c = cols
@@ -90,7 +93,7 @@ def _standard_rows(df: pd.DataFrame, cols: dict[str, str], vel_cols: Sequence[st
         "t": df[c["t"]].to_numpy(np.float64), "const": df[c["const"]].to_numpy(np.int64),
         "svid": df[c["svid"]].to_numpy(np.int64), "signal_name": df[c["signal"]].to_numpy(object),
         "x": df[c["x"]].to_numpy(float), "y": df[c["y"]].to_numpy(float), "z": df[c["z"]].to_numpy(float),
-        "pr": pr.to_numpy(float), "pr_sigma": df[c["unc"]].to_numpy(float), "row": df["_row"].to_numpy(),
+        "pr": pr.to_numpy(float), "pr_sigma": df[c["unc"]].to_numpy(float), "row": df[ROW].to_numpy(),
     })
     for k, vc in zip(("vx", "vy", "vz"), vel_cols):
         out[k] = df[vc].to_numpy(float) if vc in df.columns else 0.0
@@ -118,9 +121,10 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
     count_skip(skipped, "rows_bad_values", (~good).sum())
     rows = rows[good]
 
-    rows = rows.sort_values(["t", "const", "svid", "signal"], kind="stable")
+    rows = sort_rows(rows, ["t", "const", "svid", "signal"], path)
+    # exact duplicates are gone already (read_csv_table); these disagree on some value: first kept
     dup = rows.duplicated(["t", "const", "svid", "signal"]).to_numpy()
-    count_skip(skipped, "duplicate_rows", dup.sum())
+    count_skip(skipped, "conflicting_duplicate_rows", dup.sum())
     rows = rows[~dup]
 
     t_unique, epoch, counts = np.unique(rows["t"].to_numpy(np.int64), return_inverse=True, return_counts=True)
@@ -174,15 +178,14 @@ def _retime_derived(rows: pd.DataFrame, received_ns: np.ndarray | None) -> tuple
 
 
 def _read_derived_rows(path: Path, skipped: dict[str, int]) -> pd.DataFrame:
-    df = read_csv_table(path, list(_MEAS_COLS_2021.values()), "GSDC 2021 derived")
+    df = read_csv_table(path, list(_MEAS_COLS_2021.values()), "GSDC 2021 derived", skipped)
     rows = _standard_rows(df, _MEAS_COLS_2021, _VEL_COLS_2021, path, skipped)
-    check_increasing(rows["t"].to_numpy(), rows["row"].to_numpy(), path, "millisSinceGpsEpoch")
     received = None
     if "receivedSvTimeInGpsNanos" in df.columns:
         # Optional column, used only to place rows in time; unparsable or implausible values fall
         # back to 1000 ms.
-        rec = pd.to_numeric(df["receivedSvTimeInGpsNanos"], errors="coerce")
-        received = rec.to_numpy(float)[rows["row"].to_numpy() - 1]
+        rec = pd.to_numeric(df.set_index(ROW)["receivedSvTimeInGpsNanos"], errors="coerce")
+        received = rec.reindex(rows["row"]).to_numpy(float)
     t_true, n_moved = _retime_derived(rows, received)
     if n_moved:
         log.info("%s: %d rows were not stamped one epoch late; placed at their own receive time", path, n_moved)
@@ -241,23 +244,21 @@ def load_device_gnss(device_csv: str | Path, truth_csv: str | Path | None = None
     """
     device_csv = Path(device_csv)
     skipped: dict[str, int] = {}
-    df = read_csv_table(device_csv, list(_MEAS_COLS_2022.values()), "GSDC device_gnss")
-    df = df.assign(_row=np.arange(1, len(df) + 1))
+    df = read_csv_table(device_csv, list(_MEAS_COLS_2022.values()), "GSDC device_gnss", skipped)
     if "MessageType" in df.columns:
         df = df[df["MessageType"].astype(str).str.strip() == "Raw"]
         if df.empty:
             raise DataError(f"{device_csv}: no 'Raw' measurement rows")
     has_clk = "HardwareClockDiscontinuityCount" in df.columns
     if has_clk:
-        to_numeric(df, ["HardwareClockDiscontinuityCount"], device_csv)
+        df = coerce_numeric(df, ["HardwareClockDiscontinuityCount"], skipped, required=False)
     rows = _standard_rows(df, _MEAS_COLS_2022, _VEL_COLS_2022, device_csv, skipped)
-    check_increasing(rows["t"].to_numpy(), rows["row"].to_numpy(), device_csv, "utcTimeMillis")
     rows = rows.assign(t=unix_ms_to_gps_ms(rows["t"].to_numpy(np.int64)))
     optional = optional_row_columns(df, rows["row"].to_numpy(), device_csv)
     rows = rows.assign(**{f"opt_{k}": v for k, v in optional.items()})
     clk = None
     if has_clk:
-        clk = df.set_index("_row")["HardwareClockDiscontinuityCount"].reindex(rows["row"]).to_numpy(float)
+        clk = df.set_index(ROW)["HardwareClockDiscontinuityCount"].reindex(rows["row"]).to_numpy(float)
         clk = np.nan_to_num(clk, nan=-1).astype(np.int64)
     kwargs = _rows_to_trace(rows, name=name or device_csv.stem, path=device_csv, signals=signals,
                             min_sats=min_sats, skipped=skipped, clock_count=clk)

@@ -53,6 +53,35 @@ def _span_file(folder: Path, phone: str) -> Path | None:
     return cands[0] if cands else None
 
 
+def _locate(path: Path) -> tuple[Path, Path, bool]:
+    """(measurement file, its folder, whether it is the folder's only one) for a trace path."""
+    if path.is_dir():
+        files = _measurement_files(path)
+        if not files:
+            raise DataError(f"{path}: no *_derived.csv[.gz] or device_gnss.csv[.gz] measurement file, "
+                            "RINEX observation file or GnssLogger log (also looked in supplemental/)")
+        if len(files) > 1:
+            raise DataError(f"{path}: several measurement files ({', '.join(p.name for p in files)}); "
+                            f"pass one of them")
+        return files[0], path, True
+    if path.is_file():
+        return path, path.parent, len(_measurement_files(path.parent)) == 1
+    raise DataError(f"{path}: no such trace folder or file")
+
+
+def _name(meas: Path, folder: Path, single: bool) -> str:
+    return f"{folder.parent.name}/{folder.name}" if single else f"{folder.name}/{_csv_name(meas)}"
+
+
+def trace_name(path: str | Path) -> str:
+    """The name :func:`load_trace` gives the trace at ``path``, without reading it (the path itself
+    when it is not a loadable trace)."""
+    try:
+        return _name(*_locate(Path(path)))
+    except DataError:
+        return str(path)
+
+
 def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = True, truth: str = "auto",
                *, min_sats: int = 4, truth_tol_ms: float = TRUTH_TOL_MS,
                raw_sources: RawSources | None = None) -> Trace:
@@ -74,22 +103,8 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
         return load_raw_trace(raw[0], raw[1], raw_sources or RawSources(), signals=signals, truth=truth,
                               fix_truth_height=fix_truth_height, min_sats=min_sats)
     signals = ("GPS_L1",) if signals is None else signals
-    if path.is_dir():
-        files = _measurement_files(path)
-        if not files:
-            raise DataError(f"{path}: no *_derived.csv[.gz] or device_gnss.csv[.gz] measurement file, "
-                            "RINEX observation file or GnssLogger log (also looked in supplemental/)")
-        if len(files) > 1:
-            raise DataError(f"{path}: several measurement files ({', '.join(p.name for p in files)}); "
-                            f"pass one of them")
-        meas, folder = files[0], path
-        single = True
-    elif path.is_file():
-        meas, folder = path, path.parent
-        single = len(_measurement_files(folder)) == 1
-    else:
-        raise DataError(f"{path}: no such trace folder or file")
-    name = f"{folder.parent.name}/{folder.name}" if single else f"{folder.name}/{_csv_name(meas)}"
+    meas, folder, single = _locate(path)
+    name = _name(meas, folder, single)
     stem = _csv_name(meas)
 
     # Truth beside the file: '<x>_ground_truth' pairs with '<x>_derived'; else the folder's one.

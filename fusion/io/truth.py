@@ -19,7 +19,8 @@ from fusion.errors import DataError
 from fusion.geometry import geodetic2ecef
 from fusion.gpstime import unix_ms_to_gps_ms
 from fusion.io.nmea import read_span_nmea
-from fusion.io.tables import check_increasing, drop_nan_rows, read_csv_table, to_numeric
+from fusion.io.clean import coerce_numeric, require_rows, sort_rows
+from fusion.io.tables import read_csv_table
 from fusion.trace import count_skip
 
 #: GSDC 2021 ground-truth height error [m] (truth minus SPAN, Bay Area), subtracted when fixing.
@@ -39,11 +40,13 @@ def read_truth_csv(path: str | Path, skipped: dict[str, int] | None = None) -> p
     """Ground truth of either format -> DataFrame t_ms (GPS ms), lat_deg, lon_deg, height_m.
 
     Heights are as in the file (GSDC 2021's are ~63 m too high; :func:`load_derived_2021` fixes
-    them). Rows with missing values are dropped and counted (``truth_rows_missing_values``).
+    them). Cleaning as in :mod:`fusion.io.clean`, counts prefixed ``truth_``: exact duplicates and
+    rows with a bad value are dropped, rows are put in time order, and of several rows at one time
+    the first is kept (``truth_conflicting_duplicate_rows``).
     """
     path = Path(path)
     skipped = {} if skipped is None else skipped
-    df = read_csv_table(path, [], "ground truth")
+    df = read_csv_table(path, [], "ground truth", skipped, prefix="truth_")
     if all(c in df.columns for c in _TRUTH_COLS_2021):
         cols, unix = _TRUTH_COLS_2021, False
     elif all(c in df.columns for c in _TRUTH_COLS_2022):
@@ -51,16 +54,15 @@ def read_truth_csv(path: str | Path, skipped: dict[str, int] | None = None) -> p
     else:
         raise DataError(f"{path}: ground truth file lacks columns: need either {', '.join(_TRUTH_COLS_2021)} "
                         f"(GSDC 2021) or {', '.join(_TRUTH_COLS_2022)} (GSDC 2022/23)")
-    to_numeric(df, cols, path)
-    df = df.assign(_row=np.arange(1, len(df) + 1))
-    df = drop_nan_rows(df, cols, path, "ground truth", skipped, "truth_rows_missing_values")
+    df = coerce_numeric(df, cols, skipped, prefix="truth_")
+    require_rows(df, path, "ground truth", {k: v for k, v in skipped.items() if k.startswith("truth_")})
+    df = sort_rows(df, [cols[0]], path)
     t = df[cols[0]].to_numpy(np.int64)
     t = unix_ms_to_gps_ms(t) if unix else t
-    check_increasing(t, df["_row"].to_numpy(), path, "ground truth")
     out = pd.DataFrame({"t_ms": t, "lat_deg": df[cols[1]].to_numpy(float),
                         "lon_deg": df[cols[2]].to_numpy(float), "height_m": df[cols[3]].to_numpy(float)})
     dup = out.duplicated("t_ms").to_numpy()
-    count_skip(skipped, "truth_duplicate_rows", dup.sum())
+    count_skip(skipped, "truth_conflicting_duplicate_rows", dup.sum())
     return out[~dup].reset_index(drop=True)
 
 

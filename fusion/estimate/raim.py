@@ -1,0 +1,225 @@
+"""Robust stages of the snapshot WLS: RAIM-style fault detection and exclusion, and Huber IRLS.
+
+Fault detection and exclusion (:func:`exclude_faults`), every epoch at once:
+
+1. *Detect*: the weighted sum of squared residuals ``T = v^T W v`` (a-priori weights) against the
+   chi-square threshold for ``n - 4`` degrees of freedom at false-alarm probability 1e-3. An epoch
+   that passes keeps every satellite.
+2. *Identify*: for k = 1, 2, ... ``max_exclusions``, every set of k satellites (for k >= 2, of the
+   :data:`MAX_SUSPECTS` whose single removal helps most) is removed in turn (one linear step from
+   the current solution) while ``n - k >= 5`` satellites remain; the first k
+   for which the best set (least ``T``) passes the test wins, and that set is excluded - provided
+   the runner-up set's ``T`` is at least ``SEPARATION`` times larger, else the fault is ambiguous
+   (typical of multipath spread over several satellites) and nothing is excluded. Searching
+   sets rather than dropping the largest residual one at a time finds two faults that drag the fit
+   toward each other, where the largest standardised residual often points at a good satellite.
+3. Re-solve the epochs that lost satellites.
+
+An epoch whose test fails and that no allowed exclusion repairs (5 satellites, more faults than
+``max_exclusions``, or an ambiguous best set) is *flagged*: the test cannot decide which measurement
+is wrong. Its solution is kept (the caller, :func:`fusion.estimate.wls.solve_wls_arrays`, re-solves it with Huber
+weights) and the flag is counted in the report.
+"""
+from __future__ import annotations
+
+from itertools import combinations
+from math import comb
+
+import numpy as np
+
+from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations, standardised_residuals
+from fusion.trace import count_skip
+
+#: Normal quantile of the default false-alarm probability 1e-3 (one-sided).
+Z_PFA_1E3 = 3.0902
+#: A set is identified as the fault only when the runner-up set's SSE is at least this many times
+#: its own; otherwise the epoch is flagged, not guessed at.
+SEPARATION = 2.0
+#: Sets of two or more satellites are searched among this many suspects per epoch (those whose
+#: single removal lowers the SSE most), which bounds the search on multi-constellation epochs.
+MAX_SUSPECTS = 12
+
+
+def chi2_threshold(dof: np.ndarray, z: float = Z_PFA_1E3) -> np.ndarray:
+    """Chi-square quantile for ``dof`` (any shape, >= 1) at the normal quantile ``z``.
+
+    Wilson-Hilferty: within 3% of the exact quantile for dof >= 1 at z = 3.09 (10.83 -> 11.15
+    for dof = 1), which is far finer than the gap between clean epochs and a gross fault.
+    """
+    k = np.maximum(np.asarray(dof, float), 1.0)
+    return k * (1.0 - 2.0 / (9.0 * k) + z * np.sqrt(2.0 / (9.0 * k))) ** 3
+
+
+def chi2_test(sat_pos, pr, w, x, used, scale: float = 1.0):
+    """(E,) weighted SSE ``T`` and (E,) bool ``fails`` of the chi-square test at state x (E, 4).
+
+    sat_pos: (E, S, 3), pr / w / used: (E, S). Epochs with no redundancy (n <= 4) never fail.
+    ``scale``: variance factor of the weights (the threshold is multiplied by it).
+    """
+    _, _, r, _ = normal_equations(sat_pos, pr, w, x)
+    T = np.sum(np.where(used, w * r**2, 0.0), axis=1)
+    dof = used.sum(1) - 4
+    return T, (dof > 0) & (T > scale * chi2_threshold(dof))
+
+
+def variance_factor(sat_pos, pr, w, x, used, epochs) -> float:
+    """How much larger than the a-priori model the trace's own residuals are (never below 1).
+
+    sat_pos: (E, S, 3); pr, w, used: (E, S); x: (E, 4); epochs: (E,) bool, the epochs to use
+    (best: those a first exclusion pass settled, so that faults do not inflate the estimate).
+    A robust (median) estimate over every used measurement of those epochs, corrected for the
+    redundancy a least-squares residual loses: ``(median |v| sqrt(w) / 0.6745)^2 / mean((n-4)/n)``,
+    rounded to a power of sqrt(2).
+    The median ignores the few faults left; the floor at 1 keeps the a-priori
+    model wherever it is pessimistic (most open-sky drives), so it only relaxes the test on traces
+    whose noise the model underrates (urban multipath), where it would otherwise fire on clean epochs.
+    """
+    _, _, r, _ = normal_equations(sat_pos, pr, w, x)
+    sel = used & epochs[:, None]
+    n = used.sum(1)[epochs]
+    if not sel.any() or not np.any(n > 4):
+        return 1.0
+    z = np.abs(r[sel]) * np.sqrt(w[sel])
+    redundancy = np.mean(np.maximum(n - 4, 0) / np.maximum(n, 1))
+    f = max(1.0, (np.median(z) / 0.6745) ** 2 / max(redundancy, 1e-3))
+    # in half-octave steps: a coarse calibration, and a few changed rows elsewhere in the file must
+    # not move every epoch's test
+    return float(2.0 ** (np.round(2.0 * np.log2(f)) / 2.0))
+
+
+def subset_sse(H: np.ndarray, r: np.ndarray, w: np.ndarray, used: np.ndarray, k: int,
+               among: int | None = None):
+    """Weighted SSE after removing each set of ``k`` used satellites (one linear step).
+
+    H: (E, S, 4) design matrix, r: (E, S) residuals, w: (E, S) weights, used: (E, S) bool.
+    ``among``: remove only slots from the first ``among`` (every slot still enters the fit).
+    Returns (sse (E, C) with inf where a removed slot is unused or the rest is singular,
+    removal sets (C, k) slot indices).
+    """
+    E, S = r.shape
+    pool = S if among is None else min(S, among)
+    sets = np.array(list(combinations(range(pool), k)), dtype=np.int64).reshape(-1, k)
+    keep = np.ones((sets.shape[0], S))
+    np.put_along_axis(keep, sets, 0.0, axis=1)
+    wc = w[:, None, :] * keep[None]                                   # (E, C, S)
+    N = np.einsum("ecs,esi,esj->ecij", wc, H, H)
+    b = np.einsum("ecs,esi,es->eci", wc, H, r)
+    C = sets.shape[0]
+    sing = ill_conditioned(N.reshape(E * C, 4, 4), 1e10).reshape(E, C)
+    N = np.where(sing[..., None, None], np.eye(4), N)
+    dx = np.linalg.solve(N, b[..., None])[..., 0]                      # (E, C, 4)
+    v = r[:, None, :] - np.einsum("esk,eck->ecs", H, dx)
+    sse = np.sum(wc * v**2, axis=2)
+    removable = used[:, sets].all(-1)                                 # (E, C)
+    return np.where(removable & ~sing, sse, np.inf), sets
+
+
+def _chunked_subset_sse(H, r, w, used, k, among, max_elements: int = 20_000_000):
+    """:func:`subset_sse` over blocks of epochs, so that (epochs x sets x slots) stays bounded in
+    memory."""
+    E, S = r.shape
+    n_sets = comb(min(S, among), k)
+    step = max(1, max_elements // max(1, n_sets * S * 4))
+    parts = [subset_sse(H[a:a + step], r[a:a + step], w[a:a + step], used[a:a + step], k, among)
+             for a in range(0, E, step)]
+    return np.concatenate([p[0] for p in parts], axis=0), parts[0][1]
+
+
+def _suspects_first(H, r, w, used):
+    """Per-epoch slot order (E, S): the slots whose single removal lowers the SSE most come first
+    (sets of two or three are searched among the first :data:`MAX_SUSPECTS` only)."""
+    sse1, _ = subset_sse(H, r, w, used, 1)
+    return np.argsort(sse1, axis=1, kind="stable")
+
+
+def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, scale):
+    """For failing epochs: the smallest set of satellites (up to ``max_exclusions``) whose removal
+    passes the test, the set with the least SSE among those of that size, if it stands out from the
+    runner-up by ``separation``.
+
+    sat_pos: (E, S, 3); pr, w, used: (E, S); x: (E, 4); fails: (E,) bool.
+    Returns (E, S) bool of slots to remove (empty rows where none is identified) and (E,) bool
+    decided (passed, or repaired by a clearly identified set).
+    """
+    E, S = used.shape
+    remove = np.zeros((E, S), bool)
+    ambiguous = np.zeros(E, bool)
+    decided = ~fails
+    n = used.sum(1)
+    _, _, r, H = normal_equations(sat_pos, pr, w, x)
+    # slots reordered per epoch, suspects first: the k-sets come from the first MAX_SUSPECTS
+    order = np.tile(np.arange(S), (E, 1))
+    cand = np.flatnonzero(fails & (n >= 6))
+    if cand.size:
+        order[cand] = _suspects_first(H[cand], r[cand], w[cand], used[cand])
+    H, r, w, used_o = (np.take_along_axis(a, order[..., None] if a.ndim == 3 else order, axis=1)
+                       for a in (H, r, w, used))
+    for k in range(1, max_exclusions + 1):
+        idx = np.flatnonzero(~decided & (n - k >= 5))
+        if idx.size == 0:
+            break
+        sse, sets = _chunked_subset_sse(H[idx], r[idx], w[idx], used_o[idx], k, MAX_SUSPECTS if k > 1 else S)
+        best = np.argmin(sse, axis=1)
+        best_sse = sse[np.arange(idx.size), best]
+        runner_up = np.partition(sse, 1, axis=1)[:, 1] if sse.shape[1] > 1 else np.full(idx.size, np.inf)
+        passes = np.isfinite(best_sse) & (best_sse <= scale * chi2_threshold(n[idx] - k - 4))
+        # identified only when no other set explains the data nearly as well
+        clear = runner_up >= separation * np.maximum(best_sse, 1e-9)
+        ok = passes & clear
+        rows = idx[ok]
+        remove[rows[:, None], order[rows[:, None], sets[best[ok]]]] = True
+        decided[idx[passes]] = True
+        ambiguous[idx[passes & ~clear]] = True
+    return remove, decided & ~ambiguous
+
+
+def exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, *, max_exclusions: int,
+                   max_iter: int, tol: float, max_cond: float, n_iter, dropped,
+                   separation: float = SEPARATION, scale: float = 1.0):
+    """Fault detection and exclusion (module docstring) on the epochs in ``eligible``.
+
+    sat_pos: (E, S, 3); pr, used, w_prior: (E, S); x: (E, 4) converged states; eligible, conv, bad,
+    runaway: (E,) bool. ``scale``: variance factor of ``w_prior`` for the test (:func:`variance_factor`).
+    Returns (x, used, conv, bad, runaway, w_fit, flagged, n_excluded), the last two
+    (E,) bool and int. Excluded slots are counted in ``dropped["outlier"]``.
+    """
+    w = np.where(used, w_prior, 0.0)
+    _, fails = chi2_test(sat_pos, pr, w, x, used, scale)
+    fails &= eligible
+    remove, decided = _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, scale)
+    used = used & ~remove
+    n_excl = remove.sum(1)
+    count_skip(dropped, "outlier", remove)
+    redo = n_excl > 0
+    if redo.any():
+        x, c2, b2, r2 = gauss_newton(sat_pos, pr, np.where(used, w_prior, 0.0), x, redo, max_iter, tol,
+                                     max_cond, n_iter)
+        conv = np.where(redo, c2, conv)
+        bad = bad | (redo & b2)
+        runaway = runaway | (redo & r2)
+    return x, used, conv, bad, runaway, np.where(used, w_prior, 0.0), fails & ~decided, n_excl
+
+
+def huber_irls(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, k, max_iter, tol,
+               max_cond, n_iter, rounds: int = 8):
+    """Iteratively reweighted LS with Huber weights on standardised residuals.
+
+    Shapes as :func:`exclude_faults`; returns (x, conv, bad, runaway, w_fit).
+    """
+    w = np.where(used, w_prior, 0.0)
+    for _ in range(rounds):
+        # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
+        # residual would look small next round and the weights would oscillate.
+        z = standardised_residuals(sat_pos, pr, np.where(used, w_prior, 0.0), x, used)
+        w_new = np.where(used, w_prior * np.minimum(1.0, k / np.maximum(z, 1e-12)), 0.0)
+        w_new = np.where(eligible[:, None], w_new, w)
+        changed = eligible & (np.abs(w_new - w).max(1) > 1e-3 * w_prior.max(1, initial=0))
+        w = w_new
+        if not changed.any():
+            break
+        x, c2, b2, r2 = gauss_newton(sat_pos, pr, w, x, changed, max_iter, tol, max_cond, n_iter)
+        conv = np.where(changed, c2, conv)
+        bad = bad | (changed & b2)
+        runaway = runaway | (changed & r2)
+        eligible = eligible & ~(changed & (~c2 | b2 | r2))
+    return x, conv, bad, runaway, w

@@ -1,0 +1,43 @@
+"""``gnssfuse evaluate --jobs N``: traces in parallel processes, same tables as one process."""
+from __future__ import annotations
+
+import shutil
+
+import pandas as pd
+
+from fusion.cli import main
+
+
+def _traces(tmp_path, shipped_trace_dir):
+    """Two good copies of the shipped trace and one broken one between them."""
+    dirs = []
+    for name in ("a", "b"):
+        d = tmp_path / "data" / name / "Pixel4"
+        shutil.copytree(shipped_trace_dir, d)
+        dirs.append(d)
+    bad = tmp_path / "data" / "bad" / "Pixel4"
+    bad.mkdir(parents=True)
+    (bad / "Pixel4_derived.csv").write_text("millisSinceGpsEpoch,svid\n1,2\n")
+    return [dirs[0], bad, dirs[1]]
+
+
+def test_jobs_2_gives_the_metrics_of_jobs_1_and_a_bad_trace_stops_nothing(tmp_path, shipped_trace_dir, capsys):
+    dirs = _traces(tmp_path, shipped_trace_dir)
+    tables = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"report{jobs}"
+        rc = main(["evaluate", *map(str, dirs), "--modes", "wls", "--out", str(out), "--max-epochs", "300",
+                   "--no-progress", "--jobs", str(jobs)])
+        assert rc == 2                                  # the broken trace is reported ...
+        err = capsys.readouterr().err
+        assert f"could not load {dirs[1]}" in err and "lacks column(s)" in err
+        tables[jobs] = pd.read_csv(out / "metrics.csv")
+        assert set(tables[jobs].trace) == {"a/Pixel4", "b/Pixel4", "ALL"}   # ... the others are not lost
+        assert (out / "a_Pixel4" / "wls" / "metrics.json").is_file()
+        assert "WLS fault detection and exclusion:" in (out / "report.md").read_text()
+    pd.testing.assert_frame_equal(tables[1], tables[2])
+
+
+def test_jobs_must_be_positive(tmp_path, shipped_trace_dir, capsys):
+    assert main(["evaluate", str(shipped_trace_dir), "--out", str(tmp_path / "r"), "--jobs", "0"]) == 2
+    assert "--jobs must be >= 1" in capsys.readouterr().err
