@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from fusion.io.tables import to_numeric
 
 # AccumulatedDeltaRangeState bits (android.location.GnssMeasurement).
 ADR_VALID, ADR_RESET, ADR_CYCLE_SLIP = 1, 2, 4
@@ -36,7 +35,9 @@ def optional_row_columns(df: pd.DataFrame, rows: np.ndarray, path: Path) -> dict
     wanted = [c for group in (_CN0, _DOPPLER, _CARRIER) if have(group) for c in group]
     if not wanted:
         return {}
-    to_numeric(df, wanted, path)
+    # an unreadable optional value only makes that measurement's Doppler / phase unusable (filler below)
+    for c in wanted:
+        df[c] = pd.to_numeric(df[c], errors="coerce")
     src = df.set_index("_row")[wanted].reindex(rows)
     col = {c: src[c].to_numpy(float) for c in wanted}
     out: dict[str, np.ndarray] = {}
