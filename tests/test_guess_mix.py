@@ -19,6 +19,7 @@ from learned.infer import Corrector
 from learned.model import SetTransformer
 from learned.toy import toy_dataset, toy_trace
 from learned.calibrate import sigma_scale
+from learned.context import context_wls
 from learned.train import TrainConfig, train
 from learned.train_cli import main
 
@@ -73,7 +74,7 @@ def test_wls_branch_needs_no_truth():
 def test_sample_wls_is_the_truth_free_inference_solution():
     tr = toy_trace(50, seed=4, bias=True)
     s = samples_from_trace(tr, real=True)
-    blind = solve_wls(dataclasses.replace(tr, truth=None))       # what the pipeline computes at inference
+    blind = context_wls(dataclasses.replace(tr, truth=None), 10.0)   # what the corrector computes at inference
     ok = np.isfinite(tr.truth).all(1)
     np.testing.assert_allclose(s.wls, blind.pos[ok], atol=1e-6)
     assert s.real.all() and s.skipped["wls_invalid"] == 0
