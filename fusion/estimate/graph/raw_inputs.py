@@ -17,6 +17,10 @@ from fusion.estimate.graph.config import GraphConfig
 from fusion.trace import Trace, count_skip
 
 
+#: Fewest time-differenced carrier measurements an epoch pair needs to get any (4 unknowns + 1 check).
+MIN_TDCP_SATS = 5
+
+
 @dataclass
 class RawInputs:
     """E epochs, S slots. doppler (E,S) bool slots with a Doppler factor; prr_sigma (E,S) [m/s];
@@ -75,6 +79,12 @@ def tdcp_pairs(trace: Trace, above: np.ndarray, clock_link: np.ndarray, cfg: Gra
     chained = (clock_link[1:] == np.arange(E - 1))[:, None]
     count_skip(counts, "carrier_chain_broken_by_clock", found & ~chained)
     use = found & chained
+    # a displacement and a carrier clock change are four unknowns: with fewer than MIN_TDCP_SATS
+    # differences an epoch pair's carrier factors would leave them singular (or unchecked by the
+    # robust loss), so the pair keeps none
+    few = use.any(axis=1) & (use.sum(axis=1) < MIN_TDCP_SATS)
+    count_skip(counts, "carrier_too_few_satellites", use & few[:, None])
+    use &= ~few[:, None]
     prev[1:] = np.where(use, same.argmax(axis=2), -1)
     prev_sigma = np.take_along_axis(trace.adr_sigma[:-1], np.maximum(prev[1:], 0), axis=1)
     sigma = np.ones((E, S))
