@@ -195,7 +195,7 @@ def speed(root: Path, repeats: int) -> list[dict]:
         return min(ts), out
 
     t_prep, inp = best(lambda: prepare_inputs(trace, wls, cfg))
-    t_build, (graph, values, _) = best(lambda: build_graph(trace, inp, cfg, use_prior=False))
+    t_build, (graph, values, _) = best(lambda: build_graph(trace, inp, cfg))
     t_batch, res = best(lambda: fuse(trace, wls, RunOptions(), cfg=cfg, want_cov=False))
     t_cov, res_c = best(lambda: fuse(trace, wls, RunOptions(), cfg=cfg, want_cov=True))
     t_inc, res_i = best(lambda: fuse(trace, wls, RunOptions(incremental=True), cfg=cfg))
