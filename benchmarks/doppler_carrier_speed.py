@@ -1,7 +1,7 @@
 """Speed of the Doppler and carrier-phase factors, each against the alternative it replaced, in the
 same run on the same simulated trace (Doppler + carrier, 1 Hz, ~10 satellites per epoch).
 
-    OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/bench_doppler_carrier.py [--epochs 600]
+    OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/doppler_carrier_speed.py [--epochs 600]
 
 1. Time-differenced carrier: ours (GTSAM's C++ ``DopplerFactor`` on the displacement u(k),
    :func:`fusion.estimate.graph.factors.tdcp_factor_uqq`, linearised at the WLS track or at the

@@ -93,5 +93,5 @@ class GraphConfig:
     # mode), "initial" = the WLS track. The factor's linearisation error grows with the distance of
     # that point from the solution (~1e-4 of it per second), so "graph" guards against WLS outliers
     # for one more, carrier-free (fast) solve; on the simulated benchmark trace (WLS good to ~11 m)
-    # the two differ by only 4 mm at p50 (benchmarks/bench_doppler_carrier.py).
+    # the two differ by only 4 mm at p50 (benchmarks/doppler_carrier_speed.py).
     tdcp_linearize_at: str = "graph"

@@ -115,7 +115,7 @@ def tdcp_factor_uqq(k: int, delta_adr_m: float, sat_j: np.ndarray, sat_k: np.nda
     GTSAM's C++ ``DopplerFactor`` model with the displacement as its velocity, a zero satellite velocity
     (carrier phase is integrated Doppler) and dt = c (its clock term is c * (clock_b - clock_a) / dt,
     so clocks in metres enter as they are), so the factor runs in C++ with its
-    own robust loss (a Python ``CustomFactor`` costs ~6-70x more, benchmarks/bench_doppler_carrier.py).
+    own robust loss (a Python ``CustomFactor`` costs ~6-70x more, benchmarks/doppler_carrier_speed.py).
     sat_j, sat_k (3,) ECEF at transmit time; model 1-D [m]."""
     sat_j, sat_k = np.asarray(sat_j, float), np.asarray(sat_k, float)
     guess_j, guess_k = np.asarray(guess_j, float), np.asarray(guess_k, float)
