@@ -25,6 +25,7 @@ import numpy as np
 from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.graph.fuse import fuse
 from fusion.io.load import find_traces, load_trace
+from fusion.io.raw_load import RawSources
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate_dataset
@@ -34,7 +35,7 @@ from learned.features import compact_slots, elevation_mask
 from learned.toy import toy_dataset
 
 #: Held-out traces that must never be trained on (test of the DNN, and of the fused pipeline).
-FORBIDDEN_TRACES = ("2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-SJC-1")
+FORBIDDEN_TRACES = ("2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-MTV-1/Pixel5", "2021-04-28-US-SJC-1")
 
 
 @dataclass
@@ -223,8 +224,10 @@ def check_not_forbidden(path: Path) -> None:
             raise DataError(f"{path}: {bad} is a held-out test trace and must not be used for training")
 
 
-def load_real_traces(paths: list[str | Path], signals=("GPS_L1",)) -> list[Trace]:
-    """Every ``<collection>/<phone>`` folder at or under ``paths`` (via :mod:`fusion.io.load`)."""
+def load_real_traces(paths: list[str | Path], signals=("GPS_L1",), raw_sources: RawSources | None = None
+                     ) -> list[Trace]:
+    """Every ``<collection>/<phone>`` folder at or under ``paths`` (via :mod:`fusion.io.load`); folders
+    with a RINEX file or GnssLogger log take their navigation from ``raw_sources`` (None: the folder's)."""
     traces = []
     for p in paths:
         p = Path(p)
@@ -233,7 +236,7 @@ def load_real_traces(paths: list[str | Path], signals=("GPS_L1",)) -> list[Trace
         folders = find_traces(p) or [p]
         for f in folders:
             check_not_forbidden(f)
-            traces.append(load_trace(f, signals=tuple(signals)))
+            traces.append(load_trace(f, signals=tuple(signals), raw_sources=raw_sources))
     return traces
 
 

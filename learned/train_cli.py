@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from fusion.errors import DataError
+from fusion.io.raw_load import RawSources
 from learned import distributed as dist
 from learned.augment import parse_guess_mix
 from learned.checkpoint import read_checkpoint
@@ -56,6 +57,9 @@ def _parser(prog: str) -> argparse.ArgumentParser:
     p.add_argument("--warmup-epochs", type=int, default=None, help="epochs before the variance NLL term")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg], at the truth")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads per process")
+    p.add_argument("--nav", type=Path, nargs="+", default=(), help="RINEX / GnssLogger folders: broadcast navigation")
+    p.add_argument("--sp3", type=Path, default=None, help="RINEX / GnssLogger folders: precise orbits")
+    p.add_argument("--clk", type=Path, default=None, help="RINEX / GnssLogger folders: precise clocks (with --sp3)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -75,7 +79,7 @@ def parse_loss(text: str) -> LossWeights:
 
 
 def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, seed: int, elev_mask_deg: float,
-                       with_graph: bool = False) -> tuple[Samples, dict]:
+                       with_graph: bool = False, raw_sources: RawSources | None = None) -> tuple[Samples, dict]:
     """``sim`` / ``toy``: simulated Gaussian traces; ``sim-bias`` / ``toy-bias``: the Gaussian + NLOS-bias
     scenario (seed + 1, other drives); anything else: real trace folders."""
     traces, real, desc = [], [], {"sources": sources}
@@ -87,7 +91,7 @@ def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, 
             desc[src] = {"traces": sim_traces, "epochs_per_trace": sim_epochs, "bias": bias, "seed": sd}
             real += [False] * len(new)
         else:
-            new = load_real_traces([src])
+            new = load_real_traces([src], raw_sources=raw_sources)
             real += [True] * len(new)
         traces += new
     samples = build_samples(traces, elev_mask_deg, real=real, with_graph=with_graph)
@@ -136,7 +140,8 @@ def main(argv: list[str], prog: str = "gnssfuse train") -> int:
     cfg = config_from_args(args, {})         # option errors before any data is loaded
     samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
                                        seed=args.seed, elev_mask_deg=args.elev_mask,
-                                       with_graph=cfg.guess_mix.get("graph", 0.0) > 0)
+                                       with_graph=cfg.guess_mix.get("graph", 0.0) > 0,
+                                       raw_sources=RawSources(tuple(args.nav), args.sp3, args.clk))
     split = {"blocks": split_blocks, "random": split_random, "traces": split_traces}[args.val_split]
     train_s, val_s = split(samples, args.val_frac, np.random.default_rng(args.seed))
     desc.update(n_train=len(train_s), n_val=len(val_s), val_split=args.val_split)

@@ -148,6 +148,11 @@ def test_raw_folder_through_cli(tmp_path, nav):
     rc = cli_main(["run", str(folder), "--nav", str(default_nav_path()), "--mode", "wls", "--out", str(out)])
     assert rc == 0 and (out / "estimates.csv").is_file() and (out / "metrics.json").is_file()
     assert cli_main(["run", str(folder), "--clk", "x.clk", "--out", str(out)]) == 2
+    # train takes such folders too, with the same navigation options
+    ckpt = tmp_path / "raw.pt"
+    assert cli_main(["train", "--data", str(folder), "--nav", str(default_nav_path()), "--epochs", "1",
+                     "--guess-mix", "box=1", "--val-frac", "0", "--quiet", "--out", str(ckpt)]) == 0
+    assert ckpt.is_file()
     empty = tmp_path / "empty"
     empty.mkdir()
     assert cli_main(["run", str(empty), "--out", str(out)]) == 2
