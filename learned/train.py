@@ -276,16 +276,18 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
 
 
 def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: int) -> dict:
-    """Fresh guesses, one training pass over this rank's shard, validation; the epoch's history record."""
+    """Fresh guesses, one training pass over this rank's shard, validation; the epoch's history record
+    (with the time spent making inputs and in the forward/backward/step loop, for the benchmarks)."""
     t0 = time.perf_counter()
     gen = epoch_generator(cfg.seed, epoch, tr["truth"].device, rank=dist.rank())
     fixed = epoch_generator(cfg.seed, -1, tr["truth"].device)       # --no-augment: the same guesses every epoch
     inp = make_inputs(tr, guesses_for(tr, cfg, gen if cfg.augment else fixed), cfg.features)
     # one permutation shared by every rank (same seed), each rank taking its own shard of it
     order = dist.shard(torch.randperm(tr["truth"].shape[0], generator=epoch_generator(cfg.seed, epoch)))
+    t1 = time.perf_counter()
     loss = train_epoch(model, opt, inp, cfg, epoch, order.to(tr["truth"].device))
-    rec = {"epoch": epoch + 1, "train_loss": loss, "time_s": 0.0, "samples": int(order.numel()),
-           "world_size": dist.world_size()}
+    rec = {"epoch": epoch + 1, "train_loss": loss, "samples": int(order.numel()), "world_size": dist.world_size(),
+           "nll": epoch >= cfg.warmup(), "feature_s": t1 - t0, "model_s": time.perf_counter() - t1}
     rec.update(estimate_loss(model, va, cfg) if va is not None and dist.is_main() else {"val_score_m": loss})
     rec["time_s"] = time.perf_counter() - t0
     return rec

@@ -49,7 +49,7 @@ def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
     hist = train(tr, va, TrainConfig(epochs=2, **cfg), tmp_path / "part.pt", resume=True, progress=False)
     assert [h["epoch"] for h in hist] == [1, 2]
     assert set(hist[1]) == {"epoch", "train_loss", "val_score_m", "val_mae_ned_m", "val_wls_mae_ned_m", "time_s",
-                            "samples", "world_size"}
+                            "samples", "world_size", "nll", "feature_s", "model_s"}
     assert hist[1]["world_size"] == 1 and hist[1]["samples"] == len(tr)
     assert len(hist[1]["val_mae_ned_m"]) == 3 and len(hist[1]["val_wls_mae_ned_m"]) == 3
     full, part = (read_checkpoint(tmp_path / f"{n}.pt.last") for n in ("full", "part"))
