@@ -168,7 +168,9 @@ def test_forbidden_traces_and_bad_args_rejected(tmp_path):
         check_not_forbidden(tmp_path / "train" / "2021-04-28-US-MTV-1" / "Pixel4")
     with pytest.raises(DataError, match="held-out"):
         check_not_forbidden(tmp_path / "2021-04-28-US-SJC-1" / "Pixel4")
-    check_not_forbidden(tmp_path / "2021-04-28-US-MTV-1" / "Pixel5")  # other phone of that drive: allowed
+    with pytest.raises(DataError, match="held-out"):       # the raw-measurement test trace too
+        check_not_forbidden(tmp_path / "2021-04-28-US-MTV-1" / "Pixel5")
+    check_not_forbidden(tmp_path / "2021-04-28-US-MTV-1" / "Pixel4XL")  # other phones of that drive: allowed
     with pytest.raises(DataError, match="--epochs"):
         main(["--data", "toy", "--epochs", "0", "--out", str(tmp_path / "x.pt")])
     with pytest.raises(DataError, match="does not exist"):
