@@ -218,9 +218,11 @@ def split_traces(samples: Samples, val_frac: float, rng: np.random.Generator) ->
 
 
 def check_not_forbidden(path: Path) -> None:
-    s = Path(path).resolve().as_posix()
+    """DataError when ``path`` is (or lies in) a held-out test trace; matched on whole path components,
+    so that another phone of a test drive (``Pixel4XL`` beside ``Pixel4``) stays usable."""
+    s = Path(path).resolve().as_posix() + "/"
     for bad in FORBIDDEN_TRACES:
-        if bad in s:
+        if f"/{bad}/" in s:
             raise DataError(f"{path}: {bad} is a held-out test trace and must not be used for training")
 
 
