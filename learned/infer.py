@@ -102,7 +102,7 @@ class Corrector:
         self.device = torch.device(device)
         self.var_scale = _calibration_scales(config, path, calibrated)
         self.ranges = config.get("input_ranges")
-        self._ctx_cache: tuple[int, dict] | None = None
+        self._ctx_cache: tuple[Trace, dict] | None = None
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str = "cpu", calibrated: bool = True) -> "Corrector":
@@ -114,10 +114,11 @@ class Corrector:
         return cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
 
     def _context(self, trace: Trace) -> dict[str, np.ndarray]:
-        """The trace's per-slot context (E,S) from its own default WLS (as in training), cached per trace."""
-        if self._ctx_cache is None or self._ctx_cache[0] != id(trace):
+        """The trace's per-slot context (E,S) from its own plain WLS (as in training), cached for the last
+        trace asked (held, so that a new trace can never reuse its identity)."""
+        if self._ctx_cache is None or self._ctx_cache[0] is not trace:
             wls = context_wls(trace, self.features.elev_mask_deg)
-            self._ctx_cache = (id(trace), slot_context(trace, wls).as_dict())
+            self._ctx_cache = (trace, slot_context(trace, wls).as_dict())
         return self._ctx_cache[1]
 
     def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float

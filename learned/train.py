@@ -4,7 +4,8 @@ Three losses train it (:class:`LossWeights`, :mod:`learned.losses`): the paper's
 (plus, after ``warmup`` epochs, a Gaussian NLL on the detached mean for the variance head), the Gaussian NLL
 of each pseudorange's error under the per-satellite sigma and bias, and the error of the position the
 per-satellite weights give (one weighted least-squares step from the guess): the weights are trained for
-what the ``dnn`` and ``fused`` modes use them for. Adam(lr 3e-4, betas (0.9, 0.99)).
+what the ``dnn`` and ``fused`` modes use them for; a shrink term keeps the head at the physical sigma model
+and zero bias unless the data insist (:func:`head_departure`). Adam(lr 3e-4, betas (0.9, 0.99)).
 
 Every epoch draws new initial guesses (geometry-based augmentation, :mod:`learned.augment`): the paper's box
 around the truth and/or each sample's own WLS or no-prior graph solution plus jitter (``--guess-mix``), the
@@ -155,7 +156,7 @@ def make_inputs(t: dict, guess: torch.Tensor, fcfg: FeatureConfig) -> dict:
 
 # ---------------------------------------------------------------------------------------- the step
 def batch_loss(out: dict, b: dict, w: LossWeights, use_nll: bool) -> torch.Tensor:
-    """The weighted sum of the three losses on one batch."""
+    """The weighted sum of the three losses and the shrink term on one batch."""
     loss = w.correction * F.mse_loss(out["mean"], b["y"])
     if use_nll:
         loss = loss + w.correction * gaussian_nll(out["mean"].detach(), out["logvar"], b["y"])
