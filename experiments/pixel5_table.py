@@ -26,8 +26,11 @@ TRACE = SHARED / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5"
 PRECISE = SHARED / "ephemeris/precise"
 ORBITS = {
     "broadcast GPS (hour1180.21n)": dict(nav=(SHARED / "ephemeris/gps_nav/hour1180.21n",)),
-    "CODE SP3/CLK, multi-GNSS": dict(sp3=PRECISE / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3",
-                                     clk=PRECISE / "COD0MGXFIN_20211180000_01D_30S_CLK.CLK"),
+    # the navigation file adds the Klobuchar ionosphere (SP3/CLK carry none) and GPS group delays
+    "CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)": dict(
+        sp3=PRECISE / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3",
+        clk=PRECISE / "COD0MGXFIN_20211180000_01D_30S_CLK.CLK",
+        nav=(SHARED / "ephemeris/gps_nav/hour1180.21n",)),
 }
 VARIANTS = {"Doppler + carrier": {}, "no carrier": {"use_carrier": False}, "no Doppler": {"use_doppler": False},
             "pseudoranges only": {"use_doppler": False, "use_carrier": False}}

@@ -75,7 +75,8 @@ def test_exact_pseudoranges_give_geometry_plus_clock(nav):
     raw, st = _synthetic(nav, P5_START, t, prns, extra_rows=[("E", 11)])
     nav.klobuchar, klob = None, nav.klobuchar
     try:
-        tr = raw_to_trace(raw, nav, signals=["GPS_L1", "GAL_E1"])
+        with pytest.warns(UserWarning, match="synthetic.obs: no ionosphere model"):
+            tr = raw_to_trace(raw, nav, signals=["GPS_L1", "GAL_E1"])
     finally:
         nav.klobuchar = klob
     m = tr.mask[0]

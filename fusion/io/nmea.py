@@ -11,6 +11,7 @@ wrong (it used ``altitude - N``: about 2 |N| = 63.1 m too high in the Bay Area).
 from __future__ import annotations
 
 import gzip
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,13 @@ from fusion.trace import count_skip
 NMEA_COLUMNS = ("t_ms", "lat_deg", "lon_deg", "height_m", "alt_msl_m", "geoid_sep_m", "quality", "n_sats")
 
 
-def _read_lines(path: Path) -> pd.Series:
+#: Longest line taken for a sentence (NMEA 0183 allows 82 characters; SPAN logs stay under 100):
+#: longer lines are not sentences and would only widen the checksum matrix.
+MAX_SENTENCE = 200
+
+
+def _read_lines(path: Path) -> list[str]:
+    """The file's non-blank lines, stripped."""
     if not path.is_file():
         raise DataError(f"{path}: NMEA file not found")
     opener = gzip.open if path.suffix == ".gz" else open
@@ -33,32 +40,60 @@ def _read_lines(path: Path) -> pd.Series:
             text = fh.read()
     except (OSError, EOFError) as exc:
         raise DataError(f"{path}: cannot read NMEA file ({exc})") from exc
-    lines = pd.Series(text.splitlines(), dtype=object).str.strip()
-    return lines[lines.str.len() > 0]
+    return [ln for ln in map(str.strip, text.splitlines()) if ln]
 
 
-def _checksum_ok(lines: pd.Series) -> np.ndarray:
-    """(N,) bool: the ``*hh`` checksum equals the XOR of the bytes between ``$`` and ``*``.
+def _sentences(lines: list[str], kind: str) -> list[str]:
+    """The lines that are sentences of ``kind`` ("GGA", "RMC") from any talker ("$GPGGA", "$GNGGA")."""
+    return [ln for ln in lines if ln[:1] == "$" and ln[3:6] == kind]
 
-    Vectorised: bodies are padded into an (N, L) uint8 array (0 is neutral for XOR).
+
+def _hex_table() -> np.ndarray:
+    """(256,) int: the value of each ASCII hex digit, -1 for every other byte."""
+    table = np.full(256, -1, np.int16)
+    for i, ch in enumerate("0123456789ABCDEF"):
+        table[ord(ch)] = table[ord(ch.lower())] = i
+    return table
+
+
+_HEX = _hex_table()
+
+
+def _checksum_ok(lines: list[str]) -> np.ndarray:
+    """(N,) bool: the line is ``$body*hh`` and ``hh`` is the XOR of the body's bytes.
+
+    Vectorised over an (N, L) byte matrix of the lines (zero-padded; 0 is neutral for XOR).
     """
-    parts = lines.str.extract(r"^\$([^*]*)\*([0-9A-Fa-f]{2})$")
-    ok = parts[0].notna().to_numpy().copy()
-    if not ok.any():
+    fits = np.array([len(ln) <= MAX_SENTENCE for ln in lines], bool)
+    ok = np.zeros(len(lines), bool)
+    if not fits.any():
         return ok
-    bodies = parts[0][ok].to_numpy(dtype=str)
-    raw = np.char.encode(bodies, "ascii", errors="replace")
-    width = max(int(np.char.str_len(bodies).max()), 1)
-    buf = np.frombuffer(raw.astype(f"S{width}").tobytes(), np.uint8).reshape(-1, width)
-    xor = np.bitwise_xor.reduce(buf, axis=1)
-    want = parts[1][ok].map(lambda h: int(h, 16)).to_numpy(np.uint8)
-    ok[ok] = xor == want
+    raw = np.array([ln.encode("ascii", "replace") for ln, f in zip(lines, fits) if f])
+    buf = raw.view(np.uint8).reshape(raw.size, -1)
+    n = np.char.str_len(raw)
+    rows = np.arange(raw.size)
+    star = np.maximum(n - 3, 0)
+    cols = np.arange(buf.shape[1])
+    body = (cols >= 1) & (cols < star[:, None])
+    xor = np.bitwise_xor.reduce(np.where(body, buf, 0), axis=1)
+    hi, lo = _HEX[buf[rows, np.maximum(n - 2, 0)]], _HEX[buf[rows, np.maximum(n - 1, 0)]]
+    shaped = ((n >= 4) & (buf[:, 0] == ord("$")) & (buf[rows, star] == ord("*"))
+              & ((buf == ord("*")).sum(1) == 1) & (hi >= 0) & (lo >= 0))
+    ok[fits] = shaped & (xor == (hi * 16 + lo))
     return ok
 
 
-def _tod_ms(hhmmss: pd.Series) -> np.ndarray:
-    """'hhmmss.ss' strings -> milliseconds of the day (float, NaN where malformed)."""
-    v = pd.to_numeric(hhmmss, errors="coerce").to_numpy(float)
+def _fields(sentences: list[str], n: int) -> list[np.ndarray]:
+    """The first ``n`` comma-separated fields of each ``$body*hh`` sentence as ``n`` (N,) object
+    arrays of str ("" where a sentence has fewer)."""
+    rows = [(s[1:s.rfind("*")] if "*" in s else s[1:]).split(",") for s in sentences]
+    padded = [r[:n] + [""] * (n - len(r)) for r in rows]
+    return [np.array(col, dtype=object) for col in zip(*padded)] if padded else []
+
+
+def _tod_ms(hhmmss) -> np.ndarray:
+    """'hhmmss.ss' strings (N,) -> milliseconds of the day (float, NaN where malformed)."""
+    v = pd.to_numeric(hhmmss, errors="coerce").astype(float)
     hh, rest = np.divmod(v, 10000.0)
     mm, ss = np.divmod(rest, 100.0)
     tod = np.round((hh * 3600.0 + mm * 60.0 + ss) * 1000.0)
@@ -66,12 +101,12 @@ def _tod_ms(hhmmss: pd.Series) -> np.ndarray:
     return tod
 
 
-def _deg(value: pd.Series, hemi: pd.Series, neg: str) -> np.ndarray:
-    """NMEA 'dddmm.mmmm' + hemisphere -> signed decimal degrees."""
-    v = pd.to_numeric(value, errors="coerce").to_numpy(float)
+def _deg(value, hemi, neg: str) -> np.ndarray:
+    """NMEA 'dddmm.mmmm' strings (N,) + hemisphere (N,) -> signed decimal degrees."""
+    v = pd.to_numeric(value, errors="coerce").astype(float)
     d, m = np.divmod(v, 100.0)
     out = d + m / 60.0
-    return np.where(hemi.to_numpy(dtype=str) == neg, -out, out)
+    return np.where(np.asarray(hemi, dtype=str) == neg, -out, out)
 
 
 def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
@@ -90,12 +125,11 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     path = Path(path)
     skipped = {} if skipped is None else skipped
     lines = _read_lines(path)
-    is_rmc = lines.str.startswith("$") & (lines.str.slice(3, 6) == "RMC")
-    fix = _gga_fixes(lines, path, skipped)
+    fix = _gga_fixes(_sentences(lines, "GGA"), path, skipped)
     # Day roll-over: time of day only ever wraps forward (23:59:59 -> 00:00:00).
     tod = fix.pop("tod")
     day = np.concatenate([[0], np.cumsum(np.diff(tod) < -DAY_MS / 2)])
-    unix_day0 = _first_day_unix_ms(lines[is_rmc], tod[0], ref_gps_ms, path)
+    unix_day0 = _first_day_unix_ms(_sentences(lines, "RMC"), tod[0], ref_gps_ms, path)
     t_ms = unix_ms_to_gps_ms((unix_day0 + day * DAY_MS + tod).astype(np.int64))
     df = pd.DataFrame({
         "t_ms": t_ms, "lat_deg": fix["lat"], "lon_deg": fix["lon"], "height_m": fix["alt"] + fix["sep"],
@@ -105,19 +139,19 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     return _unique_forward(df, path, skipped)
 
 
-def _gga_fixes(lines: pd.Series, path: Path, skipped: dict[str, int]) -> dict[str, np.ndarray]:
+def _gga_fixes(gga_lines: list[str], path: Path, skipped: dict[str, int]) -> dict[str, np.ndarray]:
     """The GGA sentences with a good checksum, readable fields and a fix, as (F,) arrays
     tod (ms of day), lat, lon, quality, n_sats, alt, sep; the others dropped and counted."""
-    is_gga = lines.str.startswith("$") & (lines.str.slice(3, 6) == "GGA")
-    ok = _checksum_ok(lines)
+    ok = _checksum_ok(gga_lines)
     # RMC is read for its date only and its checksum is not enforced: every RMC sentence in the
     # GSDC 2021 SPAN logs has a wrong checksum (their GGA ones are right). The date is instead
     # cross-checked against ``ref_gps_ms`` when given.
-    count_skip(skipped, "nmea_bad_checksum", int((is_gga & ~ok).sum()))
-    gga = lines[is_gga & ok].str.split("*").str[0].str.split(",", expand=True)
-    if gga.empty or gga.shape[1] < 12:
+    count_skip(skipped, "nmea_bad_checksum", int((~ok).sum()))
+    good_lines = [ln for ln, k in zip(gga_lines, ok) if k]
+    if not any(ln.count(",") >= 11 for ln in good_lines):
         raise DataError(f"{path}: no valid GGA sentences")
-    num = lambda k: pd.to_numeric(gga[k], errors="coerce").to_numpy(float)  # noqa: E731
+    gga = _fields(good_lines, 12)
+    num = lambda k: pd.to_numeric(gga[k], errors="coerce").astype(float)  # noqa: E731
     fix = {"tod": _tod_ms(gga[1]), "lat": _deg(gga[2], gga[3], "S"), "lon": _deg(gga[4], gga[5], "W"),
            "quality": num(6), "n_sats": num(7), "alt": num(9), "sep": num(11)}
     good = np.logical_and.reduce([np.isfinite(fix[k]) for k in ("tod", "lat", "lon", "alt", "sep")])
@@ -143,34 +177,41 @@ def _unique_forward(df: pd.DataFrame, path: Path, skipped: dict[str, int]) -> pd
     return df.reset_index(drop=True)
 
 
-def _first_day_unix_ms(rmc_lines: pd.Series, first_tod: float, ref_gps_ms: int | None,
+def _first_rmc_date(rmc_lines: list[str]) -> tuple[int, float, str] | None:
+    """(unix ms of 00:00 UTC of the date, ms of day, the date field) of the first RMC sentence
+    with status A and a readable ``ddmmyy`` date; None when there is none."""
+    for ln in rmc_lines:
+        f = ln.split("*")[0].split(",")
+        if len(f) <= 9 or f[2] != "A":
+            continue
+        try:
+            date = datetime.strptime(f[9], "%d%m%y").replace(tzinfo=timezone.utc)
+        except ValueError:
+            continue
+        return int(date.timestamp()) * 1000, float(_tod_ms(np.array([f[1]], dtype=object))[0]), f[9]
+    return None
+
+
+def _first_day_unix_ms(rmc_lines: list[str], first_tod: float, ref_gps_ms: int | None,
                        path: Path) -> float:
     """Unix ms of 00:00 UTC on the day of the first GGA fix."""
-    if len(rmc_lines):
-        rmc = rmc_lines.str.split("*").str[0].str.split(",", expand=True)
-        if rmc.shape[1] > 9:
-            dates = pd.to_datetime(rmc[9], format="%d%m%y", errors="coerce", utc=True)
-            valid = dates.notna() & (rmc[2] == "A")
-            if valid.any():
-                i = int(np.flatnonzero(valid.to_numpy())[0])
-                d_unix = dates[valid].iloc[0].value // 1_000_000
-                # The dating RMC and the first kept GGA may sit on either side of midnight (an
-                # RMC after it dates a GGA before it, or the GGA fixes before midnight had no
-                # fix): move the date by the day the times of day imply.
-                rmc_tod = _tod_ms(rmc[1].iloc[[i]])[0]
-                if np.isfinite(rmc_tod) and rmc_tod < first_tod - DAY_MS / 2:
-                    d_unix -= DAY_MS
-                elif np.isfinite(rmc_tod) and rmc_tod > first_tod + DAY_MS / 2:
-                    d_unix += DAY_MS
-                if ref_gps_ms is not None:
-                    ref_unix = float(gps_ms_to_unix_ms(np.int64(ref_gps_ms)))
-                    if abs(d_unix + first_tod - ref_unix) > DAY_MS:
-                        raise DataError(f"{path}: RMC date {rmc[9].iloc[i]} is more than a day from the "
-                                        f"measurements (GPS ms {ref_gps_ms}): wrong NMEA file for this drive?")
-                return float(d_unix)
-    if ref_gps_ms is None:
+    rmc = _first_rmc_date(rmc_lines)
+    ref_unix = None if ref_gps_ms is None else float(gps_ms_to_unix_ms(np.int64(ref_gps_ms)))
+    if rmc is not None:
+        d_unix, rmc_tod, date = rmc
+        # The dating RMC and the first kept GGA may sit on either side of midnight (an RMC after it
+        # dates a GGA before it, or the GGA fixes before midnight had no fix): move the date by the
+        # day the times of day imply.
+        if np.isfinite(rmc_tod) and rmc_tod < first_tod - DAY_MS / 2:
+            d_unix -= DAY_MS
+        elif np.isfinite(rmc_tod) and rmc_tod > first_tod + DAY_MS / 2:
+            d_unix += DAY_MS
+        if ref_unix is not None and abs(d_unix + first_tod - ref_unix) > DAY_MS:
+            raise DataError(f"{path}: RMC date {date} is more than a day from the "
+                            f"measurements (GPS ms {ref_gps_ms}): wrong NMEA file for this drive?")
+        return float(d_unix)
+    if ref_unix is None:
         raise DataError(f"{path}: no valid RMC sentence to date the GGA fixes, and no reference time given")
-    ref_unix = float(gps_ms_to_unix_ms(np.int64(ref_gps_ms)))
     day0 = np.floor(ref_unix / DAY_MS) * DAY_MS
     cands = day0 + np.array([-1, 0, 1]) * DAY_MS
     return float(cands[np.argmin(np.abs(cands + first_tod - ref_unix))])

@@ -18,6 +18,8 @@ signals are dropped and counted in ``Trace.skipped``.
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 
@@ -67,6 +69,10 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
         st = _states(rows, nav, precise, -np.nan_to_num(clock_m)[epoch] / C_LIGHT)
         pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     el, az = _elev_az(st["pos"], rx[epoch])
+    if getattr(nav, "klobuchar", None) is None:
+        # SP3/CLK carry no ionosphere; uncorrected, L1 ranges are metres long, more at low elevation
+        warnings.warn(f"{raw.path}: no ionosphere model (no Klobuchar coefficients: pass a RINEX "
+                      "navigation file with --nav); pseudoranges keep their ionospheric delay", stacklevel=2)
     pr = pr - _atmosphere(rows, nav, rx[epoch], el, az)
     pr = pr - _inter_signal_bias(rows, st["pos"], pr, rx[epoch], clock_m[epoch], ref)
     cols = _columns(rows, st, pr)
