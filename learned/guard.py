@@ -4,7 +4,7 @@ Training stores, per input channel, the range the training inputs spanned (quant
 real slots, at the samples' WLS solutions; :func:`input_ranges`). At inference a slot is *out of range* when
 any channel leaves that range widened by :data:`MARGIN` of its width; an epoch's trust is 1 while at most
 :data:`SHARE_FULL` of its slots are out of range, falling linearly to 0 at :data:`SHARE_NONE`
-(:func:`trust`). The modes shrink the learned correction by the trust (toward the guess: plain WLS for
+(:func:`trust`); satellites of signals the network was not trained on count as out of range. The modes shrink the learned correction by the trust (toward the guess: plain WLS for
 ``dnn``) and fall back to the default pseudorange sigma on out-of-range slots (``fused``): a phone, city
 or firmware the network never met gets the non-learned answer instead of a confident wrong one.
 """
@@ -40,7 +40,13 @@ def slot_out_of_range(x: np.ndarray, mask: np.ndarray, ranges: dict | None) -> n
     return out.any(-1) & mask
 
 
-def trust(out_of_range: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(N,) trust in [0, 1] from the share of out-of-range slots (N,S) among real slots (N,S)."""
-    share = out_of_range.sum(1) / np.maximum(mask.sum(1), 1)
+def trust(out_of_range: np.ndarray, mask: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:
+    """(N,) trust in [0, 1] from the share of out-of-range slots (N,S) among real slots (N,S).
+
+    unseen: (N,) satellites of the epoch the network cannot read (signals it was not trained on),
+    counted as out of range: a correction from a GPS-only subset must not override a solution that
+    used every constellation.
+    """
+    extra = np.zeros(mask.shape[0]) if unseen is None else np.asarray(unseen, float)
+    share = (out_of_range.sum(1) + extra) / np.maximum(mask.sum(1) + extra, 1)
     return np.clip((SHARE_NONE - share) / (SHARE_NONE - SHARE_FULL), 0.0, 1.0)

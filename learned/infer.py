@@ -122,8 +122,10 @@ class Corrector:
         return self._ctx_cache[1]
 
     def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float
-               ) -> tuple[np.ndarray, np.ndarray, int]:
-        """Epochs asked (N,) and their slot masks (N,S): valid guess, trained signals, >= 4 above ``elev``."""
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Epochs asked (N,), their slot masks (N,S) (valid guess, trained signals, >= 4 above ``elev``),
+        the number of other satellites above ``elev`` (N,) (signals the network cannot read), and
+        the number of epochs with too few."""
         E = trace.n_epochs
         if init_pos.shape != (E, 3) or np.shape(valid) != (E,):
             raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
@@ -133,8 +135,9 @@ class Corrector:
         # would see their inter-system clock offsets as residuals it has never met).
         own = trace.mask[idx] & np.isin(trace.signal[idx], self._signal_idx)
         mask = elevation_mask(trace.sat_pos[idx], own, init_pos[idx], elev)
+        unseen = elevation_mask(trace.sat_pos[idx], trace.mask[idx] & ~own, init_pos[idx], elev).sum(1)
         enough = mask.sum(1) >= 4
-        return idx[enough], mask[enough], int((~enough).sum())
+        return idx[enough], mask[enough], unseen[enough], int((~enough).sum())
 
     @torch.no_grad()
     def _forward(self, trace: Trace, idx: np.ndarray, mask: np.ndarray, guess: np.ndarray) -> dict:
@@ -185,17 +188,19 @@ class Corrector:
         if output not in OUTPUTS:
             raise CheckpointError(f"{self.path}: unknown output {output!r} (known: {', '.join(OUTPUTS)})")
         elev = self.features.elev_mask_deg if elev_mask_deg is None else elev_mask_deg
-        idx, mask, n_too_few = self._asked(trace, init_pos, valid, elev)
+        idx, mask, unseen, n_too_few = self._asked(trace, init_pos, valid, elev)
         res = Correction(np.full((E, 3), np.nan), np.full((E, 3, 3), np.nan), np.full((E, 3), np.nan),
                          np.full((E, 3, 3), np.nan), np.zeros(E, bool), n_too_few, np.full((E, S), np.nan),
                          np.full((E, S), np.nan), np.full(E, np.nan))
         if len(idx):
-            self._fill(res, self._forward(trace, idx, mask, init_pos[idx]), idx, mask, init_pos[idx], output)
+            out = self._forward(trace, idx, mask, init_pos[idx])
+            out["trust"] = trust(out["oor"], mask, unseen)
+            self._fill(res, out, idx, init_pos[idx], output)
         return res
 
-    def _fill(self, res: Correction, out: dict, idx, mask, guess, output: str) -> None:
+    def _fill(self, res: Correction, out: dict, idx, guess, output: str) -> None:
         """Shrink by the guard's trust, scale the covariance, rotate to ECEF, write rows ``idx``."""
-        a = trust(out["oor"], mask)
+        a = out["trust"]
         corr = out[f"corr_{output}"] * a[:, None]
         # what the shrink left out is uncertainty the covariance must carry
         v = self.var_scale[output] * self.var_scale["unseen_dnn"]

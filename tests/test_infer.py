@@ -271,3 +271,36 @@ def test_shipped_weights_beat_their_baselines_on_the_held_out_shipped_trace(ship
     res = run_modes(tr, ["wls", "dnn", "fused-nodnn", "fused"])
     score = {m: mode_metrics(tr, r)["gsdc_score"] for m, r in res.items()}
     assert score["dnn"] < score["wls"] and score["fused"] < score["fused-nodnn"], score
+
+
+
+def _with_copies_as(tr, signal: str):
+    """The trace with every slot repeated as ``signal`` (same satellite and pseudorange): a
+    multi-constellation trace whose extra satellites agree with the GPS ones. Shapes (E, 2S, ...)."""
+    from dataclasses import replace
+    from fusion.trace import SIGNALS
+
+    two = lambda a: np.concatenate([a, a], axis=1)  # noqa: E731
+    sig = np.concatenate([tr.signal, np.full_like(tr.signal, SIGNALS.index(signal))], axis=1)
+    return replace(tr, sat_pos=two(tr.sat_pos), sat_vel=two(tr.sat_vel), pr=two(tr.pr),
+                   pr_sigma=two(tr.pr_sigma), sat_id=np.concatenate([tr.sat_id, tr.sat_id + 5000], axis=1),
+                   signal=sig, mask=two(tr.mask))
+
+
+def test_other_constellations_lower_the_trust_of_a_gps_network(shipped_trace_dir):
+    """A GPS-L1 network on a multi-constellation trace: the satellites it cannot read count against its
+    trust (here half of every epoch's: none left), so that a GPS-only correction does not override a
+    guess from every constellation; on the GPS slots alone the trust is what its inputs give."""
+    from fusion.estimate.wls import solve_wls
+    from fusion.io.load import load_trace
+
+    corr = Corrector.load()
+    gps = load_trace(shipped_trace_dir).select(np.arange(200))
+    multi = _with_copies_as(gps, "GAL_E1")
+    w = solve_wls(gps)
+    t_gps = corr.predict(gps, w.pos, w.valid).trust
+    c_multi = corr.predict(multi, w.pos, w.valid)
+    ok = np.isfinite(t_gps)
+    assert ok.mean() > 0.9 and np.median(t_gps[ok]) == 1.0
+    np.testing.assert_array_equal(c_multi.trust[ok], 0.0)
+    np.testing.assert_allclose(c_multi.corr_ned[ok], 0.0, atol=1e-9)

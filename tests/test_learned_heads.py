@@ -220,6 +220,10 @@ def test_guard_ranges_out_of_range_slots_and_trust():
     t = trust(slot_out_of_range(edge, m, r), m)
     np.testing.assert_allclose(t, (0.5 - 2 / 6) / 0.4)
     assert not slot_out_of_range(far, m, None).any()             # no ranges (old checkpoints): no guard
+    # satellites of signals the network cannot read count as out of range: 6 read + 6 unseen -> none,
+    # 6 read + 1 unseen -> share 1/7
+    np.testing.assert_array_equal(trust(inside, m, np.full(500, 6)), 0.0)
+    np.testing.assert_allclose(trust(inside, m, np.full(500, 1)), (0.5 - 1 / 7) / 0.4)
 
 
 class _HeadNet(nn.Module):
