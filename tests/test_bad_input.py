@@ -68,6 +68,15 @@ def _same_except(est, ref, changed_ms=()):
                                atol=1e-3, rtol=0)
 
 
+def _weak_ms(d) -> list[int]:
+    """Epochs of the trace in ``d`` that WLS checks against their neighbours (few satellites, or an
+    undecided fault test): a change next to them may change them too."""
+    from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, solve_wls
+    tr = load_trace(d, min_sats=1)
+    r = solve_wls(tr)
+    return tr.t_ms[(r.n_used <= NEIGHBOUR_CHECK_MAX_SATS) | r.flagged].tolist()
+
+
 def _epoch_ms(rows, i):
     """True receive time (GPS ms) of data row i: derived times are one epoch late."""
     return int(rows["millisSinceGpsEpoch"].iloc[i]) - 1000
@@ -200,9 +209,11 @@ def test_receiver_clock_jump_moves_no_position(clean, tmp_path):
     jumped = rows.copy()
     after = np.arange(len(rows)) >= 1500
     jumped.loc[after, "rawPrM"] = (rows.loc[after, "rawPrM"].astype(float) + 299_792.458).map(repr)   # +1 ms
-    est, _ = _run_ok(_write_trace(tmp_path, jumped, truth), tmp_path / "o")
-    # epochs are solved independently (a three-satellite epoch next to the jump may lose its clock)
-    _same_except(est[est.index.isin(ref.index)], ref[ref.index.isin(est.index)])
+    d = _write_trace(tmp_path, jumped, truth)
+    est, _ = _run_ok(d, tmp_path / "o")
+    # epochs are solved on their own (a three-satellite epoch next to the jump may lose its clock; an
+    # epoch with few satellites may lose the neighbour it was checked against)
+    _same_except(est[est.index.isin(ref.index)], ref[ref.index.isin(est.index)], _weak_ms(d))
     assert len(est) >= len(ref) - 2
 
 
@@ -215,10 +226,17 @@ def test_outliers_are_excluded_and_counted(clean, tmp_path):
     est, rec = _run_ok(d, tmp_path / "o")
     plain, _ = _run_ok(d, tmp_path / "p", "--wls-plain")
     hit_ms = sorted({_epoch_ms(rows, i) for i in np.flatnonzero(hit)})
-    _same_except(est, ref, hit_ms)                     # epochs without a fault: untouched
+    weak_ms = _weak_ms(d)
+    _same_except(est, ref, hit_ms + weak_ms)           # epochs without a fault: untouched
     tr = load_trace(d, min_sats=1)
-    truth_at = pd.DataFrame(tr.truth, index=tr.t_ms, columns=["x_m", "y_m", "z_m"]).loc[hit_ms]
-    err = {name: np.linalg.norm(e.reindex(hit_ms)[["x_m", "y_m", "z_m"]] - truth_at, axis=1)
+    truth = pd.DataFrame(tr.truth, index=tr.t_ms, columns=["x_m", "y_m", "z_m"])
+    # the fault-free epochs the neighbour check may change keep their accuracy
+    near = sorted(set(weak_ms) - set(hit_ms))
+    assert len(near) > 20
+    e_near = {name: np.linalg.norm(e.reindex(near)[["x_m", "y_m", "z_m"]] - truth.loc[near], axis=1)
+              for name, e in (("clean", ref), ("robust", est))}
+    assert np.nanmedian(e_near["robust"]) < np.nanmedian(e_near["clean"]) + 1.0
+    err = {name: np.linalg.norm(e.reindex(hit_ms)[["x_m", "y_m", "z_m"]] - truth.loc[hit_ms], axis=1)
            for name, e in (("clean", ref), ("robust", est), ("plain", plain))}
     med = {k: float(np.nanmedian(v)) for k, v in err.items()}
     print(f"\n{len(hit_ms)} epochs with a +200 m fault, median 3-D error [m]: {med}")

@@ -264,6 +264,50 @@ def test_fde_flags_what_it_cannot_decide():
         solve_wls_arrays(sat, pr, mask, None, robust="exclude", max_exclusions=-1)
 
 
+def _straight_drive(E: int = 9):
+    """E epochs 1 s apart along a straight east-bound road at 10 m/s, the clock drifting 100 m/s;
+    returns (satellites (E,S,3), noise-free pseudoranges (E,S), positions (E,3))."""
+    rx0 = geodetic2ecef(RX_LLH)
+    rx = rx0 + 10.0 * np.arange(E)[:, None] * ned2ecef_vec(np.array([0.0, 1.0, 0.0]), rx0)
+    sat = np.stack([sats_at(r, SKY) for r in rx])
+    return sat, pseudoranges(sat, rx, 0.0) + 1000.0 + 100.0 * np.arange(E)[:, None], rx
+
+
+def test_neighbours_identify_faults_the_snapshot_test_cannot():
+    """Two faults among seven satellites: the snapshot test cannot tell which (flagged, 300 m off);
+    seen from the line between the epochs around it they stand out, are excluded, and the epoch is
+    re-solved to metres. Epochs with many satellites are not touched."""
+    sat, pr, rx = _straight_drive()
+    pr = pr + np.random.default_rng(1).normal(0, 1.0, pr.shape)
+    mask = np.ones(pr.shape, bool)
+    mask[4, 1] = False
+    pr[4, [4, 6]] += [200.0, 150.0]
+    snap = solve_wls_arrays(sat, pr, mask, None, robust="exclude")          # no times: snapshot only
+    assert snap.flagged.tolist() == [False] * 4 + [True] + [False] * 4
+    assert np.linalg.norm(snap.pos[4] - rx[4]) > 100.0
+    kw = empty_trace(9, 8)
+    kw.update(t_ms=1_000_000 + 1000 * np.arange(9), sat_pos=sat, pr=pr, mask=mask)
+    res = solve_wls(Trace(**kw))
+    assert not res.flagged.any() and res.n_excluded.tolist() == [0] * 4 + [2] + [0] * 4
+    assert not res.used[4, [4, 6]].any() and res.dropped["outlier"] == 2
+    assert np.linalg.norm(res.pos[4] - rx[4]) < 5.0
+    np.testing.assert_array_equal(np.delete(res.pos, 4, 0), np.delete(snap.pos, 4, 0))
+    # without a settled neighbour on each side within 3 s there is no prediction: the epoch stays flagged
+    kw["t_ms"] = 1_000_000 + 1000 * np.arange(9) + np.where(np.arange(9) >= 5, 10_000, 0)
+    assert solve_wls(Trace(**kw)).flagged[4]
+
+
+def test_predicted_positions_need_a_neighbour_on_each_side():
+    from fusion.estimate.neighbour_fde import predict_positions
+    t = np.array([0, 1000, 2000, 3000, 7000, 8000])
+    pos = np.arange(6)[:, None] * np.array([[1.0, 2.0, 3.0]])
+    settled = np.array([True, False, True, True, False, True])
+    pred, ok = predict_positions(t, pos, settled, np.array([1, 4, 0]))
+    assert ok.tolist() == [True, False, False]     # 4: the settled epoch before is 4 s away; 0: none before
+    np.testing.assert_allclose(pred[0], pos[1])
+    assert np.isnan(pred[1:]).all()
+
+
 def _drive_with_three_sat_epoch(reset_at=None):
     """Five epochs, 1 s apart, the clock drifting 100 m/s; epoch 2 keeps 3 satellites."""
     sat, pr, mask, rx, clocks = synthetic(E=5)

@@ -4,9 +4,10 @@ Unknowns per epoch: receiver ECEF position (x, y, z) and receiver clock ``c*dt``
 
     pr[e, s] = |R(omega_e * tau) sat_pos[e, s] - x[e]| + clock[e]  (+ noise)
 
-with the Sagnac rotation done by :func:`fusion.geometry.line_of_sight`. Each epoch is an independent
-snapshot: nothing (clock, position, weights) carries from one epoch to the next, so receiver clock
-jumps cannot leak between epochs. Gauss-Newton runs on the padded (E, S) arrays; the only Python
+with the Sagnac rotation done by :func:`fusion.geometry.line_of_sight`. Each epoch is a snapshot:
+no clock or weight carries from one epoch to the next, so receiver clock jumps cannot leak between
+epochs (the neighbours' *positions* serve only to identify faults, step 4, and their clocks only to
+bridge three-satellite epochs, step 5). Gauss-Newton runs on the padded (E, S) arrays; the only Python
 loop is over iterations, and converged / failed epochs drop out of the active set.
 
 Procedure
@@ -22,7 +23,10 @@ Procedure
    :func:`solve_wls` and of the pipeline): RAIM-style fault detection and exclusion - a chi-square
    test on the weighted residuals, then the smallest set of satellites (at most ``max_exclusions``,
    never below 5 left) whose removal passes it excluded; an epoch no allowed exclusion repairs is
-   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. ``robust="huber"``: iteratively reweighted least
+   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. With epoch
+   times (``t_ms``), the flagged epochs and those left with at most
+   :data:`NEIGHBOUR_CHECK_MAX_SATS` satellites (a test of little power) are first checked against
+   the position predicted from the settled epochs around them (:mod:`fusion.estimate.neighbour_fde`). ``robust="huber"``: iteratively reweighted least
    squares with Huber weights ``min(1, huber_k / |z|)`` on the standardised residuals ``z``.
    ``robust=False``: the paper's plain WLS.
 5. Three-satellite epochs (with ``t_ms``): solved for position alone with the receiver clock
@@ -56,7 +60,7 @@ plausible result (finite, ellipsoidal height within [-2 km, 100 km]). ``status``
 epoch (:data:`STATUS_NAMES`) and ``reasons`` counts the epochs per failure reason, so a caller can
 report "12 epochs: few_sats" instead of silently losing them. Invalid epochs get NaN position, clock
 and covariance; the batch never raises for a bad epoch. Epochs are independent of each other except
-for step 5, which reads its neighbours' clocks.
+for the robust stage's calibrated test and neighbour check (step 4) and step 5.
 
 All satellites share one receiver clock: the loaders' corrected pseudoranges already remove the
 inter-signal range bias (``isrbM``), so one clock serves every constellation in the trace.
@@ -70,6 +74,7 @@ import numpy as np
 from fusion.errors import DataError
 from fusion.estimate.clock_bridge import interpolate_clock, solve_fixed_clock
 from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations
+from fusion.estimate.neighbour_fde import exclude_by_neighbours
 from fusion.estimate.raim import exclude_faults, huber_irls, variance_factor
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.run_types import ModeResult
@@ -77,6 +82,9 @@ from fusion.trace import count_skip
 
 #: goGPS default a-priori code standard deviation (``STD_CODE``) [m].
 SIGMA0_M = 3.0
+#: Epochs with at most this many satellites after exclusion are also checked against their neighbours:
+#: with one or two redundant measurements the chi-square test misses many gross faults.
+NEIGHBOUR_CHECK_MAX_SATS = 6
 #: Mean Earth radius used for the coarse start [m].
 _R_EARTH = 6_371_000.0
 #: Plausible ellipsoidal heights of a phone (a car, a walker, an aircraft) [m].
@@ -213,10 +221,9 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     flagged, n_excluded = np.zeros(E, bool), np.zeros(E, np.int64)
     w_fit = w_prior
     if robust_mode == "exclude":
-        x, used, conv, bad, runaway, w_fit, flagged, n_excluded = _fde(
-            sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale,
-            dict(max_exclusions=max_exclusions, max_iter=max_iter, tol=tol_m, max_cond=max_cond,
-                 n_iter=n_iter), dropped)
+        kw = dict(max_exclusions=max_exclusions, max_iter=max_iter, tol=tol_m, max_cond=max_cond, n_iter=n_iter)
+        x, used, conv, bad, runaway, w_fit, flagged, n_excluded = _exclude(
+            sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped, t_ms)
         if flagged.any():
             x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, flagged, conv, bad,
                                                       runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
@@ -234,24 +241,43 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
 
 
 # ------------------------------------------------------------------------------------- the stages
+def _exclude(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped, t_ms):
+    """Snapshot fault detection and exclusion (:func:`_fde`), then, with epoch times, the epochs it
+    could not decide identified from their neighbours (:mod:`fusion.estimate.neighbour_fde`).
+    Returns :func:`fusion.estimate.raim.exclude_faults`'s tuple."""
+    above_mask = used
+    (x, used, conv, bad, runaway, w_fit, flagged, n_excl), scale = _fde(
+        sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped)
+    settled = eligible & ~flagged & conv & ~bad & ~runaway
+    # the undecided epochs, and those whose test has little power (one or two redundant satellites)
+    weak = flagged | (settled & (used.sum(1) <= NEIGHBOUR_CHECK_MAX_SATS))
+    if t_ms is None or not weak.any():
+        return x, used, conv, bad, runaway, w_fit, flagged, n_excl
+    x, used, conv, bad, runaway, repaired, n_excl = exclude_by_neighbours(
+        sat_pos, pr, above_mask, used, w_prior, x, weak, settled & ~weak, np.asarray(t_ms), conv, bad,
+        runaway, n_excl, scale=scale, dropped=dropped, **kw)
+    return x, used, conv, bad, runaway, np.where(used, w_prior, 0.0), flagged & ~repaired, n_excl
+
+
 def _fde(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped):
     """Fault detection and exclusion (:func:`fusion.estimate.raim.exclude_faults`). With
     ``test_scale="trace"`` a first pass at the a-priori variance gives the residuals of the epochs
     it settled, whose robust variance factor (:func:`fusion.estimate.raim.variance_factor`) sets the
-    test of the second, final pass; a factor of 1 keeps the first pass."""
+    test of the second, final pass; a factor of 1 keeps the first pass. Returns
+    (:func:`fusion.estimate.raim.exclude_faults`'s tuple, the variance factor of the test)."""
     scale = 1.0 if test_scale == "trace" else float(test_scale)
     first = exclude_faults(sat_pos, pr, used, w_prior, x.copy(), eligible, conv, bad.copy(), runaway.copy(),
                            dropped=dropped if test_scale != "trace" else {}, scale=scale, **kw)
     if test_scale != "trace":
-        return first
+        return first, scale
     x1, used1, _, bad1, run1, w1, flagged1, _ = first
     settled = eligible & ~flagged1 & ~bad1 & ~run1
     scale = variance_factor(sat_pos, pr, w1, x1, used1, settled)
     if scale == 1.0:
         count_skip(dropped, "outlier", first[-1])
-        return first
+        return first, scale
     return exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, dropped=dropped,
-                          scale=scale, **kw)
+                          scale=scale, **kw), scale
 
 
 def _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped):

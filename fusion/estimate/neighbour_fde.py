@@ -1,0 +1,99 @@
+"""Fault identification for epochs snapshot FDE cannot decide, from the positions around them.
+
+A snapshot test with few satellites often cannot tell which measurement is wrong: with six or seven
+satellites two faults drag the fit toward each other and several exclusion sets pass alike; with five,
+one fault cannot be isolated at all (:mod:`fusion.estimate.raim` flags such epochs). The epochs around
+it usually can: a vehicle moves smoothly over a second or two, so the straight line between the settled
+epochs on both sides (each within :data:`MAX_GAP_MS`) predicts the position to a few metres. Seen from
+that prediction, with the receiver clock taken as the median residual (robust to the faults), a fault
+of tens of metres stands out of the other residuals. Slots whose deviation exceeds
+``GATE * sqrt(sigma^2 * scale + PRED_SIGMA_M^2)`` are excluded (at most ``max_exclusions``, never fewer
+than five satellites left), the epoch is re-solved, and the exclusion is kept only if the re-solved
+epoch then passes the chi-square test; otherwise nothing changes and the epoch stays flagged.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from fusion.estimate.lsq import gauss_newton
+from fusion.estimate.raim import chi2_test
+from fusion.geometry import line_of_sight
+from fusion.trace import count_skip
+
+#: Furthest a settled neighbour may be for the prediction [ms] (two epochs at 1 Hz, and a spare).
+MAX_GAP_MS = 3000
+#: 1-sigma error of the predicted position projected on a line of sight [m]: the neighbours' own
+#: WLS errors (metres, more in streets) and the bend of the path between them.
+PRED_SIGMA_M = 10.0
+#: Deviation, in combined sigmas, beyond which a slot is excluded.
+GATE = 4.0
+
+
+def predict_positions(t_ms: np.ndarray, pos: np.ndarray, settled: np.ndarray, targets: np.ndarray,
+                      max_gap_ms: float = MAX_GAP_MS) -> tuple[np.ndarray, np.ndarray]:
+    """Positions at epochs ``targets`` (K,) on the line between the settled epochs around each.
+
+    t_ms: (E,) epoch times; pos: (E, 3) solutions; settled: (E,) bool, epochs to predict from.
+    Returns (pred (K, 3), ok (K,) bool: a settled epoch on each side within ``max_gap_ms``).
+    """
+    good = np.flatnonzero(settled)
+    K = targets.shape[0]
+    if good.size < 2 or K == 0:
+        return np.full((K, 3), np.nan), np.zeros(K, bool)
+    j = np.searchsorted(good, targets)
+    prev = good[np.clip(j - 1, 0, good.size - 1)]
+    nxt = good[np.clip(j, 0, good.size - 1)]
+    t = t_ms.astype(float)
+    ok = ((j > 0) & (j < good.size) & (t[targets] - t[prev] <= max_gap_ms)
+          & (t[nxt] - t[targets] <= max_gap_ms))
+    a = (t[targets] - t[prev]) / np.where(ok, t[nxt] - t[prev], 1.0)
+    pred = pos[prev] + a[:, None] * (pos[nxt] - pos[prev])
+    return np.where(ok[:, None], pred, np.nan), ok
+
+
+def outlying_slots(sat_pos: np.ndarray, pr: np.ndarray, used: np.ndarray, w_prior: np.ndarray,
+                   pred: np.ndarray, scale: float) -> np.ndarray:
+    """(K, S) bool: used slots whose residual at the predicted position ``pred`` (K, 3), less the
+    median residual of the epoch (the clock), is beyond the gate. sat_pos (K, S, 3); pr, used,
+    w_prior (K, S) with ``w_prior = 1 / sigma^2``."""
+    rng, _ = line_of_sight(sat_pos, pred)
+    r = np.where(used, pr - rng, np.nan)
+    dev = np.abs(r - np.nanmedian(r, axis=1, keepdims=True))
+    var = scale / np.where(used, w_prior, 1.0) + PRED_SIGMA_M ** 2
+    return used & (dev > GATE * np.sqrt(var))
+
+
+def exclude_by_neighbours(sat_pos, pr, candidates, used, w_prior, x, targets, settled, t_ms, conv, bad, runaway,
+                          n_excl, *, scale: float, max_exclusions: int, max_iter: int, tol: float,
+                          max_cond: float, n_iter, dropped):
+    """The module docstring's exclusion on the ``targets`` (E,) epochs, predicted from ``settled`` (E,).
+
+    sat_pos: (E, S, 3); pr, w_prior: (E, S); candidates: (E, S) bool, the satellites above the mask
+    (snapshot exclusions are reconsidered: with few satellites the snapshot test may have removed a
+    good one and kept the fault); used: (E, S) bool, the snapshot's choice; x: (E, 4) states; t_ms:
+    (E,); conv, bad, runaway: (E,) bool; n_excl: (E,) int, exclusions so far.
+    Returns (x, used, conv, bad, runaway, repaired (E,) bool, n_excl); ``dropped["outlier"]``
+    follows the changed exclusions.
+    """
+    idx = np.flatnonzero(targets)
+    pred, ok = predict_positions(t_ms, x[:, :3], settled, idx)
+    idx, pred = idx[ok], pred[ok]
+    out = outlying_slots(sat_pos[idx], pr[idx], candidates[idx], w_prior[idx], pred, scale)
+    new = candidates[idx] & ~out
+    take = ((new != used[idx]).any(1) & (out.sum(1) <= max_exclusions) & (new.sum(1) >= 5))
+    repaired = np.zeros(used.shape[0], bool)
+    if not take.any():
+        return x, used, conv, bad, runaway, repaired, n_excl
+    idx, new = idx[take], new[take]
+    trial_used = used.copy()
+    trial_used[idx] = new
+    trial = np.zeros_like(repaired)
+    trial[idx] = True
+    w = np.where(trial_used, w_prior, 0.0)
+    x2, c2, b2, r2 = gauss_newton(sat_pos, pr, w, x.copy(), trial, max_iter, tol, max_cond, n_iter)
+    _, fails = chi2_test(sat_pos, pr, w, x2, trial_used, scale)
+    repaired = trial & c2 & ~b2 & ~r2 & ~fails
+    used = np.where(repaired[:, None], trial_used, used)
+    n_new = np.where(repaired, (candidates & ~used).sum(1), n_excl)
+    count_skip(dropped, "outlier", int((n_new - n_excl).sum()))
+    return (np.where(repaired[:, None], x2, x), used, conv | repaired, bad, runaway, repaired, n_new)
