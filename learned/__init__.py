@@ -3,7 +3,7 @@ its GTSAM factors, and the ``dnn`` / ``fused`` modes. Imports ``fusion``; ``fusi
 
 Public API (imported lazily)::
 
-    from learned import Corrector, learned_prior_factor
+    from learned import Corrector, learned_prior_factor, learned_pseudorange_factors
 """
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import importlib
 _PUBLIC = {
     "Corrector": "learned.infer", "learned_prior_factor": "learned.factor",
     "learned_prior_factors": "learned.factor", "learned_pose_translation_factor": "learned.factor",
+    "learned_pseudorange_factors": "learned.factor",
 }
 __all__ = sorted(_PUBLIC)
 
