@@ -207,10 +207,8 @@ class Trace:
         except IndexError as exc:
             raise DataError(f"{self.name}: cannot select epochs of a {self.n_epochs}-epoch trace "
                             f"({exc})") from None
-        reset = self.clock_reset[idx].copy()
-        if idx.size > 1:
-            jumps = np.cumsum(self.clock_reset)
-            reset[1:] = jumps[idx[1:]] - jumps[idx[:-1]] > 0
+        reset, gap = flags_since_previous(self.clock_reset, idx)
+        reset[:1] = self.clock_reset[idx[:1]]
         mask = self.mask[idx]
         S = max(int(mask.sum(axis=1).max(initial=0)), 1)
         # Compact real slots to the front so trimming to S loses nothing.
@@ -223,8 +221,9 @@ class Trace:
             return np.take_along_axis(a, order, axis=1)
 
         optional = {k: take(getattr(self, k)) for k in OPTIONAL_SLOT_FIELDS if getattr(self, k) is not None}
-        if "adr_slip" in optional and idx.size > 1:
-            optional["adr_slip"] = optional["adr_slip"] | self._slip_across_dropped(idx, order)
+        if "adr_slip" in optional:
+            # a slip on a dropped epoch, or one hidden in a gap, breaks the chain across it
+            optional["adr_slip"] = optional["adr_slip"] | gap[:, None]
         return replace(
             self,
             t_ms=self.t_ms[idx], sat_pos=take(self.sat_pos), sat_vel=take(self.sat_vel),
@@ -232,13 +231,6 @@ class Trace:
             signal=take(self.signal), mask=take(self.mask), clock_reset=reset,
             truth=None if self.truth is None else self.truth[idx], skipped=dict(self.skipped), **optional,
         )
-
-    def _slip_across_dropped(self, idx: np.ndarray, order: np.ndarray) -> np.ndarray:
-        """(E',S') True where a kept slot's carrier chain breaks between two kept epochs that are not
-        consecutive: a slip on a dropped epoch, or a gap of several epochs, can hide a slip, so the
-        chain is broken conservatively wherever epochs were dropped in between."""
-        gap = np.r_[False, np.diff(idx) > 1]
-        return np.broadcast_to(gap[:, None], order.shape).copy()
 
     def select_slots(self, keep: np.ndarray) -> "Trace":
         """A new Trace whose mask is ``mask & keep`` (keep: (E,S) bool), e.g. a signal filter."""
@@ -252,6 +244,24 @@ class Trace:
 OPTIONAL_SLOT_FIELDS = ("cn0", "prr", "prr_sigma", "prr_ok", "adr", "adr_sigma", "adr_ok", "adr_slip")
 #: Fields that come together or not at all.
 OPTIONAL_GROUPS = (("prr", "prr_sigma", "prr_ok"), ("adr", "adr_sigma", "adr_ok", "adr_slip"))
+
+
+def flags_since_previous(flags: np.ndarray, kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Carry per-epoch events across dropped epochs.
+
+    flags: (E,) bool per original epoch (e.g. a clock reset); kept: (K,) ascending indices of the
+    epochs that stay. Returns (K,) ``flagged``: True where the flag is set on the kept epoch or on
+    any dropped epoch since the previous kept one (the event still happened between the two), and
+    (K,) ``gap``: True where epochs were dropped since the previous kept one. Both False at the
+    first kept epoch, which has no previous one.
+    """
+    kept = np.asarray(kept, np.int64)
+    cum = np.r_[0, np.cumsum(np.asarray(flags, bool))]
+    flagged = np.zeros(kept.size, bool)
+    gap = np.zeros(kept.size, bool)
+    flagged[1:] = cum[kept[1:] + 1] - cum[kept[:-1] + 1] > 0
+    gap[1:] = np.diff(kept) > 1
+    return flagged, gap
 
 
 def count_skip(skipped: dict[str, int], key: str, n) -> None:

@@ -43,6 +43,19 @@ def test_optional_fields_semantics(tmp_path):
     assert tr.adr_slip.sum() == 1 and tr.adr_slip[1, 2]
 
 
+def test_an_epoch_dropped_for_too_few_satellites_breaks_every_carrier_chain_across_it(tmp_path):
+    """Epoch 1 keeps two satellites (dropped at min_sats=4); the slip flagged there must not vanish,
+    and the phase between epochs 0 and 2 may hide others: every slot slips on epoch 2."""
+    df = _device(n_epochs=4)
+    df = df[~((df["utcTimeMillis"] == df["utcTimeMillis"].unique()[1]) & (df["Svid"] > 3))]
+    path = tmp_path / "device_gnss.csv"
+    df.to_csv(path, index=False)
+    tr = load_device_gnss(path, min_sats=4)
+    assert tr.n_epochs == 3 and tr.skipped["epochs_lt4_sats"] == 1
+    assert tr.adr_slip[1][tr.mask[1]].all()
+    assert not tr.adr_slip[2].any() and not tr.adr_slip[0].any()
+
+
 def test_optional_fields_absent(tmp_path):
     path = tmp_path / "device_gnss.csv"
     _device().drop(columns=["SvClockDriftMetersPerSecond", "AccumulatedDeltaRangeState", "Cn0DbHz"]).to_csv(path, index=False)

@@ -6,6 +6,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from fusion.cli import main as cli_main
@@ -66,13 +67,16 @@ def _synthetic(nav, rx, t_rx_ms, prns, rx_clock_m=1234.5, extra_rows=()):
     return RawObs(frame=frame, path=Path("synthetic.obs")), st
 
 
-def test_exact_pseudoranges_give_geometry_plus_clock(nav):
+@pytest.mark.parametrize("rx_clock_m", [1234.5, 3.0e5])
+def test_exact_pseudoranges_give_geometry_plus_clock(nav, rx_clock_m):
     """With the atmosphere switched off (no Klobuchar, tropo subtracted back), corrected
-    pseudoranges equal the Sagnac range from the true receiver plus its clock, to millimetres."""
+    pseudoranges equal the Sagnac range from the true receiver plus its clock, to millimetres,
+    also for a 1 ms clock: the pseudorange itself fixes the transmit time, whatever the
+    receiver's time tag is off by."""
     t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
     prns = _visible(nav, t)
     assert len(prns) >= 6
-    raw, st = _synthetic(nav, P5_START, t, prns, extra_rows=[("E", 11)])
+    raw, st = _synthetic(nav, P5_START, t, prns, rx_clock_m=rx_clock_m, extra_rows=[("E", 11)])
     nav.klobuchar, klob = None, nav.klobuchar
     try:
         with pytest.warns(UserWarning, match="synthetic.obs: no ionosphere model"):
@@ -88,12 +92,31 @@ def test_exact_pseudoranges_give_geometry_plus_clock(nav):
     el, _ = elevation_azimuth(los, P5_START)
     llh = ecef2geodetic(P5_START)
     tropo = tropo_delay(llh[0], llh[2], el)
-    np.testing.assert_allclose(tr.pr[0][m] + tropo - rng, 1234.5, atol=0.003)
+    np.testing.assert_allclose(tr.pr[0][m] + tropo - rng, rx_clock_m, atol=0.003)
     # Doppler + c * satellite clock drift, carrier + c * satellite clock
     order = np.argsort(prns)
     np.testing.assert_allclose(tr.prr[0][m] - 100.0, C_LIGHT * st["clock_drift"][order], atol=1e-6)
     np.testing.assert_allclose(tr.adr[0][m] - 5.0, C_LIGHT * st["clock_s"][order], atol=1e-3)
     assert tr.prr_ok[0][m].all() and tr.adr_ok[0][m].all() and np.all(tr.pr_sigma[0][m] == 3.0)
+
+
+def test_a_dropped_epoch_passes_its_clock_reset_and_a_slip_to_the_next_kept_one(nav):
+    """Three epochs; the middle one has two satellites (dropped at min_sats=4) and carries the
+    receiver's clock reset: the reset still happened before the third epoch, and every carrier
+    chain from the first to the third epoch is broken."""
+    t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
+    prns = _visible(nav, t)
+    frames = []
+    for k, sats in enumerate([prns, prns[:2], prns]):
+        raw, _ = _synthetic(nav, P5_START, t + 1000 * k, sats)
+        f = raw.frame.copy()
+        f["clock_reset"] = k == 1
+        frames.append(f)
+    raw = RawObs(frame=pd.concat(frames, ignore_index=True), path=Path("synthetic.obs"))
+    tr = raw_to_trace(raw, nav, signals=["GPS_L1"], min_sats=4)
+    assert tr.n_epochs == 2 and tr.skipped["epochs_lt4_sats"] == 1
+    assert tr.clock_reset.tolist() == [False, True]
+    assert tr.adr_slip[1][tr.mask[1]].all() and not tr.adr_slip[0].any()
 
 
 def test_default_signals_follow_navigation(nav):

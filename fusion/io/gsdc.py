@@ -40,7 +40,7 @@ from fusion.io.clean import ROW, coerce_numeric, require_rows, sort_rows
 from fusion.io.tables import read_csv_table
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, TRUTH_TOL_MS, check_overlap, interp_gapped,
                              llh_ecef, match_nearest, read_truth_csv, warn_outside_bay_area)
-from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals, signal_index
+from fusion.trace import SIGNALS, Trace, count_skip, flags_since_previous, pack_rows, resolve_signals, signal_index
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +107,7 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
     Returns Trace keyword arguments (without truth).
     """
     sel = resolve_signals(signals)
+    t_file = np.unique(rows["t"].to_numpy(np.int64))
     rows = rows.assign(signal=signal_index(rows["signal_name"]))
     if clock_count is not None:
         rows = rows.assign(clk_count=clock_count)
@@ -151,6 +152,10 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
     optional = {k[4:]: rows[k].to_numpy() for k in rows.columns if k.startswith("opt_")}
     if optional:
         packed |= {k: v for k, v in pack_rows(epoch, E, optional).items() if k != "mask"}
+    if "adr_slip" in packed:
+        # a dropped epoch may hide a cycle slip: no carrier chain across it
+        _, gap = flags_since_previous(np.zeros(t_file.size, bool), np.searchsorted(t_file, t_ms))
+        packed["adr_slip"] = packed["adr_slip"] | gap[:, None]
     clock_reset = np.zeros(E, bool)
     if clock_count is not None:
         # A change between consecutive *kept* epochs also flags jumps inside skipped epochs.

@@ -10,9 +10,9 @@ drift (``+ c d(dt_sv)/dt``) and the carrier phase for the satellite clock (``+ c
 satellites' elevations: a batched WLS on the clock-corrected pseudoranges gives them (epochs it
 cannot solve take the nearest solved epoch's position).
 
-The receiver's time tag is the phone's estimate of GPS time; its residual bias (the WLS clock)
-moves the transmit time and so the satellite by ``|v_sat| * bias`` (4 mm per microsecond). Where
-the WLS clock exceeds :data:`RETAG_CLOCK_M` the states are recomputed at the corrected times.
+The receiver's time tag is the phone's estimate of GPS time and may be off by its clock bias,
+but the transmit time ``t_tag - pr / c`` is not: the pseudorange carries the same bias, so the
+satellite states need no second pass at a clock-corrected time.
 Rows of a satellite without ephemeris at that time, without a pseudorange, or of unselected
 signals are dropped and counted in ``Trace.skipped``.
 """
@@ -31,10 +31,8 @@ from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
 from fusion.nav.precise import precise_states
 from fusion.nav.sat_states import broadcast_states
-from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals
+from fusion.trace import SIGNALS, Trace, count_skip, flags_since_previous, pack_rows, resolve_signals
 
-#: Receiver clock bias [m] beyond which satellite states are recomputed at corrected times (1 us).
-RETAG_CLOCK_M = 300.0
 #: Pseudorange sigma when the file gives none: SIGMA_PR_M at C/N0 >= CN0_REF, growing as
 #: 10^((CN0_REF - cn0) / 20) below it (amplitude-noise scaling of code tracking), capped.
 SIGMA_PR_M, CN0_REF, SIGMA_PR_MAX_M = 3.0, 35.0, 100.0
@@ -58,16 +56,13 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
         raise DataError(f"{raw.path}: no navigation data (pass broadcast navigation or SP3 orbits)")
     skipped = dict(raw.skipped)
     rows = _select_rows(raw, nav, precise, signals, skipped)
-    st = _states(rows, nav, precise, np.zeros(len(rows)))
+    st = _states(rows, nav, precise)
     count_skip(skipped, "rows_no_ephemeris", ~st["ok"])
     rows, st = rows[st["ok"]].reset_index(drop=True), {k: v[st["ok"]] for k, v in st.items()}
     rows, st, epoch, t_ns = _epochs(rows, st, min_sats, skipped, raw)
     pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     ref = _reference_rows(rows)
     rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, ref, raw)
-    if np.nanmax(np.abs(clock_m), initial=0.0) > RETAG_CLOCK_M:
-        st = _states(rows, nav, precise, -np.nan_to_num(clock_m)[epoch] / C_LIGHT)
-        pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     el, az = _elev_az(st["pos"], rx[epoch])
     if getattr(nav, "klobuchar", None) is None:
         # SP3/CLK carry no ionosphere; uncorrected, L1 ranges are metres long, more at low elevation
@@ -78,9 +73,8 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
     cols = _columns(rows, st, pr)
     packed = pack_rows(epoch, t_ns.size, cols)
     mask = packed.pop("mask")
-    reset = np.zeros(t_ns.size, bool)
-    np.logical_or.at(reset, epoch, rows["clock_reset"].to_numpy(bool))
-    reset[0] = False
+    reset, gap = _events_since_previous(raw.frame, t_ns)
+    packed["adr_slip"] |= gap[:, None]
     t_ms = np.round(t_ns / 1e6).astype(np.int64)
     return Trace(t_ms=t_ms, mask=mask, clock_reset=reset, name=name or raw.path.stem, skipped=skipped, **packed)
 
@@ -118,12 +112,12 @@ def _systems(nav, precise) -> set[str]:
     return precise.systems() if precise is not None else nav.systems()
 
 
-def _states(rows: pd.DataFrame, nav, precise, clock_shift_s: np.ndarray) -> dict[str, np.ndarray]:
+def _states(rows: pd.DataFrame, nav, precise) -> dict[str, np.ndarray]:
     """(N,) satellite states at each row's transmit time (two passes: the second at the transmit
     time corrected by the first pass's satellite clock, which moves the satellite ~4 m per ms)."""
     t_ns = rows["t_ns"].to_numpy(np.int64)
     t_ms = t_ns // 1_000_000
-    base = (t_ns - t_ms * 1_000_000) * 1e-9 + clock_shift_s - rows["pr_m"].to_numpy() / C_LIGHT
+    base = (t_ns - t_ms * 1_000_000) * 1e-9 - rows["pr_m"].to_numpy() / C_LIGHT
     sat_id, sig = rows["sat_id"].to_numpy(), pd.Index(SIGNALS).get_indexer(rows["signal"]).astype(np.int8)
     fn = (lambda dt: precise_states(precise, sat_id, sig, t_ms, dt, nav)) if precise is not None else \
          (lambda dt: broadcast_states(nav, sat_id, sig, t_ms, dt))
@@ -145,6 +139,16 @@ def _epochs(rows: pd.DataFrame, st: dict, min_sats: int, skipped: dict[str, int]
     st = {k: v[keep] for k, v in st.items()}
     epoch = (np.cumsum(keep_e) - 1)[epoch[keep]]
     return rows, st, epoch, t_u[keep_e]
+
+
+def _events_since_previous(frame: pd.DataFrame, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(E,) clock resets and (E,) gaps of the kept epochs ``t_ns`` (E,) measured against every epoch
+    of the file: a reset on an epoch dropped later (too few satellites, no ephemeris) still
+    happened before the next kept one, and a dropped epoch may hide a cycle slip."""
+    t_all, inv = np.unique(frame["t_ns"].to_numpy(np.int64), return_inverse=True)
+    reset = np.zeros(t_all.size, bool)
+    np.logical_or.at(reset, inv, frame["clock_reset"].to_numpy(bool))
+    return flags_since_previous(reset, np.searchsorted(t_all, t_ns))
 
 
 def _reference_rows(rows: pd.DataFrame) -> np.ndarray:
