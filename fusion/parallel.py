@@ -6,7 +6,7 @@ has imported the pipeline once (``fusion.evaluate``: numpy, pandas, gtsam), so a
 milliseconds instead of re-importing for a second or more; elsewhere they are spawned. The server and
 its workers are limited to one BLAS/OpenMP/torch thread each, so ``--jobs N`` uses N cores, not N times
 all of them. A trace whose worker raises, or dies, is reported as a failure of that trace;
-the others go on.
+the others go on (a death breaks the pool, so the traces it interrupted run again, each alone).
 """
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import multiprocessing
 import os
 import sys
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 
 from tqdm import tqdm
@@ -62,15 +62,41 @@ def _context():
 
 
 def _run_pool(func: Callable, args: Sequence[tuple], jobs: int, ctx, out: list, progress: bool) -> list:
-    """The pool loop of :func:`map_traces`, filling ``out`` in the order of ``args``."""
+    """The pool loop of :func:`map_traces`, filling ``out`` in the order of ``args``.
+
+    A worker that dies (killed, out of memory, a crash in C) breaks the whole pool: every call not
+    finished by then fails with it, and which of them killed the worker is unknown. Those calls are
+    run again, each in a pool of its own, so that a death is charged to its own call only.
+    """
+    lost = []
     with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_one_thread) as pool:
         futures = {pool.submit(func, *a): i for i, a in enumerate(args)}
         for fut in tqdm(as_completed(futures), total=len(futures), desc="traces", disable=not progress):
             i = futures[fut]
             try:
                 out[i] = fut.result()
-            except BrokenProcessPool as exc:
-                out[i] = f"worker failed: the worker process died ({exc})"
+            except BrokenProcessPool:
+                lost.append(i)
             except Exception as exc:  # noqa: BLE001 - one trace's crash must not stop the others
-                out[i] = f"worker failed: {type(exc).__name__}: {exc}"
+                out[i] = failure(exc)
+    if lost:
+        with ThreadPoolExecutor(max_workers=jobs) as threads:
+            for i, result in zip(lost, threads.map(lambda i: _run_alone(func, args[i], ctx), lost)):
+                out[i] = result
     return out
+
+
+def _run_alone(func: Callable, a: tuple, ctx):
+    """``func(*a)`` in a one-worker pool of its own; a failure becomes its one-line reason."""
+    with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_one_thread) as pool:
+        try:
+            return pool.submit(func, *a).result()
+        except BrokenProcessPool as exc:
+            return f"worker failed: the worker process died ({exc})"
+        except Exception as exc:  # noqa: BLE001
+            return failure(exc)
+
+
+def failure(exc: BaseException) -> str:
+    """The one-line result standing for a call that raised ``exc``."""
+    return f"worker failed: {type(exc).__name__}: {exc}"

@@ -1,11 +1,14 @@
 """``gnssfuse evaluate --jobs N``: traces in parallel processes, same tables as one process."""
 from __future__ import annotations
 
+import os
 import shutil
 
 import pandas as pd
 
+import fusion.evaluate
 from fusion.cli import main
+from fusion.parallel import map_traces
 
 
 def _traces(tmp_path, shipped_trace_dir):
@@ -41,3 +44,39 @@ def test_jobs_2_gives_the_metrics_of_jobs_1_and_a_bad_trace_stops_nothing(tmp_pa
 def test_jobs_must_be_positive(tmp_path, shipped_trace_dir, capsys):
     assert main(["evaluate", str(shipped_trace_dir), "--out", str(tmp_path / "r"), "--jobs", "0"]) == 2
     assert "--jobs must be >= 1" in capsys.readouterr().err
+
+
+def _dies_on_two(x: int) -> int:
+    if x == 2:
+        os._exit(3)             # as a segfault or the OOM killer would: no exception, no cleanup
+    return 10 * x
+
+
+def test_a_dying_worker_costs_only_its_own_call():
+    """A worker's death breaks the process pool; the calls it interrupted run again alone, so only
+    the one that kills its worker is reported failed."""
+    out = map_traces(_dies_on_two, [(i,) for i in range(5)], jobs=2)
+    assert out[2].startswith("worker failed: the worker process died")
+    assert [o for i, o in enumerate(out) if i != 2] == [0, 10, 30, 40]
+
+
+def test_jobs_1_reports_an_unexpected_exception_as_that_traces_failure(tmp_path, shipped_trace_dir,
+                                                                       capsys, monkeypatch):
+    good = tmp_path / "data" / "a" / "Pixel4"
+    shutil.copytree(shipped_trace_dir, good)
+    buggy = tmp_path / "data" / "b" / "Pixel4"
+    shutil.copytree(shipped_trace_dir, buggy)
+    real = fusion.evaluate.load_and_run
+
+    def load_and_run(d, *a, **k):
+        if d == buggy:
+            raise ZeroDivisionError("a bug on one trace")
+        return real(d, *a, **k)
+
+    monkeypatch.setattr(fusion.evaluate, "load_and_run", load_and_run)
+    out = tmp_path / "report"
+    rc = main(["evaluate", str(buggy), str(good), "--modes", "wls", "--out", str(out), "--max-epochs", "200",
+               "--no-progress"])
+    assert rc == 2
+    assert "worker failed: ZeroDivisionError: a bug on one trace" in capsys.readouterr().err
+    assert set(pd.read_csv(out / "metrics.csv").trace) == {"a/Pixel4", "ALL"}
