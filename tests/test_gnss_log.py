@@ -161,6 +161,24 @@ def test_missing_gnss_time_is_counted(tmp_path):
     assert raw.skipped["records_no_gnss_time"] == 1
 
 
+def test_a_blank_svid_or_state_is_a_counted_skip(tmp_path):
+    """A record with an empty Svid names no satellite (read as a number it would become a huge
+    negative one and miss every ephemeris); an empty State says nothing of the pseudorange."""
+    def edit(lines):
+        header = next(l for l in lines if l.startswith("# Raw,"))[2:].strip().split(",")
+        col = {n: i for i, n in enumerate(header)}
+        for k, name in ((0, "Svid"), (1, "State")):
+            i = _raw_index(lines, k)
+            v = lines[i].split(",")
+            v[col[name]] = ""
+            lines[i] = ",".join(v)
+        return lines
+    raw = read_gnss_log(_edit(tmp_path, PIXEL4_LOG, edit))
+    assert raw.skipped["records_blank_svid_constellation_or_state"] == 2
+    assert len(raw.frame) == len(read_gnss_log(PIXEL4_LOG).frame) - 2
+    assert (raw.frame.svid > 0).all()
+
+
 def test_unusable_files_are_one_line_errors(tmp_path):
     garbage = tmp_path / "garbage.txt"
     garbage.write_bytes(bytes(range(256)) * 20)

@@ -236,6 +236,16 @@ def test_other_constellations_and_codes(tmp_path):
     assert raw.skipped == {"obs_other_signals": 1, "sat_lines_unsupported_system": 2}
 
 
+def test_a_system_missing_from_the_header_is_counted(tmp_path):
+    """A BeiDou line in a file whose header lists no BeiDou observation types cannot be decoded:
+    dropped and counted, not lost silently."""
+    p = _obs_file(tmp_path)
+    p.write_text("".join(l for l in p.read_text().splitlines(True) if not l.startswith("C    4 C2I")))
+    raw = read_rinex_obs(p)
+    assert raw.skipped["sat_lines_system_not_in_header"] == 1
+    assert "BDS_B1I" not in set(raw.frame.signal)
+
+
 def test_repeated_satellite_line_is_counted_once(tmp_path):
     lines = _lines()
     e = next(k for k, l in enumerate(lines) if l.startswith(">"))

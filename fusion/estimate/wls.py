@@ -381,6 +381,7 @@ def _bridge_three_sat_epochs(res: WlsResult, sat_pos, pr, real, t_ms, clock_rese
     e = few[good_fix]
     res.status[e] = OK
     res.valid[e] = True
+    res.converged[e] = True          # the fixed-clock fit converged (good_fix includes conv)
     res.clock_predicted[e] = True
     res.pos[e], res.clock_m[e] = pos[good_fix], clock[good_fix]
     res.cov[e] = np.nan

@@ -155,7 +155,13 @@ def _numeric_columns(table: pd.DataFrame, line_no: np.ndarray, path: Path,
     bad &= ~no_time
     _warn_first(path, line_no, bad, "unreadable number")
     count_skip(skipped, "records_bad_number", bad)
-    keep = ~(bad | no_time)
+    # without these a record names no satellite, or no valid pseudorange
+    blank = np.zeros(n, bool)
+    for name in ("Svid", "ConstellationType", "State"):
+        blank |= np.isnan(out[name])
+    blank &= ~(bad | no_time)
+    count_skip(skipped, "records_blank_svid_constellation_or_state", blank)
+    keep = ~(bad | no_time | blank)
     # An unreported sub-nanosecond BiasNanos is common to every satellite of the epoch: the
     # receiver clock estimate absorbs it, so it reads as 0 rather than costing the epoch.
     out["BiasNanos"] = np.nan_to_num(out["BiasNanos"])

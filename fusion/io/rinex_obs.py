@@ -346,6 +346,9 @@ def observation_frame(system: np.ndarray, prn: np.ndarray, prn_bad: np.ndarray, 
     ok = ~bad
     unknown_sys = ok & ~np.isin(system, [ord(s) for s in SIGNAL_CODES])
     count_skip(skipped, "sat_lines_unsupported_system", unknown_sys)
+    # a system the header lists no observation types for cannot be decoded
+    unlisted = ok & ~unknown_sys & ~np.isin(system, [ord(s) for s in head.obs_types])
+    count_skip(skipped, "sat_lines_system_not_in_header", unlisted)
     blocks = []
     for sys_letter, types in head.obs_types.items():
         rows = np.flatnonzero(ok & (system == ord(sys_letter)))
