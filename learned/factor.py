@@ -6,7 +6,8 @@ Example (any graph whose variable at ``key`` is an ECEF ``Point3``)::
     from learned.factor import learned_prior_factor
 
     corrector = Corrector.load()                      # shipped weights, or Corrector.load("my.pt")
-    factor, mean, cov = learned_prior_factor(corrector, sat_pos, pr, mask, init_pos, gtsam.symbol("x", k))
+    factor, mean, cov = learned_prior_factor(corrector, sat_pos, pr, mask, init_pos, gtsam.symbol("x", k),
+                                             pr_sigma=pr_sigma)
     graph.add(factor)
 
 For a ``Pose3`` variable use :func:`learned_pose_translation_factor` (a ``PoseTranslationPrior3D``
@@ -25,14 +26,17 @@ import numpy as np
 from fusion.errors import GeometryError
 from fusion.estimate.graph.factors import prior_noise_model, robust_model
 from fusion.estimate.graph.priors import PRIOR_MIN_EIG, PriorProvider, Priors, ask_provider, clean_priors
-from fusion.trace import Trace, empty_trace
+from fusion.trace import SIGNALS, Trace, empty_trace
 
 
 def one_epoch_trace(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, pr_sigma: np.ndarray | None = None,
-                    signal: np.ndarray | None = None, t_ms: int = 0, name: str = "epoch") -> Trace:
+                    signal: np.ndarray | None = None, t_ms: int = 0, name: str = "epoch",
+                    cn0: np.ndarray | None = None) -> Trace:
     """Wrap one epoch's measurements (S satellites) as a 1-epoch :class:`Trace`.
 
-    sat_pos (S,3) transmit-time ECEF [m]; pr (S,) corrected pseudoranges [m]; mask (S,) bool.
+    sat_pos (S,3) transmit-time ECEF [m]; pr (S,) corrected pseudoranges [m]; mask (S,) bool;
+    pr_sigma (S,) the receiver's reported pseudorange sigma [m] (default 1); signal (S,) names from
+    :data:`fusion.trace.SIGNALS` or their indices (default GPS_L1); cn0 (S,) [dB-Hz], 0 = unknown (default).
     """
     sat_pos, pr, mask = np.asarray(sat_pos, float), np.asarray(pr, float), np.asarray(mask, bool)
     S = pr.shape[0] if pr.ndim == 1 else -1
@@ -43,14 +47,56 @@ def one_epoch_trace(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, pr_si
     # padded slots get finite filler, as the Trace contract requires
     kw.update(t_ms=np.array([t_ms], np.int64), sat_pos=np.where(mask[:, None], sat_pos, 0.0)[None],
               pr=np.where(mask, pr, 0.0)[None], mask=mask[None])
-    for label, extra in (("pr_sigma", pr_sigma), ("signal", signal)):
+    for label, extra in (("pr_sigma", pr_sigma), ("signal", signal), ("cn0", cn0)):
         if extra is not None and np.shape(extra) != (S,):
             raise GeometryError(f"{name}: {label} must have shape ({S},) like pr, got {np.shape(extra)}")
     if pr_sigma is not None:
-        kw["pr_sigma"] = np.where(mask, np.asarray(pr_sigma, float), 1.0)[None]
+        kw["pr_sigma"] = _finite_on(mask, pr_sigma, "pr_sigma", name, filler=1.0, positive=True)[None]
+    if cn0 is not None:
+        kw["cn0"] = _finite_on(mask, cn0, "cn0", name, filler=0.0, positive=False)[None]
     if signal is not None:
-        kw["signal"] = np.asarray(signal, np.int8)[None]
+        kw["signal"] = _signal_indices(signal, name)[None]
     return Trace(**kw)
+
+
+def _finite_on(mask: np.ndarray, values, label: str, name: str, filler: float, positive: bool) -> np.ndarray:
+    """(S,) float ``values`` on real slots ``mask`` (S,), ``filler`` on padding; GeometryError where a real
+    slot's value is not finite (or not > 0 when ``positive``)."""
+    v = np.asarray(values, float)
+    bad = mask & ~(np.isfinite(v) & ((v > 0) if positive else True))
+    if bad.any():
+        raise GeometryError(f"{name}: {label} must be finite{' and > 0' if positive else ''} on real slots; "
+                            f"slot {int(np.flatnonzero(bad)[0])} is {v[bad][0]}")
+    return np.where(mask, v, filler)
+
+
+def _signal_indices(signal, name: str) -> np.ndarray:
+    """(S,) int8 indices into :data:`fusion.trace.SIGNALS` from names or indices (S,)."""
+    sig = np.asarray(signal)
+    if sig.dtype.kind in "UO":
+        unknown = sorted({str(s) for s in sig} - set(SIGNALS))
+        if unknown:
+            raise GeometryError(f"{name}: unknown signal(s) {unknown} (known: {', '.join(SIGNALS)})")
+        return np.array([SIGNALS.index(str(s)) for s in sig], np.int8)
+    if sig.dtype.kind not in "iu" or sig.size and not ((sig >= 0) & (sig < len(SIGNALS))).all():
+        raise GeometryError(f"{name}: signal indices must be integers in [0, {len(SIGNALS)}), got {sig.tolist()}")
+    return sig.astype(np.int8)
+
+
+def _lone_epoch(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
+                pr_sigma: np.ndarray | None, cn0: np.ndarray | None, signal: np.ndarray | None) -> Trace:
+    """One epoch as a trace, refusing to leave out what the checkpoint reads and the caller must supply.
+
+    A lone epoch has no history: the network sees every satellite as just acquired with no residual
+    change (as at a trace's first epoch); on the held-out test drives that costs 0.1 and 0.9 m of GSDC score
+    against the whole trace, and leaving ``pr_sigma`` at 1 m another 2.4 and 4.2 m (``experiments/lone_epoch.py``).
+    """
+    inputs = getattr(getattr(corrector, "features", None), "inputs", ())
+    if "pr_sigma" in inputs and pr_sigma is None:
+        raise GeometryError(f"{getattr(corrector, 'path', 'the checkpoint')}: reads each satellite's reported "
+                            "pseudorange sigma; pass pr_sigma (S,) [m] (GnssLogger: ReceivedSvTimeUncertaintyNanos "
+                            "* 1e-9 * c; a Trace's pr_sigma row)")
+    return one_epoch_trace(sat_pos, pr, mask, pr_sigma=pr_sigma, signal=signal, cn0=cn0)
 
 
 def _batch_priors(corrector: PriorProvider, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
@@ -67,13 +113,13 @@ def _batch_priors(corrector: PriorProvider, trace: Trace, init_pos: np.ndarray, 
     return clean_priors(mean, cov, ok & valid, cov_scale, sigma_floor_m, what="cov_scale / sigma_floor_m")
 
 
-def _epoch_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
-                 init_pos: np.ndarray, cov_scale: float, sigma_floor_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """One epoch through :func:`_batch_priors`: (mean (3,), covariance used (3,3)), or GeometryError."""
+def _epoch_prior(corrector: PriorProvider, trace: Trace, init_pos: np.ndarray, cov_scale: float,
+                 sigma_floor_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 1-epoch ``trace`` through :func:`_batch_priors`: (mean (3,), covariance used (3,3)), or GeometryError."""
     init_pos = np.asarray(init_pos, float)
     if init_pos.shape != (3,) or not np.isfinite(init_pos).all():
         raise GeometryError(f"init_pos must be a finite ECEF (3,) vector, got {init_pos!r}")
-    trace = one_epoch_trace(sat_pos, pr, mask)
+    mask = trace.mask[0]
     pri = _batch_priors(corrector, trace, init_pos[None], np.ones(1, bool), cov_scale, sigma_floor_m)
     if not pri.ok[0]:
         if pri.finite[0] and not pri.spd[0]:
@@ -85,19 +131,23 @@ def _epoch_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, 
 
 
 def learned_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
-                  init_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                  init_pos: np.ndarray, *, pr_sigma: np.ndarray | None = None, cn0: np.ndarray | None = None,
+                  signal: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The learned position estimate for one epoch: (mean_ecef (3,), cov_ecef (3,3) symmetrised).
 
-    Raises :class:`GeometryError` when the corrector declines the epoch (e.g. fewer than 4
-    satellites above its elevation mask at ``init_pos``) or returns a covariance that is not
-    positive definite (smallest eigenvalue <= ``fusion.estimate.graph.priors.PRIOR_MIN_EIG``, the graph's rule).
+    Arguments as for :func:`learned_prior_factor`. Raises :class:`GeometryError` when the corrector declines
+    the epoch (e.g. fewer than 4 satellites above its elevation mask at ``init_pos``), returns a covariance
+    that is not positive definite (smallest eigenvalue <= ``fusion.estimate.graph.priors.PRIOR_MIN_EIG``, the
+    graph's rule), or reads a ``pr_sigma`` not given.
     """
-    return _epoch_prior(corrector, sat_pos, pr, mask, init_pos, 1.0, 0.0)
+    trace = _lone_epoch(corrector, sat_pos, pr, mask, pr_sigma, cn0, signal)
+    return _epoch_prior(corrector, trace, init_pos, 1.0, 0.0)
 
 
 def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
-                         init_pos: np.ndarray, key: int, *, cov_scale: float = 1.0, sigma_floor_m: float = 0.0,
-                         robust: str = "none", robust_k: float = 1.0
+                         init_pos: np.ndarray, key: int, *, pr_sigma: np.ndarray | None = None,
+                         cn0: np.ndarray | None = None, signal: np.ndarray | None = None, cov_scale: float = 1.0,
+                         sigma_floor_m: float = 0.0, robust: str = "none", robust_k: float = 1.0
                          ) -> tuple[gtsam.PriorFactorPoint3, np.ndarray, np.ndarray]:
     """A ``PriorFactorPoint3`` on ``key`` at the DNN-corrected position of one epoch.
 
@@ -108,6 +158,14 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
     mask:      (S,) bool, which slots are real.
     init_pos:  (3,) ECEF initial guess [m] (e.g. WLS or the previous estimate; never the truth).
     key:       the GTSAM key of an ECEF ``Point3`` variable.
+    pr_sigma:  (S,) the receiver's reported pseudorange sigma [m]; required when the checkpoint reads it
+        (the shipped one does: it is most of the network's gain).
+    cn0, signal: (S,) C/N0 [dB-Hz] (0 = unknown, the default) and signal names or
+        ``fusion.trace.SIGNALS`` indices (default GPS_L1; slots of signals the network was not trained on are
+        left out and lower its trust).
+
+    A lone epoch has no history (residual change, arc age): the network reads it like a trace's first epoch.
+    With a whole trace, :func:`learned_prior_factors` gives what the ``fused`` mode uses.
 
     cov_scale, sigma_floor_m, robust, robust_k: the covariance used is
         ``cov_scale * cov + sigma_floor_m**2 * I``, wrapped in a robust loss ("huber", "cauchy" or
@@ -121,12 +179,15 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
     pseudoranges, so the factor involves the position only. Raises :class:`GeometryError` if the
     corrector cannot produce an estimate.
     """
-    mean, cov = _epoch_prior(corrector, sat_pos, pr, mask, init_pos, cov_scale, sigma_floor_m)
+    trace = _lone_epoch(corrector, sat_pos, pr, mask, pr_sigma, cn0, signal)
+    mean, cov = _epoch_prior(corrector, trace, init_pos, cov_scale, sigma_floor_m)
     return gtsam.PriorFactorPoint3(key, mean, prior_noise_model(cov, robust, robust_k)), mean, cov
 
 
 def learned_pose_translation_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray,
-                                    mask: np.ndarray, init_pos: np.ndarray, key: int, *, cov_scale: float = 1.0,
+                                    mask: np.ndarray, init_pos: np.ndarray, key: int, *,
+                                    pr_sigma: np.ndarray | None = None, cn0: np.ndarray | None = None,
+                                    signal: np.ndarray | None = None, cov_scale: float = 1.0,
                                     sigma_floor_m: float = 0.0, robust: str = "none", robust_k: float = 1.0
                                     ) -> tuple[gtsam.PoseTranslationPrior3D, np.ndarray, np.ndarray]:
     """Like :func:`learned_prior_factor` (same options) for a ``Pose3`` variable whose translation is ECEF.
@@ -134,7 +195,8 @@ def learned_pose_translation_factor(corrector: PriorProvider, sat_pos: np.ndarra
     ``PoseTranslationPrior3D``'s error is ``translation - measured`` in the *world* frame (checked
     in ``tests/test_factor.py``), so the ECEF covariance is used as is, whatever the pose's rotation.
     """
-    mean, cov = _epoch_prior(corrector, sat_pos, pr, mask, init_pos, cov_scale, sigma_floor_m)
+    trace = _lone_epoch(corrector, sat_pos, pr, mask, pr_sigma, cn0, signal)
+    mean, cov = _epoch_prior(corrector, trace, init_pos, cov_scale, sigma_floor_m)
     return gtsam.PoseTranslationPrior3D(key, mean, prior_noise_model(cov, robust, robust_k)), mean, cov
 
 

@@ -61,6 +61,55 @@ def test_factor_matches_corrector_prediction(tiny_ckpt, epoch):
     assert factor.error(v2) == pytest.approx(0.5, rel=1e-6)
 
 
+@pytest.fixture(scope="module")
+def context_ckpt(tmp_path_factory) -> Path:
+    """An untrained tiny checkpoint reading every context channel (reported sigma, C/N0, history)."""
+    torch = pytest.importorskip("torch")
+    from learned.checkpoint import save_checkpoint
+    from learned.features import CHANNELS, FeatureConfig
+    from learned.model import build_model
+
+    torch.manual_seed(1)
+    features = FeatureConfig(inputs=tuple(CHANNELS))
+    hp = dict(d_model=16, n_heads=2, dim_feedforward=16, n_encoder=1, n_decoder=1, d_in=features.n_inputs)
+    path = tmp_path_factory.mktemp("ckpt") / "context.pt"
+    save_checkpoint(path, build_model("set", **hp), {"model": {"kind": "set", "hparams": hp},
+                                                      "features": features.to_dict(), "output": "wls"})
+    return path
+
+
+def test_one_epoch_factor_with_the_phone_inputs_matches_the_trace_prediction(context_ckpt):
+    """At a trace's first epoch (no history there either), the one-epoch API given the reported sigma,
+    C/N0 and signals gives what predict(trace) gives; leaving the sigma out is refused, not defaulted."""
+    from dataclasses import replace
+
+    from learned.infer import Corrector
+
+    tr = toy_trace(4, seed=5, n_sats=(9, 9))
+    rng = np.random.default_rng(0)
+    tr = replace(tr, pr_sigma=np.where(tr.mask, rng.uniform(2.0, 30.0, tr.mask.shape), 1.0),
+                 cn0=np.where(tr.mask, rng.uniform(20.0, 45.0, tr.mask.shape), 0.0))
+    guess = tr.truth + np.array([6.0, -4.0, 2.0])
+    corr = Corrector.load(context_ckpt)
+    whole = corr.predict(tr, guess, np.ones(tr.n_epochs, bool))
+    _, mean, cov = learned_prior_factor(corr, tr.sat_pos[0], tr.pr[0], tr.mask[0], guess[0], gtsam.symbol("x", 0),
+                                        pr_sigma=tr.pr_sigma[0], cn0=tr.cn0[0],
+                                        signal=np.array(["GPS_L1"] * tr.mask.shape[1]))
+    np.testing.assert_allclose(mean, whole.mean_ecef[0], atol=1e-6)
+    np.testing.assert_allclose(cov, whole.cov_ecef[0], rtol=1e-6, atol=1e-9)
+    # the sigma is read: a different one moves the answer
+    _, other, _ = learned_prior_factor(corr, tr.sat_pos[0], tr.pr[0], tr.mask[0], guess[0], 1,
+                                       pr_sigma=np.ones(tr.mask.shape[1]), cn0=tr.cn0[0])
+    assert np.abs(other - mean).max() > 1e-3
+    with pytest.raises(GeometryError, match=r"context\.pt: reads each satellite's reported pseudorange sigma"):
+        learned_prior_factor(corr, tr.sat_pos[0], tr.pr[0], tr.mask[0], guess[0], 1)
+    with pytest.raises(GeometryError, match=r"pr_sigma must be finite and > 0 on real slots; slot 2"):
+        learned_prior_factor(corr, tr.sat_pos[0], tr.pr[0], tr.mask[0], guess[0], 1,
+                             pr_sigma=np.where(np.arange(tr.mask.shape[1]) == 2, 0.0, 3.0))
+    with pytest.raises(GeometryError, match=r"unknown signal\(s\) \['GPS_L9'\]"):
+        one_epoch_trace(tr.sat_pos[0], tr.pr[0], tr.mask[0], signal=np.array(["GPS_L9"] * tr.mask.shape[1]))
+
+
 def test_factor_with_any_provider_and_padding():
     tr = toy_trace(1, seed=1, n_sats=(6, 6))
     sat_pos = np.vstack([tr.sat_pos[0], np.full((2, 3), np.nan)])    # padded slots may hold NaN
