@@ -59,8 +59,8 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
         raise CheckpointError(f"{path}: checkpoint format version {blob.get('format_version')!r}, "
                               f"this code reads {FORMAT_VERSION}")
     cfg = blob.get("config")
-    if not isinstance(cfg, dict) or "model" not in cfg or "features" not in cfg:
-        raise CheckpointError(f"{path}: checkpoint has no model/feature config")
+    if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict) or not isinstance(cfg.get("features"), dict):
+        raise CheckpointError(f"{path}: checkpoint has no model/feature config (or they are not dicts)")
     fv = cfg["features"].get("version")
     if fv != FEATURE_VERSION:
         raise CheckpointError(f"{path}: feature version {fv!r} does not match this code's {FEATURE_VERSION} "
@@ -81,8 +81,10 @@ def load_model(path: str | Path, map_location: str | torch.device = "cpu") -> tu
     mcfg = blob["config"]["model"]
     try:
         model = build_model(mcfg["kind"], **mcfg.get("hparams", {}))
-    except TypeError as exc:
-        raise CheckpointError(f"{path}: model hyper-parameters do not fit this code: {exc}") from exc
+    except (TypeError, ValueError, AssertionError, RuntimeError) as exc:
+        # torch's layers refuse bad sizes with any of these (e.g. heads not dividing the width: AssertionError)
+        raise CheckpointError(f"{path}: model hyper-parameters do not fit this code: "
+                              f"{type(exc).__name__}: {str(exc)[:200]}") from exc
     try:
         model.load_state_dict(blob["model_state"], strict=True)
     except RuntimeError as exc:

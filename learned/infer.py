@@ -70,6 +70,21 @@ def _calibration_scales(config: dict, path, calibrated: bool) -> dict[str, np.nd
     return out
 
 
+def _input_ranges(config: dict, n_inputs: int, path) -> dict | None:
+    """The guard's training ranges ({"lo", "hi"}: n_inputs numbers each, lo <= hi) or None."""
+    ranges = config.get("input_ranges")
+    if ranges is None:
+        return None
+    try:
+        lo, hi = (np.asarray(ranges[k], float) for k in ("lo", "hi"))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: input_ranges must be {{'lo': [...], 'hi': [...]}} of numbers") from exc
+    if lo.shape != (n_inputs,) or hi.shape != (n_inputs,) or not (np.isfinite(lo) & np.isfinite(hi) & (lo <= hi)).all():
+        raise CheckpointError(f"{path}: input_ranges must hold {n_inputs} finite lo <= hi pairs, got lo {lo.shape} "
+                              f"and hi {hi.shape}")
+    return {"lo": lo.tolist(), "hi": hi.tolist()}
+
+
 class Corrector:
     """A loaded checkpoint: the learned position (``predict``), prior provider (``provider``) and
     per-satellite noise provider (``slot_noise``).
@@ -101,7 +116,7 @@ class Corrector:
         self.output = config.get("output", "correction")
         self.device = torch.device(device)
         self.var_scale = _calibration_scales(config, path, calibrated)
-        self.ranges = config.get("input_ranges")
+        self.ranges = _input_ranges(config, self.features.n_inputs, path)
         self._ctx_cache: tuple[Trace, dict] | None = None
 
     @classmethod
@@ -111,7 +126,13 @@ class Corrector:
             raise CheckpointError(f"{path}: checkpoint not found"
                                   + (" (shipped weights missing from learned/weights/)" if path == SHIPPED_WEIGHTS else ""))
         model, blob = load_model(path, map_location=device)
-        return cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
+        corrector = cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
+        # refused here, not at the first forward pass deep inside torch
+        d_in = blob["config"]["model"].get("hparams", {}).get("d_in", 4)
+        if d_in != corrector.features.n_inputs:
+            raise CheckpointError(f"{path}: the network reads {d_in} channels per satellite but the feature "
+                                  f"config {list(corrector.features.inputs)} makes {corrector.features.n_inputs}")
+        return corrector
 
     def _context(self, trace: Trace) -> dict[str, np.ndarray]:
         """The trace's per-slot context (E,S) from its own plain WLS (as in training), cached for the last

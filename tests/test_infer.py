@@ -196,6 +196,28 @@ def test_checkpoint_errors(tmp_path, tiny_ckpt):
         load_model(hp)
 
 
+def test_checkpoints_that_do_not_fit_their_own_config_are_refused_at_load(tmp_path):
+    """Each of these used to pass the load and fail later inside numpy or torch."""
+    def bad(name: str, net: nn.Module, **config) -> Corrector:
+        path = tmp_path / f"{name}.pt"
+        save_checkpoint(path, net, dict(_config(), **config))
+        return Corrector.load(path)
+
+    wide = FeatureConfig(inputs=("res", "los", "pr_sigma"))
+    with pytest.raises(CheckpointError, match=r"width\.pt: the network reads 4 channels per satellite but the "
+                                              r"feature config \['res', 'los', 'pr_sigma'\] makes 5"):
+        bad("width", SetTransformer(), features=wide.to_dict())
+    with pytest.raises(CheckpointError, match=r"listfeat\.pt: checkpoint has no model/feature config"):
+        bad("listfeat", SetTransformer(), features=["res", "los"])
+    with pytest.raises(CheckpointError, match=r"ranges\.pt: input_ranges must hold 4 finite lo <= hi pairs"):
+        bad("ranges", SetTransformer(), input_ranges={"lo": [0.0] * 3, "hi": [1.0] * 3})
+    with pytest.raises(CheckpointError, match=r"ranges2\.pt: input_ranges must be"):
+        bad("ranges2", SetTransformer(), input_ranges={"low": [0.0] * 4})
+    with pytest.raises(CheckpointError, match=r"heads\.pt: model hyper-parameters do not fit this code: "
+                                              r"AssertionError"):
+        bad("heads", SetTransformer(), model={"kind": "set", "hparams": {"d_model": 30, "n_heads": 4}})
+
+
 def test_shipped_weights_on_held_out_trace(shared_data):
     """The shipped network, from WLS, on the held-out real trace: runs, solves every usable epoch."""
     if not SHIPPED_WEIGHTS.is_file():
