@@ -125,7 +125,7 @@ def context_channels(ctx: dict[str, np.ndarray], mask: np.ndarray, cfg: FeatureC
             cols.append(np.log1p(ctx["arc_s"]) / np.log1p(600.0))
     if not cols:
         return np.zeros(mask.shape + (0,), np.float32)
-    return (np.stack([np.asarray(c, float) for c in cols], axis=-1) * mask[..., None]).astype(np.float32)
+    return np.where(mask[..., None], np.stack([np.asarray(c, float) for c in cols], axis=-1), 0.0).astype(np.float32)
 
 
 # ---------------------------------------------------------------------------------------------- numpy
@@ -156,7 +156,7 @@ def features_numpy(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, guess:
     raw = pr - rng
     clock = masked_median_numpy(raw, mask) if clock is None else np.asarray(clock, float)
     res = np.where(mask, (raw - clock[:, None]) / cfg.res_scale, 0.0)
-    los_ned = ecef2ned_vec(los, guess[:, None, :]) * mask[..., None]
+    los_ned = np.where(mask[..., None], ecef2ned_vec(los, guess[:, None, :]), 0.0)   # NaN padding stays out
     parts = [res[..., None], los_ned] + ([] if extra is None else [extra])
     return np.concatenate(parts, axis=-1).astype(np.float32), clock
 
@@ -217,7 +217,7 @@ def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, 
         clock = torch.nan_to_num(raw.masked_fill(~mask, float("nan")).nanmedian(dim=1).values, nan=0.0)
     res = ((raw - clock[:, None]) / cfg.res_scale).masked_fill(~mask, 0.0)
     R = ned_rotation_torch(guess)
-    los_ned = torch.einsum("bij,bsj->bsi", R, los) * mask[..., None]
+    los_ned = torch.einsum("bij,bsj->bsi", R, los).masked_fill(~mask[..., None], 0.0)   # NaN padding stays out
     x = torch.cat([res[..., None], los_ned], -1).float()
     return (x if extra is None else torch.cat([x, extra.float()], -1)), R
 

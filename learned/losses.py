@@ -25,6 +25,15 @@ def gaussian_nll(mean: torch.Tensor, logvar: torch.Tensor, y: torch.Tensor) -> t
     return 0.5 * (logvar + (y - mean) ** 2 * torch.exp(-logvar)).mean()
 
 
+def _finite_padding(mask: torch.Tensor, sat_pos: torch.Tensor, pr: torch.Tensor, sigma: torch.Tensor,
+                    bias: torch.Tensor | None) -> tuple:
+    """Padded slots (mask (B,S) False) of sat_pos (B,S,3), pr, sigma, bias (B,S) set to finite filler:
+    the masked sums below multiply by the mask, and NaN times 0 is NaN."""
+    real = mask.bool()
+    return (sat_pos.masked_fill(~real[..., None], 0.0), pr.masked_fill(~real, 0.0),
+            sigma.masked_fill(~real, 1.0), None if bias is None else bias.masked_fill(~real, 0.0))
+
+
 def _weighted_clock(resid: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     """(B,) weighted mean of (B,S) residuals with weights (B,S) (0 on padding)."""
     return (w * resid).sum(1) / w.sum(1).clamp_min(1e-12)
@@ -38,6 +47,7 @@ def sat_nll(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, truth: 
     slot s is ``pr - range(truth) - bias - clock`` with ``clock`` the sigma-weighted mean over the epoch:
     the receiver clock is unknown, and the weighted mean is its maximum-likelihood value.
     """
+    sat_pos, pr, sigma, bias = _finite_padding(mask, sat_pos, pr, sigma, bias)
     rng, _ = line_of_sight_torch(sat_pos, truth)
     sigma, bias = sigma.double(), bias.double()
     w = mask / sigma ** 2
@@ -57,6 +67,7 @@ def weighted_ls_step(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor
     one step from a guess within ~100 m lands within millimetres of the converged solution.
     Returns position (B,3) ECEF and its covariance (B,3,3) [m^2] (``(H^T W H)^-1``, position block).
     """
+    sat_pos, pr, sigma, bias = _finite_padding(mask, sat_pos, pr, sigma, bias)
     rng, los = line_of_sight_torch(sat_pos, guess)
     H = torch.cat([-los, torch.ones_like(rng)[..., None]], -1)               # (B,S,4)
     r = pr - rng - (0.0 if bias is None else bias.double())

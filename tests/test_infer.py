@@ -218,6 +218,33 @@ def test_checkpoints_that_do_not_fit_their_own_config_are_refused_at_load(tmp_pa
         bad("heads", SetTransformer(), model={"kind": "set", "hparams": {"d_model": 30, "n_heads": 4}})
 
 
+def test_nan_in_padded_slots_changes_nothing(tmp_path):
+    """The Trace contract checks only real slots; a padding slot holding NaN must give what zeros give
+    (NaN times a zero mask is NaN, so every masked sum must keep it out)."""
+    from dataclasses import replace
+
+    from learned.features import CHANNELS
+
+    features = FeatureConfig(inputs=tuple(CHANNELS))
+    torch.manual_seed(2)
+    path = tmp_path / "ctx.pt"
+    hp = dict(d_model=16, n_heads=2, dim_feedforward=16, n_encoder=1, n_decoder=1, d_in=features.n_inputs)
+    save_checkpoint(path, SetTransformer(**hp), dict(_config(output="wls", inputs=tuple(CHANNELS)),
+                                                     model={"kind": "set", "hparams": hp}))
+    tr = toy_trace(6, seed=3, n_sats=(6, 9))
+    tr = replace(tr, cn0=np.where(tr.mask, 35.0, 0.0))
+    assert (~tr.mask).any()
+    pad = ~tr.mask
+    nan_tr = replace(tr, sat_pos=np.where(pad[..., None], np.nan, tr.sat_pos), pr=np.where(pad, np.nan, tr.pr),
+                     pr_sigma=np.where(pad, np.nan, tr.pr_sigma), cn0=np.where(pad, np.nan, tr.cn0))
+    guess, valid = tr.truth + 5.0, np.ones(tr.n_epochs, bool)
+    corr = Corrector.load(path)
+    ref, got = corr.predict(tr, guess, valid), corr.predict(nan_tr, guess, valid)
+    assert ref.valid.all() and np.isfinite(ref.mean_ecef).all()
+    for name in ("mean_ecef", "cov_ecef", "sigma", "bias", "trust"):
+        np.testing.assert_allclose(getattr(got, name), getattr(ref, name), rtol=1e-9, atol=1e-9, err_msg=name)
+
+
 def test_shipped_weights_on_held_out_trace(shared_data):
     """The shipped network, from WLS, on the held-out real trace: runs, solves every usable epoch."""
     if not SHIPPED_WEIGHTS.is_file():
