@@ -223,8 +223,10 @@ class Corrector:
         """Shrink by the guard's trust, scale the covariance, rotate to ECEF, write rows ``idx``."""
         a = out["trust"]
         corr = out[f"corr_{output}"] * a[:, None]
+        # the unseen-drive scale was fitted on the checkpoint's own output (crossval's dnn mode); the fused
+        # prior is that same estimate, another output is not
+        v = self.var_scale[output] * (self.var_scale["unseen_dnn"] if output == self.output else 1.0)
         # what the shrink left out is uncertainty the covariance must carry
-        v = self.var_scale[output] * self.var_scale["unseen_dnn"]
         cov = out[f"cov_{output}"] * np.sqrt(np.outer(v, v))
         cov = cov + np.apply_along_axis(np.diag, 1, ((1 - a)[:, None] * out[f"corr_{output}"]) ** 2)
         R = out["R"]

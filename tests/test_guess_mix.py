@@ -131,6 +131,17 @@ def test_calibration_scale_applied_by_predict_and_old_configs_load():
         Corrector(UnitNet(), dict(cfg, calibration={"wls": {"scale_ned": [1.0, -1.0, 1.0]}}))
 
 
+def test_unseen_drive_scale_applies_only_to_the_output_it_was_fitted_on():
+    tr = toy_trace(10, seed=2)
+    init, valid = tr.truth + 3.0, np.ones(10, bool)
+    cfg = dict(TrainConfig(output="wls").to_checkpoint_config(), output="wls")
+    plain = Corrector(UnitNet(), cfg)
+    unseen = Corrector(UnitNet(), dict(cfg, calibration={"unseen_dnn": {"scale_ned": [2.0, 2.0, 2.0]}}))
+    for output, factor in (("wls", 4.0), ("correction", 1.0)):
+        np.testing.assert_allclose(unseen.predict(tr, init, valid, output=output).cov_ned,
+                                   factor * plain.predict(tr, init, valid, output=output).cov_ned, rtol=1e-9)
+
+
 def test_old_checkpoint_without_new_fields_loads_with_defaults(tmp_path):
     old_cfg = TrainConfig().to_checkpoint_config()
     for k in ("guess_mix", "wls_jitter", "wls_max_err", "output", "loss"):
