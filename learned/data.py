@@ -209,10 +209,10 @@ def split_blocks(samples: Samples, val_frac: float, rng: np.random.Generator,
 def split_traces(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:
     """Validation = whole traces (about ``val_frac`` of them, at least one when there are two or more), so
     that the best epoch is the one that generalises to a drive the network has not seen."""
-    n_tr = len(samples.names)
-    if n_tr < 2 or val_frac <= 0:
+    have = np.unique(samples.trace)          # a trace every epoch of which was dropped cannot validate
+    if len(have) < 2 or val_frac <= 0:
         return split_blocks(samples, val_frac, rng)
-    val = rng.permutation(n_tr)[:max(1, int(round(val_frac * n_tr)))]
+    val = rng.permutation(have)[:max(1, int(round(val_frac * len(have))))]
     is_val = np.isin(samples.trace, val)
     return samples.subset(np.flatnonzero(~is_val)), samples.subset(np.flatnonzero(is_val))
 

@@ -361,3 +361,9 @@ def test_build_samples_numbers_traces_and_split_traces_holds_out_whole_ones():
     tr, va = split_traces(s, 0.2, np.random.default_rng(0))
     assert len(va) > 0 and len(tr) > 0
     assert not set(tr.trace.tolist()) & set(va.trace.tolist())
+    # traces with no sample left (every epoch dropped) are never the validation ones
+    three = s.subset(np.flatnonzero(s.trace < 3))
+    three.names = s.names
+    for seed in range(20):
+        tr, va = split_traces(three, 0.2, np.random.default_rng(seed))
+        assert len(va) > 0 and len(tr) > 0 and set(va.trace.tolist()) <= {0, 1, 2}
