@@ -215,7 +215,9 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
         raise CheckpointError(f"{last}: no checkpoint to resume from")
     blob = read_checkpoint(last, map_location=device)
     now = cfg.to_checkpoint_config()
-    for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss"):
+    # everything but the epoch count shapes the run: a resumed run must draw what an uninterrupted one would
+    for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss", "batch",
+                "lr", "betas", "warmup_epochs", "val_frac", "wls_max_err", "signals", "output"):
         if blob["config"].get(key) != now.get(key):
             raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
                                   f"({blob['config'].get(key)!r} in checkpoint vs {now.get(key)!r} now)")

@@ -56,6 +56,9 @@ def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
     assert _same(full["model_state"], part["model_state"])
     with pytest.raises(CheckpointError, match="'eta' differs"):
         train(tr, va, TrainConfig(epochs=3, eta=30.0, **cfg), tmp_path / "part.pt", resume=True, progress=False)
+    for changed in ({"lr": 1e-4}, {"batch": 7}):
+        with pytest.raises(CheckpointError, match=f"'{next(iter(changed))}' differs"):
+            train(tr, va, TrainConfig(epochs=3, **cfg, **changed), tmp_path / "part.pt", resume=True, progress=False)
     with pytest.raises(CheckpointError, match="no checkpoint to resume"):
         train(tr, va, TrainConfig(epochs=1), tmp_path / "none.pt", resume=True, progress=False)
 
