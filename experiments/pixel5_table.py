@@ -15,7 +15,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from fusion.cli import load_options  # noqa: E402
+from fusion.options import load_options  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.io.load import load_trace  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402

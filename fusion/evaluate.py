@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from fusion.cli import add_run_options, load_options, options_from_args
+from fusion.options import add_run_options, load_options, options_from_args
 from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.wls import WlsResult, wls_counts
 from fusion.eval.metrics import mode_metrics, trace_errors
@@ -169,7 +169,7 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     df = metrics_table(evals, modes)
     df.to_csv(out_dir / "metrics.csv", index=False, float_format="%.4f")
     (out_dir / "metrics.md").write_text(markdown_table(df) + "\n")
-    figs = write_figures(evals, out_dir / "figures")
+    figs = write_figures(evals, out_dir / "figures", jobs)
     write_report_md(out_dir, df, evals, figs, modes, opts, argv or [], failures)
     return df, failures
 

@@ -2,7 +2,7 @@
 
 Workers are not forked from the caller (a forked child of a process that has already started torch or
 OpenMP threads can deadlock): on Linux they fork from a *forkserver*, a fresh single-threaded process that
-has imported the pipeline once (``fusion.evaluate``: numpy, pandas, gtsam), so a worker starts in
+has imported the pipeline once (:data:`PRELOAD`: numpy, pandas, matplotlib, GTSAM), so a worker starts in
 milliseconds instead of re-importing for a second or more; elsewhere they are spawned. The server and
 its workers are limited to one BLAS/OpenMP/torch thread each, so ``--jobs N`` uses N cores, not N times
 all of them. A trace whose worker raises, or dies, is reported as a failure of that trace;
@@ -45,20 +45,55 @@ def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool 
     try:
         return _run_pool(func, args, jobs, ctx, out, progress)
     finally:
-        for v, old in saved.items():
-            if old is None:
-                os.environ.pop(v, None)
-            else:
-                os.environ[v] = old
+        _restore(saved)
+
+
+def _restore(saved: dict) -> None:
+    """Put back the environment variables ``saved`` (name -> value, None: was unset)."""
+    for v, old in saved.items():
+        if old is None:
+            os.environ.pop(v, None)
+        else:
+            os.environ[v] = old
+
+
+#: What the forkserver imports once for all workers: the evaluate job and the graph (GTSAM), not torch
+#: (a process that has imported torch is best not forked from; ``dnn`` / ``fused`` workers import it).
+PRELOAD = ["fusion.evaluate", "fusion.estimate.graph.fuse"]
 
 
 def _context():
     """A forkserver preloaded with the pipeline where the platform has one, else spawn."""
     if "forkserver" in multiprocessing.get_all_start_methods():
         ctx = multiprocessing.get_context("forkserver")
-        ctx.set_forkserver_preload(["fusion.evaluate"])
+        ctx.set_forkserver_preload(PRELOAD)
         return ctx
     return multiprocessing.get_context("spawn")
+
+
+def jobs_asked(argv: list[str]) -> int:
+    """The ``--jobs N`` / ``--jobs=N`` of a command line, read before its parser is imported; 1 when
+    absent or not a number (the parser proper reports that)."""
+    for i, arg in enumerate(argv):
+        value = argv[i + 1] if arg == "--jobs" and i + 1 < len(argv) else arg[7:] if arg.startswith("--jobs=") else ""
+        if value.isdigit():
+            return int(value)
+    return 1
+
+
+def start_early() -> None:
+    """Start the forkserver now, so that its imports overlap the caller's own (each takes a core for
+    half a second or more); a no-op where workers are spawned."""
+    ctx = _context()
+    if ctx.get_start_method() != "forkserver":
+        return
+    saved = {v: os.environ.get(v) for v in _THREAD_VARS}
+    os.environ.update({v: "1" for v in _THREAD_VARS})
+    try:
+        from multiprocessing import forkserver
+        forkserver.ensure_running()
+    finally:
+        _restore(saved)
 
 
 def _run_pool(func: Callable, args: Sequence[tuple], jobs: int, ctx, out: list, progress: bool) -> list:

@@ -36,7 +36,7 @@ def test_unwritable_output_is_one_line_error(shipped_trace_dir, tmp_path, capsys
 def test_learned_part_flags_reach_the_run_options():
     import argparse
 
-    from fusion.cli import add_run_options, options_from_args
+    from fusion.options import add_run_options, options_from_args
 
     p = argparse.ArgumentParser()
     add_run_options(p)

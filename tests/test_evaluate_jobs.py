@@ -8,7 +8,7 @@ import pandas as pd
 
 import fusion.evaluate
 from fusion.cli import main
-from fusion.parallel import map_traces
+from fusion.parallel import jobs_asked, map_traces
 
 
 def _traces(tmp_path, shipped_trace_dir):
@@ -26,7 +26,7 @@ def _traces(tmp_path, shipped_trace_dir):
 
 def test_jobs_2_gives_the_metrics_of_jobs_1_and_a_bad_trace_stops_nothing(tmp_path, shipped_trace_dir, capsys):
     dirs = _traces(tmp_path, shipped_trace_dir)
-    tables = {}
+    tables, figures = {}, {}
     for jobs in (1, 2):
         out = tmp_path / f"report{jobs}"
         rc = main(["evaluate", *map(str, dirs), "--modes", "wls", "--out", str(out), "--max-epochs", "300",
@@ -38,7 +38,10 @@ def test_jobs_2_gives_the_metrics_of_jobs_1_and_a_bad_trace_stops_nothing(tmp_pa
         assert set(tables[jobs].trace) == {"a/Pixel4", "b/Pixel4", "ALL"}   # ... the others are not lost
         assert (out / "a_Pixel4" / "wls" / "metrics.json").is_file()
         assert "WLS fault detection and exclusion:" in (out / "report.md").read_text()
+        figures[jobs] = sorted(p.name for p in (out / "figures").iterdir())
+        assert {"all_cdf.png", "all_box.png", "a_Pixel4_traj.png"} <= set(figures[jobs])
     pd.testing.assert_frame_equal(tables[1], tables[2])
+    assert figures[1] == figures[2]           # the pooled ones drawn by workers too
 
 
 def test_jobs_must_be_positive(tmp_path, shipped_trace_dir, capsys):
@@ -80,3 +83,9 @@ def test_jobs_1_reports_an_unexpected_exception_as_that_traces_failure(tmp_path,
     assert rc == 2
     assert "worker failed: ZeroDivisionError: a bug on one trace" in capsys.readouterr().err
     assert set(pd.read_csv(out / "metrics.csv").trace) == {"a/Pixel4", "ALL"}
+
+
+def test_jobs_read_before_the_parser():
+    assert jobs_asked(["a", "--jobs", "3", "--out", "x"]) == 3
+    assert jobs_asked(["--jobs=2"]) == 2
+    assert jobs_asked(["--jobs", "two"]) == 1 and jobs_asked(["--jobs"]) == 1 and jobs_asked([]) == 1

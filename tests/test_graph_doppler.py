@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion.cli import add_run_options, options_from_args
+from fusion.options import add_run_options, options_from_args
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import (_linear_factor, displacement_factor_xxu, doppler_factor_vcd,
                                            drift_walk_factor_cdcd, tdcp_factor_uqq)

@@ -39,7 +39,8 @@ def _break_gaps(t: np.ndarray | None, y: np.ndarray, max_gap: float) -> tuple[np
 def _save(fig, path: Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
+    # a figure with a layout engine is laid out already; "tight" would draw it a second time
+    fig.savefig(path, dpi=110, bbox_inches=None if fig.get_layout_engine() else "tight")
     plt.close(fig)
     return path
 

@@ -139,8 +139,18 @@ def write_trace_figures(ev: TraceEval, fig_dir: Path) -> dict[str, Path]:
     return f
 
 
-def write_pooled_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, Path]:
-    """Every trace's epochs together (CDF, box): kind -> path; empty without truth."""
+#: The pooled figures: kind -> plotting function ``(errors, path, title) -> path``.
+POOLED = {"cdf": plots.plot_error_cdfs, "box": plots.plot_error_boxes}
+
+
+def pooled_figure(kind: str, errors: dict[str, np.ndarray], path: Path, title: str) -> Path:
+    """One pooled figure (a worker's job with ``--jobs``)."""
+    return POOLED[kind](errors, path, title)
+
+
+def write_pooled_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -> dict[str, Path]:
+    """Every trace's epochs together (CDF, box): kind -> path; empty without truth. With ``jobs`` > 1
+    the figures are drawn in that many worker processes (a second each: it would be serial time)."""
     pooled: dict[str, list[np.ndarray]] = {}
     for ev in evals:
         for m, e in ev.errors.items():
@@ -149,18 +159,22 @@ def write_pooled_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, Pat
         return {}
     errors = {m: np.concatenate(v) for m, v in pooled.items()}
     title = f"all traces with truth ({sum(1 for ev in evals if ev.errors)})"
-    return {"cdf": plots.plot_error_cdfs(errors, fig_dir / "all_cdf.png", title),
-            "box": plots.plot_error_boxes(errors, fig_dir / "all_box.png", title)}
+    args = [(kind, errors, fig_dir / f"all_{kind}.png", title) for kind in POOLED]
+    if jobs == 1:
+        return {a[0]: pooled_figure(*a) for a in args}
+    from fusion.parallel import map_traces
+    drawn = map_traces(pooled_figure, args, min(jobs, len(args)))
+    return {a[0]: d for a, d in zip(args, drawn) if not isinstance(d, str)}
 
 
-def write_figures(evals: list[TraceEval], fig_dir: Path) -> dict[str, dict[str, Path]]:
+def write_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -> dict[str, dict[str, Path]]:
     """All PNGs: per trace (CDF, box, trajectory, error vs time) and pooled (CDF, box).
 
     Returns section -> figure kind -> path; section is a trace slug or ``ALL``. Per-trace figures
     already drawn (``TraceEval.figures``, e.g. by a worker process) are not drawn again.
     """
     figs = {ev.slug: ev.figures or write_trace_figures(ev, fig_dir) for ev in evals}
-    pooled = write_pooled_figures(evals, fig_dir)
+    pooled = write_pooled_figures(evals, fig_dir, jobs)
     if pooled:
         figs[ALL] = pooled
     return figs

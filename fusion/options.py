@@ -1,0 +1,72 @@
+"""The run options as command-line flags, shared by ``gnssfuse run`` and ``gnssfuse evaluate``.
+
+Apart from the dispatcher (:mod:`fusion.cli`) so that the ``evaluate`` job, which worker processes
+preload, does not import the module the command line runs as ``__main__``.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from fusion.errors import GnssfuseError
+from fusion.run_types import RunOptions
+from fusion.trace import SIGNALS, resolve_signals
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
+    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
+    p.add_argument("--signals", default=None,
+                   help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
+                        "too), or all; default GPS_L1 for GSDC files, every signal with ephemerides "
+                        "for RINEX / GnssLogger logs")
+    p.add_argument("--nav", type=Path, nargs="+", default=(), metavar="FILE",
+                   help="RINEX / GnssLogger traces: broadcast navigation file(s) (RINEX 2 .YYn/.YYg, "
+                        "RINEX 3 *_MN.rnx; default: those in the trace folder or supplemental/)")
+    p.add_argument("--sp3", type=Path, default=None, metavar="FILE",
+                   help="RINEX / GnssLogger traces: precise orbits (SP3) instead of broadcast ones")
+    p.add_argument("--clk", type=Path, default=None, metavar="FILE",
+                   help="with --sp3: precise satellite clocks (RINEX clock file)")
+    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
+    p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
+    p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
+    p.add_argument("--wls-plain", action="store_true",
+                   help="plain WLS, the paper's baseline (default: WLS with fault detection and exclusion)")
+    p.add_argument("--no-doppler", action="store_true",
+                   help="fused modes: ignore the trace's Doppler (pseudorange rates)")
+    p.add_argument("--no-carrier", action="store_true",
+                   help="fused modes: ignore the trace's carrier phase (accumulated delta ranges)")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
+    p.add_argument("--no-learned-sigmas", action="store_true",
+                   help="fused: without the per-satellite head's pseudorange sigmas and biases")
+    p.add_argument("--dnn-output", choices=("wls", "correction"), default=None,
+                   help="dnn: learned-weight least squares or the paper's correction head (default: the checkpoint's)")
+    p.add_argument("--no-truth-height-fix", action="store_true",
+                   help="keep GSDC 2021 truth heights as published (~63 m too high)")
+
+
+def options_from_args(args: argparse.Namespace) -> RunOptions:
+    """The :class:`RunOptions` of parsed :func:`add_run_options` arguments."""
+    # The loader's vocabulary: our names, GSDC 2023 spellings (GPS_L1_CA, ...) or "all".
+    signals = None
+    if args.signals is not None:
+        names = [s.strip() for s in args.signals.split(",") if s.strip()]
+        signals = tuple(SIGNALS[i] for i in resolve_signals(names))
+    if args.dnn_passes < 1:
+        raise GnssfuseError("--dnn-passes must be >= 1")
+    if args.clk is not None and args.sp3 is None:
+        raise GnssfuseError("--clk needs --sp3 (precise clocks go with precise orbits)")
+    return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
+                      dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
+                      wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
+                      learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
+                      use_doppler=not args.no_doppler, use_carrier=not args.no_carrier,
+                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk)
+
+
+def load_options(opts: RunOptions) -> dict:
+    """Keyword arguments of :func:`fusion.io.load.load_trace` that come from the run options."""
+    from fusion.io.raw_load import RawSources
+
+    return {"signals": opts.signals, "raw_sources": RawSources(opts.nav, opts.sp3, opts.clk)}
