@@ -1,12 +1,12 @@
-"""Traces in parallel processes: one worker process per job, one thread per worker.
+"""Traces in parallel processes: one process per trace, at most ``jobs`` at a time, one thread each.
 
 Workers are not forked from the caller (a forked child of a process that has already started torch or
 OpenMP threads can deadlock): on Linux they fork from a *forkserver*, a fresh single-threaded process that
 has imported the pipeline once (:data:`PRELOAD`: numpy, pandas, matplotlib, GTSAM), so a worker starts in
 milliseconds instead of re-importing for a second or more; elsewhere they are spawned. The server and
 its workers are limited to one BLAS/OpenMP/torch thread each, so ``--jobs N`` uses N cores, not N times
-all of them. A trace whose worker raises, or dies, is reported as a failure of that trace;
-the others go on (a death breaks the pool, so the traces it interrupted run again, each alone).
+all of them. A trace whose worker raises, or dies, is reported as a failure of that trace alone;
+the others go on.
 """
 from __future__ import annotations
 
@@ -14,8 +14,7 @@ import multiprocessing
 import os
 import sys
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
+from multiprocessing.connection import wait
 
 from tqdm import tqdm
 
@@ -23,7 +22,7 @@ _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "N
 
 
 def _one_thread() -> None:
-    """Worker initialiser: one thread for BLAS/OpenMP and torch, which read these variables when
+    """First thing in a worker: one thread for BLAS/OpenMP and torch, which read these variables when
     first imported (after this, in a fresh spawned process; importing torch here would cost every
     worker seconds even when no mode needs it)."""
     for var in _THREAD_VARS:
@@ -33,7 +32,7 @@ def _one_thread() -> None:
 
 
 def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool = False) -> list:
-    """``[func(*a) for a in args]`` in ``jobs`` spawned processes, results in the order of ``args``.
+    """``[func(*a) for a in args]`` in ``jobs`` worker processes at a time, results in the order of ``args``.
 
     ``func`` must be importable by name (a module-level function). An exception in one call becomes
     that call's result as the string ``"worker failed: <type>: <message>"``.
@@ -43,7 +42,7 @@ def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool 
     saved = {v: os.environ.get(v) for v in _THREAD_VARS}
     os.environ.update({v: "1" for v in _THREAD_VARS})      # inherited by the forkserver when it starts
     try:
-        return _run_pool(func, args, jobs, ctx, out, progress)
+        return _schedule(func, args, jobs, ctx, out, progress)
     finally:
         _restore(saved)
 
@@ -96,40 +95,67 @@ def start_early() -> None:
         _restore(saved)
 
 
-def _run_pool(func: Callable, args: Sequence[tuple], jobs: int, ctx, out: list, progress: bool) -> list:
-    """The pool loop of :func:`map_traces`, filling ``out`` in the order of ``args``.
+def _schedule(func: Callable, args: Sequence[tuple], jobs: int, ctx, out: list, progress: bool) -> list:
+    """The scheduling loop of :func:`map_traces`, filling ``out`` in the order of ``args``.
 
-    A worker that dies (killed, out of memory, a crash in C) breaks the whole pool: every call not
-    finished by then fails with it, and which of them killed the worker is unknown. Those calls are
-    run again, each in a pool of its own, so that a death is charged to its own call only.
+    Each call runs in a process of its own, at most ``jobs`` at a time, and sends its result back on a
+    pipe of its own. The parent waits on those pipes only and starts no thread: a pipe that ends
+    without a result is a process that died (killed, out of memory, a crash in C), charged to its own
+    call alone. (``concurrent.futures.ProcessPoolExecutor`` was used before; a worker's death there
+    breaks the whole pool, and its shutdown after a death could hang.)
     """
-    lost = []
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx, initializer=_one_thread) as pool:
-        futures = {pool.submit(func, *a): i for i, a in enumerate(args)}
-        for fut in tqdm(as_completed(futures), total=len(futures), desc="traces", disable=not progress):
-            i = futures[fut]
-            try:
-                out[i] = fut.result()
-            except BrokenProcessPool:
-                lost.append(i)
-            except Exception as exc:  # noqa: BLE001 - one trace's crash must not stop the others
-                out[i] = failure(exc)
-    if lost:
-        with ThreadPoolExecutor(max_workers=jobs) as threads:
-            for i, result in zip(lost, threads.map(lambda i: _run_alone(func, args[i], ctx), lost)):
-                out[i] = result
+    todo = list(range(len(args)))[::-1]
+    running: dict = {}                          # result pipe -> (index of the call, its process)
+    try:
+        with tqdm(total=len(args), desc="traces", disable=not progress) as bar:
+            while todo or running:
+                while todo and len(running) < jobs:
+                    i = todo.pop()
+                    running.update(_start(func, args[i], i, ctx))
+                for pipe in wait(list(running)):
+                    i, proc = running.pop(pipe)
+                    out[i] = _collect(pipe, proc)
+                    bar.update()
+    finally:
+        for _, proc in running.values():        # only when interrupted
+            proc.kill()
+            proc.join()
     return out
 
 
-def _run_alone(func: Callable, a: tuple, ctx):
-    """``func(*a)`` in a one-worker pool of its own; a failure becomes its one-line reason."""
-    with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_one_thread) as pool:
-        try:
-            return pool.submit(func, *a).result()
-        except BrokenProcessPool as exc:
-            return f"worker failed: the worker process died ({exc})"
-        except Exception as exc:  # noqa: BLE001
-            return failure(exc)
+def _start(func: Callable, a: tuple, i: int, ctx) -> dict:
+    """Start ``func(*a)`` in a new process; returns {its result pipe: (i, the process)}."""
+    reader, writer = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(func, a, writer))
+    proc.start()
+    writer.close()                  # the child's copy is now the only one: its death ends the pipe
+    return {reader: (i, proc)}
+
+
+def _collect(pipe, proc):
+    """The result a finished child sent on ``pipe``, or the one-line reason it sent none."""
+    try:
+        result = pipe.recv()
+    except EOFError:
+        proc.join()
+        return f"worker failed: the worker process died (exit code {proc.exitcode})"
+    finally:
+        pipe.close()
+    proc.join()
+    return result
+
+
+def _child(func: Callable, a: tuple, pipe) -> None:
+    """In the child: ``func(*a)`` with one thread, its result (or failure line) sent on ``pipe``."""
+    _one_thread()
+    try:
+        result = func(*a)
+    except Exception as exc:  # noqa: BLE001 - one trace's crash must not stop the others
+        result = failure(exc)
+    try:
+        pipe.send(result)
+    except Exception as exc:  # noqa: BLE001 - e.g. a result that cannot be pickled
+        pipe.send(failure(exc))
 
 
 def failure(exc: BaseException) -> str:

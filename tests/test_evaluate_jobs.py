@@ -49,18 +49,22 @@ def test_jobs_must_be_positive(tmp_path, shipped_trace_dir, capsys):
     assert "--jobs must be >= 1" in capsys.readouterr().err
 
 
-def _dies_on_two(x: int) -> int:
+def _dies_on_two(x: int):
     if x == 2:
         os._exit(3)             # as a segfault or the OOM killer would: no exception, no cleanup
+    if x == 3:
+        return lambda: x        # a result that cannot be sent back
     return 10 * x
 
 
 def test_a_dying_worker_costs_only_its_own_call():
-    """A worker's death breaks the process pool; the calls it interrupted run again alone, so only
-    the one that kills its worker is reported failed."""
-    out = map_traces(_dies_on_two, [(i,) for i in range(5)], jobs=2)
-    assert out[2].startswith("worker failed: the worker process died")
-    assert [o for i, o in enumerate(out) if i != 2] == [0, 10, 30, 40]
+    """A worker that dies, or whose result cannot be pickled, fails its own call only; more jobs
+    than calls is fine."""
+    for jobs in (2, 9):
+        out = map_traces(_dies_on_two, [(i,) for i in range(6)], jobs=jobs)
+        assert out[2] == "worker failed: the worker process died (exit code 3)"
+        assert out[3].startswith("worker failed: ") and "pickle" in out[3]
+        assert [out[i] for i in (0, 1, 4, 5)] == [0, 10, 40, 50]
 
 
 def test_jobs_1_reports_an_unexpected_exception_as_that_traces_failure(tmp_path, shipped_trace_dir,
