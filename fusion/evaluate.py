@@ -112,7 +112,16 @@ def run_all(trace_dirs: list[Path], modes: list[str], opts: RunOptions, max_epoc
             for d in trace_dirs]
     if jobs == 1:
         return [_load_and_run_guarded(a, progress) for a in tqdm(args, desc="traces", disable=not progress)]
-    return map_traces(load_and_run, args, jobs, progress)
+    return map_traces(load_and_run, args, jobs, progress, costs=[_input_bytes(Path(d)) for d in trace_dirs])
+
+
+def _input_bytes(trace_dir: Path) -> int:
+    """Bytes of the files under ``trace_dir``: the proxy for a trace's run time that orders the
+    ``--jobs`` workers' calls (the longest first)."""
+    try:
+        return sum(f.stat().st_size for f in trace_dir.rglob("*") if f.is_file())
+    except OSError:
+        return 0
 
 
 def _load_and_run_guarded(a: tuple, progress: bool) -> TraceEval | str:

@@ -31,18 +31,22 @@ def _one_thread() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
-def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool = False) -> list:
+def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool = False,
+               costs: Sequence[float] | None = None) -> list:
     """``[func(*a) for a in args]`` in ``jobs`` worker processes at a time, results in the order of ``args``.
 
     ``func`` must be importable by name (a module-level function). An exception in one call becomes
-    that call's result as the string ``"worker failed: <type>: <message>"``.
+    that call's result as the string ``"worker failed: <type>: <message>"``. ``costs`` (one per call,
+    any unit): a guess of each call's run time; the costliest calls start first, so that a long one
+    does not start last and leave the other workers idle (longest-processing-time-first scheduling).
     """
     out: list = [None] * len(args)
     ctx = _context()
     saved = {v: os.environ.get(v) for v in _THREAD_VARS}
     os.environ.update({v: "1" for v in _THREAD_VARS})      # inherited by the forkserver when it starts
     try:
-        return _schedule(func, args, jobs, ctx, out, progress)
+        order = sorted(range(len(args)), key=lambda i: -costs[i]) if costs is not None else range(len(args))
+        return _schedule(func, args, list(order), jobs, ctx, out, progress)
     finally:
         _restore(saved)
 
@@ -95,8 +99,10 @@ def start_early() -> None:
         _restore(saved)
 
 
-def _schedule(func: Callable, args: Sequence[tuple], jobs: int, ctx, out: list, progress: bool) -> list:
-    """The scheduling loop of :func:`map_traces`, filling ``out`` in the order of ``args``.
+def _schedule(func: Callable, args: Sequence[tuple], order: list[int], jobs: int, ctx, out: list,
+              progress: bool) -> list:
+    """The scheduling loop of :func:`map_traces`: calls started in ``order`` (indices into ``args``),
+    results filling ``out`` in the order of ``args``.
 
     Each call runs in a process of its own, at most ``jobs`` at a time, and sends its result back on a
     pipe of its own. The parent waits on those pipes only and starts no thread: a pipe that ends
@@ -104,7 +110,7 @@ def _schedule(func: Callable, args: Sequence[tuple], jobs: int, ctx, out: list, 
     call alone. (``concurrent.futures.ProcessPoolExecutor`` was used before; a worker's death there
     breaks the whole pool, and its shutdown after a death could hang.)
     """
-    todo = list(range(len(args)))[::-1]
+    todo = order[::-1]
     running: dict = {}                          # result pipe -> (index of the call, its process)
     try:
         with tqdm(total=len(args), desc="traces", disable=not progress) as bar:

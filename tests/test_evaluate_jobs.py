@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 
 import pandas as pd
 
@@ -65,6 +66,16 @@ def test_a_dying_worker_costs_only_its_own_call():
         assert out[2] == "worker failed: the worker process died (exit code 3)"
         assert out[3].startswith("worker failed: ") and "pickle" in out[3]
         assert [out[i] for i in (0, 1, 4, 5)] == [0, 10, 40, 50]
+
+
+def _started_at(x: int) -> tuple[int, int]:
+    return x, time.monotonic_ns()
+
+
+def test_the_costliest_calls_start_first_and_results_keep_their_order():
+    out = map_traces(_started_at, [(i,) for i in range(4)], jobs=1, costs=[1.0, 30.0, 2.0, 7.0])
+    assert [x for x, _ in out] == [0, 1, 2, 3]
+    assert sorted(range(4), key=lambda i: out[i][1]) == [1, 3, 2, 0]
 
 
 def test_jobs_1_reports_an_unexpected_exception_as_that_traces_failure(tmp_path, shipped_trace_dir,
