@@ -128,17 +128,7 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
     count_skip(skipped, "conflicting_duplicate_rows", dup.sum())
     rows = rows[~dup]
 
-    t_unique, epoch, counts = np.unique(rows["t"].to_numpy(np.int64), return_inverse=True, return_counts=True)
-    keep_epoch = counts >= min_sats
-    count_skip(skipped, f"epochs_lt{min_sats}_sats", (~keep_epoch).sum())
-    if not keep_epoch.any():
-        raise DataError(f"{path}: no epoch has >= {min_sats} satellites of the selected signal(s) "
-                        f"({', '.join(SIGNALS[i] for i in sel)}); largest has {int(counts.max(initial=0))}")
-    keep_row = keep_epoch[epoch]
-    rows = rows[keep_row]
-    new_index = np.cumsum(keep_epoch) - 1
-    epoch = new_index[epoch[keep_row]]
-    t_ms = t_unique[keep_epoch]
+    rows, epoch, t_ms = _epochs_with_enough_sats(rows, min_sats, skipped, path, sel)
     E = t_ms.shape[0]
 
     packed = pack_rows(epoch, E, {
@@ -163,6 +153,23 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
         np.maximum.at(per_epoch, epoch, rows["clk_count"].to_numpy(np.int64))
         clock_reset[1:] = np.diff(per_epoch) != 0
     return dict(t_ms=t_ms.astype(np.int64), clock_reset=clock_reset, name=name, **packed)
+
+
+def _epochs_with_enough_sats(rows: pd.DataFrame, min_sats: int, skipped: dict[str, int], path: Path,
+                             sel) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
+    """Drop (and count) the epochs with fewer than ``min_sats`` rows.
+
+    Returns (kept rows, their epoch index (R,) into the kept epochs, kept epoch times (E,) [ms]).
+    """
+    t_unique, epoch, counts = np.unique(rows["t"].to_numpy(np.int64), return_inverse=True, return_counts=True)
+    keep_epoch = counts >= min_sats
+    count_skip(skipped, f"epochs_lt{min_sats}_sats", (~keep_epoch).sum())
+    if not keep_epoch.any():
+        raise DataError(f"{path}: no epoch has >= {min_sats} satellites of the selected signal(s) "
+                        f"({', '.join(SIGNALS[i] for i in sel)}); largest has {int(counts.max(initial=0))}")
+    keep_row = keep_epoch[epoch]
+    new_index = np.cumsum(keep_epoch) - 1
+    return rows[keep_row], new_index[epoch[keep_row]], t_unique[keep_epoch]
 
 
 def _retime_derived(rows: pd.DataFrame, received_ns: np.ndarray | None) -> tuple[np.ndarray, int]:
