@@ -107,8 +107,8 @@ def _schedule(func: Callable, args: Sequence[tuple], order: list[int], jobs: int
     Each call runs in a process of its own, at most ``jobs`` at a time, and sends its result back on a
     pipe of its own. The parent waits on those pipes only and starts no thread: a pipe that ends
     without a result is a process that died (killed, out of memory, a crash in C), charged to its own
-    call alone. (``concurrent.futures.ProcessPoolExecutor`` was used before; a worker's death there
-    breaks the whole pool, and its shutdown after a death could hang.)
+    call alone. (Not ``concurrent.futures.ProcessPoolExecutor``: a worker's death breaks its whole
+    pool, and on Python 3.11 its shutdown after a death can hang.)
     """
     todo = order[::-1]
     running: dict = {}                          # result pipe -> (index of the call, its process)
