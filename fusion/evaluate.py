@@ -174,7 +174,7 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     evals = [o for o in outcomes if not isinstance(o, str)]
     failures = {str(d): o for d, o in zip(trace_dirs, outcomes) if isinstance(o, str)}
     if not evals:
-        raise DataError("no trace could be loaded: " + "; ".join(failures.values()))
+        raise DataError("no trace could be evaluated: " + "; ".join(f"{d}: {m}" for d, m in failures.items()))
     df = metrics_table(evals, modes)
     df.to_csv(out_dir / "metrics.csv", index=False, float_format="%.4f")
     (out_dir / "metrics.md").write_text(markdown_table(df) + "\n")
@@ -196,7 +196,7 @@ def main(argv: list[str], prog: str = "gnssfuse evaluate") -> int:
     print(f"wrote {args.out / 'report.md'}, metrics.csv, metrics.md and figures/")
     # The report for the good part is written; still exit non-zero so scripts notice the rest.
     for path, msg in failures.items():
-        print(f"{prog}: error: could not load {path}: {msg}", file=sys.stderr)
+        print(f"{prog}: error: could not evaluate {path}: {msg}", file=sys.stderr)
     bad_modes = df[df.status.str.startswith("failed") & (df.trace != ALL)]
     for r in bad_modes.itertuples(index=False):
         print(f"{prog}: error: mode {r.mode} on {r.trace}: {r.status}", file=sys.stderr)

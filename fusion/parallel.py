@@ -13,10 +13,14 @@ from __future__ import annotations
 import multiprocessing
 import os
 import sys
+import time
+import traceback
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import wait
 
 from tqdm import tqdm
+
+from fusion.errors import GnssfuseError
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 
@@ -36,7 +40,8 @@ def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool 
     """``[func(*a) for a in args]`` in ``jobs`` worker processes at a time, results in the order of ``args``.
 
     ``func`` must be importable by name (a module-level function). An exception in one call becomes
-    that call's result as the string ``"worker failed: <type>: <message>"``. ``costs`` (one per call,
+    that call's result as the string ``"<type>: <message>"``, a worker's death as
+    ``"the worker process died (exit code N)"``. ``costs`` (one per call,
     any unit): a guess of each call's run time; the costliest calls start first, so that a long one
     does not start last and leave the other workers idle (longest-processing-time-first scheduling).
     """
@@ -112,43 +117,62 @@ def _schedule(func: Callable, args: Sequence[tuple], order: list[int], jobs: int
     """
     todo = order[::-1]
     running: dict = {}                          # result pipe -> (index of the call, its process)
+    exiting: list = []                          # processes that sent their result, not yet reaped
     try:
         with tqdm(total=len(args), desc="traces", disable=not progress) as bar:
             while todo or running:
                 while todo and len(running) < jobs:
                     i = todo.pop()
-                    running.update(_start(func, args[i], i, ctx))
+                    _start(func, args[i], i, ctx, running)
                 for pipe in wait(list(running)):
-                    i, proc = running.pop(pipe)
-                    out[i] = _collect(pipe, proc)
+                    out[running[pipe][0]] = _collect(pipe, running[pipe][1])
+                    exiting.append(running.pop(pipe)[1])   # popped only now: an interrupt still reaps it
                     bar.update()
+                exiting = [p for p in exiting if p.exitcode is None]
     finally:
-        for _, proc in running.values():        # only when interrupted
+        for proc in [p for _, p in running.values() if p.pid is not None]:   # only when interrupted
             proc.kill()
             proc.join()
+        _reap(exiting)
     return out
 
 
-def _start(func: Callable, a: tuple, i: int, ctx) -> dict:
-    """Start ``func(*a)`` in a new process; returns {its result pipe: (i, the process)}."""
+def _start(func: Callable, a: tuple, i: int, ctx, running: dict) -> None:
+    """Start ``func(*a)`` in a new process, registered in ``running`` (result pipe -> (i, process))
+    before it starts, so that an interrupt cannot leave it unreaped."""
     reader, writer = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(func, a, writer))
+    running[reader] = (i, proc)
     proc.start()
     writer.close()                  # the child's copy is now the only one: its death ends the pipe
-    return {reader: (i, proc)}
 
 
 def _collect(pipe, proc):
-    """The result a finished child sent on ``pipe``, or the one-line reason it sent none."""
+    """The result a child sent on ``pipe``, or the one-line reason it sent none (the pipe ended
+    before a message, or in the middle of one: the child died). A child that sent its result is not
+    waited for here: its exit (tens of milliseconds of interpreter shutdown) overlaps the next call."""
     try:
-        result = pipe.recv()
-    except EOFError:
+        return pipe.recv()
+    except (EOFError, OSError):
         proc.join()
-        return f"worker failed: the worker process died (exit code {proc.exitcode})"
+        return f"the worker process died (exit code {proc.exitcode})"
     finally:
         pipe.close()
-    proc.join()
-    return result
+
+
+#: Seconds a child that has sent its result gets to exit before it is killed (a stray non-daemon
+#: thread would otherwise keep it, and the caller, waiting).
+EXIT_GRACE_S = 30.0
+
+
+def _reap(procs: list) -> None:
+    """Wait for children that have sent their results to exit; kill the ones that do not."""
+    deadline = time.monotonic() + EXIT_GRACE_S
+    for proc in procs:
+        proc.join(max(0.0, deadline - time.monotonic()))
+        if proc.exitcode is None:
+            proc.kill()
+            proc.join()
 
 
 def _child(func: Callable, a: tuple, pipe) -> None:
@@ -165,5 +189,9 @@ def _child(func: Callable, a: tuple, pipe) -> None:
 
 
 def failure(exc: BaseException) -> str:
-    """The one-line result standing for a call that raised ``exc``."""
-    return f"worker failed: {type(exc).__name__}: {exc}"
+    """The one-line result standing for a call that raised ``exc``. An exception that is not a
+    :class:`GnssfuseError` (a user-facing problem with the input) is a bug: its traceback goes to
+    stderr, since the one line alone would not locate it."""
+    if not isinstance(exc, GnssfuseError):
+        traceback.print_exception(exc, file=sys.stderr)
+    return f"{type(exc).__name__}: {exc}"

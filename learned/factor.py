@@ -93,7 +93,7 @@ def _lone_epoch(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, m
     """
     inputs = getattr(getattr(corrector, "features", None), "inputs", ())
     if "pr_sigma" in inputs and pr_sigma is None:
-        raise GeometryError(f"{getattr(corrector, 'path', 'the checkpoint')}: reads each satellite's reported "
+        raise GeometryError(f"{getattr(corrector, 'path', None) or 'the checkpoint'}: reads each satellite's reported "
                             "pseudorange sigma; pass pr_sigma (S,) [m] (GnssLogger: ReceivedSvTimeUncertaintyNanos "
                             "* 1e-9 * c; a Trace's pr_sigma row)")
     return one_epoch_trace(sat_pos, pr, mask, pr_sigma=pr_sigma, signal=signal, cn0=cn0)

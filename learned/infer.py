@@ -56,7 +56,8 @@ class Correction:
 def _calibration_scales(config: dict, path, calibrated: bool) -> dict[str, np.ndarray]:
     """Variance scales (name -> (3,) NED), ones where absent or not ``calibrated``: per output (fitted on the
     validation split) and ``unseen_dnn`` / ``unseen_fused`` (fitted on unseen drives by
-    ``experiments/crossval.py``, applied on top)."""
+    ``experiments/crossval.py``; applied on top of the checkpoint's own output's scale only, the one
+    they were fitted on)."""
     out = {}
     for name in (*OUTPUTS, "unseen_dnn", "unseen_fused"):
         scale = ((config.get("calibration") or {}).get(name) or {}).get("scale_ned")
@@ -103,6 +104,11 @@ class Corrector:
             self.features = FeatureConfig.from_dict(config["features"])
         except (TypeError, ValueError) as exc:
             raise CheckpointError(f"{path}: bad feature config {config['features']!r}: {exc}") from exc
+        # refused here, not at the first forward pass deep inside torch
+        d_in = ((config.get("model") or {}).get("hparams") or {}).get("d_in", 4)
+        if d_in != self.features.n_inputs:
+            raise CheckpointError(f"{path}: the network reads {d_in} channels per satellite but the feature "
+                                  f"config {list(self.features.inputs)} makes {self.features.n_inputs}")
         if self.features.clock != "median":
             # Paper-leak reproduction (true receiver clock as an input): never allowed to run in the product.
             raise CheckpointError(f"{path}: trained with features.clock={self.features.clock!r} (the paper's "
@@ -126,13 +132,7 @@ class Corrector:
             raise CheckpointError(f"{path}: checkpoint not found"
                                   + (" (shipped weights missing from learned/weights/)" if path == SHIPPED_WEIGHTS else ""))
         model, blob = load_model(path, map_location=device)
-        corrector = cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
-        # refused here, not at the first forward pass deep inside torch
-        d_in = blob["config"]["model"].get("hparams", {}).get("d_in", 4)
-        if d_in != corrector.features.n_inputs:
-            raise CheckpointError(f"{path}: the network reads {d_in} channels per satellite but the feature "
-                                  f"config {list(corrector.features.inputs)} makes {corrector.features.n_inputs}")
-        return corrector
+        return cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
 
     def _context(self, trace: Trace) -> dict[str, np.ndarray]:
         """The trace's per-slot context (E,S) from its own plain WLS (as in training), cached for the last

@@ -214,6 +214,9 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     if not last.is_file():
         raise CheckpointError(f"{last}: no checkpoint to resume from")
     blob = read_checkpoint(last, map_location=device)
+    if cfg.warmup_epochs is None:
+        # the default warm-up follows the epoch count, which a resumed run may raise: keep the run's own
+        cfg.warmup_epochs = blob["config"].get("warmup_epochs")
     now = cfg.to_checkpoint_config()
     # everything but the epoch count shapes the run: a resumed run must draw what an uninterrupted one would
     for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss", "batch",

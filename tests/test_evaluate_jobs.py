@@ -1,15 +1,20 @@
 """``gnssfuse evaluate --jobs N``: traces in parallel processes, same tables as one process."""
 from __future__ import annotations
 
+import multiprocessing
 import os
 import shutil
+import struct
 import time
 
 import pandas as pd
+import pytest
 
 import fusion.evaluate
 from fusion.cli import main
-from fusion.parallel import jobs_asked, map_traces
+from fusion.errors import GnssfuseError
+from fusion.parallel import _collect, jobs_asked, map_traces
+from fusion.run_types import RunOptions
 
 
 def _traces(tmp_path, shipped_trace_dir):
@@ -34,7 +39,7 @@ def test_jobs_2_gives_the_metrics_of_jobs_1_and_a_bad_trace_stops_nothing(tmp_pa
                    "--no-progress", "--jobs", str(jobs)])
         assert rc == 2                                  # the broken trace is reported ...
         err = capsys.readouterr().err
-        assert f"could not load {dirs[1]}" in err and "lacks column(s)" in err
+        assert f"could not evaluate {dirs[1]}" in err and "lacks column(s)" in err
         tables[jobs] = pd.read_csv(out / "metrics.csv")
         assert set(tables[jobs].trace) == {"a/Pixel4", "b/Pixel4", "ALL"}   # ... the others are not lost
         assert (out / "a_Pixel4" / "wls" / "metrics.json").is_file()
@@ -63,8 +68,8 @@ def test_a_dying_worker_costs_only_its_own_call():
     than calls is fine."""
     for jobs in (2, 9):
         out = map_traces(_dies_on_two, [(i,) for i in range(6)], jobs=jobs)
-        assert out[2] == "worker failed: the worker process died (exit code 3)"
-        assert out[3].startswith("worker failed: ") and "pickle" in out[3]
+        assert out[2] == "the worker process died (exit code 3)"
+        assert "pickle" in out[3]
         assert [out[i] for i in (0, 1, 4, 5)] == [0, 10, 40, 50]
 
 
@@ -96,8 +101,28 @@ def test_jobs_1_reports_an_unexpected_exception_as_that_traces_failure(tmp_path,
     rc = main(["evaluate", str(buggy), str(good), "--modes", "wls", "--out", str(out), "--max-epochs", "200",
                "--no-progress"])
     assert rc == 2
-    assert "worker failed: ZeroDivisionError: a bug on one trace" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"could not evaluate {buggy}: ZeroDivisionError: a bug on one trace" in err
+    assert "Traceback" in err and "load_and_run" in err         # a bug's traceback is not swallowed
     assert set(pd.read_csv(out / "metrics.csv").trace) == {"a/Pixel4", "ALL"}
+    with pytest.raises(GnssfuseError, match=f"no trace could be evaluated: {buggy}: ZeroDivisionError"):
+        fusion.evaluate.evaluate([buggy], ["wls"], tmp_path / "r2", RunOptions(), progress=False)
+
+
+class _Ended:
+    """A stand-in for a child process that has already exited."""
+    pid, exitcode = 1, -9
+
+    def join(self, timeout=None):
+        pass
+
+
+def test_a_pipe_cut_in_the_middle_of_a_message_is_a_dead_worker():
+    """A worker killed while sending a large result leaves a length header and part of the message."""
+    reader, writer = multiprocessing.Pipe(duplex=False)
+    os.write(writer.fileno(), struct.pack("!i", 1_000_000) + b"only the start")
+    writer.close()
+    assert _collect(reader, _Ended()) == "the worker process died (exit code -9)"
 
 
 def test_jobs_read_before_the_parser():

@@ -16,6 +16,7 @@ from fusion.io.estimates import ESTIMATE_COLUMNS, SIGMA_COLUMNS
 from fusion.run_types import ModeResult, RunOptions
 from fusion.geometry import geodetic2ecef, ned2ecef_vec
 from fusion.eval.metrics import ned_errors, summarize
+from fusion.eval import report
 from fusion.eval.report import ALL, METRIC_KEYS, metrics_table
 from fusion.evaluate import evaluate_trace
 from fusion.trace import Trace, empty_trace
@@ -140,6 +141,20 @@ def test_one_bad_trace_keeps_the_good_ones(tmp_path, shipped_trace_dir, capsys):
     assert str(empty) in capsys.readouterr().err
     assert (out / "2099-01-01-NO-TRUTH_Pixel4" / "wls" / "estimates.csv").is_file()
     assert str(empty) in (out / "report.md").read_text()
+
+
+def test_a_pooled_figure_that_fails_is_a_warning_not_a_lost_report(tmp_path, shipped_trace_dir, monkeypatch):
+    def broken(errors, path, title):
+        raise RuntimeError("no room to draw")
+
+    monkeypatch.setitem(report.POOLED, "box", broken)
+    out = tmp_path / "out"
+    with pytest.warns(UserWarning, match=r"all_box\.png: not drawn: RuntimeError: no room to draw"):
+        rc = cli.main(["evaluate", str(_need(shipped_trace_dir)), "--modes", "wls", "--out", str(out),
+                       "--max-epochs", "100", "--no-progress"])
+    assert rc == 0
+    assert (out / "figures" / "all_cdf.png").is_file() and not (out / "figures" / "all_box.png").exists()
+    assert "all_cdf.png" in (out / "report.md").read_text()
 
 
 # ---------------------------------------------------------------- synthetic: a new mode, pooling

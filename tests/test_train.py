@@ -13,7 +13,7 @@ from learned.data import build_samples, check_not_forbidden, split_random
 from learned.features import CHANNELS, FEATURE_VERSION, FeatureConfig
 from learned.infer import Corrector
 from learned.toy import toy_dataset
-from learned.train import TrainConfig, train
+from learned.train import TrainConfig, setup, train
 from learned.train_cli import main, parse_loss
 
 
@@ -61,6 +61,17 @@ def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
             train(tr, va, TrainConfig(epochs=3, **cfg, **changed), tmp_path / "part.pt", resume=True, progress=False)
     with pytest.raises(CheckpointError, match="no checkpoint to resume"):
         train(tr, va, TrainConfig(epochs=1), tmp_path / "none.pt", resume=True, progress=False)
+
+
+def test_resume_with_more_epochs_keeps_the_default_warmup(tiny, tmp_path):
+    """The default warm-up (a tenth of the epochs) is the run's own: more epochs do not change it."""
+    tr, va = tiny
+    train(tr, va, TrainConfig(epochs=1, seed=1), tmp_path / "w.pt", progress=False)
+    more = TrainConfig(epochs=40, seed=1)                   # its own default warm-up would be 4
+    _, _, start, history = setup(more, tmp_path / "w.pt.last", True, torch.device("cpu"))
+    assert start == 1 and len(history) == 1 and more.warmup() == 1
+    with pytest.raises(CheckpointError, match="'warmup_epochs' differs"):
+        setup(TrainConfig(epochs=40, seed=1, warmup_epochs=4), tmp_path / "w.pt.last", True, torch.device("cpu"))
 
 
 def test_training_learns_and_no_augment_differs(tmp_path):

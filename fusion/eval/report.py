@@ -9,6 +9,7 @@ Output layout (``gnssfuse evaluate --out REPORT_DIR``; :mod:`fusion.evaluate` ru
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -160,11 +161,22 @@ def write_pooled_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -
     errors = {m: np.concatenate(v) for m, v in pooled.items()}
     title = f"all traces with truth ({sum(1 for ev in evals if ev.errors)})"
     args = [(kind, errors, fig_dir / f"all_{kind}.png", title) for kind in POOLED]
-    if jobs == 1:
-        return {a[0]: pooled_figure(*a) for a in args}
     from fusion.parallel import map_traces
-    drawn = map_traces(pooled_figure, args, min(jobs, len(args)))
+    drawn = ([_drawn_or_failure(a) for a in args] if jobs == 1
+             else map_traces(pooled_figure, args, min(jobs, len(args))))
+    for a, d in zip(args, drawn):
+        if isinstance(d, str):      # the tables and report.md are still written without it
+            warnings.warn(f"{a[2]}: not drawn: {d}", stacklevel=2)
     return {a[0]: d for a, d in zip(args, drawn) if not isinstance(d, str)}
+
+
+def _drawn_or_failure(a: tuple) -> Path | str:
+    """:func:`pooled_figure` in this process; an exception becomes its one-line reason, as in a worker."""
+    from fusion.parallel import failure
+    try:
+        return pooled_figure(*a)
+    except Exception as exc:  # noqa: BLE001
+        return failure(exc)
 
 
 def write_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -> dict[str, dict[str, Path]]:
@@ -217,7 +229,7 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
               "solution, *solved* have a solution; *skipped at load* are rows/epochs the loader "
               "dropped, by reason.", ""]
     if load_failures:
-        lines += ["## Traces that could not be loaded", ""]
+        lines += ["## Traces that could not be evaluated", ""]
         lines += [f"- `{p}`: {msg}" for p, msg in load_failures.items()] + [""]
     failed = [(ev.trace.name, m, msg) for ev in evals for m, msg in ev.failed.items()]
     if failed:
