@@ -25,7 +25,7 @@ from fusion.eval.report import (ALL, TraceEval, markdown_table, metrics_table, w
 from fusion.io.estimates import write_outputs
 from fusion.io.load import load_trace, trace_name
 from fusion.modes import MODES, get_mode, run_modes, solve_initial
-from fusion.parallel import failure, map_traces
+from fusion.parallel import guarded, map_traces
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
 
@@ -111,7 +111,7 @@ def run_all(trace_dirs: list[Path], modes: list[str], opts: RunOptions, max_epoc
     args = [(Path(d), _slug(trace_name(d), taken), modes, opts, max_epochs, fix_truth_height, out_dir)
             for d in trace_dirs]
     if jobs == 1:
-        return [_load_and_run_guarded(a, progress) for a in tqdm(args, desc="traces", disable=not progress)]
+        return [guarded(load_and_run, *a, progress=progress) for a in tqdm(args, desc="traces", disable=not progress)]
     return map_traces(load_and_run, args, jobs, progress, costs=[_input_bytes(Path(d)) for d in trace_dirs])
 
 
@@ -122,15 +122,6 @@ def _input_bytes(trace_dir: Path) -> int:
         return sum(f.stat().st_size for f in trace_dir.rglob("*") if f.is_file())
     except OSError:
         return 0
-
-
-def _load_and_run_guarded(a: tuple, progress: bool) -> TraceEval | str:
-    """:func:`load_and_run` in this process, an unexpected exception becoming that trace's failure
-    (as a worker's does with ``--jobs`` > 1), so that one trace's bug loses no other trace's output."""
-    try:
-        return load_and_run(*a, progress=progress)
-    except Exception as exc:  # noqa: BLE001
-        return failure(exc)
 
 
 # ---------------------------------------------------------------------------- CLI

@@ -45,13 +45,14 @@ def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool 
     any unit): a guess of each call's run time; the costliest calls start first, so that a long one
     does not start last and leave the other workers idle (longest-processing-time-first scheduling).
     """
-    out: list = [None] * len(args)
     ctx = _context()
     saved = {v: os.environ.get(v) for v in _THREAD_VARS}
     os.environ.update({v: "1" for v in _THREAD_VARS})      # inherited by the forkserver when it starts
     try:
-        order = sorted(range(len(args)), key=lambda i: -costs[i]) if costs is not None else range(len(args))
-        return _schedule(func, args, list(order), jobs, ctx, out, progress)
+        order = list(range(len(args)))
+        if costs is not None:
+            order.sort(key=lambda i: -costs[i])
+        return _schedule(func, args, order, jobs, ctx, progress)
     finally:
         _restore(saved)
 
@@ -104,10 +105,9 @@ def start_early() -> None:
         _restore(saved)
 
 
-def _schedule(func: Callable, args: Sequence[tuple], order: list[int], jobs: int, ctx, out: list,
-              progress: bool) -> list:
+def _schedule(func: Callable, args: Sequence[tuple], order: list[int], jobs: int, ctx, progress: bool) -> list:
     """The scheduling loop of :func:`map_traces`: calls started in ``order`` (indices into ``args``),
-    results filling ``out`` in the order of ``args``.
+    results returned in the order of ``args``.
 
     Each call runs in a process of its own, at most ``jobs`` at a time, and sends its result back on a
     pipe of its own. The parent waits on those pipes only and starts no thread: a pipe that ends
@@ -115,6 +115,7 @@ def _schedule(func: Callable, args: Sequence[tuple], order: list[int], jobs: int
     call alone. (Not ``concurrent.futures.ProcessPoolExecutor``: a worker's death breaks its whole
     pool, and on Python 3.11 its shutdown after a death can hang.)
     """
+    out: list = [None] * len(args)
     todo = order[::-1]
     running: dict = {}                          # result pipe -> (index of the call, its process)
     exiting: list = []                          # processes that sent their result, not yet reaped
@@ -178,14 +179,20 @@ def _reap(procs: list) -> None:
 def _child(func: Callable, a: tuple, pipe) -> None:
     """In the child: ``func(*a)`` with one thread, its result (or failure line) sent on ``pipe``."""
     _one_thread()
-    try:
-        result = func(*a)
-    except Exception as exc:  # noqa: BLE001 - one trace's crash must not stop the others
-        result = failure(exc)
+    result = guarded(func, *a)
     try:
         pipe.send(result)
     except Exception as exc:  # noqa: BLE001 - e.g. a result that cannot be pickled
         pipe.send(failure(exc))
+
+
+def guarded(func: Callable, *a, **kw):
+    """``func(*a, **kw)``, an exception becoming its one-line :func:`failure` (what a worker returns;
+    also used in-process, so that one trace's bug loses no other trace's output)."""
+    try:
+        return func(*a, **kw)
+    except Exception as exc:  # noqa: BLE001 - one trace's crash must not stop the others
+        return failure(exc)
 
 
 def failure(exc: BaseException) -> str:

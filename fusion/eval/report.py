@@ -161,22 +161,13 @@ def write_pooled_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -
     errors = {m: np.concatenate(v) for m, v in pooled.items()}
     title = f"all traces with truth ({sum(1 for ev in evals if ev.errors)})"
     args = [(kind, errors, fig_dir / f"all_{kind}.png", title) for kind in POOLED]
-    from fusion.parallel import map_traces
-    drawn = ([_drawn_or_failure(a) for a in args] if jobs == 1
+    from fusion.parallel import guarded, map_traces
+    drawn = ([guarded(pooled_figure, *a) for a in args] if jobs == 1
              else map_traces(pooled_figure, args, min(jobs, len(args))))
     for a, d in zip(args, drawn):
         if isinstance(d, str):      # the tables and report.md are still written without it
             warnings.warn(f"{a[2]}: not drawn: {d}", stacklevel=2)
     return {a[0]: d for a, d in zip(args, drawn) if not isinstance(d, str)}
-
-
-def _drawn_or_failure(a: tuple) -> Path | str:
-    """:func:`pooled_figure` in this process; an exception becomes its one-line reason, as in a worker."""
-    from fusion.parallel import failure
-    try:
-        return pooled_figure(*a)
-    except Exception as exc:  # noqa: BLE001
-        return failure(exc)
 
 
 def write_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -> dict[str, dict[str, Path]]:

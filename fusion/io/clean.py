@@ -153,6 +153,23 @@ def require_rows(df: pd.DataFrame, path: Path, what: str, skipped: dict[str, int
     raise DataError(f"{path}: no usable {what} row is left after cleaning{why}")
 
 
+def epochs_with_enough_rows(t: np.ndarray, min_rows: int, skipped: dict[str, int], path: Path,
+                           what: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows grouped into epochs by their time ``t`` (N,); epochs with fewer than ``min_rows`` rows are
+    dropped and counted, and a file with none left is refused (``what`` names the rows counted).
+
+    Returns (keep (N,) bool per row, epoch (K,) index of each kept row into the kept epochs,
+    kept epoch times (E,)).
+    """
+    t_unique, epoch, counts = np.unique(t, return_inverse=True, return_counts=True)
+    keep_epoch = counts >= min_rows
+    count_skip(skipped, f"epochs_lt{min_rows}_sats", (~keep_epoch).sum())
+    if not keep_epoch.any():
+        raise DataError(f"{path}: no epoch has >= {min_rows} {what}; largest has {int(counts.max(initial=0))}")
+    keep = keep_epoch[epoch]
+    return keep, (np.cumsum(keep_epoch) - 1)[epoch[keep]], t_unique[keep_epoch]
+
+
 def read_csv_text(text: str, path: Path, what: str) -> pd.DataFrame:
     """Parse cleaned CSV text (every column as read; numbers converted later by :func:`coerce_numeric`)."""
     try:

@@ -36,7 +36,7 @@ from fusion.geometry import C_LIGHT
 from fusion.gpstime import unix_ms_to_gps_ms
 from fusion.io.device_optional import optional_row_columns
 from fusion.io.nmea import read_span_nmea
-from fusion.io.clean import ROW, coerce_numeric, require_rows, sort_rows
+from fusion.io.clean import ROW, coerce_numeric, epochs_with_enough_rows, require_rows, sort_rows
 from fusion.io.tables import read_csv_table
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, TRUTH_TOL_MS, check_overlap, interp_gapped,
                              llh_ecef, match_nearest, read_truth_csv, warn_outside_bay_area)
@@ -128,7 +128,10 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
     count_skip(skipped, "conflicting_duplicate_rows", dup.sum())
     rows = rows[~dup]
 
-    rows, epoch, t_ms = _epochs_with_enough_sats(rows, min_sats, skipped, path, sel)
+    keep, epoch, t_ms = epochs_with_enough_rows(
+        rows["t"].to_numpy(np.int64), min_sats, skipped, path,
+        f"satellites of the selected signal(s) ({', '.join(SIGNALS[i] for i in sel)})")
+    rows = rows[keep]
     E = t_ms.shape[0]
 
     packed = pack_rows(epoch, E, {
@@ -153,23 +156,6 @@ def _rows_to_trace(rows: pd.DataFrame, *, name: str, path: Path, signals, min_sa
         np.maximum.at(per_epoch, epoch, rows["clk_count"].to_numpy(np.int64))
         clock_reset[1:] = np.diff(per_epoch) != 0
     return dict(t_ms=t_ms.astype(np.int64), clock_reset=clock_reset, name=name, **packed)
-
-
-def _epochs_with_enough_sats(rows: pd.DataFrame, min_sats: int, skipped: dict[str, int], path: Path,
-                             sel) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
-    """Drop (and count) the epochs with fewer than ``min_sats`` rows.
-
-    Returns (kept rows, their epoch index (R,) into the kept epochs, kept epoch times (E,) [ms]).
-    """
-    t_unique, epoch, counts = np.unique(rows["t"].to_numpy(np.int64), return_inverse=True, return_counts=True)
-    keep_epoch = counts >= min_sats
-    count_skip(skipped, f"epochs_lt{min_sats}_sats", (~keep_epoch).sum())
-    if not keep_epoch.any():
-        raise DataError(f"{path}: no epoch has >= {min_sats} satellites of the selected signal(s) "
-                        f"({', '.join(SIGNALS[i] for i in sel)}); largest has {int(counts.max(initial=0))}")
-    keep_row = keep_epoch[epoch]
-    new_index = np.cumsum(keep_epoch) - 1
-    return rows[keep_row], new_index[epoch[keep_row]], t_unique[keep_epoch]
 
 
 def _retime_derived(rows: pd.DataFrame, received_ns: np.ndarray | None) -> tuple[np.ndarray, int]:

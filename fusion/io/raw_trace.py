@@ -27,6 +27,7 @@ from fusion.errors import DataError
 from fusion.estimate.wls import solve_wls_arrays
 from fusion.geometry import C_LIGHT, ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.gpstime import WEEK_S
+from fusion.io.clean import epochs_with_enough_rows
 from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
 from fusion.nav.precise import precise_states
@@ -129,16 +130,9 @@ def _states(rows: pd.DataFrame, nav, precise) -> dict[str, np.ndarray]:
 
 def _epochs(rows: pd.DataFrame, st: dict, min_sats: int, skipped: dict[str, int], raw: RawObs):
     """Epoch index per row, dropping (and counting) epochs with fewer than ``min_sats`` rows."""
-    t_u, epoch, counts = np.unique(rows["t_ns"].to_numpy(np.int64), return_inverse=True, return_counts=True)
-    keep_e = counts >= min_sats
-    count_skip(skipped, f"epochs_lt{min_sats}_sats", ~keep_e)
-    if not keep_e.any():
-        raise DataError(f"{raw.path}: no epoch has >= {min_sats} measurements with ephemerides")
-    keep = keep_e[epoch]
-    rows = rows[keep].reset_index(drop=True)
-    st = {k: v[keep] for k, v in st.items()}
-    epoch = (np.cumsum(keep_e) - 1)[epoch[keep]]
-    return rows, st, epoch, t_u[keep_e]
+    keep, epoch, t_ns = epochs_with_enough_rows(rows["t_ns"].to_numpy(np.int64), min_sats, skipped, raw.path,
+                                                "measurements with ephemerides")
+    return rows[keep].reset_index(drop=True), {k: v[keep] for k, v in st.items()}, epoch, t_ns
 
 
 def _events_since_previous(frame: pd.DataFrame, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
