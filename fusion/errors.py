@@ -28,3 +28,8 @@ class ModeUnavailableError(GnssfuseError):
 
 class CheckpointError(GnssfuseError):
     """A model checkpoint is corrupt, truncated or does not match the code that loads it."""
+
+
+class ConfigError(GnssfuseError):
+    """A settings file (e.g. ``--graph-config``) that cannot be used: unreadable, not TOML, an unknown
+    setting or a value of the wrong type."""

@@ -8,7 +8,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from dataclasses import replace
+
 from fusion.errors import GnssfuseError
+from fusion.estimate.graph.config import GraphConfig, load_graph_config
 from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, resolve_signals
 
@@ -29,7 +32,11 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="with --sp3: precise satellite clocks (RINEX clock file)")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
-    p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
+    p.add_argument("--incremental", action="store_true",
+                   help="fused modes: incremental smoother (ISAM2, epoch by epoch) instead of batch")
+    p.add_argument("--graph-config", type=Path, default=None, metavar="FILE.toml",
+                   help="fused modes: the graph's settings (GraphConfig fields as 'name = value' lines, e.g. "
+                        "robust_k = 3.0; see the README); the flags above override it")
     p.add_argument("--wls-plain", action="store_true",
                    help="plain WLS, the paper's baseline (default: WLS with fault detection and exclusion)")
     p.add_argument("--no-doppler", action="store_true",
@@ -58,11 +65,19 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
     if args.clk is not None and args.sp3 is None:
         raise GnssfuseError("--clk needs --sp3 (precise clocks go with precise orbits)")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
-                      dnn_passes=args.dnn_passes, incremental=args.incremental, signals=signals,
+                      dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
-                      use_doppler=not args.no_doppler, use_carrier=not args.no_carrier,
-                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk)
+                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk, graph=graph_config(args))
+
+
+def graph_config(args: argparse.Namespace) -> GraphConfig:
+    """The graph's settings: ``--graph-config`` (or the defaults), then the switches given as flags."""
+    cfg = GraphConfig() if args.graph_config is None else load_graph_config(args.graph_config)
+    flags = {"incremental": True} if args.incremental else {}
+    flags.update({"use_doppler": False} if args.no_doppler else {})
+    flags.update({"use_carrier": False} if args.no_carrier else {})
+    return replace(cfg, **flags)
 
 
 def load_options(opts: RunOptions) -> dict:

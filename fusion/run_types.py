@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion.estimate.graph.config import GraphConfig
+
 
 @dataclass
 class RunOptions:
@@ -19,7 +21,6 @@ class RunOptions:
     elev_mask_deg: float = 10.0
     device: str = "cpu"
     dnn_passes: int = 1                  # DNN applied iteratively, features recomputed each pass
-    incremental: bool = False            # fused modes: ISAM2 / fixed-lag instead of batch LM
     signals: tuple[str, ...] | None = ("GPS_L1",)   # None: the format's default (GPS L1 for GSDC
                                                   # files, every signal with ephemerides for raw logs)
     nav: tuple[Path, ...] = ()           # raw logs: broadcast navigation files (else the folder's)
@@ -31,9 +32,20 @@ class RunOptions:
     learned_prior: bool = True           # the network's position prior per epoch
     learned_sigmas: bool = True          # the per-satellite head's pseudorange sigma and bias
     dnn_output: str | None = None        # "wls" | "correction"; None: the checkpoint's
-    # fused modes: use the trace's Doppler / carrier phase where it has them (no effect otherwise)
-    use_doppler: bool = True
-    use_carrier: bool = True
+    # the fused graph's settings, Doppler / carrier / incremental switches included
+    graph: GraphConfig = field(default_factory=GraphConfig)
+
+    @property
+    def use_doppler(self) -> bool:
+        return self.graph.use_doppler
+
+    @property
+    def use_carrier(self) -> bool:
+        return self.graph.use_carrier
+
+    @property
+    def incremental(self) -> bool:
+        return self.graph.incremental
 
 
 @dataclass

@@ -242,6 +242,7 @@ def test_one_prior_rule_for_factor_and_graph():
     the factors accepted any eigenvalue > 0, the graph needs > 1e-6 m^2)."""
     from fusion.estimate.graph.config import GraphConfig
     from fusion.estimate.graph.inputs import prepare_inputs
+    from fusion.estimate.graph.priors import learned_from_providers
     from fusion.estimate.wls import solve_wls
     from learned.factor import learned_prior_factors
 
@@ -272,6 +273,7 @@ def test_one_prior_rule_for_factor_and_graph():
     assert factors[0].error(v) == pytest.approx(f1.error(v), rel=1e-12)
     assert factors[0].error(v) < 0.5 * 300.0 ** 2 / cov[0][2, 2]         # robust, not quadratic
     # the graph rejects the same epoch
-    inp = prepare_inputs(tr, solve_wls(tr), GraphConfig(), provider=provider)
+    w = solve_wls(tr)
+    inp = prepare_inputs(tr, w, GraphConfig(), learned=learned_from_providers(tr, provider, None, w.pos))
     assert inp.prior_ok.tolist() == ok.tolist() and inp.dropped["prior_rejected"] == 1
     np.testing.assert_allclose(inp.prior_cov[0], np.diag([4.0, 9.0, 16.0]) + 4.0 * np.eye(3))

@@ -5,7 +5,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion.errors import GeometryError
+from fusion.errors import GeometryError, GnssfuseError
 from fusion.geometry import C_LIGHT, geodetic2ecef, line_of_sight, ned2ecef_vec
 from fusion.estimate.graph.fuse import fuse
 from fusion.estimate.graph.config import GraphConfig
@@ -122,7 +122,7 @@ def test_learned_prior_helps_and_incremental_matches_batch(trace, wls):
     batch = fuse(trace, wls, RunOptions(), provider=truth_prior(1.0))
     nodnn = fuse(trace, wls, RunOptions())
     assert np.median(h_err(trace, batch.pos, batch.valid)) < np.median(h_err(trace, nodnn.pos, nodnn.valid))
-    inc = fuse(trace, wls, RunOptions(incremental=True), provider=truth_prior(1.0))
+    inc = fuse(trace, wls, RunOptions(graph=GraphConfig(incremental=True)), provider=truth_prior(1.0))
     assert inc.valid.all() and inc.cov is None
     assert np.max(np.linalg.norm(inc.pos - batch.pos, axis=1)) < 0.5
     assert inc.info["online_pos"].shape == (trace.n_epochs, 3)
@@ -265,29 +265,37 @@ def test_real_trace_graph_beats_wls(shipped_trace_dir):
 
     tr = load_trace(shipped_trace_dir).select(np.arange(300, 700))
     w = solve_wls(tr)
-    for opts in (RunOptions(), RunOptions(incremental=True)):
+    for opts in (RunOptions(), RunOptions(graph=GraphConfig(incremental=True))):
         res = fuse(tr, w, opts, want_cov=False)
         assert res.valid.all()
         e_g, e_w = h_err(tr, res.pos, res.valid), h_err(tr, w.pos, w.valid)
         assert np.median(e_g) < 0.8 * np.median(e_w) and np.percentile(e_g, 95) < np.percentile(e_w, 95)
 
 
-@pytest.mark.parametrize("prior_at", ["graph", "wls"])
-def test_provider_is_asked_at_the_configured_guess(trace, wls, prior_at):
-    seen = {}
+def test_provider_is_asked_once_at_the_initial_positions(trace, wls):
+    """One question per run: the provider sees the WLS track (the graph is built and solved once)."""
+    seen = []
 
     def spy(tr, init_pos, valid):
-        seen["at"] = init_pos.copy()
+        seen.append(init_pos.copy())
         return truth_prior(1.0)(tr, init_pos, valid)
-    res = fuse(trace, wls, RunOptions(), provider=spy, want_cov=False,
-               cfg=GraphConfig(prior_at=prior_at, prior_robust="huber"))
-    assert res.valid.all()
-    if prior_at == "wls":
-        np.testing.assert_allclose(seen["at"], wls.pos)
-    else:                                    # the no-prior graph solution: closer to truth than WLS
-        nodnn = fuse(trace, wls, RunOptions(), want_cov=False)
-        np.testing.assert_allclose(seen["at"], nodnn.pos, atol=1e-6)
-        assert np.median(h_err(trace, seen["at"], res.valid)) < np.median(h_err(trace, wls.pos, wls.valid))
+    res = fuse(trace, wls, RunOptions(), provider=spy, want_cov=False, cfg=GraphConfig(prior_robust="huber"))
+    assert res.valid.all() and len(seen) == 1
+    np.testing.assert_allclose(seen[0], wls.pos)
+
+
+def test_learned_inputs_and_providers_give_the_same_graph(trace, wls):
+    from fusion.estimate.graph.priors import LearnedGraphInputs
+
+    prov = truth_prior(1.0)
+    mean, cov, ok = prov(trace, wls.pos, wls.valid)
+    a = fuse(trace, wls, RunOptions(), provider=prov, want_cov=False)
+    b = fuse(trace, wls, RunOptions(), learned=LearnedGraphInputs(prior_mean=mean, prior_cov=cov, prior_ok=ok,
+                                                                  info={"guard_off": 0}), want_cov=False)
+    np.testing.assert_allclose(a.pos, b.pos, atol=1e-9)
+    assert b.info["guard_off"] == 0 and b.info["priors_used"] == trace.n_epochs
+    with pytest.raises(GnssfuseError, match="not both"):
+        fuse(trace, wls, RunOptions(), provider=prov, learned=LearnedGraphInputs())
 
 
 # ---------------------------------------------------------------------------- < 4 satellites, real data
@@ -415,7 +423,7 @@ def test_differential_factor_carries_minus_the_bias():
 def test_inter_system_bias_is_estimated_and_removes_the_error(incremental):
     biased = _two_system_trace(isb_m=12.0, gap_at=70)
     clean = _two_system_trace(isb_m=0.0, gap_at=70)
-    opts = RunOptions(incremental=incremental)
+    opts = RunOptions(graph=GraphConfig(incremental=incremental))
     wls = solve_wls(biased)
     on = fuse(biased, wls, opts, cfg=GraphConfig(isb="window"), want_cov=False)
     off = fuse(biased, wls, opts, cfg=GraphConfig(isb="none"), want_cov=False)
@@ -460,7 +468,7 @@ def test_prior_alone_solves_when_the_no_prior_graph_determines_nothing(trace, wl
     import dataclasses
 
     nothing = dataclasses.replace(wls, used=np.zeros_like(wls.used))
-    res = fuse(trace, nothing, RunOptions(incremental=incremental), provider=truth_prior(1.0), want_cov=False)
+    res = fuse(trace, nothing, RunOptions(graph=GraphConfig(incremental=incremental)), provider=truth_prior(1.0), want_cov=False)
     assert res.valid.all() and res.info["priors_used"] == trace.n_epochs
     assert np.median(h_err(trace, res.pos, res.valid)) < 2.0
 

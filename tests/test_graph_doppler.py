@@ -45,8 +45,8 @@ def pos_err(trace, pos) -> np.ndarray:
     return np.linalg.norm(pos - trace.truth, axis=1)
 
 
-def solve(trace, wls, **opts):
-    return fuse(trace, wls, RunOptions(**opts), want_cov=False)
+def solve(trace, wls, **switches):
+    return fuse(trace, wls, RunOptions(graph=GraphConfig(**switches)), want_cov=False)
 
 
 # ------------------------------------------------------------------------------ simulator
@@ -177,7 +177,7 @@ def test_switches_and_traces_without_the_fields(sim, wls):
     tr = sim.trace
     bare = dataclasses.replace(tr, **{k: None for k in OPTIONAL_SLOT_FIELDS})
     assert prepare_inputs(bare, wls, GraphConfig()).raw is None
-    assert prepare_inputs(tr, wls, GraphConfig(), use_doppler=False, use_carrier=False).raw is None
+    assert prepare_inputs(tr, wls, GraphConfig(use_doppler=False, use_carrier=False)).raw is None
     off = solve(tr, wls, use_doppler=False, use_carrier=False)
     plain = solve(bare, wls)
     np.testing.assert_array_equal(off.pos, plain.pos)

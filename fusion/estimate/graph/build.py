@@ -1,16 +1,22 @@
-"""Assemble the fused graph, epoch by epoch, from the named factor builders.
+"""Assemble the fused graph from the named factor builders, one builder per factor kind for the whole
+trace at once.
 
 Per epoch ``k``: a position ``x(k)``; a clock ``c(k)`` with one robust pseudorange factor per selected
 satellite (GPS L1, or the first signal present, is the reference clock; every other signal gets an
 inter-system bias state per motion component, introduced with a zero-mean prior at its first use);
-a clock random walk to the previous clocked epoch; the position prior where the provider gave one;
-and the motion model's link to ``k - 1``. Where the trace carries them: a robust Doppler factor per
-satellite on the velocity and a clock-drift state ``d(k)`` (the clock chain then carries the drift,
-itself a random walk), and a robust time-differenced carrier-phase factor per satellite tracked
-without a slip since ``k - 1``, on a displacement state ``u(k) = x(k) - x(k-1)``. Links point backwards only, so the same per-epoch factors feed the
-batch graph and the incremental smoother.
+a clock random walk to the previous clocked epoch; the position prior where there is one; and the
+motion model's link to ``k - 1``. Where the trace carries them: a robust Doppler factor per satellite
+on the velocity and a clock-drift state ``d(k)`` (the clock chain then carries the drift, itself a
+random walk), and a robust time-differenced carrier-phase factor per satellite tracked without a slip
+since ``k - 1``, on a displacement state ``u(k) = x(k) - x(k-1)``.
+
+Every factor and initial value is tagged with the epoch that introduces it, and links point backwards
+only, so the same pieces make the batch graph (all at once) and feed the incremental smoother (epoch
+by epoch). The exact linear process factors share one zero linearisation point (:func:`zero_point`).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
@@ -20,9 +26,10 @@ from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_
                                            doppler_factor_vcd, drift_prior_factor_cd, drift_walk_factor_cdcd,
                                            isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
                                            pseudorange_factor_xc, pseudorange_factor_xci, robust_model,
-                                           tdcp_factor_uqq)
+                                           tdcp_factor_uqq, zero_point)
 from fusion.estimate.graph.inputs import EpochInputs
-from fusion.estimate.graph.keys import DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, isb_key, pos_key
+from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
+                                        isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import motion_model
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
@@ -33,18 +40,55 @@ from fusion.trace import Trace
 DISPLACEMENT_SIGMA_M = 3e-3
 
 
-def pseudorange_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
-    """Robust pseudorange factors of every selected satellite of epoch ``k``."""
-    out = []
-    comp, grp = int(inp.comp[k]), inp.isb.group[k]
-    for s in np.flatnonzero(inp.sel[k]):          # ~10 satellites
-        model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(inp.sigma[k, s])))
-        pr = trace.pr[k, s] - inp.pr_bias[k, s]
-        if grp[s] < 0:
-            out.append(pseudorange_factor_xc(k, pr, trace.sat_pos[k, s], model))
-        else:
-            out.append(pseudorange_factor_xci(k, comp, int(grp[s]), pr, trace.sat_pos[k, s], model))
-    return out
+@dataclass
+class GraphPieces:
+    """A whole trace's factors and initial values, each tagged with the epoch that introduces it.
+
+    factors (F,) with factor_epoch (F,); points: (epoch, key, (3,) value); doubles: (epoch, key, value).
+    """
+
+    factors: list = field(default_factory=list)
+    factor_epoch: list = field(default_factory=list)
+    points: list = field(default_factory=list)
+    doubles: list = field(default_factory=list)
+
+    def add(self, epochs, factors) -> None:
+        """Factors (a list) introduced at ``epochs`` (one epoch each, or one int for all)."""
+        factors = list(factors)
+        self.factors += factors
+        self.factor_epoch += [int(epochs)] * len(factors) if np.isscalar(epochs) else [int(k) for k in epochs]
+
+    def graph(self, upto: slice | None = None) -> gtsam.NonlinearFactorGraph:
+        """All factors (or those at positions ``upto`` of :meth:`by_epoch`'s order) as one graph."""
+        g = gtsam.NonlinearFactorGraph()
+        for f in self.factors if upto is None else self.factors[upto]:
+            g.add(f)
+        return g
+
+    def values(self) -> gtsam.Values:
+        """All initial values."""
+        vals = gtsam.Values()
+        for _, key, v in self.points:
+            vals.insert(key, v)
+        for _, key, v in self.doubles:
+            vals.insert(key, c=v)          # the keyword picks GTSAM's scalar overload at once
+        return vals
+
+    def by_epoch(self) -> tuple[np.ndarray, list[gtsam.NonlinearFactorGraph], list[gtsam.Values]]:
+        """Epochs (N,) in order, with each one's factor graph and values (for an incremental smoother)."""
+        fe = np.asarray(self.factor_epoch, int)
+        epochs = np.unique(np.concatenate([fe, [p[0] for p in self.points], [d[0] for d in self.doubles]])
+                           ).astype(int)
+        pos = {int(k): i for i, k in enumerate(epochs)}
+        graphs = [gtsam.NonlinearFactorGraph() for _ in epochs]
+        vals = [gtsam.Values() for _ in epochs]
+        for f, k in zip(self.factors, fe):
+            graphs[pos[int(k)]].add(f)
+        for k, key, v in self.points:
+            vals[pos[k]].insert(key, v)
+        for k, key, v in self.doubles:
+            vals[pos[k]].insert(key, c=v)
+        return epochs, graphs, vals
 
 
 def uses_drift(inp: EpochInputs) -> bool:
@@ -52,105 +96,157 @@ def uses_drift(inp: EpochInputs) -> bool:
     return inp.raw is not None and inp.raw.use_drift
 
 
-def clock_and_bias(k: int, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values) -> list:
-    """Epoch ``k``'s clock variable (and drift, see :func:`drift_key`) and the inter-system biases first
-    used here (values and priors)."""
-    clock_s = float(inp.init_clock_m[k] / C_LIGHT)
-    values.insert(clock_key(k), clock_s)
+def clocked_epochs(inp: EpochInputs, epochs: np.ndarray) -> np.ndarray:
+    """The kept epochs with a clock variable (at least one selected pseudorange)."""
+    return epochs[inp.sel[epochs].any(axis=1)]
+
+
+def add_positions(p: GraphPieces, inp: EpochInputs, epochs: np.ndarray) -> None:
+    """x(k) at the initial positions."""
+    p.points += [(int(k), pos_key(int(k)), inp.init_pos[k]) for k in epochs]
+
+
+def add_clocks(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
+    """c(k) (and d(k), see :func:`drift_key`) at every clocked epoch; each inter-system bias where its
+    group is first used in a component (value and zero-mean prior)."""
+    ks = clocked_epochs(inp, epochs)
+    clock_s = inp.init_clock_m[ks] / C_LIGHT
+    p.doubles += [(int(k), clock_key(int(k)), float(c)) for k, c in zip(ks, clock_s)]
     if uses_drift(inp):
-        values.insert(drift_key(k), clock_s + float(inp.clock_drift_mps[k]) * DRIFT_HORIZON_S / C_LIGHT)
-    out = []
-    if inp.isb.new is not None:
+        d = clock_s + inp.clock_drift_mps[ks] * DRIFT_HORIZON_S / C_LIGHT
+        p.doubles += [(int(k), drift_key(int(k)), float(v)) for k, v in zip(ks, d)]
+    if inp.isb.new is None:
+        return
+    new_k, new_g = np.nonzero(inp.isb.new[ks])
+    for k, g in zip(ks[new_k], new_g):           # a handful: one per signal group and component
         comp = int(inp.comp[k])
-        for g in np.flatnonzero(inp.isb.new[k]):
-            values.insert(isb_key(comp, int(g)), float(-inp.isb.init_m[g]))
-            out.append(isb_prior_factor_i(comp, int(g), cfg.isb_sigma_m))
-    return out
+        p.doubles.append((int(k), isb_key(comp, int(g)), float(-inp.isb.init_m[g])))
+        p.add(k, [isb_prior_factor_i(comp, int(g), cfg.isb_sigma_m)])
 
 
-def clock_link(k: int, inp: EpochInputs, cfg: GraphConfig) -> list:
-    """The clock random walk from the previous clocked epoch to ``k`` (none across a reset). With drift
-    states the clock follows the drift and the drift walks; a chain start gets a loose drift prior."""
-    j = int(inp.clock_link[k])
+def add_pseudoranges(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
+    """A robust pseudorange factor per selected slot of the kept epochs."""
+    keep = np.zeros(trace.n_epochs, bool)
+    keep[epochs] = True
+    ks, ss = np.nonzero(inp.sel & keep[:, None])
+    pr = trace.pr[ks, ss] - inp.pr_bias[ks, ss]
+    sigma, grp, comp = inp.sigma[ks, ss], inp.isb.group[ks, ss], inp.comp[ks]
+    sat = trace.sat_pos[ks, ss]
+    base = gtsam.noiseModel.Isotropic.Sigma
+    p.add(ks, [pseudorange_factor_xc(int(k), float(r), sat[i], robust_model(cfg.robust, cfg.robust_k, base(1, float(sg))))
+               if grp[i] < 0 else
+               pseudorange_factor_xci(int(k), int(comp[i]), int(grp[i]), float(r), sat[i],
+                                      robust_model(cfg.robust, cfg.robust_k, base(1, float(sg))))
+               for i, (k, r, sg) in enumerate(zip(ks, pr, sigma))])
+
+
+def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin: gtsam.Values) -> None:
+    """The clock random walk from the previous clocked epoch (none across a reset). With drift states the
+    clock follows the drift and the drift walks; a chain start gets a loose drift prior."""
+    ks = clocked_epochs(inp, epochs)
+    js = inp.clock_link[ks]
     if not uses_drift(inp):
-        return [clock_factor_cc(j, k, inp.clock_mean_m[k], inp.clock_sigma_m[k])] if j >= 0 else []
-    if j < 0:
-        return [drift_prior_factor_cd(k, float(inp.clock_drift_mps[k]), cfg.drift_start_sigma_mps)]
-    root_span = float(np.sqrt(max(inp.clock_span_s[k], 1e-3)))
-    return [clock_drift_factor_ccd(j, k, float(inp.clock_span_s[k]), cfg.drift_clock_rw_m * root_span),
-            drift_walk_factor_cdcd(j, k, cfg.drift_rw_mps * root_span)]
+        linked = js >= 0
+        p.add(ks[linked], [clock_factor_cc(int(j), int(k), inp.clock_mean_m[k], inp.clock_sigma_m[k])
+                           for j, k in zip(js[linked], ks[linked])])
+        return
+    starts = ks[js < 0]
+    p.add(starts, [drift_prior_factor_cd(int(k), float(inp.clock_drift_mps[k]), cfg.drift_start_sigma_mps, lin)
+                   for k in starts])
+    linked = js >= 0
+    ks, js = ks[linked], js[linked]
+    root = np.sqrt(np.maximum(inp.clock_span_s[ks], 1e-3))
+    p.add(ks, [clock_drift_factor_ccd(int(j), int(k), float(inp.clock_span_s[k]), cfg.drift_clock_rw_m * r, lin)
+               for j, k, r in zip(js, ks, root)])
+    p.add(ks, [drift_walk_factor_cdcd(int(j), int(k), cfg.drift_rw_mps * r, lin) for j, k, r in zip(js, ks, root)])
 
 
-def doppler_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> list:
-    """Robust Doppler factors of epoch ``k`` (on v(k), c(k), d(k))."""
+def add_dopplers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
+    """A robust Doppler factor per used slot (on v(k), c(k), d(k))."""
+    keep = np.zeros(trace.n_epochs, bool)
+    keep[epochs] = True
+    ks, ss = np.nonzero(inp.raw.doppler & keep[:, None])
+    base = gtsam.noiseModel.Isotropic.Sigma
+    prr = trace.prr[ks, ss] - inp.raw.prr_bias[ks, ss]
+    p.add(ks, [doppler_factor_vcd(int(k), float(r), trace.sat_pos[k, s], trace.sat_vel[k, s], inp.init_pos[k],
+                                  robust_model(cfg.robust, cfg.robust_k, base(1, float(inp.raw.prr_sigma[k, s]))))
+               for k, s, r in zip(ks, ss, prr)])
+
+
+def add_carriers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray,
+                 lin: gtsam.Values) -> None:
+    """Robust time-differenced carrier factors from epoch ``k - 1`` to ``k`` on the displacement u(k),
+    with u(k), its definition and the carrier clocks q(k-1), q(k) [m] where some satellite kept its chain."""
     raw = inp.raw
-    out = []
-    for s in np.flatnonzero(raw.doppler[k]):      # ~10 satellites
-        model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.prr_sigma[k, s])))
-        out.append(doppler_factor_vcd(k, trace.prr[k, s], trace.sat_pos[k, s], trace.sat_vel[k, s],
-                                      inp.init_pos[k], model))
-    return out
-
-
-def tdcp_factors(k: int, trace: Trace, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values) -> list:
-    """Robust time-differenced carrier factors from epoch ``k - 1`` to ``k`` on the displacement u(k)
-    (its variable and definition added here when some satellite kept its carrier chain)."""
-    raw = inp.raw
-    cur = np.flatnonzero(raw.tdcp_prev[k] >= 0)
-    if cur.size == 0:
-        return []
-    lin = inp.init_pos if raw.lin_pos is None else raw.lin_pos
-    values.insert(disp_key(k), inp.init_pos[k] - inp.init_pos[k - 1])
-    out = [displacement_factor_xxu(k, DISPLACEMENT_SIGMA_M)]
+    keep = np.zeros(trace.n_epochs, bool)
+    keep[epochs] = True
+    has = (raw.tdcp_prev >= 0).any(axis=1) & keep
+    ks = np.flatnonzero(has)
+    lin_pos = inp.init_pos if raw.lin_pos is None else raw.lin_pos
+    p.points += [(int(k), disp_key(int(k)), inp.init_pos[k] - inp.init_pos[k - 1]) for k in ks]
+    p.add(ks, [displacement_factor_xxu(int(k), DISPLACEMENT_SIGMA_M, lin) for k in ks])
     # carrier clocks [m] are known up to a constant per chain, which a prior at the chain start fixes
-    values.insert(carrier_clock_key(k), float(inp.init_clock_m[k]))
-    if not (raw.tdcp_prev[k - 1] >= 0).any():
-        values.insert(carrier_clock_key(k - 1), float(inp.init_clock_m[k - 1]))
-        out.append(gtsam.PriorFactorDouble(carrier_clock_key(k - 1), float(inp.init_clock_m[k - 1]),
-                                           gtsam.noiseModel.Isotropic.Sigma(1, 1.0)))
-    for s in cur:                                   # ~10 satellites
-        p = int(raw.tdcp_prev[k, s])
-        model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.tdcp_sigma[k, s])))
-        out.append(tdcp_factor_uqq(k, trace.adr[k, s] - trace.adr[k - 1, p], trace.sat_pos[k - 1, p],
-                                   trace.sat_pos[k, s], lin[k - 1], lin[k], model))
-    return out
+    p.doubles += [(int(k), carrier_clock_key(int(k)), float(inp.init_clock_m[k])) for k in ks]
+    starts = ks[~has[ks - 1]]
+    p.doubles += [(int(k), carrier_clock_key(int(k) - 1), float(inp.init_clock_m[k - 1])) for k in starts]
+    unit = gtsam.noiseModel.Isotropic.Sigma(1, 1.0)
+    p.add(starts, [gtsam.PriorFactorDouble(carrier_clock_key(int(k) - 1), float(inp.init_clock_m[k - 1]), unit)
+                   for k in starts])
+    kk, ss = np.nonzero((raw.tdcp_prev >= 0) & has[:, None])
+    base = gtsam.noiseModel.Isotropic.Sigma
+    prev = raw.tdcp_prev[kk, ss]
+    p.add(kk, [tdcp_factor_uqq(int(k), trace.adr[k, s] - trace.adr[k - 1, j], trace.sat_pos[k - 1, j],
+                               trace.sat_pos[k, s], lin_pos[k - 1], lin_pos[k],
+                               robust_model(cfg.robust, cfg.robust_k, base(1, float(raw.tdcp_sigma[k, s]))))
+               for k, s, j in zip(kk, ss, prev)])
 
 
-def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConfig
-                  ) -> tuple[list, gtsam.Values]:
-    """Factors and initial values introduced by epoch ``k``; ``motion`` from
-    :func:`fusion.estimate.graph.motion.motion_model`."""
-    factors: list = []
-    values = gtsam.Values()
-    values.insert(pos_key(k), inp.init_pos[k])
-    if inp.sel[k].any():
-        factors += clock_and_bias(k, inp, cfg, values)
-        factors += pseudorange_factors(k, trace, inp, cfg)
-        factors += clock_link(k, inp, cfg)
-        if inp.raw is not None:
-            factors += doppler_factors(k, trace, inp, cfg) + tdcp_factors(k, trace, inp, cfg, values)
-    if inp.prior_ok[k]:
-        model = prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k)
-        factors.append(position_prior_factor_x(k, inp.prior_mean[k], model))
-    motion.add_values(k, values)
-    factors += motion.link_factors(k) if (k > 0 and inp.pos_link[k]) else motion.start_factors(k)
-    return factors, values
+def add_priors(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
+    """The position prior where there is one."""
+    ks = epochs[inp.prior_ok[epochs]]
+    p.add(ks, [position_prior_factor_x(int(k), inp.prior_mean[k],
+                                       prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k))
+               for k in ks])
 
 
-def trace_motion(inp: EpochInputs, cfg: GraphConfig):
-    """The motion model of ``cfg`` for this trace's epochs."""
-    return motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg)
+def add_motion(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin: gtsam.Values) -> None:
+    """The motion model's variables and its link from ``k - 1`` (or a component start) at every kept epoch."""
+    motion = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg)
+    if cfg.motion == "cv":
+        p.points += [(int(k), vel_key(int(k)), inp.init_vel[k]) for k in epochs]
+    for k in epochs:
+        k = int(k)
+        p.add(k, motion.link_factors(k, lin) if (k > 0 and inp.pos_link[k]) else motion.start_factors(k))
+
+
+def linearisation_point(inp: EpochInputs, epochs: np.ndarray) -> gtsam.Values:
+    """Zeros at every key an exact linear factor may touch (positions, velocities, displacements,
+    clocks, drifts): the shared linearisation point of :mod:`fusion.estimate.graph.factors`' linear factors."""
+    ks = [int(k) for k in epochs]
+    lin = zero_point([f(k) for k in ks for f in (pos_key, vel_key, disp_key)])
+    lin.insert(zero_point([f(k) for k in ks for f in (clock_key, drift_key)], "double"))
+    return lin
+
+
+def graph_pieces(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> GraphPieces:
+    """Every factor and initial value of the kept epochs (``inp.keep``), built kind by kind."""
+    epochs = np.flatnonzero(inp.keep)
+    p = GraphPieces()
+    lin = linearisation_point(inp, epochs)
+    add_positions(p, inp, epochs)
+    add_clocks(p, inp, cfg, epochs)
+    add_pseudoranges(p, trace, inp, cfg, epochs)
+    add_clock_links(p, inp, cfg, epochs, lin)
+    if inp.raw is not None:
+        add_dopplers(p, trace, inp, cfg, epochs)
+        add_carriers(p, trace, inp, cfg, epochs, lin)
+    add_priors(p, inp, cfg, epochs)
+    add_motion(p, inp, cfg, epochs, lin)
+    return p
 
 
 def build_graph(trace: Trace, inp: EpochInputs, cfg: GraphConfig
                 ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values, np.ndarray]:
     """The whole-trace graph over the epochs in ``inp.keep``; returns (graph, initial values, epochs)."""
-    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-    motion = trace_motion(inp, cfg)
-    epochs = np.flatnonzero(inp.keep)
-    for k in epochs:
-        factors, vals = epoch_factors(int(k), trace, inp, motion, cfg)
-        for f in factors:
-            graph.add(f)
-        values.insert(vals)
-    return graph, values, epochs
+    p = graph_pieces(trace, inp, cfg)
+    return p.graph(), p.values(), np.flatnonzero(inp.keep)

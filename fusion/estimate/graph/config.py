@@ -40,13 +40,9 @@ class GraphConfig:
     clock_rw_m: float = 5.0
     clock_jump_m: float = 1000.0       # WLS clock step beyond drift larger than this = clock reset
     drift_window: int = 5              # epochs each side for the robust WLS clock-drift estimate
-    # Learned prior: covariance used = prior_cov_scale * cov + prior_sigma_floor_m^2 * I.
-    # Where the provider is asked: "graph" = at the solution of the same graph without the prior
-    # (a better guess than WLS, around which the network was trained: on a held-out training trace
-    # this beat asking at WLS, experiments/results/graph_tuning.md); "wls" = at the WLS positions (one solve
-    # instead of two).
-    # Incremental mode uses the no-prior smoother's *online* estimates, so it stays causal.
-    prior_at: str = "graph"
+    # Learned prior: covariance used = prior_cov_scale * cov + prior_sigma_floor_m^2 * I. The network is
+    # asked once, at the WLS positions (asking it again at a no-prior graph's solution, as before, cost a
+    # second solve: see the README's Results for what that changed).
     prior_cov_scale: float = 1.0
     prior_sigma_floor_m: float = 2.0
     # robust loss on the prior's Mahalanobis distance (in sigmas), so that a wrong network output
@@ -88,10 +84,51 @@ class GraphConfig:
     drift_clock_rw_m: float = 1.0
     drift_rw_mps: float = 0.2
     drift_start_sigma_mps: float = 1000.0
-    # Where the carrier factors are linearised (they keep that point, see factors.tdcp_factor_uqq):
-    # "graph" = the solution of the same graph without carrier (its online estimates in incremental
-    # mode), "initial" = the WLS track. The factor's linearisation error grows with the distance of
-    # that point from the solution (~1e-4 of it per second), so "graph" guards against WLS outliers
-    # for one more, carrier-free (fast) solve; on the simulated benchmark trace (WLS good to ~11 m)
-    # the two differ by only 4 mm at p50 (benchmarks/doppler_carrier_speed.py).
-    tdcp_linearize_at: str = "graph"
+    # The carrier factors are linearised at the initial (WLS) track and keep that point (see
+    # factors.tdcp_factor_uqq): the error this leaves is ~1e-4 of the WLS error per second of epoch gap.
+    # Linearising at a carrier-free graph solution instead took a second solve and scored 3.50 m against
+    # 3.49 m on the Pixel5 RINEX trace, so it was dropped.
+    # Measurements used where the trace has them, and the solver.
+    use_doppler: bool = True
+    use_carrier: bool = True
+    incremental: bool = False          # ISAM2 epoch by epoch instead of batch Levenberg-Marquardt
+
+
+def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
+    """``base`` (default: :class:`GraphConfig`'s defaults) with the settings of a TOML file: top-level
+    ``name = value`` pairs (or a ``[graph]`` table of them) named as GraphConfig's fields, e.g.
+    ``robust_k = 3.0``, ``motion = "rw"``. An unknown name, a value of the wrong type or a file TOML
+    cannot parse is a :class:`ConfigError` naming the file and the setting."""
+    import tomllib
+    from dataclasses import fields, replace
+    from pathlib import Path
+
+    from fusion.errors import ConfigError
+
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the graph config ({exc.strerror or exc})") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not a TOML file ({exc})") from None
+    data = data.get("graph", data) if isinstance(data.get("graph"), dict) else data
+    types = {f.name: f.type for f in fields(GraphConfig)}
+    out = {}
+    for name, value in data.items():
+        if name not in types:
+            raise ConfigError(f"{path}: unknown graph setting {name!r} (known: {', '.join(types)})")
+        want = {"float": (int, float), "int": (int,), "bool": (bool,), "str": (str,)}[types[name]]
+        if isinstance(value, bool) != (types[name] == "bool") or not isinstance(value, want):
+            raise ConfigError(f"{path}: graph setting {name!r} must be a {types[name]}, got {value!r}")
+        out[name] = float(value) if types[name] == "float" else value
+    return replace(base or GraphConfig(), **out)
+
+
+def graph_config_toml(cfg: GraphConfig) -> str:
+    """``cfg`` as the TOML :func:`load_graph_config` reads (every setting, one per line)."""
+    from dataclasses import asdict
+
+    def fmt(v):
+        return ("true" if v else "false") if isinstance(v, bool) else (f'"{v}"' if isinstance(v, str) else repr(v))
+    return "".join(f"{k} = {fmt(v)}\n" for k, v in asdict(cfg).items())

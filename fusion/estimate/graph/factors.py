@@ -135,26 +135,37 @@ def _range_and_gradient(sat: np.ndarray, x: np.ndarray) -> tuple[float, np.ndarr
     return r + float(m @ x), m - d / r
 
 
-def displacement_factor_xxu(k: int, sigma_m: float) -> gtsam.LinearContainerFactor:
+def zero_point(keys, kind: str = "point3") -> gtsam.Values:
+    """Values holding zero at every key (``kind`` "point3" or "double"): the linearisation point of the
+    exact linear factors below. One shared Values serves every factor of a graph (each factor copies
+    only its own keys, in C++), instead of a Values built per factor (~20x the cost)."""
+    lin = gtsam.Values()
+    for key in keys:
+        if kind == "double":
+            lin.insert(int(key), c=0.0)      # the keyword picks the scalar overload at once (3x faster)
+        else:
+            lin.insert(int(key), np.zeros(3))
+    return lin
+
+
+def displacement_factor_xxu(k: int, sigma_m: float, lin: gtsam.Values | None = None) -> gtsam.LinearContainerFactor:
     """Ties the displacement to the positions: u(k) - (x(k) - x(k-1)) ~ N(0, sigma^2 I) [m], linear and
-    exact as a whitened JacobianFactor (sigma small: it is a definition, not a measurement)."""
+    exact as a whitened JacobianFactor (sigma small: it is a definition, not a measurement). ``lin``: a
+    Values with zeros at these keys (None: made here)."""
     w, I3 = 1.0 / sigma_m, np.eye(3)
     keys = (disp_key(k), pos_key(k), pos_key(k - 1))
     jf = gtsam.JacobianFactor(keys[0], w * I3, keys[1], -w * I3, keys[2], w * I3, np.zeros(3),
                               gtsam.noiseModel.Unit.Create(3))
-    lin = gtsam.Values()
-    for key in keys:
-        lin.insert(key, np.zeros(3))
-    return gtsam.LinearContainerFactor(jf, lin)
+    return gtsam.LinearContainerFactor(jf, zero_point(keys) if lin is None else lin)
 
 
-def _linear_factor(keys: list[int], coeffs: list[float], sigma: float) -> gtsam.LinearContainerFactor:
+def _linear_factor(keys: list[int], coeffs: list[float], sigma: float, lin: gtsam.Values | None = None
+                   ) -> gtsam.LinearContainerFactor:
     """The scalar constraint ``sum(coeffs * keys) ~ N(0, sigma^2)`` over 1 to 4 Double keys, exact as a
-    whitened linear factor linearised at zero (so its error is exactly A x)."""
+    whitened linear factor linearised at zero (so its error is exactly A x); ``lin`` a Values with zeros
+    at these keys (None: made here)."""
     a = np.asarray(coeffs, float) / sigma
-    lin = gtsam.Values()
-    for key in keys:
-        lin.insert(key, 0.0)
+    lin = zero_point(keys, "double") if lin is None else lin
     if len(keys) <= 3:
         args = [x for key, ai in zip(keys, a) for x in (key, np.array([[ai]]))]
         return gtsam.LinearContainerFactor(gtsam.JacobianFactor(*args, np.zeros(1), gtsam.noiseModel.Unit.Create(1)), lin)
@@ -175,26 +186,26 @@ def _four_key_hessian(keys: list[int], H: np.ndarray) -> gtsam.HessianFactor:
     return gtsam.HessianFactor(parts)
 
 
-def clock_drift_factor_ccd(j: int, k: int, span_s: float, sigma_m: float) -> gtsam.LinearContainerFactor:
+def clock_drift_factor_ccd(j: int, k: int, span_s: float, sigma_m: float, lin: gtsam.Values | None = None
+                           ) -> gtsam.LinearContainerFactor:
     """Clock with drift from epoch ``j`` to ``k``: c(k) - c(j) - drift(j) span ~ N(0, sigma^2), with
     drift(j) = (d(j) - c(j)) / DRIFT_HORIZON_S; sigma given in metres, variables in seconds."""
     a = span_s / DRIFT_HORIZON_S
-    return _linear_factor([clock_key(k), clock_key(j), drift_key(j)], [1.0, a - 1.0, -a], sigma_m / C_LIGHT)
+    return _linear_factor([clock_key(k), clock_key(j), drift_key(j)], [1.0, a - 1.0, -a], sigma_m / C_LIGHT, lin)
 
 
-def drift_walk_factor_cdcd(j: int, k: int, sigma_mps: float) -> gtsam.LinearContainerFactor:
+def drift_walk_factor_cdcd(j: int, k: int, sigma_mps: float, lin: gtsam.Values | None = None
+                           ) -> gtsam.LinearContainerFactor:
     """Drift random walk: drift(k) - drift(j) ~ N(0, sigma^2), sigma in m/s."""
     keys = [drift_key(k), clock_key(k), drift_key(j), clock_key(j)]
-    return _linear_factor(keys, [1.0, -1.0, -1.0, 1.0], sigma_mps * DRIFT_HORIZON_S / C_LIGHT)
+    return _linear_factor(keys, [1.0, -1.0, -1.0, 1.0], sigma_mps * DRIFT_HORIZON_S / C_LIGHT, lin)
 
 
-def drift_prior_factor_cd(k: int, drift_mps: float, sigma_mps: float) -> gtsam.LinearContainerFactor:
+def drift_prior_factor_cd(k: int, drift_mps: float, sigma_mps: float, lin: gtsam.Values | None = None
+                          ) -> gtsam.LinearContainerFactor:
     """A loose prior drift(k) ~ N(drift_mps, sigma^2) at the start of a clock chain, so that an epoch
     without Doppler keeps a determinable drift."""
     w = C_LIGHT / (sigma_mps * DRIFT_HORIZON_S)
     jf = gtsam.JacobianFactor(drift_key(k), np.array([[w]]), clock_key(k), np.array([[-w]]),
                               np.array([drift_mps / sigma_mps]), gtsam.noiseModel.Unit.Create(1))
-    lin = gtsam.Values()
-    lin.insert(drift_key(k), 0.0)
-    lin.insert(clock_key(k), 0.0)
-    return gtsam.LinearContainerFactor(jf, lin)
+    return gtsam.LinearContainerFactor(jf, zero_point([drift_key(k), clock_key(k)], "double") if lin is None else lin)

@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 
 from fusion.estimate.graph.batch import read_velocities
-from fusion.estimate.graph.build import epoch_factors, trace_motion
+from fusion.estimate.graph.build import graph_pieces
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_estimates
@@ -37,26 +37,27 @@ def feed_epochs(isam: gtsam.ISAM2, trace: Trace, inp: EpochInputs, cfg: GraphCon
 
     Epochs of a motion component are held back until the component has an anchor (an epoch with
     >= 4 satellites or a prior), because ISAM2 cannot take an undetermined update."""
-    motion = trace_motion(inp, cfg)
+    epochs, graphs, values = graph_pieces(trace, inp, cfg).by_epoch()
     anchor = (inp.sel.sum(axis=1) >= 4) | inp.prior_ok
     online = np.full((trace.n_epochs, 3), np.nan)
     pending_f, pending_v, pending_k = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
     anchored = False
-    for k in np.flatnonzero(inp.keep):
+    for k, g, v in zip(epochs, graphs, values):
         k = int(k)
         if not inp.pos_link[k]:
             anchored = False               # a new motion component starts here
-        factors, vals = epoch_factors(k, trace, inp, motion, cfg)
-        for f in factors:
-            pending_f.add(f)
-        pending_v.insert(vals)
+        if pending_k:
+            pending_f.push_back(g)
+            pending_v.insert(v)
+        else:
+            pending_f, pending_v = g, v
         pending_k.append(k)
         anchored |= bool(anchor[k])
         if anchored:
             isam.update(pending_f, pending_v)
             for j in pending_k:
                 online[j] = isam.calculateEstimatePoint3(pos_key(j))
-            pending_f, pending_v, pending_k = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
+            pending_k = []
     return online
 
 

@@ -12,8 +12,7 @@ from fusion.errors import GeometryError
 from fusion.estimate.graph.clock import clock_chain
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
-from fusion.estimate.graph.priors import (PriorProvider, Priors, SlotNoiseProvider, ask_provider,
-                                          clean_priors)
+from fusion.estimate.graph.priors import LearnedGraphInputs, Priors, clean_priors
 from fusion.estimate.graph.raw_inputs import RawInputs, raw_inputs
 from fusion.estimate.graph.series import interp_rows
 from fusion.estimate.wls import WlsResult
@@ -70,19 +69,18 @@ def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.n
     return interp_rows(t, np.asarray(wls.pos, float), wls_ok), wls_ok
 
 
-def learned_priors(trace: Trace, provider: PriorProvider | None, init_pos: np.ndarray,
-                   prior_guess: np.ndarray | None, cfg: GraphConfig) -> tuple[Priors, int]:
-    """The provider's priors asked at ``prior_guess`` (E,3) (NaN rows and None: ``init_pos``), cleaned
-    by :func:`clean_priors`; no provider gives no priors. Also the count the provider offered but
-    the rule rejected (non-finite or not positive definite)."""
+def learned_priors(trace: Trace, learned: LearnedGraphInputs | None, cfg: GraphConfig) -> tuple[Priors, int]:
+    """The learned position priors cleaned by :func:`clean_priors` (none without them), and the count the
+    model offered but the rule rejected (non-finite or not positive definite)."""
     E = trace.n_epochs
-    if provider is None:
+    if learned is None or not learned.has_prior:
         none = np.zeros(E, bool)
         return Priors(np.zeros((E, 3)), np.tile(np.eye(3), (E, 1, 1)), none, none, none), 0
-    at = init_pos
-    if prior_guess is not None:
-        at = np.where(np.isfinite(prior_guess).all(axis=1)[:, None], prior_guess, init_pos)
-    mean, cov, valid = ask_provider(provider, trace, at, trace.n_sats >= 1)
+    mean, cov, valid = (np.asarray(a, dtype) for a, dtype in ((learned.prior_mean, float), (learned.prior_cov, float),
+                                                                (learned.prior_ok, bool)))
+    if mean.shape != (E, 3) or cov.shape != (E, 3, 3) or valid.shape != (E,):
+        raise GeometryError(f"{trace.name}: learned prior shapes {mean.shape}, {cov.shape}, {valid.shape}; "
+                            f"expected {(E, 3)}, {(E, 3, 3)}, {(E,)}")
     pri = clean_priors(mean, cov, valid, cfg.prior_cov_scale, cfg.prior_sigma_floor_m,
                        what="GraphConfig: prior_cov_scale / prior_sigma_floor_m")
     return pri, int((valid & ~(pri.finite & pri.spd)).sum())
@@ -103,26 +101,40 @@ def select_satellites(trace: Trace, wls: WlsResult, wls_ok: np.ndarray, init_pos
     return sel, sigma, np.where(sel, trace.pr - rng, np.nan)
 
 
-def slot_noise_at(trace: Trace, slot_noise: SlotNoiseProvider | None, at: np.ndarray, sel: np.ndarray,
-                  sigma: np.ndarray, level: str = "absolute") -> tuple[np.ndarray, np.ndarray, int]:
-    """The provider's sigma (E,S) where it gave a finite positive one on a selected slot, else ``sigma``
-    (``level`` "relative": rescaled per epoch to the median of ``sigma``, see GraphConfig); its bias (E,S)
-    there, else 0; and how many selected slots it set."""
-    if slot_noise is None:
+def learned_slot_noise(trace: Trace, got_sigma: np.ndarray | None, got_bias: np.ndarray | None, sel: np.ndarray,
+                       sigma: np.ndarray, level: str = "absolute") -> tuple[np.ndarray, np.ndarray, int]:
+    """The learned sigma (E,S) where it is finite and positive on a selected slot, else the model's
+    ``sigma`` (``level`` "relative": rescaled per epoch to the median of ``sigma``, see GraphConfig); the
+    learned bias (E,S) there, else 0; and how many selected slots it set. None: the model's alone."""
+    if got_sigma is None:
         return sigma, np.zeros_like(sigma), 0
     if level not in ("absolute", "relative"):
         raise GeometryError(f"GraphConfig.slot_noise_level must be 'absolute' or 'relative', got {level!r}")
-    got_sigma, got_bias = (np.asarray(a, float) for a in slot_noise(trace, at, np.isfinite(at).all(axis=1)))
+    got_sigma = np.asarray(got_sigma, float)
+    got_bias = np.zeros_like(got_sigma) if got_bias is None else np.asarray(got_bias, float)
     if got_sigma.shape != sigma.shape or got_bias.shape != sigma.shape:
-        raise GeometryError(f"{trace.name}: slot noise provider returned shapes {got_sigma.shape} / "
+        raise GeometryError(f"{trace.name}: learned pseudorange sigma / bias shapes {got_sigma.shape} / "
                             f"{got_bias.shape}, expected {sigma.shape}")
     use = sel & np.isfinite(got_sigma) & (got_sigma > 0) & np.isfinite(got_bias)
     if level == "relative":
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)      # epochs the provider skipped -> NaN
+            warnings.simplefilter("ignore", RuntimeWarning)      # epochs the model skipped -> NaN
             ratio = np.nanmedian(np.where(use, sigma, np.nan), 1) / np.nanmedian(np.where(use, got_sigma, np.nan), 1)
         got_sigma = got_sigma * np.nan_to_num(ratio, nan=1.0)[:, None]
     return np.where(use, got_sigma, sigma), np.where(use, got_bias, 0.0), int(use.sum())
+
+
+def learned_doppler_noise(raw: RawInputs, learned: LearnedGraphInputs | None, floor_mps: float) -> int:
+    """Put the learned pseudorange-rate sigmas (floored at ``floor_mps``) and biases on the used Doppler
+    slots of ``raw`` where they are finite; returns how many it set."""
+    if learned is None or learned.prr_sigma is None or not raw.doppler.any():
+        return 0
+    sig = np.asarray(learned.prr_sigma, float)
+    bias = np.zeros_like(sig) if learned.prr_bias is None else np.asarray(learned.prr_bias, float)
+    use = raw.doppler & np.isfinite(sig) & (sig > 0) & np.isfinite(bias)
+    raw.prr_sigma = np.where(use, np.maximum(sig, floor_mps), raw.prr_sigma)
+    raw.prr_bias = np.where(use, bias, 0.0)
+    return int(use.sum())
 
 
 def initial_clocks(wls: WlsResult, wls_ok: np.ndarray, resid: np.ndarray) -> np.ndarray:
@@ -178,33 +190,30 @@ def trace_raw_inputs(trace: Trace, init_pos: np.ndarray, elev_mask_deg: float, h
 
 
 def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg: float = 10.0,
-                   provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None,
-                   slot_noise: SlotNoiseProvider | None = None, use_doppler: bool = True,
-                   use_carrier: bool = True) -> EpochInputs:
+                   learned: LearnedGraphInputs | None = None) -> EpochInputs:
     """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
 
-    prior_guess: (E,3) positions at which to ask the providers (NaN rows: the initial position);
-    None = the initial positions (WLS, interpolated where it failed).
-    slot_noise: per-slot pseudorange sigma and bias provider (None: the config's sigma model).
-    use_doppler / use_carrier: add the trace's Doppler / carrier factors where it has them.
-    Raises :class:`GeometryError` when no epoch has any usable initial position.
+    learned: the learned model's priors and per-measurement noise for the whole trace (None: the
+    config's physical models alone). ``cfg.use_doppler`` / ``cfg.use_carrier`` add the trace's Doppler /
+    carrier factors where it has them. Raises :class:`GeometryError` when no epoch has any usable
+    initial position.
     """
     t = trace.t_ms.astype(float) / 1000.0
     init_pos, wls_ok = initial_positions(trace, wls, t)
-    pri, n_rejected = learned_priors(trace, provider, init_pos, prior_guess, cfg)
+    pri, n_rejected = learned_priors(trace, learned, cfg)
     sel, sigma, resid = select_satellites(trace, wls, wls_ok, init_pos, cfg, elev_mask_deg)
-    at = init_pos if prior_guess is None else np.where(np.isfinite(prior_guess).all(axis=1)[:, None],
-                                                       prior_guess, init_pos)
-    sigma, pr_bias, n_learned = slot_noise_at(trace, slot_noise, at, sel, sigma, cfg.slot_noise_level)
+    sigma, pr_bias, n_learned = learned_slot_noise(trace, None if learned is None else learned.pr_sigma,
+                                                   None if learned is None else learned.pr_bias, sel, sigma,
+                                                   cfg.slot_noise_level)
     init_clock = initial_clocks(wls, wls_ok, resid)
     dt, pos_link, comp = motion_links(t, cfg.max_gap_s)
     wls_clock = np.where(wls_ok, np.asarray(wls.clock_m, float), np.nan)
     chain = clock_chain(t, wls_clock, sel.any(axis=1), pos_link, trace.clock_reset, cfg)
     keep = determinable(comp, sel.sum(axis=1), pri.ok)
     dropped = {"clock_resets": chain.n_resets, "epochs_undetermined": int((~keep).sum())}
-    if provider is not None:
+    if learned is not None and learned.has_prior:
         dropped = {"prior_rejected": n_rejected, **dropped}
-    if slot_noise is not None:
+    if learned is not None and learned.pr_sigma is not None:
         dropped = {"learned_sigmas": n_learned, **dropped}
     inp = EpochInputs(init_pos=init_pos, init_clock_m=init_clock,
                       init_vel=initial_velocities(init_pos, dt, pos_link), sel=sel, sigma=sigma, dt=dt,
@@ -213,8 +222,10 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
                       keep=keep, comp=comp, dropped=dropped,
                       isb=isb_inputs(trace, sel, comp, init_clock, resid, cfg), pr_bias=pr_bias,
                       raw=trace_raw_inputs(trace, init_pos, elev_mask_deg, sel.any(axis=1), chain.link, cfg,
-                                           use_doppler, use_carrier),
+                                           cfg.use_doppler, cfg.use_carrier),
                       clock_drift_mps=chain.drift_mps, clock_span_s=chain.span_s)
     if inp.raw is not None:
         inp.dropped.update(inp.raw.counts)
+        if learned is not None and learned.prr_sigma is not None:
+            inp.dropped["learned_doppler_sigmas"] = learned_doppler_noise(inp.raw, learned, cfg.prr_sigma_floor_mps)
     return inp

@@ -11,7 +11,7 @@ import numpy as np
 
 from fusion.errors import GeometryError
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import velocity_prior_factor_v
+from fusion.estimate.graph.factors import velocity_prior_factor_v, zero_point
 from fusion.estimate.graph.keys import pos_key, vel_key
 from fusion.geometry import ned2ecef_cov
 
@@ -33,7 +33,7 @@ class RandomWalkMotion:
     def add_values(self, k: int, values: gtsam.Values) -> None:
         """No variables beyond the position."""
 
-    def link_factors(self, k: int) -> list:
+    def link_factors(self, k: int, lin: gtsam.Values | None = None) -> list:
         """Factors tying epoch ``k`` to ``k - 1``."""
         return [gtsam.BetweenFactorPoint3(pos_key(k - 1), pos_key(k), _ZERO3,
                                           gtsam.noiseModel.Gaussian.Covariance(self.cov[k]))]
@@ -58,7 +58,9 @@ class ConstantVelocityMotion:
     def add_values(self, k: int, values: gtsam.Values) -> None:
         values.insert(vel_key(k), self.init_vel[k])
 
-    def link_factors(self, k: int) -> list:
+    def link_factors(self, k: int, lin: gtsam.Values | None = None) -> list:
+        """Factors tying epoch ``k`` to ``k - 1``; ``lin`` a Values with zero Point3s at the keys of the
+        linear factor (shared by the whole graph; None: made here)."""
         # x_k - x_{k-1} - dt v_{k-1} = 0 is linear, so a whitened JacobianFactor wrapped for the
         # nonlinear graph is exact and runs in C++ (a Python CustomFactor would be far slower). With
         # an all-zero linearisation point its error is exactly A x - b.
@@ -66,10 +68,7 @@ class ConstantVelocityMotion:
         keys = (pos_key(k), pos_key(k - 1), vel_key(k - 1))
         jf = gtsam.JacobianFactor(keys[0], w * I3, keys[1], -w * I3, keys[2], -w * self.dt[k] * I3,
                                   _ZERO3, gtsam.noiseModel.Unit.Create(3))
-        lin = gtsam.Values()
-        for key in keys:
-            lin.insert(key, _ZERO3)
-        return [gtsam.LinearContainerFactor(jf, lin),
+        return [gtsam.LinearContainerFactor(jf, zero_point(keys) if lin is None else lin),
                 gtsam.BetweenFactorPoint3(vel_key(k - 1), vel_key(k), _ZERO3,
                                           gtsam.noiseModel.Gaussian.Covariance(self.vel_cov[k]))]
 

@@ -28,6 +28,49 @@ PRIOR_MIN_EIG = 1e-6
 
 
 @dataclass
+class LearnedGraphInputs:
+    """What a learned model hands the graph for a whole trace, from one pass (E epochs, S slots).
+
+    prior_mean (E,3) ECEF [m], prior_cov (E,3,3) [m^2], prior_ok (E,) bool: a position prior per epoch
+    (None: no prior). pr_sigma, pr_bias (E,S) [m]: each pseudorange's sigma and bias; prr_sigma,
+    prr_bias (E,S) [m/s]: each pseudorange rate's (None: no opinion on that kind; NaN in a slot: no
+    opinion there, the graph keeps its physical model). info: counts the model reports (what its guard
+    did), passed on to the mode's info.
+    """
+
+    prior_mean: np.ndarray | None = None
+    prior_cov: np.ndarray | None = None
+    prior_ok: np.ndarray | None = None
+    pr_sigma: np.ndarray | None = None
+    pr_bias: np.ndarray | None = None
+    prr_sigma: np.ndarray | None = None
+    prr_bias: np.ndarray | None = None
+    info: dict | None = None
+
+    @property
+    def has_prior(self) -> bool:
+        return self.prior_mean is not None
+
+
+def learned_from_providers(trace: Trace, provider: "PriorProvider | None", slot_noise: "SlotNoiseProvider | None",
+                           at: np.ndarray) -> LearnedGraphInputs | None:
+    """The providers' answers at ``at`` (E,3), each asked once, as :class:`LearnedGraphInputs` (None when
+    neither is given)."""
+    if provider is None and slot_noise is None:
+        return None
+    out = LearnedGraphInputs()
+    if provider is not None:
+        out.prior_mean, out.prior_cov, out.prior_ok = ask_provider(provider, trace, at, trace.n_sats >= 1)
+    if slot_noise is not None:
+        sigma, bias = (np.asarray(a, float) for a in slot_noise(trace, at, np.isfinite(at).all(axis=1)))
+        if sigma.shape != trace.mask.shape or bias.shape != trace.mask.shape:
+            raise GeometryError(f"{trace.name}: slot noise provider returned shapes {sigma.shape} / "
+                                f"{bias.shape}, expected {trace.mask.shape}")
+        out.pr_sigma, out.pr_bias = sigma, bias
+    return out
+
+
+@dataclass
 class Priors:
     """A provider's output made safe for the graph (see :func:`clean_priors`), E epochs.
 

@@ -27,7 +27,8 @@ class RawInputs:
     use_drift: clock-drift states in the clock chain (some Doppler is used); tdcp_prev (E,S) int: the
     slot of epoch k-1 whose carrier phase is differenced with slot s of epoch k (-1: none);
     tdcp_sigma (E,S) [m]; counts: factors used and measurements left out, by reason; lin_pos (E,3) the
-    positions the carrier factors are linearised at (None: the graph's initial positions)."""
+    positions the carrier factors are linearised at (None: the graph's initial positions); prr_bias
+    (E,S) [m/s] subtracted from each pseudorange rate (a learned Doppler bias; None: 0)."""
 
     doppler: np.ndarray
     prr_sigma: np.ndarray
@@ -36,6 +37,11 @@ class RawInputs:
     use_drift: bool = False
     counts: dict = field(default_factory=dict)
     lin_pos: np.ndarray | None = None
+    prr_bias: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.prr_bias is None:
+            self.prr_bias = np.zeros(self.doppler.shape)
 
     @property
     def has_tdcp(self) -> bool:
