@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.estimate.graph.fuse import fuse
-from fusion.estimate.graph.priors import PriorProvider
+from fusion.estimate.graph.fuse import fuse, learned_guess
+from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.wls import WlsResult
 from fusion.geometry import ecef2ned_cov, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
@@ -55,13 +55,27 @@ def learned_provider(opts: RunOptions, corrector: Corrector | None = None) -> Pr
     return iterated(corrector.provider(opts.elev_mask_deg), int(opts.dnn_passes))
 
 
+def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOptions) -> LearnedGraphInputs:
+    """One network pass at :func:`learned_guess`: the position prior and the per-satellite sigmas and biases
+    the graph uses (``opts.learned_prior`` / ``opts.learned_sigmas`` switch each off), and the guard's counts."""
+    at = learned_guess(trace, wls, opts)
+    c = corrector.predict(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg)
+    ok = c.valid
+    info = {"guard_shrunk": int((c.trust[ok] < 1).sum()), "guard_off": int((c.trust[ok] == 0).sum()),
+            "network_epochs": int(ok.sum())}
+    out = LearnedGraphInputs(info=info)
+    if opts.learned_prior:
+        out.prior_mean, out.prior_cov, out.prior_ok = c.mean_ecef, c.cov_ecef, c.valid
+    if opts.learned_sigmas:
+        out.pr_sigma, out.pr_bias = c.sigma, c.bias
+    return out
+
+
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
-    + motion; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
+    + motion, from one network pass; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
-    provider = learned_provider(opts, corrector) if opts.learned_prior else None
-    noise = corrector.slot_noise(opts.elev_mask_deg) if opts.learned_sigmas else None
-    res = fuse(trace, wls, opts, provider=provider, slot_noise=noise)
+    res = fuse(trace, wls, opts, learned=graph_inputs(corrector, trace, wls, opts))
     if res.cov is not None and res.valid.any():
         # the graph's marginals, scaled per NED axis as measured on unseen drives (ones if not calibrated)
         ok = res.valid

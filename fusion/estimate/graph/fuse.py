@@ -74,6 +74,20 @@ def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider:
     return solve_graph(trace, wls, opts, cfg, learned, on_undetermined, want_cov)
 
 
+def learned_guess(trace: Trace, wls: WlsResult, opts: RunOptions) -> np.ndarray:
+    """(E,3) positions at which a learned model is asked (``opts.graph.prior_at``): the graph without
+    anything learned ("graph"; its online estimates in incremental mode, so it stays causal), or the
+    WLS track ("wls"); the WLS track (interpolated where it failed) wherever the first has a gap."""
+    at, _ = initial_positions(trace, wls, trace.t_ms.astype(float) / 1000.0)
+    if opts.graph.prior_at == "wls":
+        return at
+    if opts.graph.prior_at != "graph":
+        raise GnssfuseError(f"GraphConfig.prior_at must be 'graph' or 'wls', got {opts.graph.prior_at!r}")
+    first = fuse(trace, wls, opts, want_cov=False)
+    pos = first.info.get("online_pos", first.pos) if opts.graph.incremental else first.pos
+    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at)
+
+
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused-nodnn`` mode: the graph without anything learned."""
     return fuse(trace, wls, opts)
