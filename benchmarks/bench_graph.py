@@ -22,6 +22,7 @@ marginal covariances), ISAM2 milliseconds per epoch, and the per-factor cost.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 import os
 import sys
 import time
@@ -124,6 +125,7 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
     """
     from fusion.io.load import load_trace
     from fusion.estimate.graph.batch import solve_batch
+    from fusion.estimate.graph.priors import LearnedGraphInputs
     from learned.infer import Corrector, calibration
 
     if weights is None:
@@ -151,7 +153,7 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
     for at, out in outs.items():
         for change in grid:
             cfg = GraphConfig(**change)
-            inp = prepare_inputs(trace, wls, cfg, 10.0, lambda tr, g, v: out, prior_guess=guesses[at])
+            inp = prepare_inputs(trace, wls, cfg, 10.0, LearnedGraphInputs(*out))
             pos, valid, _, _ = solve_batch(trace, inp, cfg, want_cov=False)
             m = mode_metrics(trace, ModeResult(pos=pos, valid=valid))
             rb = "none" if change["prior_robust"] == "none" else f"{change['prior_robust']}({change['prior_robust_k']:g})"
@@ -198,7 +200,7 @@ def speed(root: Path, repeats: int) -> list[dict]:
     t_build, (graph, values, _) = best(lambda: build_graph(trace, inp, cfg))
     t_batch, res = best(lambda: fuse(trace, wls, RunOptions(), cfg=cfg, want_cov=False))
     t_cov, res_c = best(lambda: fuse(trace, wls, RunOptions(), cfg=cfg, want_cov=True))
-    t_inc, res_i = best(lambda: fuse(trace, wls, RunOptions(incremental=True), cfg=cfg))
+    t_inc, res_i = best(lambda: fuse(trace, wls, RunOptions(), cfg=replace(cfg, incremental=True)))
     n_f = graph.size()
     it = max(res.info["iterations"], 1)
     us_iter = 1e6 * res.info["solve_s"] / n_f / it

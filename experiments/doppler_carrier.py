@@ -21,6 +21,7 @@ import numpy as np
 from fusion.estimate.graph.fuse import fuse
 from fusion.estimate.wls import solve_wls
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+from fusion.estimate.graph.config import GraphConfig
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate_dataset
 
@@ -45,7 +46,7 @@ def run_scenario(cfg: SimConfig, n_traces: int, n_epochs: int, incremental: bool
         pos["wls"].append(np.linalg.norm(wls.pos - tr.truth, axis=1))
         for name, (d, c) in VARIANTS.items():
             t0 = time.perf_counter()
-            out = fuse(tr, wls, RunOptions(use_doppler=d, use_carrier=c, incremental=incremental), want_cov=False)
+            out = fuse(tr, wls, RunOptions(graph=GraphConfig(use_doppler=d, use_carrier=c, incremental=incremental)), want_cov=False)
             secs[name] += time.perf_counter() - t0
             pos[name].append(np.linalg.norm(out.pos - tr.truth, axis=1))
             vel[name].append(np.linalg.norm(out.info["vel"] - res.rx_vel_mps, axis=1))

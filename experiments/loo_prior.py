@@ -20,6 +20,7 @@ from fusion.geometry import ned_rotation
 from fusion.estimate.graph.batch import solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.estimate.graph.priors import LearnedGraphInputs
 from fusion.io.load import load_trace
 from fusion.eval.metrics import mode_metrics
 from fusion.modes import run_modes, solve_initial
@@ -66,7 +67,7 @@ def main() -> None:
                           ("fused, horizontal-only prior", None)):
         cov_ecef = np.einsum("eji,ejk,ekl->eil", R, down_inflated(c.cov_ned, factor), R)
         prior = (c.mean_ecef, cov_ecef, c.valid)
-        inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, lambda *_: prior, prior_guess=guess)
+        inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, LearnedGraphInputs(*prior))
         pos, valid, _, _ = solve_batch(trace, inp, cfg, want_cov=False)
         rows[label] = ModeResult(pos=pos, valid=valid)
 

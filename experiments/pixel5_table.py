@@ -44,7 +44,7 @@ def main() -> int:
         trace = load_trace(TRACE, min_sats=1, **load_options(base))
         n_truth = int(sum(1 for row in trace.truth if all(v == v for v in row)))
         for label, change in VARIANTS.items():
-            opts = replace(base, **change)
+            opts = replace(base, graph=replace(base.graph, **change))
             modes = ["wls", "fused-nodnn", "fused"] if label == "Doppler + carrier" else ["fused-nodnn", "fused"]
             for mode, res in run_modes(trace, modes, opts).items():
                 m = mode_metrics(trace, res)
