@@ -27,7 +27,7 @@ def isam2(cfg: GraphConfig) -> gtsam.ISAM2:
                             ("u", 3, 1.0), ("q", 1, 1.0), ("i", 1, 1.0)):
         thr.insert((sym, np.full(dim, cfg.isam_relin_threshold * scale)))
     params.setRelinearizeThreshold(thr)
-    params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(cfg.isam_wildfire_m / C_LIGHT))
+    params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(cfg.isam_wildfire_m))
     params.relinearizeSkip = cfg.isam_relin_skip
     return gtsam.ISAM2(params)
 
