@@ -201,9 +201,9 @@ def _unique_rows(t: np.ndarray, sat_id: np.ndarray, v: np.ndarray, keep: np.ndar
     idx = np.flatnonzero(keep)
     df = pd.DataFrame(v[idx][:, [_PR, _VAR, _X, _X + 1, _X + 2, _CN0]]).assign(t=t[idx], sat=sat_id[idx])
     exact = df.duplicated().to_numpy()
-    conflict = ~exact & df.duplicated(["t", "sat"], keep=False).to_numpy()
-    # a conflict group may hold exact repeats too: drop them all
-    conflict |= exact & df.assign(c=conflict).groupby(["t", "sat"])["c"].transform("any").to_numpy()
+    # a (time, satellite) conflicts when its rows hold more than one distinct set of values
+    distinct = df.assign(d=~exact).groupby(["t", "sat"])["d"].transform("sum").to_numpy()
+    conflict = distinct > 1
     count_skip(skipped, "duplicate_rows", exact & ~conflict)
     count_skip(skipped, "conflicting_duplicate_rows", conflict)
     out = np.ones(t.shape, bool)
