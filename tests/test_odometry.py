@@ -147,3 +147,10 @@ def test_odometry_improves_the_graph_on_a_simulated_drive():
     off, on = (run_modes(tr, ["fused-nodnn"], RunOptions(use_odometry=u))["fused-nodnn"] for u in (False, True))
     m_off, m_on = mode_metrics(tr, off), mode_metrics(tr, on)
     assert m_on["h_p50"] < 0.8 * m_off["h_p50"] and m_on["h_p95"] < m_off["h_p95"]
+
+
+def test_odometry_on_a_trace_without_it_is_a_one_line_error(shipped_trace_dir, tmp_path, capsys):
+    from fusion.cli import main
+    assert main(["run", str(shipped_trace_dir), "--mode", "fused-nodnn", "--odometry", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "odometry was asked for" in err and err.strip().count("\n") == 0

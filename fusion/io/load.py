@@ -79,8 +79,9 @@ def trace_name(path: str | Path) -> str:
     """The name :func:`load_trace` gives the trace at ``path``, without reading it (the path itself
     when it is not a loadable trace)."""
     try:
-        if smartloc_input(Path(path)) is not None:
-            return f"{Path(path).parent.name}/{Path(path).name}" if Path(path).is_dir() else str(path)
+        smartloc = smartloc_input(Path(path))
+        if smartloc is not None:
+            return f"{smartloc.parent.parent.name}/{smartloc.parent.name}"
         return _name(*_locate(Path(path)))
     except DataError:
         return str(path)

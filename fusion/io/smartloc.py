@@ -15,8 +15,10 @@ how it maps onto the Trace:
 - Systems 1 / 4 / 8 / 16 / 32 -> GPS L1, GLONASS G1, Galileo E1, QZSS J1, BeiDou B1I (GSDC
   constellation codes 1 / 3 / 6 / 4 / 5); SBAS (2) and unknown codes are skipped and counted.
   GLONASS satellites are numbered 301-324 (slot + 300): the slot is kept.
-- Two lines for one satellite in one epoch: identical ones count as ``duplicate_rows`` (one kept);
-  differing ones are both dropped (``conflicting_duplicate_rows``): nothing tells which is right.
+- One number in two systems in one epoch (GPS PRN 2 and GLONASS 302: 1953 such pairs in Berlin
+  Potsdamer Platz) are two satellites, told apart by the system. True repeats of one satellite in one
+  epoch (none in that drive): identical lines count as ``duplicate_rows`` (one kept); differing ones
+  are all dropped (``conflicting_duplicate_rows``): nothing tells which is right.
 - Non-reference signals (GLONASS against GPS) have one trace-wide inter-system bias removed, measured
   at a reference-signal WLS, so that WLS can use one clock; the graph still estimates what is left
   with a bias state of their own (:mod:`fusion.estimate.graph.isb`).
