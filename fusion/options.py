@@ -43,6 +43,7 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="fused modes: ignore the trace's Doppler (pseudorange rates)")
     p.add_argument("--no-carrier", action="store_true",
                    help="fused modes: ignore the trace's carrier phase (accumulated delta ranges)")
+    p.add_argument("--odometry", action="store_true", help="fused modes: use the trace's vehicle odometry (smartLoc odom3)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
     p.add_argument("--no-learned-sigmas", action="store_true",
@@ -77,6 +78,7 @@ def graph_config(args: argparse.Namespace) -> GraphConfig:
     flags = {"incremental": True} if args.incremental else {}
     flags.update({"use_doppler": False} if args.no_doppler else {})
     flags.update({"use_carrier": False} if args.no_carrier else {})
+    flags.update({"use_odometry": True} if args.odometry else {})
     return replace(cfg, **flags)
 
 

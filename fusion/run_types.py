@@ -47,6 +47,10 @@ class RunOptions:
     def incremental(self) -> bool:
         return self.graph.incremental
 
+    @property
+    def use_odometry(self) -> bool:
+        return self.graph.use_odometry
+
 
 @dataclass
 class ModeResult:

@@ -44,13 +44,15 @@ DISPLACEMENT_SIGMA_M = 3e-3
 class GraphPieces:
     """A whole trace's factors and initial values, each tagged with the epoch that introduces it.
 
-    factors (F,) with factor_epoch (F,); points: (epoch, key, (3,) value); doubles: (epoch, key, value).
+    factors (F,) with factor_epoch (F,); points: (epoch, key, (3,) value); doubles: (epoch, key, value);
+    value_sets: (epoch, gtsam.Values) for values of other types.
     """
 
     factors: list = field(default_factory=list)
     factor_epoch: list = field(default_factory=list)
     points: list = field(default_factory=list)
     doubles: list = field(default_factory=list)
+    value_sets: list = field(default_factory=list)
 
     def add(self, epochs, factors) -> None:
         """Factors (a list) introduced at ``epochs`` (one epoch each, or one int for all)."""
@@ -72,13 +74,15 @@ class GraphPieces:
             vals.insert(key, v)
         for _, key, v in self.doubles:
             vals.insert(key, c=v)          # the keyword picks GTSAM's scalar overload at once
+        for _, vs in self.value_sets:
+            vals.insert(vs)
         return vals
 
     def by_epoch(self) -> tuple[np.ndarray, list[gtsam.NonlinearFactorGraph], list[gtsam.Values]]:
         """Epochs (N,) in order, with each one's factor graph and values (for an incremental smoother)."""
         fe = np.asarray(self.factor_epoch, int)
-        epochs = np.unique(np.concatenate([fe, [p[0] for p in self.points], [d[0] for d in self.doubles]])
-                           ).astype(int)
+        epochs = np.unique(np.concatenate([fe, [p[0] for p in self.points], [d[0] for d in self.doubles],
+                                           [v[0] for v in self.value_sets]])).astype(int)
         pos = {int(k): i for i, k in enumerate(epochs)}
         graphs = [gtsam.NonlinearFactorGraph() for _ in epochs]
         vals = [gtsam.Values() for _ in epochs]
@@ -88,6 +92,8 @@ class GraphPieces:
             vals[pos[k]].insert(key, v)
         for k, key, v in self.doubles:
             vals[pos[k]].insert(key, c=v)
+        for k, vs in self.value_sets:
+            vals[pos[k]].insert(vs)
         return epochs, graphs, vals
 
 
@@ -219,6 +225,15 @@ def add_motion(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.nd
         p.add(k, motion.link_factors(k, lin) if (k > 0 and inp.pos_link[k]) else motion.start_factors(k))
 
 
+def add_odometry(p: GraphPieces, inp: EpochInputs) -> None:
+    """The odometry steps (:mod:`fusion.estimate.graph.odometry`), the heading state with the first."""
+    odo = inp.odometry
+    if odo is None or not len(odo.factors):
+        return
+    p.add(odo.epoch, odo.factors)
+    p.value_sets.append((int(odo.epoch[0]), odo.values))
+
+
 def linearisation_point(inp: EpochInputs, epochs: np.ndarray) -> gtsam.Values:
     """Zeros at every key an exact linear factor may touch (positions, velocities, displacements,
     clocks, drifts): the shared linearisation point of :mod:`fusion.estimate.graph.factors`' linear factors."""
@@ -242,6 +257,7 @@ def graph_pieces(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> GraphPiece
         add_carriers(p, trace, inp, cfg, epochs, lin)
     add_priors(p, inp, cfg, epochs)
     add_motion(p, inp, cfg, epochs, lin)
+    add_odometry(p, inp)
     return p
 
 

@@ -100,6 +100,17 @@ class GraphConfig:
     use_doppler: bool = True
     use_carrier: bool = True
     incremental: bool = False          # ISAM2 epoch by epoch instead of batch Levenberg-Marquardt
+    use_odometry: bool = False         # the trace's vehicle odometry (smartLoc), off in comparisons with phones
+    # Vehicle odometry (use_odometry above; fusion.estimate.graph.odometry), chosen a priori, not
+    # tuned: speed sigma floor [m/s] under the file's variance (wheel speed quantisation, slip); heading
+    # sigma per step [rad] beyond the fitted offset and gyro drift (1.7 deg: the file's turn-rate noise,
+    # 0.002 rad/s, integrated over minutes, doubled); pitch [rad] for slopes the body frame hides (5 %);
+    # priors on the heading state's offset [rad] and gyro bias [rad/s] around the fit to the WLS track.
+    odom_speed_sigma_floor_mps: float = 0.1
+    odom_heading_sigma_rad: float = 0.03
+    odom_pitch_sigma_rad: float = 0.05
+    odom_heading_prior_rad: float = 0.2
+    odom_gyro_bias_prior_radps: float = 0.002
 
 
 def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:

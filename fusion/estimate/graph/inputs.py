@@ -12,6 +12,7 @@ from fusion.errors import GeometryError
 from fusion.estimate.graph.clock import clock_chain
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
+from fusion.estimate.graph.odometry import OdometryFactors, odometry_factors
 from fusion.estimate.graph.priors import LearnedGraphInputs, Priors, clean_priors
 from fusion.estimate.graph.raw_inputs import RawInputs, raw_inputs
 from fusion.estimate.graph.series import interp_rows
@@ -59,6 +60,7 @@ class EpochInputs:
     raw: RawInputs | None = None
     clock_drift_mps: np.ndarray | None = None
     clock_span_s: np.ndarray | None = None
+    odometry: OdometryFactors | None = None
 
 
 def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -195,7 +197,8 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
 
     learned: the learned model's priors and per-measurement noise for the whole trace (None: the
     config's physical models alone). ``cfg.use_doppler`` / ``cfg.use_carrier`` add the trace's Doppler /
-    carrier factors where it has them. Raises :class:`GeometryError` when no epoch has any usable
+    carrier factors where it has them, ``cfg.use_odometry`` its odometry steps
+    (:mod:`fusion.estimate.graph.odometry`). Raises :class:`GeometryError` when no epoch has any usable
     initial position.
     """
     t = trace.t_ms.astype(float) / 1000.0
@@ -228,4 +231,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
         inp.dropped.update(inp.raw.counts)
         if learned is not None and learned.prr_sigma is not None:
             inp.dropped["learned_doppler_sigmas"] = learned_doppler_noise(inp.raw, learned, cfg.prr_sigma_floor_mps)
+    if cfg.use_odometry:
+        inp.odometry = odometry_factors(trace, init_pos, wls_ok, pos_link, comp, keep, cfg)
+        inp.dropped.update(inp.odometry.counts if inp.odometry is not None else {"odometry_steps": 0})
     return inp
