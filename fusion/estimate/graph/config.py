@@ -84,6 +84,11 @@ class GraphConfig:
     # Doppler sigma [m/s] = sqrt((prr_sigma_scale * prr_sigma)^2 + prr_sigma_floor_mps^2).
     prr_sigma_scale: float = 1.0
     prr_sigma_floor_mps: float = 0.05
+    # ... and the reported (or default) sigma grows as 10^((ref - C/N0) / 20) below this C/N0 [dB-Hz]
+    # where the trace has C/N0 (0: off): a phone's Doppler sigma is often a constant that ignores it
+    # (0.1 m/s for every Pixel5 RINEX value). Chosen a priori for weak, reflected city signals; on the
+    # Pixel5 trace (median C/N0 34 dB-Hz) 35 is neutral (3.494 vs 3.489 m), 40 and 45 cost 0.5 % and 3 %.
+    prr_cn0_ref_dbhz: float = 35.0
     # Time-differenced carrier sigma [m] = sqrt(adr_sigma(k-1)^2 + adr_sigma(k)^2 + tdcp_sigma_floor_m^2):
     # the floor covers what differencing leaves (multipath change, iono change over a second).
     tdcp_sigma_floor_m: float = 0.02

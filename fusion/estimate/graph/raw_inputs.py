@@ -48,12 +48,22 @@ class RawInputs:
         return bool((self.tdcp_prev >= 0).any())
 
 
+def cn0_scale(trace: Trace, ref_dbhz: float) -> np.ndarray:
+    """(E,S) factor >= 1 on a measurement's sigma for its C/N0 below ``ref_dbhz``: 10^((ref - C/N0) / 20),
+    the amplitude-noise scaling of a tracking loop (1 where C/N0 is unknown, <= 0, or ``ref_dbhz`` <= 0)."""
+    if trace.cn0 is None or ref_dbhz <= 0:
+        return np.ones(trace.mask.shape)
+    cn0 = np.asarray(trace.cn0, float)
+    return np.where(cn0 > 0, 10.0 ** (np.clip(ref_dbhz - cn0, 0.0, None) / 20.0), 1.0)
+
+
 def doppler_slots(trace: Trace, above: np.ndarray, has_clock: np.ndarray, cfg: GraphConfig,
                   counts: dict) -> tuple[np.ndarray, np.ndarray]:
     """(E,S) bool Doppler slots used and (E,S) their sigmas [m/s]; above (E,S) bool slots over the
     elevation mask, has_clock (E,) bool epochs with a clock variable."""
     ok = trace.mask & trace.prr_ok
-    sigma = np.sqrt((cfg.prr_sigma_scale * trace.prr_sigma) ** 2 + cfg.prr_sigma_floor_mps ** 2)
+    sigma = np.sqrt((cfg.prr_sigma_scale * trace.prr_sigma * cn0_scale(trace, cfg.prr_cn0_ref_dbhz)) ** 2
+                    + cfg.prr_sigma_floor_mps ** 2)
     bad_sigma = ok & ~(np.isfinite(sigma) & (sigma > 0))
     count_skip(counts, "doppler_bad_sigma", bad_sigma)
     # a zero satellite velocity means "unknown" in a Trace: a Doppler factor would then silently
