@@ -508,3 +508,23 @@ def test_fused_feeds_the_network_the_runs_elevation_mask(trace, wls, tmp_path, m
     run_modes(trace, ["dnn", "fused"], RunOptions(weights=ckpt, elev_mask_deg=17.0), wls=wls)
     # dnn once, fused once for its prior and its slot noise: both with the run's mask
     assert seen == [17.0, 17.0]
+
+
+def test_an_outage_is_flagged_as_bridged_with_its_length(trace, wls):
+    """Epochs with < 4 satellites carried by the motion model are counted, timed and flagged per epoch,
+    and their sigmas grow through the outage."""
+    import dataclasses
+
+    mask = trace.mask.copy()
+    keep = np.cumsum(mask[40:50], axis=1) <= 2                 # 10 epochs with 2 satellites
+    mask[40:50] &= keep
+    tr = dataclasses.replace(trace, mask=mask)
+    res = fuse(tr, solve_wls(tr), RunOptions())
+    assert res.info["epochs_bridged"] == 10 and res.info["bridged"][40:50].all()
+    assert not res.info["bridged"][:40].any() and not res.info["bridged"][50:].any()
+    dt = np.diff(tr.t_ms[[39, 50]]).item() / 1000.0
+    assert res.info["longest_bridge_s"] == pytest.approx(dt)
+    sd = np.sqrt(np.trace(res.cov, axis1=1, axis2=2))
+    assert sd[45] > 2 * sd[20]
+    from fusion.io.estimates import estimates_frame
+    assert estimates_frame(tr, res)["bridged"].sum() == 10

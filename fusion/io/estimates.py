@@ -1,4 +1,8 @@
-"""What ``gnssfuse run`` and ``evaluate`` write per (trace, mode): ``estimates.csv`` and ``metrics.json``."""
+"""What ``gnssfuse run`` and ``evaluate`` write per (trace, mode): ``estimates.csv`` and ``metrics.json``.
+
+``estimates.csv`` columns: :data:`ESTIMATE_COLUMNS`, then :data:`SIGMA_COLUMNS` for modes with a covariance,
+then ``bridged`` (0/1) for the graph modes: 1 where fewer than 4 satellites and no prior determined the epoch.
+"""
 from __future__ import annotations
 
 import json
@@ -37,6 +41,10 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
         sig = ned_sigmas(pos, np.asarray(result.cov, float)[ok])
         for i, name in enumerate(SIGMA_COLUMNS):
             frame[name] = sig[:, i]
+    bridged = result.info.get("bridged")
+    if isinstance(bridged, np.ndarray) and bridged.shape == ok.shape:
+        # 1: fewer than 4 satellites and no prior, the motion model carried the epoch
+        frame["bridged"] = bridged[ok].astype(int)
     return frame
 
 
