@@ -18,7 +18,7 @@ import pandas as pd
 
 from fusion.eval import plots
 from fusion.eval.metrics import summarize
-from fusion.eval.summary import DATUM
+from fusion.eval.summary import DATUM, skip_words
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 
@@ -196,6 +196,25 @@ FIG_CAPTIONS = {
 }
 
 
+def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:
+    """report.md's section of one trace: what WLS did, its estimates and its figures (kind -> link)."""
+    lines = [f"## {ev.trace.name}", ""]
+    if ev.wls_reasons:
+        lines += [f"WLS epochs not solved, by reason: {skip_words(ev.wls_reasons)}", ""]
+    if ev.wls_counts:
+        c = ev.wls_counts
+        lines += [f"WLS fault detection and exclusion: {c['excluded_measurements']} measurements excluded "
+                  f"in {c['epochs_with_exclusions']} epochs; {c['epochs_fault_undecided']} epochs where the "
+                  f"test could not decide (kept, Huber-weighted); {c['epochs_clock_predicted']} three-satellite "
+                  "epochs solved with the clock interpolated from their neighbours.", ""]
+    if not ev.errors:
+        lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
+    lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
+    for kind, link in figs.items():
+        lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({link})", ""]
+    return lines
+
+
 def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], figs: dict,
                     modes: list[str], opts: RunOptions, argv: list[str],
                     load_failures: dict[str, str]) -> Path:
@@ -234,21 +253,7 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
         for kind, p in figs[ALL].items():
             lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
     for ev in evals:
-        lines += [f"## {ev.trace.name}", ""]
-        if ev.wls_reasons:
-            lines += ["WLS epochs not solved, by reason: "
-                      + ", ".join(f"{k} {v}" for k, v in ev.wls_reasons.items()), ""]
-        if ev.wls_counts:
-            c = ev.wls_counts
-            lines += [f"WLS fault detection and exclusion: {c['excluded_measurements']} measurements excluded "
-                      f"in {c['epochs_with_exclusions']} epochs; {c['epochs_fault_undecided']} epochs where the "
-                      f"test could not decide (kept, Huber-weighted); {c['epochs_clock_predicted']} three-satellite "
-                      "epochs solved with the clock interpolated from their neighbours.", ""]
-        if not ev.errors:
-            lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
-        lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
-        for kind, p in figs.get(ev.slug, {}).items():
-            lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
+        lines += _trace_section(ev, {k: rel(p) for k, p in figs.get(ev.slug, {}).items()})
     lines += [f"CDF x-axes and error-vs-time y-axes stop at the {plots.CDF_CLIP_PCT:g}th percentile of the "
               "pooled errors (the curves use every epoch; each panel states how many points lie beyond). "
               "Box plots: box Q1–Q3 with the median, whiskers at 1.5×IQR, outliers as dots; outliers beyond the "

@@ -7,7 +7,7 @@ pseudorange = |sagnac_rotate(sat_pos, rx) - rx| + receiver clock + noise (+ NLOS
 
 The pseudorange is the *corrected* one of :class:`fusion.trace.Trace` (satellite clock, iono,
 tropo already removed), so WLS, features and the graph consume simulated and real traces alike.
-:func:`fusion.io.gsdc_write.write_gsdc2021` saves a result in the GSDC 2021 derived format with ``satClkBiasM``,
+:func:`fusion.io.gsdc_write.write_gsdc2021` saves a result in the GSDC 2021 format with ``satClkBiasM``,
 ``ionoDelayM`` and ``tropoDelayM`` filled consistently, so that
 ``rawPrM + satClkBiasM - isrbM - ionoDelayM - tropoDelayM`` gives back the simulated
 pseudorange (to the file's millimetre rounding).
