@@ -24,9 +24,14 @@ def checksum(body: str) -> str:
     return f"{reduce(lambda a, b: a ^ b, body.encode('ascii'), 0):02X}"
 
 
-def sentence(body: str) -> str:
-    """``$body*hh``."""
-    return f"${body}*{checksum(body)}"
+def sentences(bodies: list[str]) -> list[str]:
+    """``$body*hh`` for each body, the checksums computed at once over an (N, L) byte matrix
+    (zero-padded: 0 is neutral for XOR)."""
+    if not bodies:
+        return []
+    raw = np.array([b.encode("ascii") for b in bodies])
+    xor = np.bitwise_xor.reduce(raw.view(np.uint8).reshape(len(bodies), -1), axis=1)
+    return [f"${b}*{x:02X}" for b, x in zip(bodies, xor.tolist())]
 
 
 def _angle(deg: np.ndarray, width: int, hemis: str) -> tuple[list[str], np.ndarray]:
@@ -42,18 +47,17 @@ def _angle(deg: np.ndarray, width: int, hemis: str) -> tuple[list[str], np.ndarr
 
 def nmea_lines(frame: pd.DataFrame) -> list[str]:
     """Two sentences (GGA, RMC) per row of ``frame`` (gps_millis, lat_deg, lon_deg, height_m[, n_sats])."""
-    utc = pd.to_datetime(gps_ms_to_unix_ms(frame["gps_millis"].to_numpy()), unit="ms")
-    hms = utc.strftime("%H%M%S.%f").str[:-3]
-    dmy = utc.strftime("%d%m%y")
+    iso = np.datetime_as_string(gps_ms_to_unix_ms(frame["gps_millis"].to_numpy()).astype("datetime64[ms]"),
+                                unit="ms").tolist()                    # 'YYYY-MM-DDTHH:MM:SS.mmm', UTC
     lat, ns = _angle(frame["lat_deg"].to_numpy(float), 2, "NS")
     lon, ew = _angle(frame["lon_deg"].to_numpy(float), 3, "EW")
-    n_sats = frame["n_sats"].to_numpy() if "n_sats" in frame else np.zeros(len(frame), int)
-    lines = []
-    for i, h in enumerate(frame["height_m"].tolist()):
-        pos = f"{lat[i]},{ns[i]},{lon[i]},{ew[i]}"
-        lines.append(sentence(f"{TALKER}GGA,{hms[i]},{pos},1,{int(n_sats[i]):02d},,{h:.3f},M,0.000,M,,"))
-        lines.append(sentence(f"{TALKER}RMC,{hms[i]},A,{pos},,,{dmy[i]},,,A"))
-    return lines
+    n_sats = (frame["n_sats"] if "n_sats" in frame else pd.Series(0, index=frame.index)).astype(int).tolist()
+    bodies = []
+    for t, la, n, lo, e, h, k in zip(iso, lat, ns.tolist(), lon, ew.tolist(), frame["height_m"].tolist(), n_sats):
+        hms, dmy = t[11:13] + t[14:16] + t[17:23], t[8:10] + t[5:7] + t[2:4]
+        pos = f"{la},{n},{lo},{e}"
+        bodies += [f"{TALKER}GGA,{hms},{pos},1,{k:02d},,{h:.3f},M,0.000,M,,", f"{TALKER}RMC,{hms},A,{pos},,,{dmy},,,A"]
+    return sentences(bodies)
 
 
 def write_nmea(frame: pd.DataFrame, path: Path, name: str = "") -> Path:
