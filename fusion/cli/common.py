@@ -14,7 +14,7 @@ def _make_folder(folder: Path, what: str) -> None:
     """mkdir -p ``folder``; a :class:`GnssfuseError` starting with ``what`` when it cannot be made."""
     try:
         folder.mkdir(parents=True, exist_ok=True)
-    except FileExistsError:
+    except (FileExistsError, NotADirectoryError):
         raise GnssfuseError(f"{what}: {folder} or a folder above it is a file, not a folder") from None
     except OSError as exc:
         raise GnssfuseError(f"{what}: cannot create {folder} ({exc.strerror or exc})") from None
