@@ -220,6 +220,43 @@ def test_plots_handle_outliers_and_empty_input(tmp_path):
     assert en[1, 0] == pytest.approx(0.0, abs=1e-3) and en[1, 1] == pytest.approx(110.96, abs=0.5)
 
 
+def test_zooms_go_to_the_worst_separate_stretches(tmp_path, monkeypatch):
+    from fusion.eval import plots
+
+    t = np.arange(300.0)
+    score = np.ones(300)
+    score[[50, 55, 200, 120]] = [90.0, 80.0, 70.0, 60.0]     # 55 lies inside 50's zoom: not a second zoom
+    assert plots.worst_stretches(t, score, n=3, half_s=15.0) == [50, 200, 120]
+    assert plots.worst_stretches(t, np.full(300, np.nan)) == []
+    # the score is the largest horizontal error of any mode: a mode 40 m east at epoch 7 is the worst
+    llh = np.c_[37.0 + 1e-5 * np.arange(20), np.full(20, -122.0), np.zeros(20)]
+    truth = geodetic2ecef(llh)
+    off = truth.copy()
+    off[7] += ned2ecef_vec(np.array([0.0, 40.0, 0.0]), truth[7])
+    score = plots._stretch_score({"a": truth + 1.0, "b": off}, truth)
+    assert int(np.argmax(score)) == 7 and score[7] == pytest.approx(40.0, abs=2.0)
+    drawn = []
+    monkeypatch.setattr(plots, "_trajectory_panels", lambda *a: drawn.append(a[8]))
+    plots.plot_trajectories({"a": truth + 1.0, "b": off}, truth, tmp_path / "t.png", t_s=np.arange(20.0), n_zoom=2,
+                            zoom_half_s=2.0)
+    assert [k for k, _ in drawn[0]][0] == 7
+
+
+def test_error_vs_time_draws_one_row_per_mode(tmp_path, monkeypatch):
+    from fusion.eval import plots
+
+    saved = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: saved.append(fig) or path)
+    errors = {m: np.random.default_rng(i).normal(size=(50, 3)) for i, m in enumerate(["wls", "dnn", "fused"])}
+    plots.plot_error_vs_time(np.arange(50.0), errors, tmp_path / "x.png")
+    axes = saved[0].axes
+    assert len(axes) == 6 and [ax.get_ylabel() for ax in axes[::2]] == ["wls", "dnn", "fused"]
+    # each panel: its own mode in colour on top, every other mode in grey
+    for ax in axes:
+        colours = [line.get_color() for line in ax.get_lines()]
+        assert colours.count("0.8") == 2 and len(colours) == 3
+
+
 # ---------------------------------------------------------------- benchmarks/run_all.py
 def _run_all():
     spec = importlib.util.spec_from_file_location("run_all", REPO / "benchmarks" / "run_all.py")

@@ -7,7 +7,7 @@ import importlib
 import sys
 from pathlib import Path
 
-from fusion.errors import GnssfuseError
+from fusion.errors import GnssfuseError, ModeUnavailableError
 
 
 def _make_folder(folder: Path, what: str) -> None:
@@ -41,9 +41,14 @@ def out_file(path: Path, option: str = "--out") -> Path:
 
 
 def call(target: str, *args, **kwargs):
-    """Import ``"module:function"`` and call it (how a subcommand reaches ``learned``)."""
+    """Import ``"module:function"`` and call it (how a subcommand reaches ``learned``); a missing
+    module (e.g. torch not installed) is a one-line :class:`ModeUnavailableError`."""
     module, func = target.split(":")
-    return getattr(importlib.import_module(module), func)(*args, **kwargs)
+    try:
+        mod = importlib.import_module(module)
+    except ImportError as exc:
+        raise ModeUnavailableError(f"cannot import {module} ({exc})") from exc
+    return getattr(mod, func)(*args, **kwargs)
 
 
 def show_progress(asked: bool = True) -> bool:

@@ -247,7 +247,7 @@ def _trajectory_panels(fig, grid, ax, positions, truth, origin, t, max_gap_s, zo
         zax.set_aspect("equal", adjustable="datalim")
         zax.grid(alpha=0.3)
         zax.tick_params(labelsize=7)
-        worst = "horizontal error" if truth is not None else "distance between modes"
+        worst = "horizontal error" if truth is not None else "distance from the modes' median"
         zax.set_title(f"{'ABCDEFGH'[i]}: t = {t[k] - zoom_half_s:.0f}..{t[k] + zoom_half_s:.0f} s, largest "
                       f"{worst} {worst_m:.0f} m", fontsize=9)
 

@@ -8,7 +8,6 @@ does). Fix quality 1 (autonomous GPS) for every mode; HDOP, speed and course are
 """
 from __future__ import annotations
 
-from functools import reduce
 from pathlib import Path
 
 import numpy as np
@@ -19,11 +18,6 @@ from fusion.gpstime import gps_ms_to_unix_ms
 TALKER = "GN"    # any constellation
 
 
-def checksum(body: str) -> str:
-    """Two hex digits: the XOR of the bytes between ``$`` and ``*``."""
-    return f"{reduce(lambda a, b: a ^ b, body.encode('ascii'), 0):02X}"
-
-
 def sentences(bodies: list[str]) -> list[str]:
     """``$body*hh`` for each body, the checksums computed at once over an (N, L) byte matrix
     (zero-padded: 0 is neutral for XOR)."""
@@ -32,6 +26,11 @@ def sentences(bodies: list[str]) -> list[str]:
     raw = np.array([b.encode("ascii") for b in bodies])
     xor = np.bitwise_xor.reduce(raw.view(np.uint8).reshape(len(bodies), -1), axis=1)
     return [f"${b}*{x:02X}" for b, x in zip(bodies, xor.tolist())]
+
+
+def checksum(body: str) -> str:
+    """Two hex digits: the XOR of the bytes between ``$`` and ``*``."""
+    return sentences([body])[0][-2:]
 
 
 def _angle(deg: np.ndarray, width: int, hemis: str) -> tuple[list[str], np.ndarray]:
