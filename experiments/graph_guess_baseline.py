@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from fusion.eval.metrics import ned_errors
 from learned.data import split_blocks
-from learned.train_cli import load_training_data
+from learned.train_command import load_training_data
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 D = SHARED / "gsdc2021" / "train"
 s, _ = load_training_data(["sim", "sim-bias", f"{D}/2020-05-14-US-MTV-1/Pixel4", f"{D}/2020-06-05-US-MTV-1/Pixel4"],

@@ -1,4 +1,5 @@
-"""``gnssfuse evaluate``: compare modes on one or more traces and write a report folder.
+"""The evaluate job: compare modes on one or more traces and write a report folder (the command
+line is :mod:`fusion.cli.evaluate`).
 
 Every requested mode (``--modes``, any name in :data:`fusion.modes.MODES`) is run on the same trace
 and the same WLS solution (:func:`fusion.modes.run_modes`), so a new mode can be requested here with
@@ -7,24 +8,22 @@ is in :mod:`fusion.eval.report`.
 """
 from __future__ import annotations
 
-import argparse
 import re
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from fusion.options import add_run_options, load_options, options_from_args
+from fusion.options import load_options
 from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.wls import WlsResult, wls_counts
 from fusion.eval.metrics import mode_metrics, trace_errors
-from fusion.eval.report import (ALL, TraceEval, markdown_table, metrics_table, write_figures,
-                                write_report_md, write_trace_figures)
+from fusion.eval.report import (TraceEval, markdown_table, metrics_table, write_figures, write_report_md,
+                                write_trace_figures)
 from fusion.io.estimates import write_outputs
 from fusion.io.load import load_trace, trace_name
-from fusion.modes import MODES, get_mode, run_modes, solve_initial
+from fusion.modes import get_mode, run_modes, solve_initial
 from fusion.parallel import guarded, map_traces
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
@@ -124,24 +123,6 @@ def _input_bytes(trace_dir: Path) -> int:
         return 0
 
 
-# ---------------------------------------------------------------------------- CLI
-def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description="Compare modes on traces: tables, CDFs, box "
-                                "plots, trajectories and report.md.")
-    p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR",
-                   help="<collection>/<phone> folders (GSDC 2021 derived, 2022/23 device_gnss, RINEX obs or "
-                   "GnssLogger log)")
-    p.add_argument("--modes", default="wls", help=f"comma-separated, from {','.join(MODES)}")
-    p.add_argument("--out", type=Path, required=True, help="report folder")
-    add_run_options(p)
-    p.add_argument("--max-epochs", type=int, default=None,
-                   help="use only the first N epochs of each trace (quick looks, tests)")
-    p.add_argument("--no-progress", action="store_true", help="no tqdm progress bars")
-    p.add_argument("--jobs", type=int, default=1,
-                   help="traces in this many parallel processes (one thread each; default 1)")
-    return p
-
-
 def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
              max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
              argv: list[str] | None = None, jobs: int = 1) -> tuple[pd.DataFrame, dict[str, str]]:
@@ -172,27 +153,3 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     figs = write_figures(evals, out_dir / "figures", jobs)
     write_report_md(out_dir, df, evals, figs, modes, opts, argv or [], failures)
     return df, failures
-
-
-def main(argv: list[str], prog: str = "gnssfuse evaluate") -> int:
-    args = build_parser(prog).parse_args(argv)
-    opts = options_from_args(args)
-    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
-    if not modes:
-        raise GnssfuseError("--modes is empty")
-    df, failures = evaluate(args.trace_dirs, modes, args.out, opts, max_epochs=args.max_epochs,
-                            fix_truth_height=not args.no_truth_height_fix,
-                            progress=not args.no_progress, argv=argv, jobs=args.jobs)
-    print(markdown_table(df))
-    print(f"wrote {args.out / 'report.md'}, metrics.csv, metrics.md and figures/")
-    # The report for the good part is written; still exit non-zero so scripts notice the rest.
-    for path, msg in failures.items():
-        print(f"{prog}: error: could not evaluate {path}: {msg}", file=sys.stderr)
-    bad_modes = df[df.status.str.startswith("failed") & (df.trace != ALL)]
-    for r in bad_modes.itertuples(index=False):
-        print(f"{prog}: error: mode {r.mode} on {r.trace}: {r.status}", file=sys.stderr)
-    return 2 if failures or len(bad_modes) else 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main(sys.argv[1:]))

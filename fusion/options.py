@@ -1,6 +1,8 @@
-"""The run options as command-line flags, shared by ``gnssfuse run`` and ``gnssfuse evaluate``.
+"""Command-line flags defined once for every subcommand that takes them: the run options (``gnssfuse
+run`` and ``evaluate``), the navigation sources (``run``, ``evaluate`` and ``train``) and the trace
+folder argument.
 
-Apart from the dispatcher (:mod:`fusion.cli`) so that the ``evaluate`` job, which worker processes
+Apart from the subcommands (:mod:`fusion.cli`) so that the ``evaluate`` job, which worker processes
 preload, does not import the module the command line runs as ``__main__``.
 """
 from __future__ import annotations
@@ -16,13 +18,14 @@ from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, resolve_signals
 
 
-def add_run_options(p: argparse.ArgumentParser) -> None:
-    """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
-    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
-    p.add_argument("--signals", default=None,
-                   help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
-                        "too), or all; default GPS_L1 for GSDC files, every signal with ephemerides "
-                        "for RINEX / GnssLogger logs")
+#: What a trace folder may hold (the positional argument of ``run`` and ``evaluate``).
+TRACE_DIR_HELP = ("a <collection>/<phone> folder (GSDC 2021 derived, 2022/23 device_gnss, or a RINEX "
+                  "observation file / GnssLogger log, directly or in supplemental/)")
+
+
+def add_nav_options(p: argparse.ArgumentParser) -> None:
+    """``--nav``, ``--sp3``, ``--clk``: where RINEX / GnssLogger traces get their satellite orbits and
+    clocks (read by :func:`options_from_args`, or by ``gnssfuse train`` as they are)."""
     p.add_argument("--nav", type=Path, nargs="+", default=(), metavar="FILE",
                    help="RINEX / GnssLogger traces: broadcast navigation file(s) (RINEX 2 .YYn/.YYg, "
                         "RINEX 3 *_MN.rnx; default: those in the trace folder or supplemental/)")
@@ -30,6 +33,16 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="RINEX / GnssLogger traces: precise orbits (SP3) instead of broadcast ones")
     p.add_argument("--clk", type=Path, default=None, metavar="FILE",
                    help="with --sp3: precise satellite clocks (RINEX clock file)")
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
+    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
+    p.add_argument("--signals", default=None,
+                   help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
+                        "too), or all; default GPS_L1 for GSDC files, every signal with ephemerides "
+                        "for RINEX / GnssLogger logs")
+    add_nav_options(p)
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true",
@@ -44,7 +57,7 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-carrier", action="store_true",
                    help="fused modes: ignore the trace's carrier phase (accumulated delta ranges)")
     p.add_argument("--odometry", action="store_true", help="fused modes: use the trace's vehicle odometry (smartLoc odom3)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="torch device of the network (dnn, fused; default cpu)")
     p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
     p.add_argument("--no-learned-sigmas", action="store_true",
                    help="fused: without the per-satellite head's pseudorange sigmas and biases")

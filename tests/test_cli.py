@@ -50,3 +50,108 @@ def test_learned_part_flags_reach_the_run_options():
         pass
     else:
         raise AssertionError("--dnn-output direct was accepted")
+
+
+# ---------------------------------------------------------------- what a new user meets
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import json  # noqa: E402
+
+import pytest  # noqa: E402
+
+
+def _parsers():
+    for name, (target, _) in COMMANDS.items():
+        module = importlib.import_module(target.split(":")[0])
+        yield name, module.build_parser(f"gnssfuse {name}")
+
+
+def test_every_option_of_every_subcommand_has_help():
+    missing = [f"{name} {a.option_strings or a.dest}" for name, p in _parsers() for a in p._actions
+               if not isinstance(a, argparse._HelpAction) and not (a.help or "").strip()]
+    assert not missing, missing
+
+
+def test_every_subcommand_module_is_in_the_cli_package():
+    assert all(target.startswith("fusion.cli.") for target, _ in COMMANDS.values())
+
+
+def test_version(capsys):
+    assert main(["--version"]) == 0
+    out = capsys.readouterr().out.strip()
+    assert out.startswith("gnssfuse ") and len(out.split()) == 2
+
+
+def test_train_help_and_bad_options_do_not_import_torch():
+    code = ("import sys\nfrom fusion.cli import main\n"
+            "try:\n    main(['train', '--help'])\nexcept SystemExit:\n    pass\n"
+            "print('torch' in sys.modules, 'learned' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert proc.stdout.split()[-2:] == ["False", "False"] and "--guess-mix" in proc.stdout
+
+
+def test_train_parser_matches_the_learned_side():
+    from fusion.cli.train import OUTPUTS, build_parser
+    from learned.features import CHANNELS
+    from learned.forward import OUTPUTS as learned_outputs
+
+    assert OUTPUTS == learned_outputs
+    inputs_help = next(a.help for a in build_parser()._actions if a.dest == "inputs")
+    assert ",".join(CHANNELS) in inputs_help
+
+
+@pytest.mark.parametrize("cmd", ["run", "evaluate", "simulate"])
+def test_out_that_is_a_file_names_out(cmd, shipped_trace_dir, tmp_path, capsys):
+    blocker = tmp_path / "taken"
+    blocker.write_text("a file")
+    args = {"run": [str(shipped_trace_dir)], "evaluate": [str(shipped_trace_dir)], "simulate": ["--epochs", "5"]}[cmd]
+    assert main([cmd, *args, "--out", str(blocker)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"--out {blocker}: is a file" in err and "Errno" not in err
+
+
+def test_train_out_that_is_a_folder_names_out(tmp_path, capsys):
+    assert main(["train", "--data", "toy", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and f"--out {tmp_path}: is a folder" in err
+
+
+def test_out_under_a_file_names_out(shipped_trace_dir, tmp_path, capsys):
+    blocker = tmp_path / "taken"
+    blocker.write_text("a file")
+    assert main(["run", str(shipped_trace_dir), "--out", str(blocker / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert f"--out {blocker / 'sub'}" in err and "Errno" not in err
+
+
+def _no_truth_copy(trace_dir, tmp_path):
+    d = tmp_path / "2099-01-01-NO-TRUTH" / "Pixel4"
+    d.mkdir(parents=True)
+    for f in trace_dir.glob("*_derived.csv*"):
+        (d / f.name).write_bytes(f.read_bytes())
+    return d
+
+
+def test_run_without_truth_writes_metrics_json(shipped_trace_dir, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(_no_truth_copy(shipped_trace_dir, tmp_path)), "--out", str(out)]) == 0
+    rec = json.loads((out / "metrics.json").read_text())
+    assert rec["metrics"] is None and rec["epochs_solved"] > 0 and rec["epochs_total"] >= rec["epochs_solved"]
+    assert "excluded_measurements" in rec["info"] and rec["skipped"] == {}
+    printed = capsys.readouterr().out
+    assert "skipped while loading: nothing" in printed and "metrics.json" in printed
+
+
+def test_skip_counts_print_as_words():
+    from fusion.eval.summary import skip_words
+
+    assert skip_words({}) == "nothing"
+    assert skip_words({"rows_nonnumeric:rawPrM": 2, "conflicting_duplicate_rows": 84, "zero": 0}) == \
+        "84 conflicting duplicate rows, 2 rows nonnumeric (rawPrM)"
+
+
+def test_no_escape_codes_when_stderr_is_not_a_terminal(shipped_trace_dir, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "fusion.cli", "evaluate", str(shipped_trace_dir), "--modes", "wls",
+                           "--max-epochs", "30", "--out", str(tmp_path / "r")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "\x1b" not in proc.stderr + proc.stdout and "\r" not in proc.stderr + proc.stdout

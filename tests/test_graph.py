@@ -324,7 +324,7 @@ def test_cli_keeps_and_fused_solves_two_satellite_epochs(shipped_trace_dir, tmp_
 
     import pandas as pd
 
-    from fusion.cli import run_main as main
+    from fusion.cli.run import main
 
     if not shipped_trace_dir.is_dir():
         pytest.skip("shipped trace not present")

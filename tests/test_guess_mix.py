@@ -21,7 +21,7 @@ from learned.toy import toy_dataset, toy_trace
 from learned.calibrate import sigma_scale
 from learned.context import context_wls
 from learned.train import TrainConfig, train
-from learned.train_cli import main
+from fusion.cli.train import main
 
 
 def test_parse_guess_mix_normalises_and_rejects_bad_text():
@@ -217,7 +217,7 @@ def test_cli_guess_mix_and_bias_source(tmp_path, capsys):
 
 
 def test_load_training_data_sources():
-    from learned.train_cli import load_training_data
+    from learned.train_command import load_training_data
 
     s, desc = load_training_data(["toy", "toy-bias"], sim_traces=2, sim_epochs=20, seed=3, elev_mask_deg=10.0)
     assert len(s.names) == 4 and desc["toy"]["seed"] == 3 and desc["toy-bias"]["seed"] == 4

@@ -292,7 +292,7 @@ def test_shipped_weights_load_run_and_match_training_md(shipped_trace_dir):
                      f"--sim-epochs {cfg['data']['sim']['epochs_per_trace']}"):
             assert f" {flag} " in command, flag
     # the new options appear when they differ from the CLI defaults
-    from learned.train_cli import DEFAULT_INPUTS
+    from learned.train_command import DEFAULT_INPUTS
     if ",".join(cfg["features"]["inputs"]) != DEFAULT_INPUTS:
         assert f" --inputs {','.join(cfg['features']['inputs'])} " in command
     if cfg["output"] != "wls":

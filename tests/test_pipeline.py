@@ -81,7 +81,7 @@ def test_missing_column_exits_2_naming_it(shipped_trace_dir, tmp_path, capsys):
 
 
 def test_signal_names_accept_2023_spellings_and_all():
-    from fusion.cli import build_run_parser as build_parser
+    from fusion.cli.run import build_parser
     from fusion.options import options_from_args
     from fusion.trace import SIGNALS
 
@@ -93,7 +93,7 @@ def test_signal_names_accept_2023_spellings_and_all():
 def test_signals_all_any_case():
     """Regression: ``--signals ALL`` (or "all" among other names) used to be an unknown signal."""
     from fusion.errors import GnssfuseError
-    from fusion.cli import build_run_parser as build_parser
+    from fusion.cli.run import build_parser
     from fusion.options import options_from_args
     from fusion.trace import SIGNALS
 

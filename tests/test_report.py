@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
 import sys
 import types
@@ -50,7 +51,7 @@ def test_report_writes_tables_figures_and_report_md(wls_report):
     figs = sorted((out / "figures").glob("*.png"))
     kinds = {p.stem.rsplit("_", 1)[-1] for p in figs}
     assert kinds == {"cdf", "box", "traj", "time"}
-    assert {"all_cdf.png", "all_box.png"} <= {p.name for p in figs}
+    assert not any(p.name.startswith("all_") for p in figs)      # one trace: no pooled figures
     for p in figs:
         assert p.read_bytes()[:8] == PNG_MAGIC and p.stat().st_size > 5000, p
     # report.md links every figure with a relative path that resolves, and links nothing missing
@@ -109,7 +110,8 @@ def test_trace_without_truth_still_writes_estimates(tmp_path, shipped_trace_dir)
     assert rc == 0
     est = pd.read_csv(out / "2099-01-01-NO-TRUTH_Pixel4" / "wls" / "estimates.csv")
     assert len(est) > 50 and np.isfinite(est[["x_m", "y_m", "z_m"]].to_numpy()).all()
-    assert not (out / "2099-01-01-NO-TRUTH_Pixel4" / "wls" / "metrics.json").exists()
+    rec = json.loads((out / "2099-01-01-NO-TRUTH_Pixel4" / "wls" / "metrics.json").read_text())
+    assert rec["metrics"] is None and rec["epochs_solved"] == len(est) and "excluded_measurements" in rec["info"]
     table = pd.read_csv(out / "metrics.csv")
     assert table.status.str.startswith("no truth").all()
     assert table[METRIC_KEYS].isna().all().all()
@@ -150,8 +152,8 @@ def test_a_pooled_figure_that_fails_is_a_warning_not_a_lost_report(tmp_path, shi
     monkeypatch.setitem(report.POOLED, "box", broken)
     out = tmp_path / "out"
     with pytest.warns(UserWarning, match=r"all_box\.png: not drawn: RuntimeError: no room to draw"):
-        rc = cli.main(["evaluate", str(_need(shipped_trace_dir)), "--modes", "wls", "--out", str(out),
-                       "--max-epochs", "100", "--no-progress"])
+        d = str(_need(shipped_trace_dir))          # twice: pooled figures need two traces
+        rc = cli.main(["evaluate", d, d, "--modes", "wls", "--out", str(out), "--max-epochs", "100", "--no-progress"])
     assert rc == 0
     assert (out / "figures" / "all_cdf.png").is_file() and not (out / "figures" / "all_box.png").exists()
     assert "all_cdf.png" in (out / "report.md").read_text()
@@ -216,6 +218,43 @@ def test_plots_handle_outliers_and_empty_input(tmp_path):
     en = plots.local_east_north(geodetic2ecef(np.array([[37.0, -122.0, 0.0], [37.001, -122.0, 0.0]])),
                                 geodetic2ecef(np.array([37.0, -122.0, 0.0])))
     assert en[1, 0] == pytest.approx(0.0, abs=1e-3) and en[1, 1] == pytest.approx(110.96, abs=0.5)
+
+
+def test_zooms_go_to_the_worst_separate_stretches(tmp_path, monkeypatch):
+    from fusion.eval import plots
+
+    t = np.arange(300.0)
+    score = np.ones(300)
+    score[[50, 55, 200, 120]] = [90.0, 80.0, 70.0, 60.0]     # 55 lies inside 50's zoom: not a second zoom
+    assert plots.worst_stretches(t, score, n=3, half_s=15.0) == [50, 200, 120]
+    assert plots.worst_stretches(t, np.full(300, np.nan)) == []
+    # the score is the largest horizontal error of any mode: a mode 40 m east at epoch 7 is the worst
+    llh = np.c_[37.0 + 1e-5 * np.arange(20), np.full(20, -122.0), np.zeros(20)]
+    truth = geodetic2ecef(llh)
+    off = truth.copy()
+    off[7] += ned2ecef_vec(np.array([0.0, 40.0, 0.0]), truth[7])
+    score = plots._stretch_score({"a": truth + 1.0, "b": off}, truth)
+    assert int(np.argmax(score)) == 7 and score[7] == pytest.approx(40.0, abs=2.0)
+    drawn = []
+    monkeypatch.setattr(plots, "_trajectory_panels", lambda *a: drawn.append(a[8]))
+    plots.plot_trajectories({"a": truth + 1.0, "b": off}, truth, tmp_path / "t.png", t_s=np.arange(20.0), n_zoom=2,
+                            zoom_half_s=2.0)
+    assert [k for k, _ in drawn[0]][0] == 7
+
+
+def test_error_vs_time_draws_one_row_per_mode(tmp_path, monkeypatch):
+    from fusion.eval import plots
+
+    saved = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: saved.append(fig) or path)
+    errors = {m: np.random.default_rng(i).normal(size=(50, 3)) for i, m in enumerate(["wls", "dnn", "fused"])}
+    plots.plot_error_vs_time(np.arange(50.0), errors, tmp_path / "x.png")
+    axes = saved[0].axes
+    assert len(axes) == 6 and [ax.get_ylabel() for ax in axes[::2]] == ["wls", "dnn", "fused"]
+    # each panel: its own mode in colour on top, every other mode in grey
+    for ax in axes:
+        colours = [line.get_color() for line in ax.get_lines()]
+        assert colours.count("0.8") == 2 and len(colours) == 3
 
 
 # ---------------------------------------------------------------- benchmarks/run_all.py

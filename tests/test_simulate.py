@@ -9,7 +9,9 @@ from fusion.errors import DataError, GeometryError
 from fusion.geometry import ecef2geodetic, ecef2ned_vec, line_of_sight
 from fusion.gpstime import gps_ms_from_calendar
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
-from fusion.sim.simulate import (DEFAULT_START_MS, SimConfig, main, simulate, simulate_dataset, simulate_trajectory, write_gsdc2021)
+from fusion.cli.simulate import main
+from fusion.io.gsdc_write import write_gsdc2021
+from fusion.sim.simulate import DEFAULT_START_MS, SimConfig, simulate, simulate_dataset, simulate_trajectory
 from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, load_gsdc_trajectory, random_ne_path, random_trajectory)
 
 

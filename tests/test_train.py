@@ -14,7 +14,8 @@ from learned.features import CHANNELS, FEATURE_VERSION, FeatureConfig
 from learned.infer import Corrector
 from learned.toy import toy_dataset
 from learned.train import TrainConfig, setup, train
-from learned.train_cli import main, parse_loss
+from fusion.cli.train import main
+from learned.train_command import parse_loss
 
 
 @pytest.fixture(scope="module")

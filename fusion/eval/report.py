@@ -4,8 +4,8 @@ Output layout (``gnssfuse evaluate --out REPORT_DIR``; :mod:`fusion.evaluate` ru
 
     report.md                     ties everything together (relative links)
     metrics.csv / metrics.md      one row per (trace, mode) plus pooled "ALL" rows
-    figures/*.png                 CDFs, box plots, trajectories, error vs time
-    <trace>/<mode>/estimates.csv  the ``gnssfuse run`` format (+ metrics.json when truth exists)
+    figures/*.png                 CDFs, box plots, trajectories, error vs time (pooled ones with > 1 trace)
+    <trace>/<mode>/estimates.csv  the ``gnssfuse run`` format, + metrics.json
 """
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ import pandas as pd
 
 from fusion.eval import plots
 from fusion.eval.metrics import summarize
+from fusion.eval.summary import DATUM, skip_words
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 
@@ -150,8 +151,11 @@ def pooled_figure(kind: str, errors: dict[str, np.ndarray], path: Path, title: s
 
 
 def write_pooled_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -> dict[str, Path]:
-    """Every trace's epochs together (CDF, box): kind -> path; empty without truth. With ``jobs`` > 1
-    the figures are drawn in that many worker processes (a second each: it would be serial time)."""
+    """Every trace's epochs together (CDF, box): kind -> path; empty unless at least two traces have
+    truth (one trace's pooled figure would repeat its own). With ``jobs`` > 1 the figures are drawn
+    in that many worker processes (a second each: it would be serial time)."""
+    if sum(1 for ev in evals if ev.errors) < 2:
+        return {}
     pooled: dict[str, list[np.ndarray]] = {}
     for ev in evals:
         for m, e in ev.errors.items():
@@ -171,7 +175,7 @@ def write_pooled_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -
 
 
 def write_figures(evals: list[TraceEval], fig_dir: Path, jobs: int = 1) -> dict[str, dict[str, Path]]:
-    """All PNGs: per trace (CDF, box, trajectory, error vs time) and pooled (CDF, box).
+    """All PNGs: per trace (CDF, box, trajectory, error vs time) and, with two traces or more, pooled (CDF, box).
 
     Returns section -> figure kind -> path; section is a trace slug or ``ALL``. Per-trace figures
     already drawn (``TraceEval.figures``, e.g. by a worker process) are not drawn again.
@@ -192,6 +196,25 @@ FIG_CAPTIONS = {
 }
 
 
+def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:
+    """report.md's section of one trace: what WLS did, its estimates and its figures (kind -> link)."""
+    lines = [f"## {ev.trace.name}", ""]
+    if ev.wls_reasons:
+        lines += [f"WLS epochs not solved, by reason: {skip_words(ev.wls_reasons)}", ""]
+    if ev.wls_counts:
+        c = ev.wls_counts
+        lines += [f"WLS fault detection and exclusion: {c['excluded_measurements']} measurements excluded "
+                  f"in {c['epochs_with_exclusions']} epochs; {c['epochs_fault_undecided']} epochs where the "
+                  f"test could not decide (kept, Huber-weighted); {c['epochs_clock_predicted']} three-satellite "
+                  "epochs solved with the clock interpolated from their neighbours.", ""]
+    if not ev.errors:
+        lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
+    lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
+    for kind, link in figs.items():
+        lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({link})", ""]
+    return lines
+
+
 def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], figs: dict,
                     modes: list[str], opts: RunOptions, argv: list[str],
                     load_failures: dict[str, str]) -> Path:
@@ -207,7 +230,7 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
         f"{opts.dnn_passes}; incremental graph: {opts.incremental}.", "",
         "Every mode starts from the same WLS solution (receiver clock estimated, never taken from "
         "truth); truth is used only for the metrics below. Errors are in the NED frame of the truth "
-        "point. MAE ± std is the mean and standard deviation of the absolute per-axis error. "
+        f"point. {DATUM} MAE ± std is the mean and standard deviation of the absolute per-axis error. "
         "GSDC score = (horizontal p50 + p95) / 2. The **ALL** rows pool every scored epoch of "
         "every trace.", "",
     ]
@@ -230,21 +253,7 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
         for kind, p in figs[ALL].items():
             lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
     for ev in evals:
-        lines += [f"## {ev.trace.name}", ""]
-        if ev.wls_reasons:
-            lines += ["WLS epochs not solved, by reason: "
-                      + ", ".join(f"{k} {v}" for k, v in ev.wls_reasons.items()), ""]
-        if ev.wls_counts:
-            c = ev.wls_counts
-            lines += [f"WLS fault detection and exclusion: {c['excluded_measurements']} measurements excluded "
-                      f"in {c['epochs_with_exclusions']} epochs; {c['epochs_fault_undecided']} epochs where the "
-                      f"test could not decide (kept, Huber-weighted); {c['epochs_clock_predicted']} three-satellite "
-                      "epochs solved with the clock interpolated from their neighbours.", ""]
-        if not ev.errors:
-            lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
-        lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
-        for kind, p in figs.get(ev.slug, {}).items():
-            lines += [f"### {FIG_CAPTIONS[kind]}", "", f"![{kind}]({rel(p)})", ""]
+        lines += _trace_section(ev, {k: rel(p) for k, p in figs.get(ev.slug, {}).items()})
     lines += [f"CDF x-axes and error-vs-time y-axes stop at the {plots.CDF_CLIP_PCT:g}th percentile of the "
               "pooled errors (the curves use every epoch; each panel states how many points lie beyond). "
               "Box plots: box Q1–Q3 with the median, whiskers at 1.5×IQR, outliers as dots; outliers beyond the "

@@ -2,6 +2,9 @@
 
 ``estimates.csv`` columns: :data:`ESTIMATE_COLUMNS`, then :data:`SIGMA_COLUMNS` for modes with a covariance,
 then ``bridged`` (0/1) for the graph modes: 1 where fewer than 4 satellites and no prior determined the epoch.
+
+Heights are WGS84 ellipsoidal everywhere (``height_m``), as are the positions the exports
+(:mod:`fusion.io.export`) write.
 """
 from __future__ import annotations
 
@@ -19,20 +22,31 @@ ESTIMATE_COLUMNS = ["gps_millis", "lat_deg", "lon_deg", "height_m", "x_m", "y_m"
 #: 1-sigma position uncertainty in the local north/east/down frame at the estimate, for modes with a
 #: covariance (empty cells where an epoch has none).
 SIGMA_COLUMNS = ["sigma_n_m", "sigma_e_m", "sigma_d_m"]
+#: The off-diagonal NED covariances [m^2] the RTKLIB .pos export needs (not in estimates.csv).
+COVARIANCE_COLUMNS = ["cov_ne_m2", "cov_nd_m2", "cov_ed_m2"]
+
+
+def ned_covariances(pos: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N,3,3) covariances in the local NED frame at ``pos`` (N,3) ECEF from ECEF ones (N,3,3)."""
+    return ecef2ned_cov(cov, pos) if len(pos) else np.zeros((0, 3, 3))
 
 
 def ned_sigmas(pos: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """(N,3) 1-sigma [m] along north/east/down at ``pos`` (N,3) ECEF from ECEF covariances (N,3,3);
     NaN where the covariance is not finite or has a negative diagonal."""
-    var = np.diagonal(ecef2ned_cov(cov, pos), axis1=1, axis2=2) if len(pos) else np.zeros((0, 3))
+    var = np.diagonal(ned_covariances(pos, cov), axis1=1, axis2=2)
     with np.errstate(invalid="ignore"):
         return np.where(np.isfinite(var) & (var >= 0), np.sqrt(np.abs(var)), np.nan)
+
+
+def _solved(result: ModeResult) -> np.ndarray:
+    return result.valid & np.isfinite(result.pos).all(axis=1)
 
 
 def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     """One row per solved epoch, in the CLI contract's columns (+ :data:`SIGMA_COLUMNS` when the mode
     gives a covariance)."""
-    ok = result.valid & np.isfinite(result.pos).all(axis=1)
+    ok = _solved(result)
     pos = result.pos[ok]
     llh = ecef2geodetic(pos) if len(pos) else np.zeros((0, 3))
     cols = (trace.t_ms[ok], llh[:, 0], llh[:, 1], llh[:, 2], pos[:, 0], pos[:, 1], pos[:, 2])
@@ -48,17 +62,35 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     return frame
 
 
-def write_outputs(out_dir: Path, trace: Trace, mode: str, result: ModeResult, metrics: dict | None) -> dict:
-    """Write estimates.csv (+ metrics.json when ``metrics``, the accuracy against truth, is given);
-    return the run record (what metrics.json holds)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    estimates_frame(trace, result).to_csv(out_dir / "estimates.csv", index=False, float_format="%.10g")
-    record = {
+def export_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
+    """:func:`estimates_frame` + ``n_sats`` (satellites measured at the epoch) + :data:`COVARIANCE_COLUMNS`
+    when the mode gives a covariance: what the writers of :mod:`fusion.io.export` read."""
+    ok = _solved(result)
+    frame = estimates_frame(trace, result)
+    frame["n_sats"] = trace.mask[ok].sum(axis=1)
+    if result.cov is not None:
+        ned = ned_covariances(result.pos[ok], np.asarray(result.cov, float)[ok])
+        for name, (i, j) in zip(COVARIANCE_COLUMNS, ((0, 1), (0, 2), (1, 2))):
+            frame[name] = ned[:, i, j]
+    return frame
+
+
+def run_record(trace: Trace, mode: str, result: ModeResult, metrics: dict | None) -> dict:
+    """What metrics.json holds: the trace, the mode, epoch counts, what the loader skipped, the mode's
+    scalar ``info`` (fault detection, guard and graph counts) and the accuracy (None without truth)."""
+    return {
         "trace": trace.name, "mode": mode, "epochs_total": trace.n_epochs,
         "epochs_solved": int(result.valid.sum()), "skipped": dict(trace.skipped),
         "info": {k: v for k, v in result.info.items() if isinstance(v, (int, float, str, bool))},
         "metrics": metrics,
     }
-    if metrics is not None:
-        (out_dir / "metrics.json").write_text(json.dumps(record, indent=2))
+
+
+def write_outputs(out_dir: Path, trace: Trace, mode: str, result: ModeResult, metrics: dict | None) -> dict:
+    """Write estimates.csv and metrics.json (with ``metrics``, the accuracy against truth, null when
+    there is no truth); return the run record (what metrics.json holds)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    estimates_frame(trace, result).to_csv(out_dir / "estimates.csv", index=False, float_format="%.10g")
+    record = run_record(trace, mode, result, metrics)
+    (out_dir / "metrics.json").write_text(json.dumps(record, indent=2))
     return record

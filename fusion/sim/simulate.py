@@ -7,7 +7,7 @@ pseudorange = |sagnac_rotate(sat_pos, rx) - rx| + receiver clock + noise (+ NLOS
 
 The pseudorange is the *corrected* one of :class:`fusion.trace.Trace` (satellite clock, iono,
 tropo already removed), so WLS, features and the graph consume simulated and real traces alike.
-:func:`write_gsdc2021` saves a result in the GSDC 2021 derived format with ``satClkBiasM``,
+:func:`fusion.io.gsdc_write.write_gsdc2021` saves a result in the GSDC 2021 format with ``satClkBiasM``,
 ``ionoDelayM`` and ``tropoDelayM`` filled consistently, so that
 ``rawPrM + satClkBiasM - isrbM - ionoDelayM - tropoDelayM`` gives back the simulated
 pseudorange (to the file's millimetre rounding).
@@ -18,23 +18,20 @@ Truth heights in the written ``ground_truth.csv`` carry the GSDC 2021 +63.1 m er
 """
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass
-from datetime import datetime
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from fusion.errors import DataError, GeometryError
-from fusion.geometry import (C_LIGHT, ecef2geodetic, ecef2ned_vec, elevation_azimuth, line_of_sight, ned_rotation,
+from fusion.geometry import (C_LIGHT, ecef2geodetic, elevation_azimuth, line_of_sight, ned_rotation,
                              sagnac_rotate)
 from fusion.gpstime import format_gps_ms, gps_ms_from_calendar
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.nav.orbits import GpsNav, sat_state, select_ephemeris, transmit_states
 from fusion.trace import OPTIONAL_SLOT_FIELDS, SIGNALS, Trace
 from fusion.sim.doppler_carrier import doppler_carrier_arrays
-from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_rate, load_gsdc_trajectory,
+from fusion.sim.trajectory import (Trajectory, check_rate,
                                    parse_origins, random_trajectories, random_trajectory)
 
 #: Default start: 2021-04-28 20:00:00 GPS time, inside the shipped nav file (2021 day 118).
@@ -436,137 +433,3 @@ def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarra
     if not traces:
         raise GeometryError("no simulated trace has an epoch with enough visible satellites")
     return traces
-
-
-# ---------------------------------------------------------------------------------- output
-def write_gsdc2021(result: SimResult, out_dir: str | Path, collection: str, phone: str = "SimPhone",
-                   *, height_error_m: float = GSDC2021_HEIGHT_ERROR_M) -> tuple[Path, Path]:
-    """Save as ``<out>/<collection>/<phone>/<phone>_derived.csv`` + ``ground_truth.csv``.
-
-    Derived rows follow GSDC 2021: ``millisSinceGpsEpoch`` is one second late (receive time +
-    1000 ms), ``receivedSvTimeInGpsNanos`` is the transmit time on the satellite's clock,
-    satellite states are at the true transmit time, and rawPrM carries the satellite clock,
-    iono and tropo so that the standard correction gives back ``trace.pr``. Truth heights get
-    ``+height_error_m`` (the real files' error; 0 writes true heights).
-    Returns (derived path, ground-truth path).
-    """
-    tr = result.trace
-    folder = Path(out_dir) / collection / phone
-    folder.mkdir(parents=True, exist_ok=True)
-    e, s = np.nonzero(tr.mask)
-    t = tr.t_ms[e]
-    clk = np.round(result.sat_clock_m[e, s], 3)
-    iono = np.round(result.iono_m[e, s], 3)
-    tropo = np.round(result.tropo_m[e, s], 3)
-    # Use the rounded columns so the correction reproduces pr to the file's last digit.
-    raw = np.round(tr.pr[e, s] - clk + iono + tropo, 3)
-    tx_sv_ns = t * 1_000_000 - np.round((result.flight_s[e, s] - result.sat_clock_m[e, s] / C_LIGHT)
-                                        * 1e9).astype(np.int64)
-    pos, vel = np.round(tr.sat_pos[e, s], 3), np.round(tr.sat_vel[e, s], 3)
-    derived = pd.DataFrame({
-        "collectionName": collection, "phoneName": phone, "millisSinceGpsEpoch": t + 1000,
-        "constellationType": tr.sat_id[e, s] // 1000, "svid": tr.sat_id[e, s] % 1000,
-        "signalType": np.asarray(SIGNALS)[tr.signal[e, s]], "receivedSvTimeInGpsNanos": tx_sv_ns,
-        "xSatPosM": pos[:, 0], "ySatPosM": pos[:, 1], "zSatPosM": pos[:, 2],
-        "xSatVelMps": vel[:, 0], "ySatVelMps": vel[:, 1], "zSatVelMps": vel[:, 2],
-        "satClkBiasM": clk, "satClkDriftMps": np.round(result.sat_clock_drift_mps[e, s], 3),
-        "rawPrM": raw, "rawPrUncM": np.round(tr.pr_sigma[e, s], 3), "isrbM": 0.0,
-        "ionoDelayM": iono, "tropoDelayM": tropo,
-    })
-    d_path = folder / f"{phone}_derived.csv"
-    derived.to_csv(d_path, index=False)
-
-    llh = ecef2geodetic(tr.truth)
-    v = np.gradient(tr.truth, tr.t_ms * 1e-3, axis=0) if tr.n_epochs > 1 else np.zeros((1, 3))
-    v_ned = ecef2ned_vec(v, tr.truth)
-    gt = pd.DataFrame({
-        "collectionName": collection, "phoneName": phone, "millisSinceGpsEpoch": tr.t_ms,
-        "latDeg": np.round(llh[:, 0], 10), "lngDeg": np.round(llh[:, 1], 10),
-        "heightAboveWgs84EllipsoidM": np.round(llh[:, 2] + height_error_m, 4),
-        "timeSinceFirstFixSeconds": np.round((tr.t_ms - tr.t_ms[0]) * 1e-3, 3),
-        "hDop": 0.5, "vDop": 0.0, "speedMps": np.round(np.hypot(v_ned[:, 0], v_ned[:, 1]), 3),
-        "courseDegree": np.round(np.degrees(np.arctan2(v_ned[:, 1], v_ned[:, 0])) % 360.0, 2),
-    })
-    g_path = folder / "ground_truth.csv"
-    gt.to_csv(g_path, index=False)
-    return d_path, g_path
-
-
-# ---------------------------------------------------------------------------------- CLI
-def _parse_origin(text: str) -> tuple[float, float, float]:
-    try:
-        vals = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"origin must be LAT,LON[,H] in degrees/metres, got {text!r}")
-    if len(vals) not in (2, 3) or not (-90 <= vals[0] <= 90 and -180 <= vals[1] <= 360):
-        raise argparse.ArgumentTypeError(f"origin must be LAT,LON[,H] with a valid lat/lon, got {text!r}")
-    return (vals[0], vals[1], vals[2] if len(vals) == 3 else 0.0)
-
-
-def _parse_start(text: str) -> int:
-    if text.strip().lstrip("-").isdigit():
-        return int(text)
-    try:
-        d = datetime.fromisoformat(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"start must be GPS ms or an ISO date-time (GPS time), got {text!r}")
-    return gps_ms_from_calendar(d.year, d.month, d.day, d.hour, d.minute, d.second + d.microsecond * 1e-6)
-
-
-def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
-    ap = argparse.ArgumentParser(prog=prog, description=(
-        "Simulate GPS L1 pseudoranges along a random drive (or a replayed GSDC 2021 ground-truth "
-        "track) and write them in the GSDC 2021 derived format with ground_truth.csv."))
-    ap.add_argument("--out", required=True, type=Path, help="output root; writes OUT/COLLECTION/PHONE/")
-    ap.add_argument("--origin", type=_parse_origin, default=DEFAULT_ORIGIN,
-                    help="LAT,LON[,H] start of the random drive (default Mountain View, CA)")
-    ap.add_argument("--epochs", type=int, default=None,
-                    help="number of epochs (default 600; a replayed track: all of it)")
-    ap.add_argument("--rate", type=float, default=1.0, help="epochs per second (default 1)")
-    ap.add_argument("--start", type=_parse_start, default=DEFAULT_START_MS,
-                    help="start time: GPS ms or ISO date-time in GPS time (default 2021-04-28T20:00:00)")
-    ap.add_argument("--bias-scenario", action="store_true",
-                    help="multipath/NLOS: per epoch Poisson(1) satellites get a bias U[50,200] m")
-    ap.add_argument("--sigma", type=float, default=6.0, help="pseudorange noise sigma [m] (default 6)")
-    ap.add_argument("--elevation-noise", action="store_true", help="scale sigma by 1/sin(elevation)")
-    ap.add_argument("--elev-mask", type=float, default=5.0, help="elevation mask [deg] (default 5)")
-    ap.add_argument("--max-sats", type=int, default=10, help="satellites per epoch at most (0 = all)")
-    ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    ap.add_argument("--nav", type=Path, default=None, help="RINEX 2/3 GPS nav file (default: shipped)")
-    ap.add_argument("--trajectory", type=Path, default=None,
-                    help="replay this GSDC 2021 ground_truth.csv (re-timed to --start) instead")
-    ap.add_argument("--trajectory-height-error", type=float, default=GSDC2021_HEIGHT_ERROR_M,
-                    help="metres subtracted from replayed heights (default 63.1, the GSDC 2021 error)")
-    ap.add_argument("--collection", default=None, help="collection name (default <date>-US-SIM-<seed>)")
-    ap.add_argument("--phone", default="SimPhone", help="phone name (default SimPhone)")
-    args = ap.parse_args(argv)
-    if args.epochs is not None and args.epochs < 1:
-        ap.error("--epochs must be >= 1")
-    cfg = SimConfig(sigma_m=args.sigma, elevation_noise=args.elevation_noise,
-                    elev_mask_deg=args.elev_mask, max_sats=args.max_sats or None,
-                    nlos=args.bias_scenario)
-    try:
-        cfg.validate()
-    except ValueError as exc:
-        ap.error(str(exc))
-    nav = read_rinex_nav(args.nav or default_nav_path())
-    rng = np.random.default_rng(args.seed)
-    if args.trajectory is not None:
-        traj = load_gsdc_trajectory(args.trajectory, height_error_m=args.trajectory_height_error)
-        traj = traj.retimed(args.start)
-        if args.epochs is not None and args.epochs < len(traj):
-            traj = Trajectory(traj.t_ms[:args.epochs], traj.ecef[:args.epochs], traj.name,
-                              dict(traj.skipped))
-        res = simulate_trajectory(traj, nav=nav, config=cfg, seed=rng)
-    else:
-        try:
-            traj = random_trajectory(args.origin, args.epochs or 600, args.start, rng, rate_hz=args.rate)
-        except ValueError as exc:
-            ap.error(str(exc))
-        res = simulate_trajectory(traj, nav=nav, config=cfg, seed=rng)
-    collection = args.collection or f"{format_gps_ms(args.start)[:10]}-US-SIM-{args.seed}"
-    d_path, g_path = write_gsdc2021(res, args.out, collection, args.phone)
-    tr = res.trace
-    print(f"simulated {tr.n_epochs} epochs, {tr.n_sats.mean():.1f} satellites/epoch "
-          f"(skipped: {tr.skipped or 'none'}) -> {d_path} , {g_path}")
-    return 0

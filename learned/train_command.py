@@ -1,5 +1,6 @@
-"""``gnssfuse train`` command line: data sources, options, and the summary line (the loop is in
-:mod:`learned.train`). Runs unchanged under ``torchrun --nproc_per_node N`` (:mod:`learned.distributed`)."""
+"""What ``gnssfuse train`` does once :mod:`fusion.cli.train` has parsed its arguments: data sources,
+the training configuration, and the summary line (the loop is in :mod:`learned.train`). Runs unchanged
+under ``torchrun --nproc_per_node N`` (:mod:`learned.distributed`)."""
 from __future__ import annotations
 
 import argparse
@@ -10,6 +11,7 @@ import numpy as np
 import torch
 
 from fusion.errors import DataError
+from fusion.eval.summary import skip_words
 from fusion.io.raw_load import RawSources
 from learned import distributed as dist
 from learned.augment import parse_guess_mix
@@ -18,50 +20,10 @@ from learned.data import (Samples, build_samples, load_real_traces, simulated_tr
                           split_traces)
 from learned.features import CHANNELS, FeatureConfig
 from learned.model import build_model, count_parameters
-from learned.train import OUTPUTS, LossWeights, TrainConfig, train
+from learned.train import LossWeights, TrainConfig, train
 
 #: Inputs of the shipped recipe: the paper's (residual, line of sight) and every context channel.
 DEFAULT_INPUTS = ",".join(CHANNELS)
-
-
-def _parser(prog: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description="train the correction network and its per-satellite head")
-    p.add_argument("--data", nargs="+", required=True,
-                   help="'sim', 'sim-bias' (fusion.sim.simulate), 'toy', and/or trace folders / Kaggle roots")
-    p.add_argument("--out", type=Path, required=True, help="best checkpoint path (last state: <out>.last)")
-    p.add_argument("--epochs", type=int, default=40)
-    p.add_argument("--eta", type=float, default=15.0, help="box augmentation half-width per NED axis [m]")
-    p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3",
-                   help="initial-guess sources and fractions (box: truth + U(+-eta); wls / graph: the sample's "
-                        "own WLS / no-prior graph solution + U(+-wls-jitter))")
-    p.add_argument("--wls-jitter", type=float, default=2.0, help="[m] per NED axis around WLS / graph guesses")
-    p.add_argument("--wls-max-err", type=float, default=100.0, help="[m] farther guess sources -> box guess")
-    p.add_argument("--inputs", default=DEFAULT_INPUTS, help=f"input channel groups from {','.join(CHANNELS)}")
-    p.add_argument("--output", default="wls", choices=OUTPUTS,
-                   help="dnn output: learned-weight least squares (wls) or the paper's correction")
-    p.add_argument("--loss", default="correction=1,sat=0.1,wls=1,shrink=1",
-                   help="loss weights (correction, sat, wls, wls_scale, shrink)")
-    p.add_argument("--resume", action="store_true", help="continue from <out>.last")
-    p.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--model", default="set", choices=("set", "deepsets"))
-    p.add_argument("--no-augment", action="store_true", help="draw guesses once and keep them (paper's baseline)")
-    p.add_argument("--sim-traces", type=int, default=50)
-    p.add_argument("--sim-epochs", type=int, default=200, help="epochs per simulated trace")
-    p.add_argument("--val-split", default="traces", choices=("random", "blocks", "traces"),
-                   help="validation = random epochs, blocks of 60 epochs, or whole traces (drives)")
-    p.add_argument("--val-frac", type=float, default=0.1)
-    p.add_argument("--no-calibrate", action="store_true", help="do not fit the covariance scales after training")
-    p.add_argument("--batch", type=int, default=64)
-    p.add_argument("--lr", type=float, default=3e-4)
-    p.add_argument("--warmup-epochs", type=int, default=None, help="epochs before the variance NLL term")
-    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg], at the truth")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads per process")
-    p.add_argument("--nav", type=Path, nargs="+", default=(), help="RINEX / GnssLogger folders: broadcast navigation")
-    p.add_argument("--sp3", type=Path, default=None, help="RINEX / GnssLogger folders: precise orbits")
-    p.add_argument("--clk", type=Path, default=None, help="RINEX / GnssLogger folders: precise clocks (with --sp3)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    return p
 
 
 def parse_loss(text: str) -> LossWeights:
@@ -102,7 +64,8 @@ def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, 
 def config_from_args(args, desc: dict) -> TrainConfig:
     try:
         mix = parse_guess_mix(args.guess_mix)
-        features = FeatureConfig(elev_mask_deg=args.elev_mask, inputs=tuple(args.inputs.split(",")))
+        inputs = DEFAULT_INPUTS if args.inputs is None else args.inputs
+        features = FeatureConfig(elev_mask_deg=args.elev_mask, inputs=tuple(inputs.split(",")))
     except ValueError as exc:
         raise DataError(f"--guess-mix / --inputs: {exc}") from None
     return TrainConfig(eta=args.eta, epochs=args.epochs, batch=args.batch, lr=args.lr, seed=args.seed,
@@ -130,8 +93,9 @@ def summary(out: Path, hist: list[dict]) -> str:
     return line + f" -> {out}"
 
 
-def main(argv: list[str], prog: str = "gnssfuse train") -> int:
-    args = _parser(prog).parse_args(argv)
+def run(args: argparse.Namespace, prog: str = "gnssfuse train", progress: bool = True) -> int:
+    """Load the data, train, calibrate and write the checkpoint; ``args`` as :mod:`fusion.cli.train`
+    parses them. Returns the exit code."""
     check_args(args)
     dist.init_from_env(args.device)
     if args.threads:
@@ -150,8 +114,8 @@ def main(argv: list[str], prog: str = "gnssfuse train") -> int:
         n_par = count_parameters(build_model(args.model, d_in=cfg.features.n_inputs))
         print(f"{prog}: {len(train_s)} training / {len(val_s)} validation samples from {len(samples.names)} "
               f"traces; model {args.model} ({n_par} parameters); world size {dist.world_size()}; "
-              f"skipped {samples.skipped}", file=sys.stderr)
-    hist = train(train_s, val_s, cfg, args.out, resume=args.resume, progress=not args.quiet)
+              f"skipped {skip_words(samples.skipped)}", file=sys.stderr)
+    hist = train(train_s, val_s, cfg, args.out, resume=args.resume, progress=progress)
     if dist.is_main() and hist:
         print(summary(args.out, hist))
     dist.shutdown()

@@ -1,0 +1,67 @@
+"""``gnssfuse`` command line: the dispatcher.
+
+Every subcommand is one thin module in this package (``run``, ``evaluate``, ``simulate``,
+``train``) exposing ``main(argv, prog) -> int``: it parses its arguments and calls the library.
+The dispatcher names each by a ``"module:function"`` string and imports it only when that
+subcommand runs, so ``gnssfuse run --mode wls`` never imports torch. Options several subcommands
+share are defined once in :mod:`fusion.options`. Adding a subcommand is one module here and one line
+in :data:`COMMANDS`.
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+
+from fusion.errors import GnssfuseError
+
+#: subcommand -> ("module:function", one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": ("fusion.cli.run:main", "solve one trace in one mode (wls, dnn, fused, fused-nodnn)"),
+    "evaluate": ("fusion.cli.evaluate:main", "compare modes on traces: tables, CDFs, box plots, report.md"),
+    "simulate": ("fusion.cli.simulate:main", "simulate a GNSS trace (GSDC 2021 derived format + truth)"),
+    "train": ("fusion.cli.train:main", "train the set-transformer correction network"),
+}
+
+
+def version() -> str:
+    """The installed package's version ("unknown" when run from a source tree that is not installed)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+    try:
+        return dist_version("gnssfuse")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _usage() -> str:
+    lines = ["usage: gnssfuse COMMAND [options]   (gnssfuse COMMAND --help for each)",
+             "       gnssfuse --version", "", "commands:"]
+    lines += [f"  {name:<10} {help_}" for name, (_, help_) in COMMANDS.items()]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    if argv[0] in ("-V", "--version"):
+        print(f"gnssfuse {version()}")
+        return 0
+    cmd, rest = argv[0], argv[1:]
+    if cmd not in COMMANDS:
+        print(f"gnssfuse: unknown command {cmd!r}\n\n{_usage()}", file=sys.stderr)
+        return 2
+    module, func = COMMANDS[cmd][0].split(":")
+    if cmd == "evaluate":
+        from fusion.parallel import jobs_asked, start_early
+        if jobs_asked(rest) > 1:
+            start_early()        # the workers' imports then overlap this process's
+    entry = getattr(importlib.import_module(module), func)
+    try:
+        return int(entry(rest, prog=f"gnssfuse {cmd}") or 0)
+    except (GnssfuseError, OSError) as exc:
+        # One line, no traceback: the message already names the file/epoch and the problem
+        # (OSError: a missing input, an unwritable output).
+        print(f"gnssfuse {cmd}: error: {exc}", file=sys.stderr)
+        return 2

@@ -1,0 +1,108 @@
+"""``gnssfuse simulate``: a simulated drive written in the GSDC 2021 derived format + ground_truth.csv
+(the simulator: :mod:`fusion.sim.simulate`; the writer: :mod:`fusion.io.gsdc_write`)."""
+from __future__ import annotations
+
+import argparse
+from datetime import datetime
+from pathlib import Path
+
+from fusion.cli.common import out_folder
+from fusion.errors import GnssfuseError
+from fusion.gpstime import format_gps_ms, gps_ms_from_calendar
+from fusion.io.truth import GSDC2021_TRUTH_HEIGHT_ERROR_M
+from fusion.sim.simulate import DEFAULT_ORIGIN, DEFAULT_START_MS
+
+
+def _parse_origin(text: str) -> tuple[float, float, float]:
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"origin must be LAT,LON[,H] in degrees/metres, got {text!r}")
+    if len(vals) not in (2, 3) or not (-90 <= vals[0] <= 90 and -180 <= vals[1] <= 360):
+        raise argparse.ArgumentTypeError(f"origin must be LAT,LON[,H] with a valid lat/lon, got {text!r}")
+    return (vals[0], vals[1], vals[2] if len(vals) == 3 else 0.0)
+
+
+def _parse_start(text: str) -> int:
+    if text.strip().lstrip("-").isdigit():
+        return int(text)
+    try:
+        d = datetime.fromisoformat(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"start must be GPS ms or an ISO date-time (GPS time), got {text!r}")
+    return gps_ms_from_calendar(d.year, d.month, d.day, d.hour, d.minute, d.second + d.microsecond * 1e-6)
+
+
+def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog=prog, description=(
+        "Simulate GPS L1 pseudoranges along a random drive (or a replayed GSDC 2021 ground-truth "
+        "track) and write them in the GSDC 2021 derived format with ground_truth.csv."))
+    ap.add_argument("--out", required=True, type=Path, help="output root; writes OUT/COLLECTION/PHONE/")
+    ap.add_argument("--origin", type=_parse_origin, default=DEFAULT_ORIGIN,
+                    help="LAT,LON[,H] start of the random drive (default Mountain View, CA; H ellipsoidal)")
+    ap.add_argument("--epochs", type=int, default=None,
+                    help="number of epochs (default 600; a replayed track: all of it)")
+    ap.add_argument("--rate", type=float, default=1.0, help="epochs per second (default 1)")
+    ap.add_argument("--start", type=_parse_start, default=DEFAULT_START_MS,
+                    help="start time: GPS ms or ISO date-time in GPS time (default 2021-04-28T20:00:00)")
+    ap.add_argument("--bias-scenario", action="store_true",
+                    help="multipath/NLOS: per epoch Poisson(1) satellites get a bias U[50,200] m")
+    ap.add_argument("--sigma", type=float, default=6.0, help="pseudorange noise sigma [m] (default 6)")
+    ap.add_argument("--elevation-noise", action="store_true", help="scale sigma by 1/sin(elevation)")
+    ap.add_argument("--elev-mask", type=float, default=5.0, help="elevation mask [deg] (default 5)")
+    ap.add_argument("--max-sats", type=int, default=10, help="satellites per epoch at most (0 = all)")
+    ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    ap.add_argument("--nav", type=Path, default=None, metavar="FILE",
+                    help="the simulator's GPS ephemerides: one RINEX 2/3 nav file (default: shipped)")
+    ap.add_argument("--trajectory", type=Path, default=None,
+                    help="replay this GSDC 2021 ground_truth.csv (re-timed to --start) instead")
+    ap.add_argument("--trajectory-height-error", type=float, default=GSDC2021_TRUTH_HEIGHT_ERROR_M,
+                    help="metres subtracted from replayed heights (default 63.1, the GSDC 2021 error)")
+    ap.add_argument("--collection", default=None, help="collection name (default <date>-US-SIM-<seed>)")
+    ap.add_argument("--phone", default="SimPhone", help="phone name (default SimPhone)")
+    return ap
+
+
+def _trajectory(args: argparse.Namespace, rng):
+    """The drive to simulate: the replayed ``--trajectory`` (first ``--epochs``) or a random one."""
+    from fusion.sim.trajectory import Trajectory, load_gsdc_trajectory, random_trajectory
+
+    if args.trajectory is None:
+        return random_trajectory(args.origin, args.epochs or 600, args.start, rng, rate_hz=args.rate)
+    traj = load_gsdc_trajectory(args.trajectory, height_error_m=args.trajectory_height_error).retimed(args.start)
+    if args.epochs is not None and args.epochs < len(traj):
+        traj = Trajectory(traj.t_ms[:args.epochs], traj.ecef[:args.epochs], traj.name, dict(traj.skipped))
+    return traj
+
+
+def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
+    import numpy as np
+
+    from fusion.eval.summary import skip_words
+    from fusion.io.gsdc_write import write_gsdc2021
+    from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+    from fusion.sim.simulate import SimConfig, simulate_trajectory
+
+    ap = build_parser(prog)
+    args = ap.parse_args(argv)
+    if args.epochs is not None and args.epochs < 1:
+        ap.error("--epochs must be >= 1")
+    cfg = SimConfig(sigma_m=args.sigma, elevation_noise=args.elevation_noise,
+                    elev_mask_deg=args.elev_mask, max_sats=args.max_sats or None,
+                    nlos=args.bias_scenario)
+    rng = np.random.default_rng(args.seed)
+    try:
+        cfg.validate()
+        traj = _trajectory(args, rng)
+    except ValueError as exc:
+        if isinstance(exc, GnssfuseError):
+            raise
+        ap.error(str(exc))
+    out = out_folder(args.out)
+    res = simulate_trajectory(traj, nav=read_rinex_nav(args.nav or default_nav_path()), config=cfg, seed=rng)
+    collection = args.collection or f"{format_gps_ms(args.start)[:10]}-US-SIM-{args.seed}"
+    d_path, g_path = write_gsdc2021(res, out, collection, args.phone)
+    tr = res.trace
+    print(f"simulated {tr.n_epochs} epochs, {tr.n_sats.mean():.1f} satellites/epoch "
+          f"(skipped: {skip_words(tr.skipped)}) -> {d_path} , {g_path}")
+    return 0

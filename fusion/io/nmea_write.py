@@ -1,0 +1,66 @@
+"""Estimates as NMEA 0183 (GGA + RMC per solved epoch), the format every GNSS viewer and logger reads.
+
+Times are UTC (GPS time minus the leap seconds), with milliseconds. GGA's altitude field is the
+height above mean sea level and its separation field the geoid height N (ellipsoidal = altitude + N);
+with no geoid model we write the WGS84 ellipsoidal height as the altitude and N = 0, which keeps
+``altitude + N`` equal to the ellipsoidal height for readers that add them (as :mod:`fusion.io.nmea`
+does). Fix quality 1 (autonomous GPS) for every mode; HDOP, speed and course are left empty.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from fusion.gpstime import gps_ms_to_unix_ms
+
+TALKER = "GN"    # any constellation
+
+
+def sentences(bodies: list[str]) -> list[str]:
+    """``$body*hh`` for each body, the checksums computed at once over an (N, L) byte matrix
+    (zero-padded: 0 is neutral for XOR)."""
+    if not bodies:
+        return []
+    raw = np.array([b.encode("ascii") for b in bodies])
+    xor = np.bitwise_xor.reduce(raw.view(np.uint8).reshape(len(bodies), -1), axis=1)
+    return [f"${b}*{x:02X}" for b, x in zip(bodies, xor.tolist())]
+
+
+def checksum(body: str) -> str:
+    """Two hex digits: the XOR of the bytes between ``$`` and ``*``."""
+    return sentences([body])[0][-2:]
+
+
+def _angle(deg: np.ndarray, width: int, hemis: str) -> tuple[list[str], np.ndarray]:
+    """Signed degrees (N,) -> 'ddmm.mmmmmmm' strings (``width`` degree digits) and hemisphere letters."""
+    a = np.abs(deg)
+    d = np.floor(a)
+    m = (a - d) * 60.0
+    carry = np.round(m, 7) >= 60.0            # 59.99999999 min must not print as 60
+    d, m = np.where(carry, d + 1, d), np.where(carry, 0.0, m)
+    text = [f"{int(di):0{width}d}{mi:010.7f}" for di, mi in zip(d, m)]
+    return text, np.where(deg < 0, hemis[1], hemis[0])
+
+
+def nmea_lines(frame: pd.DataFrame) -> list[str]:
+    """Two sentences (GGA, RMC) per row of ``frame`` (gps_millis, lat_deg, lon_deg, height_m[, n_sats])."""
+    iso = np.datetime_as_string(gps_ms_to_unix_ms(frame["gps_millis"].to_numpy()).astype("datetime64[ms]"),
+                                unit="ms").tolist()                    # 'YYYY-MM-DDTHH:MM:SS.mmm', UTC
+    lat, ns = _angle(frame["lat_deg"].to_numpy(float), 2, "NS")
+    lon, ew = _angle(frame["lon_deg"].to_numpy(float), 3, "EW")
+    n_sats = (frame["n_sats"] if "n_sats" in frame else pd.Series(0, index=frame.index)).astype(int).tolist()
+    bodies = []
+    for t, la, n, lo, e, h, k in zip(iso, lat, ns.tolist(), lon, ew.tolist(), frame["height_m"].tolist(), n_sats):
+        hms, dmy = t[11:13] + t[14:16] + t[17:23], t[8:10] + t[5:7] + t[2:4]
+        pos = f"{la},{n},{lo},{e}"
+        bodies += [f"{TALKER}GGA,{hms},{pos},1,{k:02d},,{h:.3f},M,0.000,M,,", f"{TALKER}RMC,{hms},A,{pos},,,{dmy},,,A"]
+    return sentences(bodies)
+
+
+def write_nmea(frame: pd.DataFrame, path: Path, name: str = "") -> Path:
+    """Write :func:`nmea_lines` with CR LF line ends (NMEA 0183's)."""
+    with open(path, "w", newline="\r\n", encoding="ascii") as fh:
+        fh.write("\n".join(nmea_lines(frame)) + ("\n" if len(frame) else ""))
+    return path

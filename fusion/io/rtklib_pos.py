@@ -1,0 +1,62 @@
+"""Estimates in RTKLIB's solution format (``.pos``, as ``rnx2rtkp`` writes it with its defaults), so
+RTKLIB's plotting and comparison tools (rtkplot, pos2kml, ...) and every reader of that format open it.
+
+Columns: GPS week and time of week, latitude, longitude (deg), WGS84 ellipsoidal height (m), Q
+(solution quality: 5 = single, which every gnssfuse mode is: no ambiguity is fixed), ns (satellites
+measured at the epoch), then sdn, sde, sdu and the signed square roots of the NE, EU and UN
+covariances (RTKLIB's convention), age and ratio. Where the mode gives no covariance the
+standard deviations are written as 0, as RTKLIB does for an unknown value.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from fusion.gpstime import format_gps_ms
+
+WEEK_MS = 604_800_000
+Q_SINGLE = 5
+HEADER = ("%  GPST          latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)   sde(m)   sdu(m)"
+          "  sdne(m)  sdeu(m)  sdun(m) age(s)  ratio")
+
+
+def _signed_sqrt(x: np.ndarray) -> np.ndarray:
+    return np.sign(x) * np.sqrt(np.abs(x))
+
+
+def pos_sigmas(frame: pd.DataFrame) -> np.ndarray:
+    """(N, 6) sdn, sde, sdu, sdne, sdeu, sdun [m] from the frame's NED sigmas and covariances
+    (up = -down flips the sign of the EU and UN terms); 0 where unknown."""
+    out = np.zeros((len(frame), 6))
+    if "sigma_n_m" in frame:
+        out[:, :3] = frame[["sigma_n_m", "sigma_e_m", "sigma_d_m"]].to_numpy(float)
+    if "cov_ne_m2" in frame:
+        ned = frame[["cov_ne_m2", "cov_ed_m2", "cov_nd_m2"]].to_numpy(float)
+        out[:, 3:] = _signed_sqrt(ned * np.array([1.0, -1.0, -1.0]))
+    return np.where(np.isfinite(out), out, 0.0)
+
+
+def pos_lines(frame: pd.DataFrame, name: str = "") -> list[str]:
+    """The header comments and one line per row of ``frame`` (gps_millis, lat_deg, lon_deg, height_m
+    [, n_sats, sigma_*_m, cov_*_m2])."""
+    t = frame["gps_millis"].to_numpy(np.int64)
+    lines = ["% program   : gnssfuse", f"% inp file  : {name}"]
+    if len(t):
+        lines += [f"% obs start : {format_gps_ms(int(t[0]))} GPST", f"% obs end   : {format_gps_ms(int(t[-1]))} GPST"]
+    lines += ["%", "% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,"
+              "ns=# of satellites)", HEADER]
+    n_sats = frame["n_sats"].to_numpy() if "n_sats" in frame else np.zeros(len(frame), int)
+    sig = pos_sigmas(frame)
+    rows = zip(t // WEEK_MS, (t % WEEK_MS) / 1000.0, frame["lat_deg"].tolist(), frame["lon_deg"].tolist(),
+               frame["height_m"].tolist(), n_sats.tolist(), sig.tolist())
+    for week, tow, lat, lon, h, ns, s in rows:
+        lines.append(f"{week:4d} {tow:10.3f} {lat:14.9f} {lon:14.9f} {h:10.4f} {Q_SINGLE:3d} {ns:3d}"
+                     + "".join(f" {v:8.4f}" for v in s) + "   0.00    0.0")
+    return lines
+
+
+def write_pos(frame: pd.DataFrame, path: Path, name: str = "") -> Path:
+    path.write_text("\n".join(pos_lines(frame, name)) + "\n")
+    return path
