@@ -144,7 +144,8 @@ def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
             raise ConfigError(f"{path}: unknown graph setting {name!r} (known: {', '.join(types)})")
         want = {"float": (int, float), "int": (int,), "bool": (bool,), "str": (str,)}[types[name]]
         if isinstance(value, bool) != (types[name] == "bool") or not isinstance(value, want):
-            raise ConfigError(f"{path}: graph setting {name!r} must be a {types[name]}, got {value!r}")
+            kind = {"float": "a number", "int": "a whole number", "bool": "true or false", "str": "a string"}[types[name]]
+            raise ConfigError(f"{path}: graph setting {name!r} must be {kind}, got {value!r}")
         out[name] = float(value) if types[name] == "float" else value
     return replace(base or GraphConfig(), **out)
 
