@@ -196,7 +196,7 @@ def test_glonass_header_list_read_whole():
 
 
 def _obs_file(tmp_path: Path) -> Path:
-    """A survey-receiver-like RINEX 3.04 file: BeiDou, QZSS, SBAS, NavIC, GPS L2 (not ours), and
+    """A survey-receiver-like RINEX 3.04 file: BeiDou, QZSS, SBAS, NavIC, GPS L2 (C2X ours, C2W not), and
     GPS observation types continued on a second header line."""
     g = "C1C L1C D1C S1C C2W L2W C5Q L5Q D5Q S5Q C2X L2X S2X C1W".split()
     types = {"G": g, "C": "C2I L2I D2I S2I".split(), "J": "C1C L1C D1C S1C C5Q L5Q D5Q S5Q".split(),
@@ -224,16 +224,19 @@ def _obs_file(tmp_path: Path) -> Path:
 def test_other_constellations_and_codes(tmp_path):
     raw = read_rinex_obs(_obs_file(tmp_path))
     f = raw.frame.set_index(["sat_id", "signal"])
-    assert sorted(f.index) == [(1007, "GPS_L1"), (1007, "GPS_L5"), (4193, "QZS_J1"), (4193, "QZS_J5"),
-                               (5005, "BDS_B1I")]
+    assert sorted(f.index) == [(1007, "GPS_L1"), (1007, "GPS_L2"), (1007, "GPS_L5"), (4193, "QZS_J1"),
+                               (4193, "QZS_J5"), (5005, "BDS_B1I")]
     assert np.allclose(raw.approx_pos, [-2.7e6, -4.3e6, 3.85e6])
     assert f.loc[(1007, "GPS_L5"), "pr_m"] == 2.1e7 + 6  # C5Q is the 7th type
     b = f.loc[(5005, "BDS_B1I")]
     assert b.pr_m == 3.8e7 and b.cn0 == 40.25 and b.adr_slip and b.carrier_hz == 1561.098e6
     assert b.adr_m == pytest.approx(2.0e8 * C / 1561.098e6) and b.prr_mps == pytest.approx(1000.5 * C / 1561.098e6)
     assert f.loc[(4193, "QZS_J5"), "carrier_hz"] == 1176.45e6
-    # GPS L2 (C2W/C2X/C1W) is not one of ours; SBAS and NavIC lines are dropped; all counted.
-    assert raw.skipped == {"obs_other_signals": 1, "sat_lines_unsupported_system": 2}
+    # L2C (C2X, the 11th type) is a signal of its own, at the L2 carrier
+    l2 = f.loc[(1007, "GPS_L2")]
+    assert l2.pr_m == 2.1e7 + 10 and l2.carrier_hz == 1227.60e6 and l2.adr_m == pytest.approx((2.1e7 + 11) * C / 1227.60e6)
+    # P(Y) (C2W/C1W) is not one of ours; SBAS and NavIC lines are dropped; all counted.
+    assert raw.skipped == {"obs_other_signals": 1, "sat_lines_sbas_not_used": 1, "sat_lines_unsupported_system": 1}
 
 
 def test_a_system_missing_from_the_header_is_counted(tmp_path):

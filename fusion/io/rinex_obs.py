@@ -35,13 +35,15 @@ from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawO
 from fusion.trace import count_skip
 
 #: System letter -> [(signal, band digit, tracking attributes in priority order)].
+#: Second frequencies: GPS / QZSS L2C (L, M or combined X tracking; P(Y) semi-codeless W is not
+#: L2C and stays out), Galileo E5b, BeiDou B2I (band 7 in every RINEX 3 version).
 SIGNAL_CODES: dict[str, list[tuple[str, str, str]]] = {
-    "G": [("GPS_L1", "1", "C"), ("GPS_L5", "5", "QIX")],
+    "G": [("GPS_L1", "1", "C"), ("GPS_L5", "5", "QIX"), ("GPS_L2", "2", "LXS")],
     "R": [("GLO_G1", "1", "C")],
-    "E": [("GAL_E1", "1", "CXB"), ("GAL_E5A", "5", "QXI")],
+    "E": [("GAL_E1", "1", "CXB"), ("GAL_E5A", "5", "QXI"), ("GAL_E5B", "7", "QXI")],
     # RINEX 3.01 wrote BeiDou B1I as C1I; 3.02 on as C2I.
-    "C": [("BDS_B1I", "2", "I"), ("BDS_B1I", "1", "I")],
-    "J": [("QZS_J1", "1", "C"), ("QZS_J5", "5", "QXI")],
+    "C": [("BDS_B1I", "2", "I"), ("BDS_B1I", "1", "I"), ("BDS_B2I", "7", "IXQ")],
+    "J": [("QZS_J1", "1", "C"), ("QZS_J5", "5", "QXI"), ("QZS_J2", "2", "LXS")],
 }
 #: RINEX satellite number -> Android svid offset (QZSS J01 is svid 193, SBAS S20 is 120).
 _SVID_OFFSET = {"J": 192, "S": 100}
@@ -154,7 +156,8 @@ def _parse_header(text: bytes, path: Path) -> ObsHeader:
 #: RINEX 2 two-character types -> the RINEX 3 tracking attribute our signal table expects, by
 #: (system, band); anything else gets "?" and is dropped as another signal.
 _V2_ATTR = {("G", "1"): "C", ("G", "5"): "X", ("R", "1"): "C", ("E", "1"): "X", ("E", "5"): "X",
-            ("J", "1"): "C", ("J", "5"): "X", ("C", "2"): "I"}
+            ("J", "1"): "C", ("J", "5"): "X", ("C", "2"): "I", ("G", "2"): "X", ("E", "7"): "X",
+            ("C", "7"): "I", ("J", "2"): "X"}
 
 
 def v2_type_as_v3(system: str, code: str) -> str:
@@ -345,7 +348,9 @@ def observation_frame(system: np.ndarray, prn: np.ndarray, prn_bad: np.ndarray, 
     count_skip(skipped, "sat_lines_bad_number", bad)
     ok = ~bad
     unknown_sys = ok & ~np.isin(system, [ord(s) for s in SIGNAL_CODES])
-    count_skip(skipped, "sat_lines_unsupported_system", unknown_sys)
+    # SBAS ranging is left out (its GEO clocks and corrections are not modelled): counted apart
+    count_skip(skipped, "sat_lines_sbas_not_used", unknown_sys & (system == ord("S")))
+    count_skip(skipped, "sat_lines_unsupported_system", unknown_sys & (system != ord("S")))
     # a system the header lists no observation types for cannot be decoded
     unlisted = ok & ~unknown_sys & ~np.isin(system, [ord(s) for s in head.obs_types])
     count_skip(skipped, "sat_lines_system_not_in_header", unlisted)
