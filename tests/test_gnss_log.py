@@ -190,5 +190,5 @@ def test_unusable_files_are_one_line_errors(tmp_path):
     no_col = _edit(tmp_path, PIXEL4_LOG, lambda ls: [l.replace(",FullBiasNanos,", ",FullBias,") for l in ls])
     with pytest.raises(DataError, match="lacks column.*FullBiasNanos"):
         read_gnss_log(no_col)
-    with pytest.raises(DataError, match="cannot read"):
+    with pytest.raises(DataError, match="absent.txt: GnssLogger file not found"):
         read_gnss_log(tmp_path / "absent.txt")

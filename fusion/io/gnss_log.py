@@ -27,6 +27,7 @@ from fusion.errors import DataError
 from fusion.gpstime import GPS_EPOCH_UNIX_MS, leap_seconds_at_unix_ms
 from fusion.io.fixed_width import parse_int_text
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, RawObs, empty_raw, finish_raw
+from fusion.io.text_open import read_bytes
 from fusion.trace import count_skip
 
 C_MPS = 299_792_458.0
@@ -82,10 +83,7 @@ def read_gnss_log(path: str | Path, *, fixed_full_bias: bool = False) -> RawObs:
 def _raw_table(path: Path, skipped: dict[str, int]) -> tuple[pd.DataFrame, np.ndarray]:
     """The ``Raw`` records with the columns we use (integer-nanosecond ones as text) and their
     (N,) file line numbers; records with the wrong number of fields are dropped and counted."""
-    try:
-        text = path.read_bytes().decode("utf-8", errors="replace")
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    text = read_bytes(path, "GnssLogger", skipped).decode("utf-8", errors="replace")
     lines = text.splitlines()
     header = next((l for l in lines if l.startswith("# Raw,")), None)
     if header is None:

@@ -15,7 +15,6 @@ BeiDou TGD1) and ``tgd_l5`` (GPS/QZSS ``(f1/f5)^2 TGD``, Galileo ``(f1/f5)^2 BGD
 """
 from __future__ import annotations
 
-import gzip
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from fusion.errors import DataError
 from fusion.gpstime import WEEK_S, gps_ms_from_calendar, leap_seconds_at_unix_ms, GPS_EPOCH_UNIX_MS
 from fusion.nav.glonass import GloNav
 from fusion.nav.orbits import GpsNav
+from fusion.io.text_open import read_lines
 from fusion.trace import count_skip
 
 #: Fit interval [h] by system when a record leaves it blank (GPS: IS-GPS-200, 4 h); Galileo and
@@ -95,13 +95,7 @@ class _Header:
 
 # ---------------------------------------------------------------------------- lines and header
 def _read_lines(path: Path) -> list[str]:
-    if not path.is_file():
-        raise DataError(f"{path}: navigation file not found")
-    try:
-        raw = gzip.decompress(path.read_bytes()) if path.name.endswith(".gz") else path.read_bytes()
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
-        raise DataError(f"{path}: cannot read navigation file ({exc})") from None
-    return raw.decode("ascii", errors="replace").splitlines()
+    return read_lines(path, "navigation")
 
 
 def _num(text: str, path: Path, line_no: int) -> float:

@@ -1,4 +1,5 @@
-"""RINEX 3.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``, optionally ``.gz``) -> :class:`RawObs`.
+"""RINEX 3.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``; gzip and
+Hatanaka-compressed ``.crx`` / ``.YYd`` too, told by content) -> :class:`RawObs`.
 
 Every constellation is read; observation codes are mapped onto :data:`fusion.trace.SIGNALS`
 (:data:`SIGNAL_CODES`), other signals are dropped and counted. Units: C metres, L cycles
@@ -7,8 +8,8 @@ RINEX writes a missing observation as blank or 0.0; both read as NaN. LLI bit 0 
 the previous observation) on a phase sets ``adr_slip``. Epoch flag 1 (power failure) sets
 ``clock_reset``; flags 2-5 (event / header records) and 6 (cycle-slip records) are skipped and
 counted. RINEX 2 records are located by :mod:`fusion.io.rinex2_obs` and their two-character types
-mapped to RINEX 3 codes; other versions and Hatanaka-compressed files are refused with a
-one-line error.
+mapped to RINEX 3 codes; other versions are refused with a one-line error. Hatanaka (CRINEX)
+files are expanded first (:mod:`fusion.io.text_open`, PyPI ``hatanaka``).
 
 Speed: the body is read as one byte buffer and every observation field is gathered into a
 column-major byte array (:mod:`fusion.io.fixed_width`), so numbers are parsed with array
@@ -17,10 +18,8 @@ arithmetic; the Pixel5 phone log (4 MB, 2000 epochs) reads in about 0.1-0.2 s
 """
 from __future__ import annotations
 
-import gzip
 import re
 import warnings
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from fusion.errors import DataError
 from fusion.io.fixed_width import (char_matrix, gather_fields, line_bounds, parse_decimal, parse_float,
                                    parse_float_columns, parse_int)
 from fusion.io.rinex2_obs import satellite_fields, walk_records
+from fusion.io.text_open import read_bytes
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
@@ -79,11 +79,11 @@ def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = N
     ``skipped`` and reported with a warning naming the first offending line.
     """
     path = Path(path)
-    text = _read_bytes(path)
+    skipped: dict[str, int] = {}
+    text = _read_bytes(path, skipped)
     header = _parse_header(text, path)
     header.glo_k = {**(glonass_channels or {}), **header.glo_k}
     body = np.frombuffer(text, np.uint8)[_body_offset(text):]
-    skipped: dict[str, int] = {}
     if header.version < 3:
         frame = _v2_frame(body, header, path, skipped)
     else:
@@ -92,17 +92,8 @@ def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = N
     return RawObs(frame=frame, path=path, skipped=skipped, approx_pos=header.approx_pos)
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError, zlib.error) as exc:
-            raise DataError(f"{path}: corrupt gzip file ({exc})") from None
-    return raw.replace(b"\r\n", b"\n")
+def _read_bytes(path: Path, skipped: dict[str, int]) -> bytes:
+    return read_bytes(path, "RINEX observation", skipped, crinex=True).replace(b"\r\n", b"\n")
 
 
 def _body_offset(text: bytes) -> int:
@@ -119,8 +110,6 @@ def _parse_header(text: bytes, path: Path) -> ObsHeader:
     lines = text[:end].decode("ascii", errors="replace").split("\n")
     head = ObsHeader(n_lines=len(lines))
     first = lines[0]
-    if "COMPACT RINEX" in first:
-        raise DataError(f"{path}: Hatanaka-compressed (CRINEX) file; decompress it with crx2rnx first")
     try:
         head.version = float(first[:9])
     except ValueError:
