@@ -181,15 +181,24 @@ def test_cut_inside_last_line_is_truncated_not_misread(tmp_path):
 def test_glonass_channels_fill_missing_header_slots(tmp_path):
     lines = [l for l in _lines() if "GLONASS SLOT / FRQ #" not in l]
     path = _write(tmp_path, "".join(lines))
-    plain = read_rinex_obs(path)
+    plain = read_rinex_obs(path, slot_table=False)
     glo = plain.frame[plain.frame.const == "R"]
     assert len(glo) and (glo.glo_k == -99).all() and glo.prr_mps.isna().all() and glo.pr_m.notna().any()
     assert plain.skipped["glonass_no_channel_doppler_phase"] > 0
-    filled = read_rinex_obs(path, glonass_channels={9: -2, 20: 2, 21: 4})
+    filled = read_rinex_obs(path, glonass_channels={9: -2, 20: 2, 21: 4}, slot_table=False)
     g = filled.frame[filled.frame.const == "R"]
     ref = read_rinex_obs(FIXTURE).frame
     assert g.reset_index(drop=True).equals(ref[ref.const == "R"].reset_index(drop=True))
     assert "glonass_no_channel_doppler_phase" not in filled.skipped
+    assert filled.skipped["glonass_rows_channel_from_navigation"] == len(g)
+    # without navigation, the slot table gives the same channels (it agrees with this phone's header)
+    table = read_rinex_obs(path)
+    assert table.frame[table.frame.const == "R"].reset_index(drop=True).equals(g.reset_index(drop=True))
+    assert table.skipped["glonass_rows_channel_from_slot_table"] == len(g)
+    # navigation wins over the table; the header wins over both
+    nav = read_rinex_obs(path, glonass_channels={9: 3})
+    assert (nav.frame.query("const == 'R' and svid == 9").glo_k == 3).all()
+    assert (read_rinex_obs(FIXTURE, glonass_channels={9: 3}).frame.query("const == 'R' and svid == 9").glo_k == -2).all()
     # The header wins over the caller.
     assert (read_rinex_obs(FIXTURE, glonass_channels={21: -5}).frame.query("svid == 21 and const == 'R'").glo_k == 4).all()
 

@@ -5,7 +5,7 @@ A RINEX file says what it is in its first line (``RINEX VERSION / TYPE``): versi
 the satellite system (``G R E C J I S``, ``M`` mixed). A Hong Kong reference-station BeiDou file
 ``hksc137c.21f`` is a RINEX 3.02 ``N`` / ``C`` file with a RINEX-2-style name; an IGS
 ``*_EN.rnx`` is Galileo; both are navigation whatever their extension. Hatanaka-compressed
-observations start with ``COMPACT RINEX FORMAT`` and carry the RINEX header on their second line.
+observations start with ``COMPACT RINEX FORMAT`` and carry the RINEX header two lines later.
 Gzip is looked through (:func:`fusion.io.text_open.head_text`).
 """
 from __future__ import annotations
@@ -42,8 +42,8 @@ def rinex_kind(path: str | Path) -> RinexKind | None:
     if not lines:
         return None
     hatanaka = "COMPACT RINEX FORMAT" in lines[0]
-    if hatanaka:
-        lines = lines[1:]
+    if hatanaka:  # CRINEX VERS / TYPE and CRINEX PROG / DATE come first
+        lines = [ln for ln in lines[1:4] if "RINEX VERSION" in ln]
     if not lines or "RINEX VERSION" not in lines[0]:
         return None
     first = lines[0]

@@ -19,6 +19,7 @@ signals are dropped and counted in ``Trace.skipped``.
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -26,7 +27,8 @@ import pandas as pd
 from fusion.errors import DataError
 from fusion.estimate.wls import solve_wls_arrays
 from fusion.geometry import C_LIGHT, ecef2geodetic, elevation_azimuth, line_of_sight
-from fusion.gpstime import WEEK_S
+from fusion.gpstime import WEEK_S, format_gps_ms
+from fusion.io.discover import SYSTEM_NAMES
 from fusion.io.clean import epochs_with_enough_rows
 from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
@@ -57,7 +59,8 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
         raise DataError(f"{raw.path}: no navigation data (pass broadcast navigation or SP3 orbits)")
     skipped = dict(raw.skipped)
     rows = _select_rows(raw, nav, precise, signals, skipped)
-    st = _states(rows, nav, precise)
+    st = _states(rows, nav, precise, skipped)
+    _check_coverage(raw, rows, st["ok"], nav, precise)
     count_skip(skipped, "rows_no_ephemeris", ~st["ok"])
     rows, st = rows[st["ok"]].reset_index(drop=True), {k: v[st["ok"]] for k, v in st.items()}
     rows, st, epoch, t_ns = _epochs(rows, st, min_sats, skipped, raw)
@@ -94,6 +97,7 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
     keep = f["signal"].isin(names).to_numpy()
     if signals is None:
         count_skip(skipped, "rows_constellation_without_navigation", ~keep)
+        _warn_without_navigation(raw, f["const"].to_numpy(object)[~keep], nav, precise)
     else:
         count_skip(skipped, "rows_signal_not_selected", ~keep)
     pr = f["pr_m"].to_numpy()
@@ -109,21 +113,57 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
     return rows
 
 
+def _warn_without_navigation(raw: RawObs, letters: np.ndarray, nav, precise) -> None:
+    """Say which constellations the log measured but no navigation covers. letters: (M,) of those rows."""
+    if letters.size == 0:
+        return
+    names, counts = np.unique(letters, return_counts=True)
+    what = ", ".join(f"{SYSTEM_NAMES.get(n, n)} ({c} measurements)" for n, c in zip(names, counts))
+    have = ", ".join(SYSTEM_NAMES[s] for s in sorted(_systems(nav, precise)))
+    warnings.warn(f"{raw.path}: no navigation for {what}; the navigation covers {have}: pass a "
+                  "navigation file of those constellations (--nav FILE, any RINEX name) to use them", stacklevel=3)
+
+
 def _systems(nav, precise) -> set[str]:
     return precise.systems() if precise is not None else nav.systems()
 
 
-def _states(rows: pd.DataFrame, nav, precise) -> dict[str, np.ndarray]:
+def _check_coverage(raw: RawObs, rows: pd.DataFrame, ok: np.ndarray, nav, precise) -> None:
+    """Refuse a log no navigation record covers, naming the log's and the navigation's dates
+    (a file of the wrong day is the usual cause); warn when most rows lack ephemerides."""
+    if ok.mean() >= 0.5:
+        return
+    t = rows["t_ns"].to_numpy(np.int64) // 1_000_000
+    log_span = f"{format_gps_ms(int(t.min()))[:19]} to {format_gps_ms(int(t.max()))[:19]} GPS time"
+    span = _navigation_span(nav, precise)
+    cover = "no usable records" if span is None else \
+        f"{format_gps_ms(span[0])[:19]} to {format_gps_ms(span[1])[:19]}"
+    files = ", ".join(Path(f).name for f in (nav.sources if nav is not None and precise is None else
+                                             [precise.sp3.source]))
+    msg = f"{raw.path}: the log runs {log_span} but the navigation ({files}) covers {cover}"
+    if not ok.any():
+        raise DataError(msg + ": pass a navigation file of the log's day (--nav FILE)")
+    warnings.warn(f"{msg}: {int((~ok).sum())} of {ok.size} measurements have no ephemeris", stacklevel=3)
+
+
+def _navigation_span(nav, precise) -> tuple[int, int] | None:
+    if precise is not None:
+        t = precise.sp3.t_ms
+        return (int(t.min()), int(t.max())) if t.size else None
+    return nav.span_ms()
+
+
+def _states(rows: pd.DataFrame, nav, precise, skipped: dict[str, int] | None = None) -> dict[str, np.ndarray]:
     """(N,) satellite states at each row's transmit time (two passes: the second at the transmit
     time corrected by the first pass's satellite clock, which moves the satellite ~4 m per ms)."""
     t_ns = rows["t_ns"].to_numpy(np.int64)
     t_ms = t_ns // 1_000_000
     base = (t_ns - t_ms * 1_000_000) * 1e-9 - rows["pr_m"].to_numpy() / C_LIGHT
     sat_id, sig = rows["sat_id"].to_numpy(), pd.Index(SIGNALS).get_indexer(rows["signal"]).astype(np.int8)
-    fn = (lambda dt: precise_states(precise, sat_id, sig, t_ms, dt, nav)) if precise is not None else \
-         (lambda dt: broadcast_states(nav, sat_id, sig, t_ms, dt))
+    fn = (lambda dt, sk=None: precise_states(precise, sat_id, sig, t_ms, dt, nav)) if precise is not None else \
+         (lambda dt, sk=None: broadcast_states(nav, sat_id, sig, t_ms, dt, sk))
     st = fn(base)
-    st = fn(base - st["clock_s"])
+    st = fn(base - st["clock_s"], skipped)
     st["signal"] = sig
     return st
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.gpstime import WEEK_S, gps_ms_from_calendar, leap_seconds_at_unix_ms, GPS_EPOCH_UNIX_MS
-from fusion.nav.glonass import GloNav
+from fusion.nav.glonass import VALID_MS as GLO_VALID_MS, GloNav
 from fusion.nav.orbits import GpsNav
 from fusion.io.text_open import read_lines
 from fusion.trace import count_skip
@@ -75,12 +75,26 @@ class Navigation:
     leap_s: int | None = None
     sources: list[str] = field(default_factory=list)
     skipped: dict[str, int] = field(default_factory=dict)
+    #: file -> constellation letters it has records of (what each file covers, for the user)
+    file_systems: dict[str, set[str]] = field(default_factory=dict)
 
     def systems(self) -> set[str]:
         """Constellation letters with at least one record."""
         inv = {v: k for k, v in _CTYPE.items()}
         out = {inv[int(c)] for c in np.unique(self.kepler.sat_id // 1000)}
         return out | ({"R"} if len(self.glonass) else set())
+
+    def span_ms(self) -> tuple[int, int] | None:
+        """Earliest and latest instant any record is valid for [GPS ms], or None without records."""
+        spans = [self.kepler.span_ms()] if len(self.kepler) else []
+        if len(self.glonass):
+            spans.append((int(self.glonass.toe_ms.min()) - GLO_VALID_MS, int(self.glonass.toe_ms.max()) + GLO_VALID_MS))
+        return (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
+
+    def glonass_channels(self) -> dict[int, int]:
+        """GLONASS slot -> frequency channel k from the records (the latest record's per slot)."""
+        g = self.glonass
+        return {int(s): int(k) for s, k in zip(g.svid, g.k)}  # sorted by (slot, toe): the last wins
 
 
 @dataclass
@@ -317,10 +331,13 @@ def read_nav(paths: str | Path | list) -> Navigation:
     skipped: dict[str, int] = {}
     recs: list = []
     klob = leap = None
+    file_systems: dict[str, set[str]] = {}
     for path in paths:
         lines = _read_lines(path)
         head = _header(lines, path)
-        recs += _records(lines, head, path, skipped)
+        mine = _records(lines, head, path, skipped)
+        file_systems[str(path)] = {r[0] for r in mine}
+        recs += mine
         klob = klob if klob is not None else head.klobuchar
         leap = leap if leap is not None else head.leap_s
     name = ", ".join(str(p) for p in paths)
@@ -328,7 +345,8 @@ def read_nav(paths: str | Path | list) -> Navigation:
         raise DataError(f"{name}: no GPS, QZSS, Galileo, BeiDou or GLONASS records in navigation file")
     glo_leap = leap if leap is not None else _leap_at_gps_ms(min(r[2] for r in recs))
     return Navigation(kepler=_kepler_table(recs, name, skipped), glonass=_glonass_table(recs, glo_leap, name, skipped),
-                      klobuchar=klob, leap_s=leap, sources=[str(p) for p in paths], skipped=skipped)
+                      klobuchar=klob, leap_s=leap, sources=[str(p) for p in paths], skipped=skipped,
+                      file_systems=file_systems)
 
 
 def _leap_at_gps_ms(t_ms: int) -> int:

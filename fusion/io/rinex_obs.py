@@ -31,6 +31,7 @@ from fusion.io.fixed_width import (char_matrix, gather_fields, line_bounds, pars
                                    parse_float_columns, parse_int)
 from fusion.io.rinex2_obs import satellite_fields, walk_records
 from fusion.io.text_open import read_bytes
+from fusion.nav.glonass import SLOT_CHANNEL
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
@@ -64,14 +65,19 @@ class ObsHeader:
     approx_pos: np.ndarray | None = None
     time_system: str = ""
     n_lines: int = 0
+    #: slot -> where its channel came from when not from the header ("navigation", "slot_table")
+    glo_source: dict[int, str] = field(default_factory=dict)
 
 
-def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = None) -> RawObs:
-    """Read a RINEX 3.0x (or 2.10-2.12) observation file (plain or gzip) into the raw contract.
+def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = None, *,
+                   slot_table: bool = True) -> RawObs:
+    """Read a RINEX 3.0x (or 2.10-2.12) observation file (plain, gzip or Hatanaka) into the raw contract.
 
     glonass_channels: slot -> frequency channel k, for slots the header's ``GLONASS SLOT / FRQ #``
-    lacks (e.g. from a navigation file); without k a GLONASS row keeps its pseudorange but not
-    its Doppler and phase (counted in ``skipped``).
+    lacks (e.g. from navigation records); ``slot_table``: then the known channel of each slot
+    (:data:`fusion.nav.glonass.SLOT_CHANNEL`). Rows so filled are counted
+    (``glonass_rows_channel_from_navigation`` / ``_from_slot_table``); without k a GLONASS row
+    keeps its pseudorange but not its Doppler and phase (counted in ``skipped``).
 
     Raises :class:`DataError` naming the file (and line) for an unreadable / corrupt file, an
     unsupported version, a malformed header or epoch line, or a file without epoch records.
@@ -82,7 +88,10 @@ def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = N
     skipped: dict[str, int] = {}
     text = _read_bytes(path, skipped)
     header = _parse_header(text, path)
-    header.glo_k = {**(glonass_channels or {}), **header.glo_k}
+    header.glo_source = {s: "slot_table" for s in (SLOT_CHANNEL if slot_table else {})}
+    header.glo_source |= {s: "navigation" for s in (glonass_channels or {})}
+    header.glo_source = {s: v for s, v in header.glo_source.items() if s not in header.glo_k}
+    header.glo_k = {**(SLOT_CHANNEL if slot_table else {}), **(glonass_channels or {}), **header.glo_k}
     body = np.frombuffer(text, np.uint8)[_body_offset(text):]
     if header.version < 3:
         frame = _v2_frame(body, header, path, skipped)
@@ -393,6 +402,9 @@ def _signal_columns(sys_letter: str, signal: str, rows: np.ndarray, col: dict[st
     if sys_letter == "R":
         slots, inverse = np.unique(svid, return_inverse=True)
         glo_k = np.array([head.glo_k.get(int(s), GLO_K_UNKNOWN) for s in slots], np.int64)[inverse.ravel()]
+        for origin in ("navigation", "slot_table"):
+            filled = np.array([head.glo_source.get(int(s)) == origin for s in slots] + [False])[inverse.ravel()]
+            count_skip(skipped, f"glonass_rows_channel_from_{origin}", filled)
     else:
         glo_k = np.zeros(n, np.int64)
     sig = np.full(n, signal, dtype=object)
