@@ -27,6 +27,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="RINEX / GnssLogger traces: precise orbits (SP3) instead of broadcast ones")
     p.add_argument("--clk", type=Path, default=None, metavar="FILE",
                    help="with --sp3: precise satellite clocks (RINEX clock file)")
+    p.add_argument("--iono-free", action="store_true",
+                   help="RINEX / GnssLogger traces: ionosphere-free combination where a satellite has an L1-class "
+                        "and a second-frequency pseudorange (L2C / E5b / B2I, else L5 / E5a) instead of both")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true", help="fused modes: incremental smoother instead of batch")
@@ -62,11 +65,11 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
                       use_doppler=not args.no_doppler, use_carrier=not args.no_carrier,
-                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk)
+                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk, iono_free=args.iono_free)
 
 
 def load_options(opts: RunOptions) -> dict:
     """Keyword arguments of :func:`fusion.io.load.load_trace` that come from the run options."""
     from fusion.io.raw_load import RawSources
 
-    return {"signals": opts.signals, "raw_sources": RawSources(opts.nav, opts.sp3, opts.clk)}
+    return {"signals": opts.signals, "raw_sources": RawSources(opts.nav, opts.sp3, opts.clk, opts.iono_free)}

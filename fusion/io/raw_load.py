@@ -41,6 +41,8 @@ class RawSources:
     nav: tuple[Path, ...] = ()
     sp3: Path | None = None
     clk: Path | None = None
+    #: ionosphere-free combination where a satellite has two frequencies (``--iono-free``)
+    iono_free: bool = False
 
 
 def _files(folder: Path, pattern: re.Pattern) -> list[Path]:
@@ -126,7 +128,7 @@ def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, tr
 
     nav, precise = _navigation(folder, src)
     raw = read_raw(log, nav.glonass_channels() if nav is not None else None)
-    trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats,
+    trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats, iono_free=src.iono_free,
                          name=name or f"{folder.parent.name}/{folder.name}")
     if truth != "none":
         trace.truth = _truth(folder, trace, truth, fix_truth_height)
