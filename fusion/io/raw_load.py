@@ -92,7 +92,7 @@ def _say(line: str) -> None:
 
 def describe_navigation(nav) -> list[str]:
     """One line per navigation file: its name and the constellations it covers."""
-    return [f"navigation: {Path(f).name} ({', '.join(SYSTEM_NAMES[s] for s in sorted(systems)) or 'no usable records'})"
+    return [f"navigation: {Path(f).name} ({', '.join(SYSTEM_NAMES[s] for s in 'GRECJ' if s in systems) or 'no usable records'})"
             for f, systems in nav.file_systems.items()]
 
 
