@@ -132,3 +132,18 @@ def test_sp3_gz_is_read(tmp_path):
     a, b = read_sp3(plain), read_sp3(gz)
     np.testing.assert_array_equal(a.pos, b.pos)
     assert a.pos[1, 0, 0] == -1_100_000.0 and b.clock[0, 0] == pytest.approx(12.5e-6)
+
+
+def test_glonass_channels_from_navigation_records():
+    """The loader hands these to the observation reader for slots its header lacks; they agree
+    with the slot table here."""
+    from fusion.nav.glonass import SLOT_CHANNEL
+    ch = read_nav(MIXED).glonass_channels()
+    assert ch == {1: SLOT_CHANNEL[1], 2: SLOT_CHANNEL[2]}
+
+
+def test_navigation_span(tmp_path):
+    nav = read_nav(MIXED)
+    lo, hi = nav.span_ms()
+    from fusion.gpstime import format_gps_ms
+    assert format_gps_ms(lo)[:10] == "2023-03-13" and format_gps_ms(hi)[:10] == "2023-03-14"

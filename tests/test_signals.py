@@ -116,3 +116,16 @@ def test_wls_and_graph_use_the_second_frequency(nav):
     assert fused.info["isb_m"]["GPS_L2@0"] - base.info["isb_m"]["GPS_L2@0"] == pytest.approx(20.0, abs=0.2)
     np.testing.assert_allclose(fused.pos, base.pos, atol=0.05)
     assert np.isfinite(res["wls"].pos).all()
+
+
+def test_signal_names_stay_and_new_ones_are_appended():
+    """Stored indices of the first eight signals never move; GSDC 2023 spellings of the new ones
+    map by their first two tokens; RINEX 2 L2 / E5b / B2I types become RINEX 3 codes of ours."""
+    from fusion.io.rinex_obs import SIGNAL_CODES, v2_type_as_v3
+    from fusion.trace import signal_index
+    assert SIGNALS[:8] == ("GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A", "BDS_B1I", "QZS_J1", "QZS_J5")
+    assert signal_index(["GPS_L2_C", "GAL_E5B_Q", "BDS_B2I", "QZS_J2", "SBS_L1_CA"]).tolist() == [8, 9, 10, 11, -1]
+    codes = {(s, band + attr) for s, sigs in SIGNAL_CODES.items() for _, band, attrs in sigs for attr in attrs}
+    for system, v2 in (("G", "C2"), ("G", "L2"), ("E", "C7"), ("C", "C7"), ("J", "C2")):
+        assert (system, v2_type_as_v3(system, v2)[1:]) in codes
+    assert ("G", v2_type_as_v3("G", "P2")[1:]) not in codes              # P(Y) is not L2C
