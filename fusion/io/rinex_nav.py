@@ -1,5 +1,6 @@
-"""Broadcast navigation files: RINEX 3 mixed / single-system (``*_MN.rnx``, ``*_GN.rnx``, ...),
-RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too.
+"""Broadcast navigation files: RINEX 3 mixed / single-system (``*_MN.rnx``, ``*_GN.rnx``, a
+BeiDou ``.21f``, ...), RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too (files are found by
+their header, :mod:`fusion.io.discover`).
 
 :func:`read_nav` keeps every system we model: Keplerian records of GPS, QZSS, Galileo and BeiDou
 in one :class:`~fusion.nav.orbits.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
@@ -10,8 +11,10 @@ view the simulator uses.
 Times: every ``*_ms`` is absolute GPS milliseconds since 1980-01-06. BeiDou epochs (BDT) are
 moved by +14 s, GLONASS epochs (UTC) by the leap seconds. The week of ``toe`` is resolved against
 the clock epoch ``toc`` rather than trusted, because some writers store it modulo 1024.
-Group delays are kept per signal class: ``tgd`` (L1 class: GPS/QZSS TGD, Galileo BGD(E1,E5b),
-BeiDou TGD1) and ``tgd_l5`` (GPS/QZSS ``(f1/f5)^2 TGD``, Galileo ``(f1/f5)^2 BGD(E1,E5a)``).
+Galileo I/NAV and F/NAV records are both kept (``GpsNav.msg``, from the data-source field): their
+clocks serve different signal pairs. Group delays are kept per signal class
+(:func:`group_delays`): ``tgd`` (L1 class: GPS/QZSS TGD, Galileo E1, BeiDou TGD1), ``tgd_l5``
+(L5 / E5a) and ``tgd_l2`` (GPS/QZSS L2, Galileo E5b, BeiDou TGD2 for B2I).
 """
 from __future__ import annotations
 
