@@ -27,8 +27,8 @@ def add_nav_options(p: argparse.ArgumentParser) -> None:
     """``--nav``, ``--sp3``, ``--clk``: where RINEX / GnssLogger traces get their satellite orbits and
     clocks (read by :func:`options_from_args`, or by ``gnssfuse train`` as they are)."""
     p.add_argument("--nav", type=Path, nargs="+", default=(), metavar="FILE",
-                   help="RINEX / GnssLogger traces: broadcast navigation file(s) (RINEX 2 .YYn/.YYg, "
-                        "RINEX 3 *_MN.rnx; default: those in the trace folder or supplemental/)")
+                   help="RINEX / GnssLogger traces: broadcast navigation file(s), RINEX 2 or 3, any name "
+                        "(found by their header; gzip too); default: those in the trace folder or supplemental/")
     p.add_argument("--sp3", type=Path, default=None, metavar="FILE",
                    help="RINEX / GnssLogger traces: precise orbits (SP3) instead of broadcast ones")
     p.add_argument("--clk", type=Path, default=None, metavar="FILE",
@@ -43,6 +43,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                         "too), or all; default GPS_L1 for GSDC files, every signal with ephemerides "
                         "for RINEX / GnssLogger logs")
     add_nav_options(p)
+    p.add_argument("--iono-free", action="store_true",
+                   help="RINEX / GnssLogger traces: ionosphere-free combination where a satellite has an L1-class "
+                        "and a second-frequency pseudorange (L2C / E5b / B2I, else L5 / E5a) instead of both")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--dnn-passes", type=int, default=1, help="apply the DNN iteratively this many times")
     p.add_argument("--incremental", action="store_true",
@@ -82,7 +85,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
                       dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
-                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk, graph=graph_config(args))
+                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk, iono_free=args.iono_free,
+                      graph=graph_config(args))
 
 
 def graph_config(args: argparse.Namespace) -> GraphConfig:
@@ -99,4 +103,4 @@ def load_options(opts: RunOptions) -> dict:
     """Keyword arguments of :func:`fusion.io.load.load_trace` that come from the run options."""
     from fusion.io.raw_load import RawSources
 
-    return {"signals": opts.signals, "raw_sources": RawSources(opts.nav, opts.sp3, opts.clk)}
+    return {"signals": opts.signals, "raw_sources": RawSources(opts.nav, opts.sp3, opts.clk, opts.iono_free)}

@@ -26,6 +26,7 @@ class RunOptions:
     nav: tuple[Path, ...] = ()           # raw logs: broadcast navigation files (else the folder's)
     sp3: Path | None = None              # raw logs: precise orbits (+ clocks) instead of broadcast
     clk: Path | None = None              # raw logs: precise clocks (RINEX clock file) with sp3
+    iono_free: bool = False              # raw logs: ionosphere-free combination of dual-frequency pairs
     wls_weighting: str = "elevation"
     wls_robust: bool | str = "exclude"   # fault detection and exclusion; False = plain (--wls-plain)
     # fused mode: which learned parts enter the graph (the report isolates what each adds)

@@ -190,5 +190,27 @@ def test_unusable_files_are_one_line_errors(tmp_path):
     no_col = _edit(tmp_path, PIXEL4_LOG, lambda ls: [l.replace(",FullBiasNanos,", ",FullBias,") for l in ls])
     with pytest.raises(DataError, match="lacks column.*FullBiasNanos"):
         read_gnss_log(no_col)
-    with pytest.raises(DataError, match="cannot read"):
+    with pytest.raises(DataError, match="absent.txt: GnssLogger file not found"):
         read_gnss_log(tmp_path / "absent.txt")
+
+
+def test_second_frequencies_by_carrier_and_code_type(tmp_path):
+    """GPS records moved to the L2 carrier read as GPS_L2 with CodeType L (L2C) and are another
+    signal with CodeType W (P(Y)); Galileo at 1207.14 MHz is E5b."""
+    def move(lines):
+        out, k = [], 0
+        for ln in lines:
+            f = ln.rstrip("\n").split(",")
+            if ln.startswith("Raw,") and f[28] in ("1", "6"):          # ConstellationType GPS / Galileo
+                k += 1
+                f[22] = "1227600000" if f[28] == "1" else "1207140000"
+                f[35] = ("L" if k % 2 else "W") if f[28] == "1" else "Q"
+                ln = ",".join(f) + "\n"
+            out.append(ln)
+        return out
+    raw = read_gnss_log(_edit(tmp_path, P7_LOG, move))
+    sig = set(raw.frame.signal)
+    assert {"GPS_L2", "GAL_E5B"} <= sig and "GPS_L1" not in sig and "GAL_E1" not in sig
+    l2 = raw.frame[raw.frame.signal == "GPS_L2"]
+    assert (l2.carrier_hz == 1227.60e6).all()
+    assert raw.skipped["records_other_signals"] > 0          # the CodeType W ones

@@ -148,7 +148,7 @@ def test_malformed_navigation(tmp_path):
         read_nav(v4)
     gzbad = tmp_path / "x_MN.rnx.gz"
     gzbad.write_bytes(b"not gzip")
-    with pytest.raises(DataError, match="cannot read navigation file"):
+    with pytest.raises(DataError, match="corrupt gzip navigation file"):
         read_nav(gzbad)
     with pytest.raises(DataError, match="not found"):
         read_nav(tmp_path / "none.rnx")

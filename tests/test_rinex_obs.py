@@ -88,9 +88,14 @@ def test_gzip_same_as_plain(tmp_path):
 
 
 def test_corrupt_gzip_is_one_line_error(tmp_path):
-    bad = _write(tmp_path, gzip.compress(FIXTURE.read_bytes())[:200], "x.21o.gz")
+    bad = _write(tmp_path, b"\x1f\x8b\x08\x00" + b"\xff" * 300, "x.21o.gz")
     with pytest.raises(DataError, match=r"x\.21o\.gz: corrupt gzip"):
         read_rinex_obs(bad)
+    # a stream cut inside the header keeps what was decompressed (the shared policy), which has no header end
+    cut = _write(tmp_path, gzip.compress(FIXTURE.read_bytes())[:200], "y.21o.gz")
+    with pytest.warns(UserWarning, match="gzip stream ends early"), \
+            pytest.raises(DataError, match=r"y\.21o\.gz: no 'END OF HEADER'"):
+        read_rinex_obs(cut)
 
 
 def _lines() -> list[str]:
@@ -152,7 +157,7 @@ def test_garbage_header_only_and_rinex2(tmp_path):
     crx = "1.0                 COMPACT RINEX FORMAT                    CRINEX VERS   / TYPE\n" + v1
     with pytest.raises(DataError, match="Hatanaka"):
         read_rinex_obs(_write(tmp_path, crx))
-    with pytest.raises(DataError, match="cannot read"):
+    with pytest.raises(DataError, match="missing.21o: RINEX observation file not found"):
         read_rinex_obs(tmp_path / "missing.21o")
 
 
@@ -176,15 +181,24 @@ def test_cut_inside_last_line_is_truncated_not_misread(tmp_path):
 def test_glonass_channels_fill_missing_header_slots(tmp_path):
     lines = [l for l in _lines() if "GLONASS SLOT / FRQ #" not in l]
     path = _write(tmp_path, "".join(lines))
-    plain = read_rinex_obs(path)
+    plain = read_rinex_obs(path, slot_table=False)
     glo = plain.frame[plain.frame.const == "R"]
     assert len(glo) and (glo.glo_k == -99).all() and glo.prr_mps.isna().all() and glo.pr_m.notna().any()
     assert plain.skipped["glonass_no_channel_doppler_phase"] > 0
-    filled = read_rinex_obs(path, glonass_channels={9: -2, 20: 2, 21: 4})
+    filled = read_rinex_obs(path, glonass_channels={9: -2, 20: 2, 21: 4}, slot_table=False)
     g = filled.frame[filled.frame.const == "R"]
     ref = read_rinex_obs(FIXTURE).frame
     assert g.reset_index(drop=True).equals(ref[ref.const == "R"].reset_index(drop=True))
     assert "glonass_no_channel_doppler_phase" not in filled.skipped
+    assert filled.skipped["glonass_rows_channel_from_navigation"] == len(g)
+    # without navigation, the slot table gives the same channels (it agrees with this phone's header)
+    table = read_rinex_obs(path)
+    assert table.frame[table.frame.const == "R"].reset_index(drop=True).equals(g.reset_index(drop=True))
+    assert table.skipped["glonass_rows_channel_from_slot_table"] == len(g)
+    # navigation wins over the table; the header wins over both
+    nav = read_rinex_obs(path, glonass_channels={9: 3})
+    assert (nav.frame.query("const == 'R' and svid == 9").glo_k == 3).all()
+    assert (read_rinex_obs(FIXTURE, glonass_channels={9: 3}).frame.query("const == 'R' and svid == 9").glo_k == -2).all()
     # The header wins over the caller.
     assert (read_rinex_obs(FIXTURE, glonass_channels={21: -5}).frame.query("svid == 21 and const == 'R'").glo_k == 4).all()
 
@@ -196,7 +210,7 @@ def test_glonass_header_list_read_whole():
 
 
 def _obs_file(tmp_path: Path) -> Path:
-    """A survey-receiver-like RINEX 3.04 file: BeiDou, QZSS, SBAS, NavIC, GPS L2 (not ours), and
+    """A survey-receiver-like RINEX 3.04 file: BeiDou, QZSS, SBAS, NavIC, GPS L2 (C2X ours, C2W not), and
     GPS observation types continued on a second header line."""
     g = "C1C L1C D1C S1C C2W L2W C5Q L5Q D5Q S5Q C2X L2X S2X C1W".split()
     types = {"G": g, "C": "C2I L2I D2I S2I".split(), "J": "C1C L1C D1C S1C C5Q L5Q D5Q S5Q".split(),
@@ -224,16 +238,19 @@ def _obs_file(tmp_path: Path) -> Path:
 def test_other_constellations_and_codes(tmp_path):
     raw = read_rinex_obs(_obs_file(tmp_path))
     f = raw.frame.set_index(["sat_id", "signal"])
-    assert sorted(f.index) == [(1007, "GPS_L1"), (1007, "GPS_L5"), (4193, "QZS_J1"), (4193, "QZS_J5"),
-                               (5005, "BDS_B1I")]
+    assert sorted(f.index) == [(1007, "GPS_L1"), (1007, "GPS_L2"), (1007, "GPS_L5"), (4193, "QZS_J1"),
+                               (4193, "QZS_J5"), (5005, "BDS_B1I")]
     assert np.allclose(raw.approx_pos, [-2.7e6, -4.3e6, 3.85e6])
     assert f.loc[(1007, "GPS_L5"), "pr_m"] == 2.1e7 + 6  # C5Q is the 7th type
     b = f.loc[(5005, "BDS_B1I")]
     assert b.pr_m == 3.8e7 and b.cn0 == 40.25 and b.adr_slip and b.carrier_hz == 1561.098e6
     assert b.adr_m == pytest.approx(2.0e8 * C / 1561.098e6) and b.prr_mps == pytest.approx(1000.5 * C / 1561.098e6)
     assert f.loc[(4193, "QZS_J5"), "carrier_hz"] == 1176.45e6
-    # GPS L2 (C2W/C2X/C1W) is not one of ours; SBAS and NavIC lines are dropped; all counted.
-    assert raw.skipped == {"obs_other_signals": 1, "sat_lines_unsupported_system": 2}
+    # L2C (C2X, the 11th type) is a signal of its own, at the L2 carrier
+    l2 = f.loc[(1007, "GPS_L2")]
+    assert l2.pr_m == 2.1e7 + 10 and l2.carrier_hz == 1227.60e6 and l2.adr_m == pytest.approx((2.1e7 + 11) * C / 1227.60e6)
+    # P(Y) (C2W/C1W) is not one of ours; SBAS and NavIC lines are dropped; all counted.
+    assert raw.skipped == {"obs_other_signals": 1, "sat_lines_sbas_not_used": 1, "sat_lines_unsupported_system": 1}
 
 
 def test_a_system_missing_from_the_header_is_counted(tmp_path):

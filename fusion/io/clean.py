@@ -20,11 +20,9 @@ Only when nothing usable is left does a reader refuse the file (:func:`require_r
 from __future__ import annotations
 
 import csv
-import gzip
 import io
 import logging
 import warnings
-import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -32,49 +30,22 @@ import numpy as np
 import pandas as pd
 
 from fusion.errors import DataError
+from fusion.io.text_open import read_bytes
 from fusion.trace import count_skip
 
 log = logging.getLogger(__name__)
 
-_GZIP_MAGIC = b"\x1f\x8b"
 #: Column holding each row's 1-based data-row number in the file (for messages).
 ROW = "_row"
 
 
-def _gunzip(path: Path, raw: bytes, what: str, skipped: dict[str, int]) -> bytes:
-    """Decompress ``raw``; a stream that stops early keeps its decompressed part (counted)."""
-    try:
-        return gzip.decompress(raw)
-    except EOFError:
-        pass
-    except (gzip.BadGzipFile, zlib.error, OSError) as exc:
-        raise DataError(f"{path}: corrupt gzip {what} file ({exc})") from exc
-    # wbits 16+: gzip header; a decompressobj returns what it has without demanding the trailer
-    try:
-        part = zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(raw)
-    except zlib.error as exc:
-        raise DataError(f"{path}: corrupt gzip {what} file ({exc})") from exc
-    if not part:
-        raise DataError(f"{path}: corrupt gzip {what} file (ends before any data)")
-    count_skip(skipped, "truncated_gzip", 1)
-    warnings.warn(f"{path}: gzip stream ends early; reading the {len(part)} bytes before the cut",
-                  stacklevel=3)
-    return part
-
-
 def read_text(path: str | Path, what: str, skipped: dict[str, int]) -> str:
-    """The text of ``path`` (gzip detected by its magic bytes, not its name).
+    """The text of ``path`` (plain or gzipped: :func:`fusion.io.text_open.read_bytes`).
 
     Raises :class:`DataError` when the file is missing, empty, not gzip-decodable or not text.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: {what} file not found")
-    raw = path.read_bytes()
-    if raw[:2] == _GZIP_MAGIC:
-        raw = _gunzip(path, raw, what, skipped)
-    elif path.name.endswith(".gz") and raw:
-        raise DataError(f"{path}: corrupt gzip {what} file (no gzip header)")
+    raw = read_bytes(path, what, skipped)
     if not raw.strip():
         raise DataError(f"{path}: {what} file is empty")
     nul = raw.find(b"\x00")

@@ -5,7 +5,6 @@ products are). Satellites are named as in SP3 (``"G01"``, ``"E11"``, ``"C20"``).
 """
 from __future__ import annotations
 
-import gzip
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.gpstime import gps_ms_from_calendar
+from fusion.io.text_open import read_lines
 
 
 @dataclass
@@ -26,13 +26,7 @@ class PreciseClocks:
 
 
 def _lines(path: Path) -> list[str]:
-    if not path.is_file():
-        raise DataError(f"{path}: clock file not found")
-    try:
-        raw = gzip.decompress(path.read_bytes()) if path.name.endswith(".gz") else path.read_bytes()
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
-        raise DataError(f"{path}: cannot read clock file ({exc})") from None
-    return raw.decode("ascii", errors="replace").splitlines()
+    return read_lines(path, "clock")
 
 
 def read_clk(path: str | Path) -> PreciseClocks:

@@ -27,6 +27,7 @@ from fusion.errors import DataError
 from fusion.gpstime import GPS_EPOCH_UNIX_MS, leap_seconds_at_unix_ms
 from fusion.io.fixed_width import parse_int_text
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, RawObs, empty_raw, finish_raw
+from fusion.io.text_open import read_bytes
 from fusion.trace import count_skip
 
 C_MPS = 299_792_458.0
@@ -46,14 +47,21 @@ ADR_VALID, ADR_RESET, ADR_CYCLE_SLIP = 1, 2, 4
 _CONST_LETTER = {1: "G", 2: "S", 3: "R", 4: "J", 5: "C", 6: "E"}
 #: (letter, band) -> signal; band "L1" ~1575 MHz, "L5" ~1176 MHz, "B1" 1561 MHz, "G1" ~1602 MHz.
 _SIGNAL = {("G", "L1"): "GPS_L1", ("G", "L5"): "GPS_L5", ("R", "G1"): "GLO_G1", ("E", "L1"): "GAL_E1",
-           ("E", "L5"): "GAL_E5A", ("C", "B1"): "BDS_B1I", ("J", "L1"): "QZS_J1", ("J", "L5"): "QZS_J5"}
-_BANDS = (("L1", 1575.42e6), ("L5", 1176.45e6), ("B1", 1561.098e6))
+           ("E", "L5"): "GAL_E5A", ("C", "B1"): "BDS_B1I", ("J", "L1"): "QZS_J1", ("J", "L5"): "QZS_J5",
+           ("G", "L2"): "GPS_L2", ("J", "L2"): "QZS_J2", ("E", "B2"): "GAL_E5B", ("C", "B2"): "BDS_B2I"}
+_BANDS = (("L1", 1575.42e6), ("L5", 1176.45e6), ("B1", 1561.098e6), ("L2", 1227.60e6), ("B2", 1207.14e6))
+#: Android ``CodeType`` values that are our second-frequency signals (GPS / QZSS L2C: L, M, X
+#: and S (L2C(M)); Galileo E5b and BeiDou B2I: I, Q, X); others on those carriers (GPS P(Y),
+#: BeiDou B2b) are other signals. Logs without CodeType are read by carrier alone.
+_SECOND_CODES = {"GPS_L2": "LMSX", "QZS_J2": "LMSX", "GAL_E5B": "IQX", "BDS_B2I": "IQX"}
 _INT_COLS = ("TimeNanos", "FullBiasNanos", "ReceivedSvTimeNanos")
 _NEEDED = _INT_COLS + ("Svid", "ConstellationType", "State", "BiasNanos")
 _OPTIONAL = ("TimeOffsetNanos", "ReceivedSvTimeUncertaintyNanos", "Cn0DbHz", "PseudorangeRateMetersPerSecond",
              "PseudorangeRateUncertaintyMetersPerSecond", "AccumulatedDeltaRangeState",
              "AccumulatedDeltaRangeMeters", "AccumulatedDeltaRangeUncertaintyMeters", "CarrierFrequencyHz",
              "HardwareClockDiscontinuityCount", "utcTimeMillis")
+#: Text columns kept as they are.
+_TEXT = ("CodeType",)
 
 
 def read_gnss_log(path: str | Path, *, fixed_full_bias: bool = False) -> RawObs:
@@ -82,10 +90,7 @@ def read_gnss_log(path: str | Path, *, fixed_full_bias: bool = False) -> RawObs:
 def _raw_table(path: Path, skipped: dict[str, int]) -> tuple[pd.DataFrame, np.ndarray]:
     """The ``Raw`` records with the columns we use (integer-nanosecond ones as text) and their
     (N,) file line numbers; records with the wrong number of fields are dropped and counted."""
-    try:
-        text = path.read_bytes().decode("utf-8", errors="replace")
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    text = read_bytes(path, "GnssLogger", skipped).decode("utf-8", errors="replace")
     lines = text.splitlines()
     header = next((l for l in lines if l.startswith("# Raw,")), None)
     if header is None:
@@ -102,9 +107,9 @@ def _raw_table(path: Path, skipped: dict[str, int]) -> tuple[pd.DataFrame, np.nd
     _warn_first(path, line_no, wrong, "wrong number of fields")
     count_skip(skipped, "records_wrong_field_count", wrong)
     body = "\n".join(r[4:] for r, w in zip(records, wrong) if not w)
-    use = [c for c in _NEEDED + _OPTIONAL if c in names]
+    use = [c for c in _NEEDED + _OPTIONAL + _TEXT if c in names]
     table = pd.read_csv(io.StringIO(body), header=None, names=names, usecols=use,
-                        dtype={c: str for c in _INT_COLS}, skipinitialspace=True, low_memory=False)
+                        dtype={c: str for c in _INT_COLS + _TEXT}, skipinitialspace=True, low_memory=False)
     return table, line_no[~wrong]
 
 
@@ -162,17 +167,21 @@ def _numeric_columns(table: pd.DataFrame, line_no: np.ndarray, path: Path,
     blank &= ~(bad | no_time)
     count_skip(skipped, "records_blank_svid_constellation_or_state", blank)
     keep = ~(bad | no_time | blank)
+    out["CodeType"] = table["CodeType"].fillna("").astype(str).str.strip().to_numpy(object) \
+        if "CodeType" in table else np.full(n, "", dtype=object)
     # An unreported sub-nanosecond BiasNanos is common to every satellite of the epoch: the
     # receiver clock estimate absorbs it, so it reads as 0 rather than costing the epoch.
     out["BiasNanos"] = np.nan_to_num(out["BiasNanos"])
     return {k: v[keep] for k, v in out.items()} | {"line": line_no[keep]}
 
 
-def _signals(const: np.ndarray, freq_hz: np.ndarray, svid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _signals(const: np.ndarray, freq_hz: np.ndarray, svid: np.ndarray,
+             code: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Signal name (None where not one of ours) and GLONASS channel per record.
 
     const: (N,) RINEX letters.  freq_hz: (N,) CarrierFrequencyHz, NaN when not logged (old logs:
     L1 band assumed).  svid: (N,) Android svid (GLONASS 93..106 = channel + 100, slot unknown).
+    code: (N,) CodeType ('' when not logged), which tells L2C / B2I from other signals on their carriers.
     """
     band = np.full(const.size, "", dtype=object)
     f = np.where(np.isnan(freq_hz), 1575.42e6, freq_hz)
@@ -185,6 +194,10 @@ def _signals(const: np.ndarray, freq_hz: np.ndarray, svid: np.ndarray) -> tuple[
     k = np.where(glo & (svid >= 93) & (svid <= 106) & (k == GLO_K_UNKNOWN), svid - 100, k)
     keys = pd.Series(list(zip(const, band)), dtype=object)
     signal = keys.map(_SIGNAL).to_numpy(object)
+    if code is not None:
+        for name, codes in _SECOND_CODES.items():
+            other = (signal == name) & (code != "") & ~pd.Series(code).isin(list(codes)).to_numpy()
+            signal[other] = None
     return signal, np.where(glo, k, 0)
 
 
@@ -222,7 +235,7 @@ def _to_contract(c: dict[str, np.ndarray], skipped: dict[str, int], fixed_full_b
         return empty_raw()
     const = pd.Series(c["ConstellationType"]).map(_CONST_LETTER).to_numpy(object)
     svid = c["Svid"].astype(np.int64)
-    signal, glo_k = _signals(const, c["CarrierFrequencyHz"], svid)
+    signal, glo_k = _signals(const, c["CarrierFrequencyHz"], svid, c["CodeType"])
     glo_no_slot = (const == "R") & (svid > 24)
     keep = (signal != None) & ~glo_no_slot  # noqa: E711 (elementwise on object array)
     count_skip(skipped, "records_other_signals", signal == None)  # noqa: E711

@@ -10,7 +10,6 @@ wrong (it used ``altitude - N``: about 2 |N| = 63.1 m too high in the Bay Area).
 """
 from __future__ import annotations
 
-import gzip
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import pandas as pd
 
 from fusion.errors import DataError
 from fusion.gpstime import DAY_MS, gps_ms_to_unix_ms, unix_ms_to_gps_ms
+from fusion.io.text_open import read_lines
 from fusion.trace import count_skip
 
 #: Columns of :func:`read_span_nmea`'s result.
@@ -32,15 +32,7 @@ MAX_SENTENCE = 200
 
 def _read_lines(path: Path) -> list[str]:
     """The file's non-blank lines, stripped."""
-    if not path.is_file():
-        raise DataError(f"{path}: NMEA file not found")
-    opener = gzip.open if path.suffix == ".gz" else open
-    try:
-        with opener(path, "rt", encoding="ascii", errors="replace") as fh:
-            text = fh.read()
-    except (OSError, EOFError) as exc:
-        raise DataError(f"{path}: cannot read NMEA file ({exc})") from exc
-    return [ln for ln in map(str.strip, text.splitlines()) if ln]
+    return [ln for ln in map(str.strip, read_lines(path, "NMEA")) if ln]
 
 
 def _sentences(lines: list[str], kind: str) -> list[str]:

@@ -2,26 +2,32 @@
 (directly or in ``supplemental/``), navigation from the folder or given, truth from
 ``ground_truth.csv`` (GSDC 2021 or 2022/23 columns) or a SPAN NMEA log, interpolated to the
 receiver's epochs (a phone's epochs are not on the truth's whole seconds).
+
+RINEX observation and navigation files are found by their header, not their name
+(:mod:`fusion.io.discover`): ``hksc137c.21f`` (BeiDou), ``*_EN.rnx`` (Galileo), ``.crx.gz``
+(Hatanaka) are all read. The navigation files used, and the constellations each covers, are
+printed on stderr; a GLONASS channel the observation header lacks comes from the navigation
+records, else from the slot table (:data:`fusion.nav.glonass.SLOT_CHANNEL`).
 """
 from __future__ import annotations
 
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from fusion.errors import DataError
+from fusion.io.discover import SYSTEM_NAMES, files_of_kind, rinex_kind
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, check_overlap, interp_gapped, llh_ecef,
                              read_truth_csv, warn_outside_bay_area)
 from fusion.trace import Trace
 
-#: RINEX observation names: .obs, .YYo, *_MO.rnx / *_GO.rnx ..., optionally .gz.
-_OBS = re.compile(r"(\.obs|\.\d\do|_[A-Z]O\.rnx)(\.gz)?$", re.IGNORECASE)
 #: GnssLogger logs.
 _LOG = re.compile(r"(gnss_?log.*\.txt)(\.gz)?$", re.IGNORECASE)
-#: Broadcast navigation: .YYn / .YYg, *_MN.rnx / *_GN.rnx ..., .nav, optionally .gz.
-_NAV = re.compile(r"(\.\d\d[ng]|_[A-Z]N\.rnx|\.nav)(\.gz)?$", re.IGNORECASE)
+#: Navigation systems :func:`fusion.io.rinex_nav.read_nav` models (M: mixed).
+_NAV_SYSTEMS = set("GRECJM")
 _SP3 = re.compile(r"\.sp3(\.gz)?$", re.IGNORECASE)
 _CLK = re.compile(r"\.clk(\.gz)?$", re.IGNORECASE)
 #: Truth CSV rows are 1 Hz: interpolate across gaps up to this long [ms].
@@ -35,6 +41,8 @@ class RawSources:
     nav: tuple[Path, ...] = ()
     sp3: Path | None = None
     clk: Path | None = None
+    #: ionosphere-free combination where a satellite has two frequencies (``--iono-free``)
+    iono_free: bool = False
 
 
 def _files(folder: Path, pattern: re.Pattern) -> list[Path]:
@@ -47,37 +55,68 @@ def _files(folder: Path, pattern: re.Pattern) -> list[Path]:
 
 
 def raw_log_files(folder: Path) -> list[Path]:
-    """RINEX observation files and GnssLogger logs in ``folder`` or its ``supplemental/``."""
-    return _files(folder, _OBS) + _files(folder, _LOG)
+    """RINEX observation files (by header, Hatanaka too) and GnssLogger logs (by name) in
+    ``folder`` or its ``supplemental/``."""
+    logs = _files(folder, _LOG)
+    return [p for p in files_of_kind(folder, "obs") if p not in logs] + logs
 
 
-def read_raw(path: Path):
-    """A RINEX observation file or a GnssLogger log -> :class:`~fusion.io.raw.RawObs`."""
+def read_raw(path: Path, glonass_channels: dict[int, int] | None = None):
+    """A RINEX observation file or a GnssLogger log -> :class:`~fusion.io.raw.RawObs`.
+    glonass_channels: slot -> channel for RINEX headers that lack some (e.g. from navigation)."""
     if _LOG.search(path.name):
         from fusion.io.gnss_log import read_gnss_log
         return read_gnss_log(path)
     from fusion.io.rinex_obs import read_rinex_obs
-    return read_rinex_obs(path)
+    return read_rinex_obs(path, glonass_channels)
+
+
+def navigation_files(folder: Path) -> list[Path]:
+    """RINEX navigation files of the systems we model in ``folder`` or ``supplemental/``, found by
+    header whatever their names; others (SBAS, NavIC) are named on stderr and left out."""
+    out = []
+    for p in files_of_kind(folder, "nav"):
+        kind = rinex_kind(p)
+        system = kind.system
+        # RINEX 2 navigation: we read GPS (type N) and GLONASS (type G) files
+        if system in _NAV_SYSTEMS and (kind.version >= 3 or system in "GR"):
+            out.append(p)
+        else:
+            _say(f"navigation: {p.name} holds {SYSTEM_NAMES.get(system, system)} records only: not used")
+    return out
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def describe_navigation(nav) -> list[str]:
+    """One line per navigation file: its name and the constellations it covers."""
+    return [f"navigation: {Path(f).name} ({', '.join(SYSTEM_NAMES[s] for s in 'GRECJ' if s in systems) or 'no usable records'})"
+            for f, systems in nav.file_systems.items()]
 
 
 def _navigation(folder: Path, src: RawSources):
     """(broadcast Navigation or None, PreciseOrbits or None) from the options or the folder."""
     from fusion.io.rinex_nav import read_nav
 
-    nav_files = list(src.nav) or _files(folder, _NAV)
+    nav_files = list(src.nav) or navigation_files(folder)
     sp3 = src.sp3 or next(iter(_files(folder, _SP3)), None)
     clk = src.clk or (next(iter(_files(folder, _CLK)), None) if sp3 is not None else None)
     if src.clk is not None and sp3 is None:
         raise DataError(f"{src.clk}: a clock file needs SP3 orbits too (--sp3)")
     nav = read_nav(nav_files) if nav_files else None
+    for line in describe_navigation(nav) if nav is not None else []:
+        _say(line)
     precise = None
     if sp3 is not None:
         from fusion.io.clk import read_clk
         from fusion.io.sp3 import read_sp3
         from fusion.nav.precise import PreciseOrbits
         precise = PreciseOrbits(read_sp3(sp3), read_clk(clk) if clk is not None else None)
+        _say(f"precise orbits: {Path(sp3).name}" + (f", clocks: {Path(clk).name}" if clk is not None else ""))
     if nav is None and precise is None:
-        raise DataError(f"{folder}: no navigation data: put a RINEX navigation file (.YYn, .YYg, *_MN.rnx) "
+        raise DataError(f"{folder}: no navigation data: put a RINEX navigation file (any name: .YYn, .YYg, .YYf, *_MN.rnx, ...) "
                         "in the folder or supplemental/, or pass --nav FILE (or --sp3 FILE [--clk FILE])")
     return nav, precise
 
@@ -88,8 +127,8 @@ def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, tr
     from fusion.io.raw_trace import raw_to_trace
 
     nav, precise = _navigation(folder, src)
-    raw = read_raw(log)
-    trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats,
+    raw = read_raw(log, nav.glonass_channels() if nav is not None else None)
+    trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats, iono_free=src.iono_free,
                          name=name or f"{folder.parent.name}/{folder.name}")
     if truth != "none":
         trace.truth = _truth(folder, trace, truth, fix_truth_height)

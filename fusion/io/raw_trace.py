@@ -19,6 +19,7 @@ signals are dropped and counted in ``Trace.skipped``.
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -26,12 +27,13 @@ import pandas as pd
 from fusion.errors import DataError
 from fusion.estimate.wls import solve_wls_arrays
 from fusion.geometry import C_LIGHT, ecef2geodetic, elevation_azimuth, line_of_sight
-from fusion.gpstime import WEEK_S
+from fusion.gpstime import WEEK_S, format_gps_ms
+from fusion.io.discover import SYSTEM_NAMES
 from fusion.io.clean import epochs_with_enough_rows
 from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
 from fusion.nav.precise import precise_states
-from fusion.nav.sat_states import broadcast_states
+from fusion.nav.sat_states import SIGNAL_CLASS, broadcast_states
 from fusion.trace import SIGNALS, Trace, count_skip, flags_since_previous, pack_rows, resolve_signals
 
 #: Pseudorange sigma when the file gives none: SIGMA_PR_M at C/N0 >= CN0_REF, growing as
@@ -44,7 +46,7 @@ _PR_RANGE_M = (1.0e7, 5.0e7)
 
 
 def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str | None = None,
-                 min_sats: int = 1) -> Trace:
+                 min_sats: int = 1, iono_free: bool = False) -> Trace:
     """Build a :class:`Trace` from raw observations.
 
     nav:     :class:`~fusion.io.rinex_nav.Navigation` (broadcast states, Klobuchar coefficients).
@@ -52,14 +54,20 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
              satellite states (``nav`` then only supplies the ionosphere, and may be None).
     signals: names to keep; None keeps every signal whose constellation has ephemerides.
     min_sats: epochs with fewer rows are dropped and counted.
+    iono_free: where a satellite has an L1-class and a second-frequency pseudorange, use their
+             ionosphere-free combination (:func:`_iono_free`) instead of both.
     """
     if nav is None and precise is None:
         raise DataError(f"{raw.path}: no navigation data (pass broadcast navigation or SP3 orbits)")
     skipped = dict(raw.skipped)
     rows = _select_rows(raw, nav, precise, signals, skipped)
-    st = _states(rows, nav, precise)
+    st = _states(rows, nav, precise, skipped)
+    _check_coverage(raw, rows, st["ok"], nav, precise)
     count_skip(skipped, "rows_no_ephemeris", ~st["ok"])
     rows, st = rows[st["ok"]].reset_index(drop=True), {k: v[st["ok"]] for k, v in st.items()}
+    rows["iono_free"], rows["sigma_scale"] = False, 1.0
+    if iono_free:
+        rows, st = _iono_free(rows, st, skipped)
     rows, st, epoch, t_ns = _epochs(rows, st, min_sats, skipped, raw)
     pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     ref = _reference_rows(rows)
@@ -70,7 +78,7 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
         warnings.warn(f"{raw.path}: no ionosphere model (no Klobuchar coefficients: pass a RINEX "
                       "navigation file with --nav); pseudoranges keep their ionospheric delay", stacklevel=2)
     pr = pr - _atmosphere(rows, nav, rx[epoch], el, az)
-    pr = pr - _inter_signal_bias(rows, st["pos"], pr, rx[epoch], clock_m[epoch], ref)
+    pr = pr - _inter_signal_bias(rows, st["pos"], pr, rx[epoch], clock_m[epoch], ref, epoch)
     cols = _columns(rows, st, pr)
     packed = pack_rows(epoch, t_ns.size, cols)
     mask = packed.pop("mask")
@@ -94,6 +102,7 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
     keep = f["signal"].isin(names).to_numpy()
     if signals is None:
         count_skip(skipped, "rows_constellation_without_navigation", ~keep)
+        _warn_without_navigation(raw, f["const"].to_numpy(object)[~keep], nav, precise)
     else:
         count_skip(skipped, "rows_signal_not_selected", ~keep)
     pr = f["pr_m"].to_numpy()
@@ -109,23 +118,100 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
     return rows
 
 
+def _warn_without_navigation(raw: RawObs, letters: np.ndarray, nav, precise) -> None:
+    """Say which constellations the log measured but no navigation covers. letters: (M,) of those rows."""
+    if letters.size == 0:
+        return
+    names, counts = np.unique(letters, return_counts=True)
+    what = ", ".join(f"{SYSTEM_NAMES.get(n, n)} ({c} measurements)" for n, c in zip(names, counts))
+    have = ", ".join(SYSTEM_NAMES[s] for s in sorted(_systems(nav, precise)))
+    warnings.warn(f"{raw.path}: no navigation for {what}; the navigation covers {have}: pass a "
+                  "navigation file of those constellations (--nav FILE, any RINEX name) to use them", stacklevel=3)
+
+
 def _systems(nav, precise) -> set[str]:
     return precise.systems() if precise is not None else nav.systems()
 
 
-def _states(rows: pd.DataFrame, nav, precise) -> dict[str, np.ndarray]:
+def _check_coverage(raw: RawObs, rows: pd.DataFrame, ok: np.ndarray, nav, precise) -> None:
+    """Refuse a log no navigation record covers, naming the log's and the navigation's dates
+    (a file of the wrong day is the usual cause); warn when most rows lack ephemerides."""
+    if ok.mean() >= 0.5:
+        return
+    t = rows["t_ns"].to_numpy(np.int64) // 1_000_000
+    log_span = f"{format_gps_ms(int(t.min()))[:19]} to {format_gps_ms(int(t.max()))[:19]} GPS time"
+    span = _navigation_span(nav, precise)
+    cover = "no usable records" if span is None else \
+        f"{format_gps_ms(span[0])[:19]} to {format_gps_ms(span[1])[:19]}"
+    files = ", ".join(Path(f).name for f in (nav.sources if nav is not None and precise is None else
+                                             [precise.sp3.source]))
+    msg = f"{raw.path}: the log runs {log_span} but the navigation ({files}) covers {cover}"
+    if not ok.any():
+        raise DataError(msg + ": pass a navigation file of the log's day (--nav FILE)")
+    warnings.warn(f"{msg}: {int((~ok).sum())} of {ok.size} measurements have no ephemeris", stacklevel=3)
+
+
+def _navigation_span(nav, precise) -> tuple[int, int] | None:
+    if precise is not None:
+        t = precise.sp3.t_ms
+        return (int(t.min()), int(t.max())) if t.size else None
+    return nav.span_ms()
+
+
+def _states(rows: pd.DataFrame, nav, precise, skipped: dict[str, int] | None = None) -> dict[str, np.ndarray]:
     """(N,) satellite states at each row's transmit time (two passes: the second at the transmit
     time corrected by the first pass's satellite clock, which moves the satellite ~4 m per ms)."""
     t_ns = rows["t_ns"].to_numpy(np.int64)
     t_ms = t_ns // 1_000_000
     base = (t_ns - t_ms * 1_000_000) * 1e-9 - rows["pr_m"].to_numpy() / C_LIGHT
     sat_id, sig = rows["sat_id"].to_numpy(), pd.Index(SIGNALS).get_indexer(rows["signal"]).astype(np.int8)
-    fn = (lambda dt: precise_states(precise, sat_id, sig, t_ms, dt, nav)) if precise is not None else \
-         (lambda dt: broadcast_states(nav, sat_id, sig, t_ms, dt))
+    fn = (lambda dt, sk=None: precise_states(precise, sat_id, sig, t_ms, dt, nav)) if precise is not None else \
+         (lambda dt, sk=None: broadcast_states(nav, sat_id, sig, t_ms, dt, sk))
     st = fn(base)
-    st = fn(base - st["clock_s"])
+    st = fn(base - st["clock_s"], skipped)
     st["signal"] = sig
     return st
+
+
+def _iono_free(rows: pd.DataFrame, st: dict[str, np.ndarray], skipped: dict[str, int]):
+    """Rows with L1-class + second-frequency pairs replaced by their ionosphere-free combination.
+
+    Per (epoch, satellite) with an L1-class row (L1 / E1 / B1I / J1) and a second-frequency row
+    (L2 / E5b / B2I first, else L5 / E5a), the second row's pseudorange becomes
+    ``(f1^2 P1 - f2^2 P2) / (f1^2 - f2^2)`` of the clock-corrected pair (each with its own group
+    delay removed, so the combination carries the broadcast clock's own reference), flagged
+    ``iono_free`` (no Klobuchar), its sigma propagated; it keeps its signal index, Doppler and
+    carrier, so the combined rows form their own bias group. The L1 row of each pair is dropped
+    (counted ``rows_combined_iono_free``); second-frequency rows without a partner are dropped too
+    (``rows_iono_free_unpaired``) so that group holds combinations only. GLONASS (one frequency
+    here) and unpaired L1 rows stay as they are. rows: (N,) frame; st: (N,) satellite states.
+    """
+    cls = SIGNAL_CLASS[st["signal"]]
+    glo = rows["const"].to_numpy(object) == "R"
+    df = pd.DataFrame({"t": rows["t_ns"].to_numpy(np.int64), "sat": rows["sat_id"].to_numpy(np.int64),
+                       "cls": cls, "i": np.arange(len(rows))})
+    first = df[(cls == 0) & ~glo].drop_duplicates(["t", "sat"]).set_index(["t", "sat"])["i"].rename("i1")
+    second = df[cls > 0].sort_values("cls", ascending=False, kind="stable").drop_duplicates(["t", "sat"])
+    pair = first.to_frame().join(second.set_index(["t", "sat"])["i"].rename("i2"), how="inner")
+    i1, i2 = pair["i1"].to_numpy(), pair["i2"].to_numpy()
+    f = rows["carrier_hz"].to_numpy()
+    p = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
+    a = f[i1] ** 2 / (f[i1] ** 2 - f[i2] ** 2)
+    b = a - 1.0                                      # f2^2 / (f1^2 - f2^2)
+    rows = rows.copy()
+    rows.loc[i2, "pr_m"] = a * p[i1] - b * p[i2] - C_LIGHT * st["clock_s"][i2]
+    sig = rows["pr_sigma_m"].to_numpy()
+    rows.loc[i2, "pr_sigma_m"] = np.hypot(a * sig[i1], b * sig[i2])
+    rows.loc[i2, "iono_free"] = True
+    rows["sigma_scale"] = 1.0
+    rows.loc[i2, "sigma_scale"] = np.hypot(a, b)    # for the C/N0 model sigma where the file has none
+    keep = np.ones(len(rows), bool)
+    keep[i1] = False
+    count_skip(skipped, "rows_combined_iono_free", i1.size)
+    unpaired = (cls > 0) & ~rows["iono_free"].to_numpy(bool)
+    count_skip(skipped, "rows_iono_free_unpaired", unpaired)
+    keep &= ~unpaired
+    return rows[keep].reset_index(drop=True), {k: v[keep] for k, v in st.items()}
 
 
 def _epochs(rows: pd.DataFrame, st: dict, min_sats: int, skipped: dict[str, int], raw: RawObs):
@@ -177,16 +263,24 @@ def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: n
 
 
 def _inter_signal_bias(rows: pd.DataFrame, sat_pos: np.ndarray, pr: np.ndarray, rx: np.ndarray,
-                       clock_m: np.ndarray, ref: np.ndarray) -> np.ndarray:
+                       clock_m: np.ndarray, ref: np.ndarray, epoch: np.ndarray) -> np.ndarray:
     """(N,) inter-signal range bias [m] of each row: per signal (and GLONASS channel), the median
     over the trace of ``pr - range - reference clock``; 0 on reference rows. Like GSDC's
     ``isrbM``, it lets one receiver clock serve every signal in WLS (phones show L5 / E5a and
     GLONASS biases of metres to hundreds of metres); the graph still estimates what is left.
 
-    sat_pos, rx: (N, 3); pr, clock_m: (N,) (NaN clock where the epoch was not solved); ref: (N,).
+    The reference clock is the median of the reference rows' ``pr - range`` in each epoch, on
+    the atmosphere-corrected ranges: the WLS clock (``clock_m``, solved before the troposphere
+    was removed) carries the troposphere's common part, metres that would otherwise land in
+    every other signal's bias.
+
+    sat_pos, rx: (N, 3); pr, clock_m: (N,) (NaN clock where the epoch was not solved); ref: (N,);
+    epoch: (N,) epoch index of each row.
     """
     rng, _ = line_of_sight(sat_pos[:, None, :], rx)
-    resid = pr - rng[:, 0] - clock_m
+    d = pr - rng[:, 0]
+    clock = pd.Series(np.where(ref & np.isfinite(clock_m), d, np.nan)).groupby(epoch).transform("median").to_numpy()
+    resid = d - clock
     key = pd.Series(rows["signal"].to_numpy(object)) + "/" + rows["glo_k"].astype(str).to_numpy(object)
     bias = pd.Series(np.where(ref, np.nan, resid)).groupby(key.to_numpy()).transform("median").to_numpy()
     return np.where(ref | ~np.isfinite(bias), 0.0, bias)
@@ -208,7 +302,7 @@ def _atmosphere(rows: pd.DataFrame, nav, rx: np.ndarray, el: np.ndarray, az: np.
     if klob is not None:
         tow = (rows["t_ns"].to_numpy(np.int64) // 1_000_000 % (WEEK_S * 1000)) / 1000.0
         l1 = klobuchar_l1(klob, llh[:, 0], llh[:, 1], az, el, tow)
-        delay = delay + l1 * iono_scale(rows["carrier_hz"].to_numpy())
+        delay = delay + np.where(rows["iono_free"].to_numpy(bool), 0.0, l1 * iono_scale(rows["carrier_hz"].to_numpy()))
     return delay
 
 
@@ -218,7 +312,7 @@ def _columns(rows: pd.DataFrame, st: dict[str, np.ndarray], pr: np.ndarray) -> d
     sigma = rows["pr_sigma_m"].to_numpy()
     model = np.clip(SIGMA_PR_M * 10 ** ((CN0_REF - np.nan_to_num(cn0, nan=CN0_REF - 10)) / 20),
                     SIGMA_PR_M, SIGMA_PR_MAX_M)
-    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, model)
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, model * rows["sigma_scale"].to_numpy())
     prr = rows["prr_mps"].to_numpy() + C_LIGHT * st["clock_drift"]
     prr_ok = np.isfinite(prr)
     adr = rows["adr_m"].to_numpy() + C_LIGHT * st["clock_s"]

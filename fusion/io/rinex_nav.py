@@ -1,5 +1,6 @@
-"""Broadcast navigation files: RINEX 3 mixed / single-system (``*_MN.rnx``, ``*_GN.rnx``, ...),
-RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too.
+"""Broadcast navigation files: RINEX 3 mixed / single-system (``*_MN.rnx``, ``*_GN.rnx``, a
+BeiDou ``.21f``, ...), RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too (files are found by
+their header, :mod:`fusion.io.discover`).
 
 :func:`read_nav` keeps every system we model: Keplerian records of GPS, QZSS, Galileo and BeiDou
 in one :class:`~fusion.nav.orbits.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
@@ -10,12 +11,13 @@ view the simulator uses.
 Times: every ``*_ms`` is absolute GPS milliseconds since 1980-01-06. BeiDou epochs (BDT) are
 moved by +14 s, GLONASS epochs (UTC) by the leap seconds. The week of ``toe`` is resolved against
 the clock epoch ``toc`` rather than trusted, because some writers store it modulo 1024.
-Group delays are kept per signal class: ``tgd`` (L1 class: GPS/QZSS TGD, Galileo BGD(E1,E5b),
-BeiDou TGD1) and ``tgd_l5`` (GPS/QZSS ``(f1/f5)^2 TGD``, Galileo ``(f1/f5)^2 BGD(E1,E5a)``).
+Galileo I/NAV and F/NAV records are both kept (``GpsNav.msg``, from the data-source field): their
+clocks serve different signal pairs. Group delays are kept per signal class
+(:func:`group_delays`): ``tgd`` (L1 class: GPS/QZSS TGD, Galileo E1, BeiDou TGD1), ``tgd_l5``
+(L5 / E5a) and ``tgd_l2`` (GPS/QZSS L2, Galileo E5b, BeiDou TGD2 for B2I).
 """
 from __future__ import annotations
 
-import gzip
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,8 +25,9 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.gpstime import WEEK_S, gps_ms_from_calendar, leap_seconds_at_unix_ms, GPS_EPOCH_UNIX_MS
-from fusion.nav.glonass import GloNav
+from fusion.nav.glonass import VALID_MS as GLO_VALID_MS, GloNav
 from fusion.nav.orbits import GpsNav
+from fusion.io.text_open import read_lines
 from fusion.trace import count_skip
 
 #: Fit interval [h] by system when a record leaves it blank (GPS: IS-GPS-200, 4 h); Galileo and
@@ -36,8 +39,11 @@ _KEPLER = ("G", "J", "E", "C")
 #: Android constellation type and svid offset per RINEX system letter.
 _CTYPE = {"G": 1, "R": 3, "J": 4, "C": 5, "E": 6}
 _SVID_OFFSET = {"J": 192}
-#: (f_L1 / f_L5)^2, the L5 / E5a group-delay scale.
+#: (f_L1 / f_L5)^2, the L5 / E5a group-delay scale; (f_L1 / f_L2)^2 for GPS / QZSS L2 and
+#: (f_E1 / f_E5b)^2 for Galileo E5b.
 GAMMA_L5 = (1575.42 / 1176.45) ** 2
+GAMMA_L2 = (1575.42 / 1227.60) ** 2
+GAMMA_E5B = (1575.42 / 1207.14) ** 2
 
 #: Broadcast-orbit fields in file order (lines 1-7 of a Keplerian record, 4 per line); Galileo
 #: and BeiDou put their group delays in the ``tgd`` / ``iodc`` slots.
@@ -72,12 +78,26 @@ class Navigation:
     leap_s: int | None = None
     sources: list[str] = field(default_factory=list)
     skipped: dict[str, int] = field(default_factory=dict)
+    #: file -> constellation letters it has records of (what each file covers, for the user)
+    file_systems: dict[str, set[str]] = field(default_factory=dict)
 
     def systems(self) -> set[str]:
         """Constellation letters with at least one record."""
         inv = {v: k for k, v in _CTYPE.items()}
         out = {inv[int(c)] for c in np.unique(self.kepler.sat_id // 1000)}
         return out | ({"R"} if len(self.glonass) else set())
+
+    def span_ms(self) -> tuple[int, int] | None:
+        """Earliest and latest instant any record is valid for [GPS ms], or None without records."""
+        spans = [self.kepler.span_ms()] if len(self.kepler) else []
+        if len(self.glonass):
+            spans.append((int(self.glonass.toe_ms.min()) - GLO_VALID_MS, int(self.glonass.toe_ms.max()) + GLO_VALID_MS))
+        return (min(s[0] for s in spans), max(s[1] for s in spans)) if spans else None
+
+    def glonass_channels(self) -> dict[int, int]:
+        """GLONASS slot -> frequency channel k from the records (the latest record's per slot)."""
+        g = self.glonass
+        return {int(s): int(k) for s, k in zip(g.svid, g.k)}  # sorted by (slot, toe): the last wins
 
 
 @dataclass
@@ -92,13 +112,7 @@ class _Header:
 
 # ---------------------------------------------------------------------------- lines and header
 def _read_lines(path: Path) -> list[str]:
-    if not path.is_file():
-        raise DataError(f"{path}: navigation file not found")
-    try:
-        raw = gzip.decompress(path.read_bytes()) if path.name.endswith(".gz") else path.read_bytes()
-    except (OSError, EOFError, gzip.BadGzipFile) as exc:
-        raise DataError(f"{path}: cannot read navigation file ({exc})") from None
-    return raw.decode("ascii", errors="replace").splitlines()
+    return read_lines(path, "navigation")
 
 
 def _num(text: str, path: Path, line_no: int) -> float:
@@ -220,17 +234,13 @@ def _kepler_table(recs: list, path: str, skipped: dict[str, int]) -> GpsNav:
     recs = [r for r in recs if r[0] in _KEPLER]
     if not recs:
         return GpsNav(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
-                      {k: np.zeros(0) for k in _KEEP + ("tgd_l5",)}, path, skipped, np.zeros(0, np.int64))
+                      {k: np.zeros(0) for k in _KEEP + ("tgd_l5", "tgd_l2")}, path, skipped, np.zeros(0, np.int64))
     letters = np.array([r[0] for r in recs])
     svid = np.array([r[1] for r in recs], np.int64)
     table = np.asarray([r[3] for r in recs], float)
     params = {name: table[:, k] for k, name in enumerate(_NAMES) if name in _KEEP}
-    params["tgd_l5"] = GAMMA_L5 * params["tgd"]
-    gal = letters == "E"
-    # Galileo: the tgd slot is BGD(E1,E5a), the iodc slot BGD(E1,E5b), which the E1 I/NAV user applies.
-    params["tgd_l5"][gal] = GAMMA_L5 * params["tgd"][gal]
-    params["tgd"] = np.where(gal, params["iodc"], params["tgd"])
-    params["tgd_l5"][letters == "C"] = 0.0
+    msg = galileo_message(letters, table[:, _NAMES.index("l2_codes")])
+    params.update(group_delays(letters, msg, params["tgd"], params["iodc"]))
     default_fit = np.array([DEFAULT_FIT_H[s] for s in letters])
     # QZSS writes a fit flag (0/1), Galileo and BeiDou no fit interval at all.
     use_file_fit = np.isin(letters, ["G"]) & (params["fit_h"] > 1)
@@ -243,12 +253,45 @@ def _kepler_table(recs: list, path: str, skipped: dict[str, int]) -> GpsNav:
     toe_ms = (week * WEEK_S * 1000).astype(np.int64) + np.round(toe_sow * 1000).astype(np.int64) + offset_ms
     toc_ms = toc_sys + offset_ms
     sat_id = np.array([_CTYPE[s] for s in letters], np.int64) * 1000 + svid
-    keep = _healthy_unique(sat_id, toe_ms, params["health"], skipped)
+    keep = _healthy_unique(sat_id * 2 + msg, toe_ms, params["health"], skipped)
     sel = np.flatnonzero(keep)
-    sel = sel[np.lexsort((toe_ms[sel], sat_id[sel]))]
+    sel = sel[np.lexsort((toe_ms[sel], msg[sel], sat_id[sel]))]
     return GpsNav(prn=svid[sel], toc_ms=toc_ms[sel], toe_ms=toe_ms[sel],
                   params={k: v[sel] for k, v in params.items()}, source=path, skipped=skipped,
-                  sat_id=sat_id[sel])
+                  sat_id=sat_id[sel], msg=msg[sel])
+
+
+def galileo_message(letters: np.ndarray, data_source: np.ndarray) -> np.ndarray:
+    """(N,) int8: 1 for Galileo F/NAV records, else 0 (I/NAV, and every other system).
+
+    data_source: (N,) the RINEX 3 Galileo "data sources" field (bit 0 I/NAV E1-B, 1 F/NAV E5a-I,
+    2 I/NAV E5b-I, 8 clock for E5a,E1, 9 clock for E5b,E1); other systems' values are ignored.
+    """
+    src = np.nan_to_num(data_source).astype(np.int64)
+    fnav = ((src & 0b10) != 0) | (((src & 256) != 0) & ((src & 512) == 0) & ((src & 0b101) == 0))
+    return ((letters == "E") & fnav).astype(np.int8)
+
+
+def group_delays(letters: np.ndarray, msg: np.ndarray, tgd: np.ndarray, iodc: np.ndarray
+                 ) -> dict[str, np.ndarray]:
+    """Group delays [s] per signal class of each record (N,): ``tgd`` (L1 class: GPS/QZSS L1,
+    Galileo E1, BeiDou B1I), ``tgd_l5`` (L5 / E5a), ``tgd_l2`` (GPS/QZSS L2, Galileo E5b, BeiDou
+    B2I), each what that signal's user subtracts from the record's clock.
+
+    tgd / iodc: the record's two group-delay slots (GPS TGD / IODC; Galileo BGD(E1,E5a) /
+    BGD(E1,E5b); BeiDou TGD1 / TGD2). Galileo's I/NAV clock serves E1 and E5b with BGD(E1,E5b),
+    its F/NAV clock E1 and E5a with BGD(E1,E5a) (OS SIS ICD 5.1.5). The other pairings follow
+    from both clocks giving the same E1 clock: on I/NAV, E5a subtracts BGD_b + (g5 - 1) BGD_a;
+    on F/NAV (which carries no BGD_b), E5b subtracts g7 BGD_a, taking BGD_b as BGD_a.
+    """
+    gal, bds, fnav = letters == "E", letters == "C", msg == 1
+    bgd_a, bgd_b = tgd, iodc
+    l1 = np.where(gal, np.where(fnav, bgd_a, bgd_b), tgd)
+    l5 = np.where(gal, np.where(fnav, GAMMA_L5 * bgd_a, bgd_b + (GAMMA_L5 - 1) * bgd_a), GAMMA_L5 * tgd)
+    l2 = np.where(gal, np.where(fnav, GAMMA_E5B * bgd_a, GAMMA_E5B * bgd_b), GAMMA_L2 * tgd)
+    l5 = np.where(bds, 0.0, l5)
+    l2 = np.where(bds, iodc, l2)
+    return {"tgd": l1, "tgd_l5": l5, "tgd_l2": l2}
 
 
 def _healthy_unique(sat_id: np.ndarray, toe_ms: np.ndarray, health: np.ndarray,
@@ -291,10 +334,13 @@ def read_nav(paths: str | Path | list) -> Navigation:
     skipped: dict[str, int] = {}
     recs: list = []
     klob = leap = None
+    file_systems: dict[str, set[str]] = {}
     for path in paths:
         lines = _read_lines(path)
         head = _header(lines, path)
-        recs += _records(lines, head, path, skipped)
+        mine = _records(lines, head, path, skipped)
+        file_systems[str(path)] = {r[0] for r in mine}
+        recs += mine
         klob = klob if klob is not None else head.klobuchar
         leap = leap if leap is not None else head.leap_s
     name = ", ".join(str(p) for p in paths)
@@ -302,7 +348,8 @@ def read_nav(paths: str | Path | list) -> Navigation:
         raise DataError(f"{name}: no GPS, QZSS, Galileo, BeiDou or GLONASS records in navigation file")
     glo_leap = leap if leap is not None else _leap_at_gps_ms(min(r[2] for r in recs))
     return Navigation(kepler=_kepler_table(recs, name, skipped), glonass=_glonass_table(recs, glo_leap, name, skipped),
-                      klobuchar=klob, leap_s=leap, sources=[str(p) for p in paths], skipped=skipped)
+                      klobuchar=klob, leap_s=leap, sources=[str(p) for p in paths], skipped=skipped,
+                      file_systems=file_systems)
 
 
 def _leap_at_gps_ms(t_ms: int) -> int:

@@ -1,4 +1,5 @@
-"""RINEX 3.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``, optionally ``.gz``) -> :class:`RawObs`.
+"""RINEX 3.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``; gzip and
+Hatanaka-compressed ``.crx`` / ``.YYd`` too, told by content) -> :class:`RawObs`.
 
 Every constellation is read; observation codes are mapped onto :data:`fusion.trace.SIGNALS`
 (:data:`SIGNAL_CODES`), other signals are dropped and counted. Units: C metres, L cycles
@@ -7,8 +8,8 @@ RINEX writes a missing observation as blank or 0.0; both read as NaN. LLI bit 0 
 the previous observation) on a phase sets ``adr_slip``. Epoch flag 1 (power failure) sets
 ``clock_reset``; flags 2-5 (event / header records) and 6 (cycle-slip records) are skipped and
 counted. RINEX 2 records are located by :mod:`fusion.io.rinex2_obs` and their two-character types
-mapped to RINEX 3 codes; other versions and Hatanaka-compressed files are refused with a
-one-line error.
+mapped to RINEX 3 codes; other versions are refused with a one-line error. Hatanaka (CRINEX)
+files are expanded first (:mod:`fusion.io.text_open`, PyPI ``hatanaka``).
 
 Speed: the body is read as one byte buffer and every observation field is gathered into a
 column-major byte array (:mod:`fusion.io.fixed_width`), so numbers are parsed with array
@@ -17,10 +18,8 @@ arithmetic; the Pixel5 phone log (4 MB, 2000 epochs) reads in about 0.1-0.2 s
 """
 from __future__ import annotations
 
-import gzip
 import re
 import warnings
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,17 +30,21 @@ from fusion.errors import DataError
 from fusion.io.fixed_width import (char_matrix, gather_fields, line_bounds, parse_decimal, parse_float,
                                    parse_float_columns, parse_int)
 from fusion.io.rinex2_obs import satellite_fields, walk_records
+from fusion.io.text_open import read_bytes
+from fusion.nav.glonass import SLOT_CHANNEL
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
 #: System letter -> [(signal, band digit, tracking attributes in priority order)].
+#: Second frequencies: GPS / QZSS L2C (L, M or combined X tracking; P(Y) semi-codeless W is not
+#: L2C and stays out), Galileo E5b, BeiDou B2I (band 7 in every RINEX 3 version).
 SIGNAL_CODES: dict[str, list[tuple[str, str, str]]] = {
-    "G": [("GPS_L1", "1", "C"), ("GPS_L5", "5", "QIX")],
+    "G": [("GPS_L1", "1", "C"), ("GPS_L5", "5", "QIX"), ("GPS_L2", "2", "LXS")],
     "R": [("GLO_G1", "1", "C")],
-    "E": [("GAL_E1", "1", "CXB"), ("GAL_E5A", "5", "QXI")],
+    "E": [("GAL_E1", "1", "CXB"), ("GAL_E5A", "5", "QXI"), ("GAL_E5B", "7", "QXI")],
     # RINEX 3.01 wrote BeiDou B1I as C1I; 3.02 on as C2I.
-    "C": [("BDS_B1I", "2", "I"), ("BDS_B1I", "1", "I")],
-    "J": [("QZS_J1", "1", "C"), ("QZS_J5", "5", "QXI")],
+    "C": [("BDS_B1I", "2", "I"), ("BDS_B1I", "1", "I"), ("BDS_B2I", "7", "IXQ")],
+    "J": [("QZS_J1", "1", "C"), ("QZS_J5", "5", "QXI"), ("QZS_J2", "2", "LXS")],
 }
 #: RINEX satellite number -> Android svid offset (QZSS J01 is svid 193, SBAS S20 is 120).
 _SVID_OFFSET = {"J": 192, "S": 100}
@@ -62,14 +65,19 @@ class ObsHeader:
     approx_pos: np.ndarray | None = None
     time_system: str = ""
     n_lines: int = 0
+    #: slot -> where its channel came from when not from the header ("navigation", "slot_table")
+    glo_source: dict[int, str] = field(default_factory=dict)
 
 
-def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = None) -> RawObs:
-    """Read a RINEX 3.0x (or 2.10-2.12) observation file (plain or gzip) into the raw contract.
+def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = None, *,
+                   slot_table: bool = True) -> RawObs:
+    """Read a RINEX 3.0x (or 2.10-2.12) observation file (plain, gzip or Hatanaka) into the raw contract.
 
     glonass_channels: slot -> frequency channel k, for slots the header's ``GLONASS SLOT / FRQ #``
-    lacks (e.g. from a navigation file); without k a GLONASS row keeps its pseudorange but not
-    its Doppler and phase (counted in ``skipped``).
+    lacks (e.g. from navigation records); ``slot_table``: then the known channel of each slot
+    (:data:`fusion.nav.glonass.SLOT_CHANNEL`). Rows so filled are counted
+    (``glonass_rows_channel_from_navigation`` / ``_from_slot_table``); without k a GLONASS row
+    keeps its pseudorange but not its Doppler and phase (counted in ``skipped``).
 
     Raises :class:`DataError` naming the file (and line) for an unreadable / corrupt file, an
     unsupported version, a malformed header or epoch line, or a file without epoch records.
@@ -77,11 +85,14 @@ def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = N
     ``skipped`` and reported with a warning naming the first offending line.
     """
     path = Path(path)
-    text = _read_bytes(path)
-    header = _parse_header(text, path)
-    header.glo_k = {**(glonass_channels or {}), **header.glo_k}
-    body = np.frombuffer(text, np.uint8)[_body_offset(text):]
     skipped: dict[str, int] = {}
+    text = _read_bytes(path, skipped)
+    header = _parse_header(text, path)
+    header.glo_source = {s: "slot_table" for s in (SLOT_CHANNEL if slot_table else {})}
+    header.glo_source |= {s: "navigation" for s in (glonass_channels or {})}
+    header.glo_source = {s: v for s, v in header.glo_source.items() if s not in header.glo_k}
+    header.glo_k = {**(SLOT_CHANNEL if slot_table else {}), **(glonass_channels or {}), **header.glo_k}
+    body = np.frombuffer(text, np.uint8)[_body_offset(text):]
     if header.version < 3:
         frame = _v2_frame(body, header, path, skipped)
     else:
@@ -90,17 +101,8 @@ def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = N
     return RawObs(frame=frame, path=path, skipped=skipped, approx_pos=header.approx_pos)
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    if raw[:2] == b"\x1f\x8b":
-        try:
-            raw = gzip.decompress(raw)
-        except (OSError, EOFError, zlib.error) as exc:
-            raise DataError(f"{path}: corrupt gzip file ({exc})") from None
-    return raw.replace(b"\r\n", b"\n")
+def _read_bytes(path: Path, skipped: dict[str, int]) -> bytes:
+    return read_bytes(path, "RINEX observation", skipped, crinex=True).replace(b"\r\n", b"\n")
 
 
 def _body_offset(text: bytes) -> int:
@@ -117,8 +119,6 @@ def _parse_header(text: bytes, path: Path) -> ObsHeader:
     lines = text[:end].decode("ascii", errors="replace").split("\n")
     head = ObsHeader(n_lines=len(lines))
     first = lines[0]
-    if "COMPACT RINEX" in first:
-        raise DataError(f"{path}: Hatanaka-compressed (CRINEX) file; decompress it with crx2rnx first")
     try:
         head.version = float(first[:9])
     except ValueError:
@@ -154,7 +154,8 @@ def _parse_header(text: bytes, path: Path) -> ObsHeader:
 #: RINEX 2 two-character types -> the RINEX 3 tracking attribute our signal table expects, by
 #: (system, band); anything else gets "?" and is dropped as another signal.
 _V2_ATTR = {("G", "1"): "C", ("G", "5"): "X", ("R", "1"): "C", ("E", "1"): "X", ("E", "5"): "X",
-            ("J", "1"): "C", ("J", "5"): "X", ("C", "2"): "I"}
+            ("J", "1"): "C", ("J", "5"): "X", ("C", "2"): "I", ("G", "2"): "X", ("E", "7"): "X",
+            ("C", "7"): "I", ("J", "2"): "X"}
 
 
 def v2_type_as_v3(system: str, code: str) -> str:
@@ -345,7 +346,9 @@ def observation_frame(system: np.ndarray, prn: np.ndarray, prn_bad: np.ndarray, 
     count_skip(skipped, "sat_lines_bad_number", bad)
     ok = ~bad
     unknown_sys = ok & ~np.isin(system, [ord(s) for s in SIGNAL_CODES])
-    count_skip(skipped, "sat_lines_unsupported_system", unknown_sys)
+    # SBAS ranging is left out (its GEO clocks and corrections are not modelled): counted apart
+    count_skip(skipped, "sat_lines_sbas_not_used", unknown_sys & (system == ord("S")))
+    count_skip(skipped, "sat_lines_unsupported_system", unknown_sys & (system != ord("S")))
     # a system the header lists no observation types for cannot be decoded
     unlisted = ok & ~unknown_sys & ~np.isin(system, [ord(s) for s in head.obs_types])
     count_skip(skipped, "sat_lines_system_not_in_header", unlisted)
@@ -399,6 +402,9 @@ def _signal_columns(sys_letter: str, signal: str, rows: np.ndarray, col: dict[st
     if sys_letter == "R":
         slots, inverse = np.unique(svid, return_inverse=True)
         glo_k = np.array([head.glo_k.get(int(s), GLO_K_UNKNOWN) for s in slots], np.int64)[inverse.ravel()]
+        for origin in ("navigation", "slot_table"):
+            filled = np.array([head.glo_source.get(int(s)) == origin for s in slots] + [False])[inverse.ravel()]
+            count_skip(skipped, f"glonass_rows_channel_from_{origin}", filled)
     else:
         glo_k = np.zeros(n, np.int64)
     sig = np.full(n, signal, dtype=object)

@@ -12,6 +12,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.gpstime import gps_ms_from_calendar
+from fusion.io.text_open import read_lines
 
 
 @dataclass
@@ -27,11 +28,9 @@ class Sp3Orbits:
 
 
 def read_sp3(path: str | Path) -> Sp3Orbits:
-    """Read epoch (``*``) and position (``P``) records of an SP3 file."""
+    """Read epoch (``*``) and position (``P``) records of an SP3 file (plain or gzipped)."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: SP3 file not found")
-    lines = path.read_text(errors="replace").splitlines()
+    lines = read_lines(path, "SP3")
     if not lines or not lines[0].startswith("#"):
         raise DataError(f"{path}:1: not an SP3 file")
     for ln in lines:

@@ -19,6 +19,14 @@ MU_GLO = 3.9860044e14
 J2_GLO = 1.0826257e-3
 RE_GLO = 6378136.0
 OMEGA_GLO = 7.292115e-5
+#: Frequency channel of each orbital slot (GLONASS ICD 2008 3.3.1.1: antipodal slots share a
+#: channel; the assignment has been stable since 2005, slots keep theirs when a satellite is
+#: replaced). For files whose header omits ``GLONASS SLOT / FRQ #`` and without GLONASS
+#: navigation records; a navigation record's own channel number wins over this table.
+SLOT_CHANNEL: dict[int, int] = {
+    1: 1, 2: -4, 3: 5, 4: 6, 5: 1, 6: -4, 7: 5, 8: 6, 9: -2, 10: -7, 11: 0, 12: -1,
+    13: -2, 14: -7, 15: 0, 16: -1, 17: 4, 18: -3, 19: 3, 20: 2, 21: 4, 22: -3, 23: 3, 24: 2,
+}
 #: Integration step bound [s].
 MAX_STEP_S = 60.0
 #: A record is used up to this far from its toe [ms] (records come every 30 minutes).

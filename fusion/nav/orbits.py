@@ -43,6 +43,9 @@ class GpsNav:
             iode, t_transmit, fit_h) in IS-GPS-200 units (s, m, rad, rad/s).
     source: file path, for error messages.
     skipped: counts of dropped records by reason.
+    msg:    (N,) int8 navigation message: 0 the system's default (Galileo I/NAV), 1 Galileo F/NAV
+            (None: all 0). Galileo broadcasts both, with clocks for different signal pairs; the
+            table keeps both and is sorted by (sat_id, msg, toe).
     """
 
     prn: np.ndarray
@@ -52,11 +55,13 @@ class GpsNav:
     source: str
     skipped: dict[str, int]
     sat_id: np.ndarray | None = None
+    msg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.sat_id is None:
             self.sat_id = 1000 + np.asarray(self.prn, np.int64)
         self.sat_id = np.asarray(self.sat_id, np.int64)
+        self.msg = np.zeros(self.sat_id.shape, np.int8) if self.msg is None else np.asarray(self.msg, np.int8)
 
     def __len__(self) -> int:
         return int(self.prn.shape[0])
@@ -92,27 +97,30 @@ def orbit_constants(nav: GpsNav) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return mu, we, geo
 
 
-def select_ephemeris(nav: GpsNav, prn: np.ndarray, t_ms: np.ndarray, *, by_sat_id: bool = False) -> np.ndarray:
+def select_ephemeris(nav: GpsNav, prn: np.ndarray, t_ms: np.ndarray, *, by_sat_id: bool = False,
+                     msg: np.ndarray | int = 0) -> np.ndarray:
     """Index of the record with the nearest ``toe`` whose fit interval covers each query.
 
-    prn: (...) int GPS PRNs, or ``sat_id`` values with ``by_sat_id``; t_ms: (...) GPS ms
-    (broadcast together). Returns (...) int index into ``nav`` or -1 where no healthy record of
-    that satellite is valid at that time.
+    prn: (...) int GPS PRNs, or ``sat_id`` values with ``by_sat_id``; t_ms: (...) GPS ms;
+    msg: (...) or scalar message wanted (:class:`GpsNav`; 1 = Galileo F/NAV) (broadcast
+    together). Returns (...) int index into ``nav`` or -1 where no healthy record of that
+    satellite and message is valid at that time.
     """
     prn = np.asarray(prn, np.int64)
     if not by_sat_id:
         prn = prn + 1000
-    prn, t_ms = np.broadcast_arrays(prn, np.asarray(t_ms, np.int64))
+    prn, t_ms, msg = np.broadcast_arrays(prn, np.asarray(t_ms, np.int64), np.asarray(msg, np.int64))
     if len(nav) == 0:
         return np.full(prn.shape, -1)
-    # nav is sorted by (sat_id, toe): one searchsorted on a combined key finds both neighbours.
+    # nav is sorted by (sat_id, msg, toe): one searchsorted on a combined key finds both neighbours.
     big = np.int64(10**13)  # > any GPS ms count this century
-    keys = nav.sat_id * big + nav.toe_ms
-    q = prn * big + t_ms
+    keys = (nav.sat_id * 2 + nav.msg) * big + nav.toe_ms
+    q = (prn * 2 + msg) * big + t_ms
     right = np.searchsorted(keys, q, side="left")
     n = len(nav)
     cand = np.stack([np.clip(right - 1, 0, n - 1), np.clip(right, 0, n - 1)], axis=0)
-    ok = (nav.sat_id[cand] == prn) & (nav.valid_from_ms[cand] <= t_ms) & (t_ms <= nav.valid_to_ms[cand])
+    ok = (nav.sat_id[cand] == prn) & (nav.msg[cand] == msg) & (nav.valid_from_ms[cand] <= t_ms) \
+        & (t_ms <= nav.valid_to_ms[cand])
     dist = np.where(ok, np.abs(nav.toe_ms[cand] - t_ms), np.iinfo(np.int64).max)
     pick = np.argmin(dist, axis=0)
     idx = np.take_along_axis(cand, pick[None], axis=0)[0]

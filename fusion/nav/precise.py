@@ -19,8 +19,7 @@ from fusion.errors import DataError
 from fusion.geometry import C_LIGHT
 from fusion.io.clk import PreciseClocks
 from fusion.io.sp3 import Sp3Orbits
-from fusion.nav.orbits import select_ephemeris
-from fusion.nav.sat_states import L5_SIGNALS
+from fusion.nav.sat_states import group_delay, select_record
 
 #: Lagrange interpolation uses this many SP3 samples around the query (order 9 over 5-min samples
 #: is at the millimetre level for GNSS orbits).
@@ -135,9 +134,7 @@ def _group_delay(nav, sat_id: np.ndarray, signal: np.ndarray, t_ms: np.ndarray) 
     out = np.zeros(sat_id.shape)
     if nav is None or len(nav.kepler) == 0:
         return out
-    idx = select_ephemeris(nav.kepler, sat_id, t_ms, by_sat_id=True)
+    idx = select_record(nav.kepler, np.asarray(sat_id, np.int64), np.asarray(signal), np.asarray(t_ms, np.int64))
     ok = idx >= 0
-    p = nav.kepler.params
-    l5 = L5_SIGNALS[np.asarray(signal)]
-    out[ok] = np.where(l5[ok], p["tgd_l5"][idx[ok]], p["tgd"][idx[ok]])
+    out[ok] = group_delay(nav.kepler, idx[ok], np.asarray(signal)[ok])
     return out
