@@ -7,7 +7,8 @@ a new street at every trace start). A street runs along the chord of the drive o
 (facade to facade) is U[``width_m``], the receiver's lane a random offset of up to a quarter width
 from its centre line, and each side has a building of height U[``height_m``] or, with probability
 ``gap_prob``, none (a cross street, a car park). As the receiver moves sideways within the street
-its distance to each facade changes (never below ``min_wall_m``).
+its distance to each facade changes (never below ``min_wall_m``: a facade held there moves with the
+receiver, and its reflection gets no Doppler error).
 
 Geometry (all closed form, vectorised over (E, P)). A satellite at elevation ``el`` and azimuth
 ``alpha`` relative to the street has horizontal direction component ``s = sin(alpha)`` towards the
@@ -89,7 +90,8 @@ def street_layout(rx: np.ndarray, trace_start: np.ndarray, model: CanyonModel,
 
     rx (E,3) ECEF; trace_start (E,) bool. Returns street (E,) int, azimuth_rad (E,) street direction
     (clockwise from north), normal_ne (E,2) right-hand normal in (north, east), w_right / w_left (E,)
-    facade distances [m], h_right / h_left (E,) building heights [m] (0 = none), and the
+    facade distances [m], right_held / left_held (E,) bool where that distance is held at
+    ``min_wall_m``, h_right / h_left (E,) building heights [m] (0 = none), and the
     per-street reflection loss draw ``refl_u`` (n_streets, 1) in [0, 1) for :func:`classify`.
     """
     first = np.flatnonzero(trace_start)
@@ -110,9 +112,11 @@ def street_layout(rx: np.ndarray, trace_start: np.ndarray, model: CanyonModel,
     heights = rng.uniform(*model.height_m, (n, 2)) * (rng.random((n, 2)) >= model.gap_prob)
     lateral = np.einsum("ej,ej->e", ne - centre[street], normal[street]) + lane[street]
     half = 0.5 * width[street]
+    w_right, w_left = half - lateral, half + lateral
     return dict(street=street, azimuth_rad=az[street], normal_ne=normal[street],
-                w_right=np.maximum(half - lateral, model.min_wall_m),
-                w_left=np.maximum(half + lateral, model.min_wall_m),
+                w_right=np.maximum(w_right, model.min_wall_m), w_left=np.maximum(w_left, model.min_wall_m),
+                # a facade held at min_wall_m moves with the receiver: its reflection has no rate
+                right_held=w_right < model.min_wall_m, left_held=w_left < model.min_wall_m,
                 h_right=heights[street, 0], h_left=heights[street, 1], refl_u=rng.random((n, 1)), ne=ne)
 
 
@@ -146,7 +150,8 @@ def classify(el_deg: np.ndarray, az_deg: np.ndarray, layout: dict[str, np.ndarra
     d_edge = w_n / np.maximum(a, 1e-6) / np.maximum(np.cos(mask), 1e-6)
     delay = np.where(refl, 2.0 * w_o * cos_el * a, np.where(diff, d_edge * (1.0 - np.cos(depth)), 0.0))
     v_perp = np.einsum("ej,ej->e", vel_ne, layout["normal_ne"])[:, None]
-    rate = np.where(refl, 2.0 * cos_el * s * v_perp, 0.0)
+    held = np.where(right, layout["left_held"][:, None], layout["right_held"][:, None])
+    rate = np.where(refl & ~held, 2.0 * cos_el * s * v_perp, 0.0)
     cols = np.arange(el.shape[1]) if cols is None else cols
     u = _hash_uniform(layout["street"][:, None], cols[None, :], layout["refl_u"])
     lo, hi = model.reflection_loss_db

@@ -106,7 +106,8 @@ SCENARIOS = {
 def scenario_config(name: str, **overrides) -> SimConfig:
     """The :class:`SimConfig` of scenario ``name`` (``open``, ``suburban``, ``urban``): GPS, GLONASS,
     Galileo and BeiDou with GPS L5 and Galileo E5a (a dual-frequency phone), all tracked signals
-    (no cap), C/N0 with DLL code noise, Doppler, 10 deg elevation mask, plus the scenario's buildings and multipath; ``overrides`` replace any field."""
+    (no cap), C/N0 with DLL code noise, Doppler, 10 deg elevation mask, plus the scenario's
+    buildings and multipath; ``overrides`` replace any field."""
     if name not in SCENARIOS:
         raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}")
     cfg = SimConfig(systems=("G", "R", "E", "C"), max_sats=None, elev_mask_deg=10.0, cn0=Cn0Model(),

@@ -269,8 +269,8 @@ def simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav
         flight_s=g(st["tau"]), iono=iono, tropo=tropo, clock=clock,
     )
     out.update({k: v for k, v in slot_env.items() if k not in ("sigma", "prr_scale")})
-    out.update(doppler_carrier_arrays(t_ms, rx, seg_start, out, pick, P, clock_drift, rng_m, cfg, rng,
-                                      vel=vel, env=slot_env))
+    slots = dict(out, range=rng_m, clock_drift=clock_drift)
+    out.update(doppler_carrier_arrays(t_ms, rx, seg_start, slots, pick, P, cfg, rng, env=dict(slot_env, vel=vel)))
     zero = ~mask
     for k in _ZEROED:
         if k in out:

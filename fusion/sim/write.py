@@ -46,7 +46,8 @@ def _measurement_table(result, e: np.ndarray, s: np.ndarray) -> pd.DataFrame:
     iono, tropo = np.round(result.iono_m[e, s], 3), np.round(result.tropo_m[e, s], 3)
     raw = np.round(tr.pr[e, s] - clk + iono + tropo, 3)
     pos, vel = np.round(tr.sat_pos[e, s], 3), np.round(tr.sat_vel[e, s], 4)
-    tx_ns = t * 1_000_000 - np.round((result.flight_s[e, s] - result.sat_clock_m[e, s] / C_LIGHT) * 1e9).astype(np.int64)
+    flight_sv_s = result.flight_s[e, s] - result.sat_clock_m[e, s] / C_LIGHT   # on the satellite's clock
+    tx_ns = t * 1_000_000 - np.round(flight_sv_s * 1e9).astype(np.int64)
     df = pd.DataFrame({
         "MessageType": "Raw", "utcTimeMillis": gps_ms_to_unix_ms(t), "HardwareClockDiscontinuityCount":
             np.cumsum(tr.clock_reset)[e], "Svid": tr.sat_id[e, s] % 1000, "ConstellationType": tr.sat_id[e, s] // 1000,
@@ -63,7 +64,8 @@ def _measurement_table(result, e: np.ndarray, s: np.ndarray) -> pd.DataFrame:
         df["Cn0DbHz"] = np.round(tr.cn0[e, s], 2)
     if tr.prr is not None:
         ok = tr.prr_ok[e, s]
-        df["PseudorangeRateMetersPerSecond"] = np.where(ok, np.round(tr.prr[e, s] - df["SvClockDriftMetersPerSecond"], 4), np.nan)
+        prr = np.round(tr.prr[e, s] - df["SvClockDriftMetersPerSecond"], 4)
+        df["PseudorangeRateMetersPerSecond"] = np.where(ok, prr, np.nan)
         df["PseudorangeRateUncertaintyMetersPerSecond"] = np.where(ok, np.round(tr.prr_sigma[e, s], 4), np.nan)
     if tr.adr is not None:
         ok = tr.adr_ok[e, s]
