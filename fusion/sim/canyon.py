@@ -125,8 +125,8 @@ def classify(el_deg: np.ndarray, az_deg: np.ndarray, layout: dict[str, np.ndarra
     """LOS / NLOS / diffracted / blocked per (epoch, satellite), with the error each class brings.
 
     el_deg, az_deg (E,P) at the receiver; layout from :func:`street_layout`; vel_ne (E,2) receiver
-    velocity (north, east) [m/s]; cols (P,) int satellite ids for the per-(street, satellite)
-    reflection loss (default 0..P-1; two signals of one satellite share it).
+    velocity (north, east) [m/s]; cols: int satellite ids, broadcastable to (E,P), for the
+    per-(street, satellite) reflection loss (default 0..P-1; two signals of one satellite share it).
     Returns cls (E,P) int8, delay_m (E,P) >= 0, loss_db (E,P) >= 0, rate_err_mps (E,P), mask_deg (E,P).
     """
     el = np.radians(np.clip(el_deg, 0.0, 90.0))
@@ -152,8 +152,8 @@ def classify(el_deg: np.ndarray, az_deg: np.ndarray, layout: dict[str, np.ndarra
     v_perp = np.einsum("ej,ej->e", vel_ne, layout["normal_ne"])[:, None]
     held = np.where(right, layout["left_held"][:, None], layout["right_held"][:, None])
     rate = np.where(refl & ~held, 2.0 * cos_el * s * v_perp, 0.0)
-    cols = np.arange(el.shape[1]) if cols is None else cols
-    u = _hash_uniform(layout["street"][:, None], cols[None, :], layout["refl_u"])
+    cols = np.arange(el.shape[1])[None, :] if cols is None else cols
+    u = _hash_uniform(layout["street"][:, None], cols, layout["refl_u"])
     lo, hi = model.reflection_loss_db
     loss = np.where(refl, lo + (hi - lo) * u,
                     np.where(diff, 6.0 + (model.diffraction_max_db - 6.0) * depth / np.radians(model.diffraction_deg),

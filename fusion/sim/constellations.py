@@ -161,6 +161,8 @@ class Sky:
         glo = self.is_glo[col]
         dt = np.broadcast_to(np.asarray(dt_s, float), idx.shape)
         t_ms = np.broadcast_to(np.asarray(t_ms, np.int64), idx.shape)
+        if not glo.any():               # the common case: no scatter needed
+            return self._kepler_state(idx, t_ms, dt, position_only, self.signal[col])
         keys = ("pos",) if position_only else ("pos", "vel", "clock_s", "clock_drift")
         out = {k: np.zeros(idx.shape + ((3,) if k in ("pos", "vel") else ())) for k in keys}
         for rows, fn in ((~glo, self._kepler_state), (glo, self._glonass_state)):
@@ -172,7 +174,7 @@ class Sky:
 
     def _kepler_state(self, idx, t_ms, dt, position_only, signal):
         st = sat_state(self.kepler, idx, t_ms, dt, position_only=position_only)
-        if not position_only:
+        if not position_only and _L5[signal].any():
             # sat_state removes the L1-class group delay; L5-class signals take theirs instead
             p = self.kepler.params
             st["clock_s"] = st["clock_s"] + np.where(_L5[signal], p["tgd"][idx] - p["tgd_l5"][idx], 0.0)

@@ -128,9 +128,16 @@ def _environment(rx: np.ndarray, vel: np.ndarray | None, seg_start: np.ndarray, 
     if cfg.canyon is not None:
         layout = street_layout(rx, seg_start, cfg.canyon, rng)
         vel_ne = ecef2ned_vec(vel, rx)[:, :2]
-        c = classify(st["el"], st["az"], layout, vel_ne, cfg.canyon, cols=sky.sat_ids)
-        env.update(cls=c["cls"], nlos_delay=c["delay_m"], prr_error=c["rate_err_mps"], loss_db=c["loss_db"],
-                   street=layout["street"])
+        # classify only satellites above the horizon, as (N, 1) queries with their epoch's street
+        ce, cp = np.nonzero(st["el"] > 0)
+        sub = {k: v[ce] for k, v in layout.items() if k != "refl_u"} | {"refl_u": layout["refl_u"]}
+        c = classify(st["el"][ce, cp, None], st["az"][ce, cp, None], sub, vel_ne[ce], cfg.canyon,
+                     cols=sky.sat_ids[cp, None])
+        env["cls"][:] = 3                                                  # below the horizon: blocked
+        for key, name in (("cls", "cls"), ("nlos_delay", "delay_m"), ("prr_error", "rate_err_mps"),
+                          ("loss_db", "loss_db")):
+            env[key][ce, cp] = c[name][:, 0]
+        env["street"] = layout["street"]
     trace_of = np.cumsum(seg_start) - 1
     base = los_cn0(sky.signals()[None, :], st["el"], st["range"], cfg.cn0)
     env["cn0"] = draw_cn0(base - env["loss_db"], trace_of, cfg.cn0, rng)
