@@ -296,6 +296,17 @@ def test_dataset_with_canyon_keeps_traces_apart(nav):
 
 
 # ------------------------------------------------------------------------------ settings and CLI
+def test_date_outside_the_file_is_refused_even_with_synthetic_systems(nav):
+    from fusion.errors import DataError
+    from fusion.gpstime import gps_ms_from_calendar
+    late = gps_ms_from_calendar(2021, 6, 1, 0, 0, 0.0)
+    with pytest.raises(DataError, match="outside the validity"):
+        simulate(n_epochs=5, start_ms=late, nav=nav, config=scenario_config("open"))
+    # systems all synthetic: any date works
+    res = simulate(n_epochs=5, start_ms=late, nav=nav, config=scenario_config("open", systems=("R", "E", "C")))
+    assert set(np.unique(res.trace.sat_id[res.trace.mask] // 1000)) == {3, 5, 6}
+
+
 def test_bad_settings():
     with pytest.raises(ValueError, match="C/N0"):
         SimConfig(canyon=CanyonModel()).validate()

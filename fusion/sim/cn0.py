@@ -48,7 +48,7 @@ class Cn0Model:
     """Parameters of the C/N0 and code-noise model (see module docstring). dB, Hz, s, chips, m."""
 
     gain_horizon_db: float = -10.0
-    receiver_db: tuple[float, float] = (-8.0, 2.0)
+    receiver_db: tuple[float, float] = (-8.0, 4.0)
     satellite_sigma_db: float = 1.5
     noise_db: float = 1.0
     track_db: float = 18.0

@@ -137,6 +137,12 @@ class Sky:
     origin: dict[str, str]
 
     @property
+    def from_file(self) -> np.ndarray:
+        """(P,) bool: the column's satellite flies by records read from a file (not synthetic)."""
+        letters = {v: k for k, v in CTYPE.items()}
+        return np.array([self.origin.get(letters[int(c)]) != "synthetic Walker" for c in self.sat_ids // 1000])
+
+    @property
     def source(self) -> str:
         return "; ".join(f"{s}: {o}" for s, o in self.origin.items())
 

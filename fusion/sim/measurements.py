@@ -41,9 +41,13 @@ def sky_for(nav, cfg: SimConfig) -> Sky:
 
 
 def _check_coverage(sky: Sky, t_ms: np.ndarray, min_sats: int) -> np.ndarray:
-    """(E, P) record indices; DataError if any epoch lies outside the navigation data's validity."""
+    """(E, P) record indices; DataError if any epoch lies outside the navigation file's validity
+    (fewer than ``min_sats`` records of the systems read from a file; synthetic ones are always valid)."""
     idx = sky.select(t_ms)
-    n_valid = (idx >= 0).sum(axis=1)
+    from_file = sky.from_file
+    if not from_file.any():
+        return idx
+    n_valid = (idx[:, from_file] >= 0).sum(axis=1)
     bad = np.flatnonzero(n_valid < min_sats)
     if bad.size:
         lo, hi = sky.span_ms()
