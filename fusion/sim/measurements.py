@@ -18,8 +18,9 @@ import numpy as np
 from fusion.errors import DataError
 from fusion.geometry import C_LIGHT, ecef2ned_vec, elevation_azimuth, line_of_sight, ned_rotation, sagnac_rotate
 from fusion.gpstime import format_gps_ms
+from fusion.io.rinex_nav import Navigation
 from fusion.nav.orbits import GpsNav
-from fusion.sim.canyon import LOS, classify, los_multipath, street_layout
+from fusion.sim.canyon import BLOCKED, LOS, classify, los_multipath, street_layout
 from fusion.sim.cn0 import CHIP_M, dll_sigma_m, doppler_sigma_scale, draw_cn0, los_cn0
 from fusion.sim.config import SimConfig
 from fusion.sim.constellations import Sky, build_sky
@@ -137,7 +138,7 @@ def _environment(rx: np.ndarray, vel: np.ndarray | None, seg_start: np.ndarray, 
         sub = {k: v[ce] for k, v in layout.items() if k != "refl_u"} | {"refl_u": layout["refl_u"]}
         c = classify(st["el"][ce, cp, None], st["az"][ce, cp, None], sub, vel_ne[ce], cfg.canyon,
                      cols=sky.sat_ids[cp, None])
-        env["cls"][:] = 3                                                  # below the horizon: blocked
+        env["cls"][:] = BLOCKED                                            # below the horizon
         for key, name in (("cls", "cls"), ("nlos_delay", "delay_m"), ("prr_error", "rate_err_mps"),
                           ("loss_db", "loss_db")):
             env[key][ce, cp] = c[name][:, 0]
@@ -145,7 +146,7 @@ def _environment(rx: np.ndarray, vel: np.ndarray | None, seg_start: np.ndarray, 
     trace_of = np.cumsum(seg_start) - 1
     base = los_cn0(sky.signals()[None, :], st["el"], st["range"], cfg.cn0)
     env["cn0"] = draw_cn0(base - env["loss_db"], trace_of, cfg.cn0, rng)
-    env["receivable"] = (env["cls"] != 3) & (env["cn0"] >= cfg.cn0.track_db)
+    env["receivable"] = (env["cls"] != BLOCKED) & (env["cn0"] >= cfg.cn0.track_db)
     return env
 
 
@@ -245,7 +246,7 @@ def _visible(t_ms, rx, seg_start, sky: Sky, cfg: SimConfig, rng: np.random.Gener
     return st, env, vel, eligible
 
 
-def simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav: GpsNav | Sky,
+def simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav: GpsNav | Navigation | Sky,
                     cfg: SimConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
     """Core simulator on flat arrays. t_ms (E,), rx (E,3), seg_start (E,) bool (trace starts).
 
