@@ -295,6 +295,29 @@ def test_dataset_with_canyon_keeps_traces_apart(nav):
     assert all(r.trace.cn0 is not None for r in res)
 
 
+def test_chunked_passes_are_seeded_and_keep_streets_apart(nav, monkeypatch):
+    """With C/N0 the data set goes through in chunks (memory): same seed, same data; streets unique."""
+    import fusion.sim.measurements as meas
+    import fusion.sim.simulate as sim
+    monkeypatch.setattr(meas, "CHUNK_EPOCHS", 100)
+    monkeypatch.setattr(sim, "CHUNK_EPOCHS", 100)
+    cfg = scenario_config("urban", min_sats=1)
+    a = sim.simulate_dataset(6, 40, seed=1, nav=nav, config=cfg, results=True, origins=[(37.4, -122.1)])
+    b = sim.simulate_dataset(6, 40, seed=1, nav=nav, config=cfg, results=True, origins=[(37.4, -122.1)])
+    assert len(a) == 6
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x.trace.pr, y.trace.pr)
+        np.testing.assert_array_equal(x.trace.cn0, y.trace.cn0)
+    streets = [set(np.unique(r.street)) for r in a]
+    assert all(not (streets[i] & streets[j]) for i in range(6) for j in range(i + 1, 6))
+    one = sim.simulate_dataset(6, 40, seed=1, nav=nav, config=cfg, results=True, concatenate=True,
+                               origins=[(37.4, -122.1)])
+    trace_id = np.cumsum(one.trace.clock_reset)
+    assert trace_id[-1] == 5
+    per = [set(np.unique(one.street[trace_id == k])) for k in range(6)]
+    assert all(not (per[i] & per[j]) for i in range(6) for j in range(i + 1, 6))
+
+
 # ------------------------------------------------------------------------------ settings and CLI
 def test_date_outside_the_file_is_refused_even_with_synthetic_systems(nav):
     from fusion.errors import DataError

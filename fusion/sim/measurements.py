@@ -31,6 +31,10 @@ from fusion.trace import SIGNALS
 _BLOCK_MS = 30_000
 #: Flight-time iterations from the block's guess (each shrinks the error by ~1e-5).
 _TAU_ITER = 2
+#: Epochs per pass of the simulator when it models C/N0 (see simulate_arrays).
+CHUNK_EPOCHS = 5_000
+#: Per-epoch (E,) / (E,3) outputs of the simulator (the others are (E, K) slot arrays).
+PER_EPOCH = ("clock", "keep", "rx_vel", "clock_drift", "street")
 #: Slot arrays set to 0 on padding.
 _ZEROED = ("sat_pos", "sat_vel", "pr", "el", "az", "noise", "bias", "sat_clock_m", "sat_clock_drift_mps",
            "flight_s", "iono", "tropo", "prr", "adr", "cn0", "nlos_delay", "multipath", "prr_error", "loss_db")
@@ -253,9 +257,34 @@ def simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav
     Returns (E, K) slot arrays (K = max_sats or number of satellites) and (E,) ``keep`` epochs.
     All random draws happen in a fixed order over all epochs, so a seed fixes the result; Doppler
     and carrier draw after everything else, so switching them on leaves the pseudoranges as they were.
+    With a C/N0 model (many signals per epoch) the traces go through in chunks of about
+    :data:`CHUNK_EPOCHS` epochs (whole traces), one after the other from the same generator, which
+    bounds the memory (about 0.4 GB per chunk with four constellations, two frequencies) and keeps the result fixed by the seed.
     """
     cfg.validate()
     sky = nav if isinstance(nav, Sky) else sky_for(nav, cfg)
+    starts = np.flatnonzero(seg_start)
+    if cfg.cn0 is None or t_ms.size <= CHUNK_EPOCHS or starts.size < 2:
+        return _simulate_chunk(t_ms, rx, seg_start, sky, cfg, rng)
+    cut = np.unique(np.r_[starts[np.searchsorted(starts, np.arange(0, t_ms.size, CHUNK_EPOCHS))], t_ms.size])
+    parts = [_simulate_chunk(t_ms[a:b], rx[a:b], seg_start[a:b], sky, cfg, rng) for a, b in zip(cut[:-1], cut[1:])]
+    if "street" in parts[0]:
+        offset = np.cumsum([0] + [int(p["street"].max()) + 1 for p in parts[:-1]])
+        for p, o in zip(parts, offset):
+            p["street"] = p["street"] + o                  # street ids stay unique over the chunks
+    S = max(p["mask"].shape[1] for p in parts)
+    return {k: np.concatenate([p[k] if k in PER_EPOCH else _pad_slots(p[k], S, k) for p in parts]) for k in parts[0]}
+
+
+def _pad_slots(a: np.ndarray, S: int, key: str) -> np.ndarray:
+    """(E, s[, 3]) slot array padded to S slots with the Trace's filler (sigma 1, else 0 / False)."""
+    widths = [(0, 0), (0, S - a.shape[1])] + [(0, 0)] * (a.ndim - 2)
+    return np.pad(a, widths, constant_values=1 if key.endswith("_sigma") else 0)
+
+
+def _simulate_chunk(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, sky: Sky, cfg: SimConfig,
+                    rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """:func:`simulate_arrays` on epochs that start with a trace start (seg_start[0] True)."""
     st, env, vel, eligible = _visible(t_ms, rx, seg_start, sky, cfg, rng)
     P = eligible.shape[1]
     K = P if cfg.max_sats is None else min(int(cfg.max_sats), P)
@@ -289,4 +318,6 @@ def simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav
             out[k] = np.where(zero[..., None] if out[k].ndim == 3 else zero, 0.0, out[k])
     out["pr_sigma"] = np.where(zero, 1.0, sigma)
     out["keep"] = mask.sum(axis=1) >= cfg.min_sats
-    return out
+    # real slots come first (see _pick_satellites): drop the columns no epoch uses
+    S = max(int(mask.sum(axis=1).max(initial=0)), 1)
+    return {k: v if k in PER_EPOCH else v[:, :S] for k, v in out.items()}

@@ -39,7 +39,7 @@ from fusion.nav.orbits import GpsNav
 from fusion.trace import OPTIONAL_SLOT_FIELDS, Trace
 from fusion.sim.config import SCENARIOS, SimConfig, config_from_options, scenario_config  # noqa: F401
 from fusion.sim.constellations import parse_systems
-from fusion.sim.measurements import simulate_arrays
+from fusion.sim.measurements import CHUNK_EPOCHS, PER_EPOCH, simulate_arrays, sky_for
 from fusion.sim.write import FORMATS, write_gsdc2021, write_trace  # noqa: F401  (public API)
 from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_rate, load_gsdc_trajectory,
                                    parse_origins, random_trajectories, random_trajectory)
@@ -48,8 +48,6 @@ from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_ra
 DEFAULT_START_MS = gps_ms_from_calendar(2021, 4, 28, 20, 0, 0.0)
 #: Default origin: Mountain View, CA (where the GSDC 2021 MTV drives are), ellipsoidal height.
 DEFAULT_ORIGIN = (37.3958, -122.1030, -5.0)
-#: Per-epoch arrays among the simulator's outputs (the rest are (E, K) slot arrays).
-_PER_EPOCH = ("clock", "keep", "rx_vel", "clock_drift", "street")
 
 
 @dataclass
@@ -104,7 +102,7 @@ def _to_result(arrs: dict[str, np.ndarray], t_ms: np.ndarray, rx: np.ndarray, se
     keep = sel[arrs["keep"][sel]]
     n_drop = sel.size - keep.size
     S = max(int(arrs["mask"][keep].sum(axis=1).max(initial=0)), 1)
-    cut = {k: v[keep] if k in _PER_EPOCH else v[keep][:, :S] for k, v in arrs.items()}
+    cut = {k: v[keep] if k in PER_EPOCH else v[keep][:, :S] for k, v in arrs.items()}
     optional = {k: cut[k] for k in OPTIONAL_SLOT_FIELDS if k in cut}
     if "adr_slip" in optional:
         # a dropped epoch hides whether the arc went on: break every chain across it
@@ -211,7 +209,8 @@ def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarra
     concatenate: return one Trace with the drives laid back to back in time (each marked by
     ``clock_reset``); they must then fit into ``start_range_ms`` one after the other.
     results: return the :class:`SimResult` (trace + hidden true clock etc.) instead of the bare Trace.
-    All epochs of all traces go through the simulator in one vectorised pass.
+    All epochs of all traces go through the simulator in one vectorised pass (with a C/N0 model:
+    in passes of at most ``CHUNK_EPOCHS`` epochs, which bounds the memory).
     """
     if n_traces < 1 or epochs_per_trace < 1:
         raise ValueError(f"need n_traces >= 1 and epochs_per_trace >= 1, got {n_traces}, {epochs_per_trace}")
@@ -238,25 +237,48 @@ def simulate_dataset(n_traces: int, epochs_per_trace: int, *, origins: np.ndarra
         starts = rng.integers(lo, hi - dur + 1, n_traces)
     starts = starts // step * step
     trajs = random_trajectories(org, epochs_per_trace, starts, rng, rate_hz=rate_hz)
-    t_ms = np.concatenate([tr.t_ms for tr in trajs])
-    rx = np.concatenate([tr.ecef for tr in trajs])
-    seg = np.zeros(t_ms.size, bool); seg[::epochs_per_trace] = True
-    arrs = simulate_arrays(t_ms, rx, seg, nav, cfg, rng)
     if concatenate:
+        t_ms, rx, seg = _stack(trajs)
+        arrs = simulate_arrays(t_ms, rx, seg, nav, cfg, rng)
         res = _to_result(arrs, t_ms, rx, np.arange(t_ms.size), "sim/dataset")
         # a new trace starts a new receiver clock even when its first epochs were dropped
         sid = (np.cumsum(seg) - 1)[arrs["keep"]]
         res.trace.clock_reset = np.r_[False, np.diff(sid) != 0]
         return res if results else res.trace
-    traces = []
-    for i in range(n_traces):  # slicing only; all maths above was vectorised
-        sel = np.arange(i * epochs_per_trace, (i + 1) * epochs_per_trace)
-        if arrs["keep"][sel].any():
-            r = _to_result(arrs, t_ms, rx, sel, trajs[i].name)
-            traces.append(r if results else r.trace)
+    traces = _per_trace(trajs, nav, cfg, rng)
     if not traces:
         raise GeometryError("no simulated trace has an epoch with enough visible satellites")
-    return traces
+    return traces if results else [r.trace for r in traces]
+
+
+def _stack(trajs: list[Trajectory]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Trajectories back to back: t_ms (E,), rx (E,3), trace starts (E,) bool."""
+    t_ms = np.concatenate([tr.t_ms for tr in trajs])
+    seg = np.zeros(t_ms.size, bool)
+    seg[np.cumsum([0] + [len(tr) for tr in trajs[:-1]])] = True
+    return t_ms, np.concatenate([tr.ecef for tr in trajs]), seg
+
+
+def _per_trace(trajs: list[Trajectory], nav, cfg: SimConfig, rng: np.random.Generator) -> list[SimResult]:
+    """One SimResult per trajectory with enough satellites. Without a C/N0 model all traces go
+    through the simulator in one pass; with one (many signals per epoch), groups of traces of at
+    most CHUNK_EPOCHS epochs in all, one after the other, so memory stays bounded."""
+    sky = sky_for(nav, cfg)
+    per = max(1, CHUNK_EPOCHS // len(trajs[0])) if cfg.cn0 is not None else len(trajs)
+    out, n_streets = [], 0
+    for c0 in range(0, len(trajs), per):
+        group = trajs[c0:c0 + per]
+        t_ms, rx, seg = _stack(group)
+        arrs = simulate_arrays(t_ms, rx, seg, sky, cfg, rng)
+        if "street" in arrs:                       # street ids unique over the whole data set
+            arrs["street"] = arrs["street"] + n_streets
+            n_streets = int(arrs["street"].max()) + 1
+        first = np.flatnonzero(seg)
+        for tr, a in zip(group, first):  # slicing only; all maths above was vectorised
+            sel = np.arange(a, a + len(tr))
+            if arrs["keep"][sel].any():
+                out.append(_to_result(arrs, t_ms, rx, sel, tr.name))
+    return out
 
 
 # ---------------------------------------------------------------------------------- CLI
