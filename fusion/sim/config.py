@@ -96,7 +96,7 @@ class SimConfig:
 #: Scenario presets: building statistics and LOS multipath strength per environment.
 SCENARIOS = {
     "open": dict(canyon=None, multipath=MultipathModel(scale_m=0.5)),
-    "suburban": dict(canyon=CanyonModel(height_m=(4.0, 15.0), width_m=(25.0, 50.0), gap_prob=0.5),
+    "suburban": dict(canyon=CanyonModel(height_m=(6.0, 18.0), width_m=(18.0, 35.0), gap_prob=0.35),
                      multipath=MultipathModel(scale_m=1.0)),
     "urban": dict(canyon=CanyonModel(height_m=(15.0, 60.0), width_m=(15.0, 35.0), gap_prob=0.15),
                   multipath=MultipathModel(scale_m=1.5)),

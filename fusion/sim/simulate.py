@@ -37,12 +37,16 @@ from fusion.gpstime import format_gps_ms, gps_ms_from_calendar
 from fusion.io.rinex_nav import Navigation, default_nav_path, read_nav, read_rinex_nav
 from fusion.nav.orbits import GpsNav
 from fusion.trace import OPTIONAL_SLOT_FIELDS, Trace
-from fusion.sim.config import SCENARIOS, SimConfig, config_from_options, scenario_config  # noqa: F401
+from fusion.sim.config import SCENARIOS, SimConfig, config_from_options, scenario_config
 from fusion.sim.constellations import parse_systems
 from fusion.sim.measurements import CHUNK_EPOCHS, PER_EPOCH, simulate_arrays, sky_for
-from fusion.sim.write import FORMATS, write_gsdc2021, write_trace  # noqa: F401  (public API)
+from fusion.sim.write import FORMATS, write_gsdc2021, write_trace
 from fusion.sim.trajectory import (GSDC2021_HEIGHT_ERROR_M, Trajectory, check_rate, load_gsdc_trajectory,
                                    parse_origins, random_trajectories, random_trajectory)
+
+__all__ = ["DEFAULT_ORIGIN", "DEFAULT_START_MS", "FORMATS", "SCENARIOS", "SimConfig", "SimResult",
+           "config_from_options", "main", "random_origins", "scenario_config", "simulate", "simulate_dataset",
+           "simulate_trajectory", "write_gsdc2021", "write_trace"]
 
 #: Default start: 2021-04-28 20:00:00 GPS time, inside the shipped nav file (2021 day 118).
 DEFAULT_START_MS = gps_ms_from_calendar(2021, 4, 28, 20, 0, 0.0)
