@@ -9,6 +9,9 @@
    C/N0, Doppler, street canyon; ``simulate``), simulated and written as device_gnss.csv with
    labels (``write_device_gnss``), each timed as the best of three runs. Target: a few seconds.
    The same for the ``urban`` scenario in ``simulate_dataset`` (throughput).
+3. ``--scenarios``: what each preset produces (mean over seeds of 600-epoch drives at Mountain View):
+   signals per epoch, NLOS and diffracted shares, C/N0 of LOS and NLOS signals, median NLOS extra
+   path, and the plain WLS 3-D error (mean, 95th percentile) - a Markdown table.
 ``run(quick)`` follows the ``benchmarks/README.md`` convention (quick: 20,000 epochs).
 """
 from __future__ import annotations
@@ -85,6 +88,35 @@ def bench_urban(epochs: int = 600, dataset_epochs: int = 20_000, seed: int = 0) 
              "note": f"{n_ds} epochs = {n_traces} traces x 100, seed {seed}, {env}"}]
 
 
+def scenario_table(seeds: int = 10, epochs: int = 600) -> str:
+    """Markdown table of the presets' statistics (see module docstring), mean over ``seeds`` drives."""
+    import warnings
+
+    import numpy as np
+
+    from fusion.estimate.wls import solve_wls
+    nav = read_rinex_nav(default_nav_path())
+    lines = ["| scenario | signals/epoch | NLOS % | diffracted % | C/N0 LOS [dB-Hz] | C/N0 NLOS [dB-Hz] | "
+             "NLOS extra path, median [m] | WLS 3-D error mean [m] | WLS 3-D p95 [m] |", "|---" * 9 + "|"]
+    for name in ("open", "suburban", "urban"):
+        rows = []
+        for seed in range(seeds):
+            res = simulate(n_epochs=epochs, nav=nav, seed=seed, config=scenario_config(name))
+            tr, m = res.trace, res.trace.mask
+            cls = res.los_class[m]
+            err = np.linalg.norm(solve_wls(tr, robust="none").pos - tr.truth, axis=1)
+            nlos = cls == 1
+            pick = lambda a: a[nlos].mean() if nlos.any() else np.nan  # noqa: E731
+            rows.append([tr.n_sats.mean(), 100 * nlos.mean(), 100 * (cls == 2).mean(), tr.cn0[m][cls == 0].mean(),
+                         pick(tr.cn0[m]), np.median(res.nlos_delay_m[m][nlos]) if nlos.any() else np.nan,
+                         np.nanmean(err), np.nanpercentile(err, 95)])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)   # open sky has no NLOS column to average
+            a = np.nanmean(np.array(rows), axis=0)
+        lines.append(f"| {name} | " + " | ".join("-" if np.isnan(v) else f"{v:.1f}" for v in a) + " |")
+    return "\n".join(lines)
+
+
 def run(quick: bool = False) -> list[dict]:
     """Records for ``benchmarks/run_all.py``; quick simulates 20,000 epochs instead of 100,000."""
     return bench(QUICK_EPOCHS if quick else 100_000) + bench_urban(dataset_epochs=5_000 if quick else 20_000)
@@ -95,7 +127,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--epochs", type=int, default=100_000)
     ap.add_argument("--per-trace", type=int, default=100)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--scenarios", action="store_true", help="print the presets' statistics table instead")
     args = ap.parse_args(argv)
+    if args.scenarios:
+        print(scenario_table())
+        return 0
     bench(args.epochs, args.per_trace, args.seed)
     bench_urban(seed=args.seed)
     return 0

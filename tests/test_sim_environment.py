@@ -133,11 +133,12 @@ def test_cn0_physics_and_noise_tied_to_it(open_sky):
 
 # ------------------------------------------------------------------------------ urban canyon
 def _layout(az_street_deg, w_r, w_l, h_r, h_l):
-    return dict(azimuth_rad=np.radians([az_street_deg]), w_right=np.array([w_r]), w_left=np.array([w_l]),
-                h_right=np.array([h_r]), h_left=np.array([h_l]), right_held=np.array([False]),
-                left_held=np.array([False]), normal_ne=np.array([[-np.sin(np.radians(az_street_deg)),
-                                                                                     np.cos(np.radians(az_street_deg))]]),
-                street=np.array([0]), refl_u=np.array([[0.5]]))
+    """One epoch's street (see fusion.sim.canyon.street_layout)."""
+    a = np.radians(az_street_deg)
+    one = lambda v: np.array([v])  # noqa: E731
+    return dict(azimuth_rad=one(a), w_right=one(w_r), w_left=one(w_l), h_right=one(h_r), h_left=one(h_l),
+                normal_ne=np.array([[-np.sin(a), np.cos(a)]]), right_held=one(False), left_held=one(False),
+                street=one(0), refl_u=np.array([[0.5]]))
 
 
 def test_canyon_geometry_by_hand():

@@ -259,7 +259,8 @@ def simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav
     and carrier draw after everything else, so switching them on leaves the pseudoranges as they were.
     With a C/N0 model (many signals per epoch) the traces go through in chunks of about
     :data:`CHUNK_EPOCHS` epochs (whole traces), one after the other from the same generator, which
-    bounds the memory (about 0.4 GB per chunk with four constellations, two frequencies) and keeps the result fixed by the seed.
+    bounds the memory (about 0.4 GB per chunk with four constellations, two frequencies) and keeps
+    the result fixed by the seed.
     """
     cfg.validate()
     sky = nav if isinstance(nav, Sky) else sky_for(nav, cfg)
