@@ -1,5 +1,6 @@
-"""``gnssfuse simulate``: a simulated drive written in the GSDC 2021 derived format + ground_truth.csv
-(the simulator: :mod:`fusion.sim.simulate`; the writer: :mod:`fusion.io.gsdc_write`)."""
+"""``gnssfuse simulate``: a simulated drive written with ground_truth.csv, in the GSDC 2021 derived format
+or (with C/N0, Doppler, several signals) the 2022/23 device_gnss format (the simulator:
+:mod:`fusion.sim.simulate`; the writers: :mod:`fusion.io.gsdc_write`, :mod:`fusion.sim.write`)."""
 from __future__ import annotations
 
 import argparse
@@ -10,7 +11,9 @@ from fusion.cli.common import out_folder
 from fusion.errors import GnssfuseError
 from fusion.gpstime import format_gps_ms, gps_ms_from_calendar
 from fusion.io.truth import GSDC2021_TRUTH_HEIGHT_ERROR_M
+from fusion.sim.config import SCENARIOS
 from fusion.sim.simulate import DEFAULT_ORIGIN, DEFAULT_START_MS
+from fusion.sim.write import FORMATS
 
 
 def _parse_origin(text: str) -> tuple[float, float, float]:
@@ -35,8 +38,9 @@ def _parse_start(text: str) -> int:
 
 def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog=prog, description=(
-        "Simulate GPS L1 pseudoranges along a random drive (or a replayed GSDC 2021 ground-truth "
-        "track) and write them in the GSDC 2021 derived format with ground_truth.csv."))
+        "Simulate GNSS measurements along a random drive (or a replayed GSDC 2021 ground-truth "
+        "track) and write them with ground_truth.csv: GPS L1 pseudoranges in the GSDC 2021 derived "
+        "format by default; --scenario adds GLONASS, Galileo, BeiDou, C/N0, Doppler and street canyons."))
     ap.add_argument("--out", required=True, type=Path, help="output root; writes OUT/COLLECTION/PHONE/")
     ap.add_argument("--origin", type=_parse_origin, default=DEFAULT_ORIGIN,
                     help="LAT,LON[,H] start of the random drive (default Mountain View, CA; H ellipsoidal)")
@@ -47,13 +51,22 @@ def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
                     help="start time: GPS ms or ISO date-time in GPS time (default 2021-04-28T20:00:00)")
     ap.add_argument("--bias-scenario", action="store_true",
                     help="multipath/NLOS: per epoch Poisson(1) satellites get a bias U[50,200] m")
-    ap.add_argument("--sigma", type=float, default=6.0, help="pseudorange noise sigma [m] (default 6)")
+    ap.add_argument("--sigma", type=float, default=None,
+                    help="fixed pseudorange noise sigma [m] (default 6; scenarios: from C/N0)")
     ap.add_argument("--elevation-noise", action="store_true", help="scale sigma by 1/sin(elevation)")
-    ap.add_argument("--elev-mask", type=float, default=5.0, help="elevation mask [deg] (default 5)")
-    ap.add_argument("--max-sats", type=int, default=10, help="satellites per epoch at most (0 = all)")
+    ap.add_argument("--elev-mask", type=float, default=None, help="elevation mask [deg] (default 5; scenarios 10)")
+    ap.add_argument("--max-sats", type=int, default=None,
+                    help="signals per epoch at most, 0 = all (default 10; scenarios: all)")
+    ap.add_argument("--scenario", choices=sorted(SCENARIOS), default=None,
+                    help="multi-constellation preset with C/N0, Doppler and street canyons: open, suburban, urban")
+    ap.add_argument("--constellations", default=None,
+                    help="GPS,GLO,GAL,BDS or all (default GPS; scenarios all); no records in --nav: synthetic")
+    ap.add_argument("--format", choices=FORMATS, default="auto",
+                    help="output: gsdc2021 derived or device_gnss (2022/23, carries C/N0 and Doppler); "
+                         "auto: device_gnss when the trace has either")
     ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ap.add_argument("--nav", type=Path, default=None, metavar="FILE",
-                    help="the simulator's GPS ephemerides: one RINEX 2/3 nav file (default: shipped)")
+                    help="the simulator's ephemerides: one RINEX 2/3 nav file (default: the shipped GPS one)")
     ap.add_argument("--trajectory", type=Path, default=None,
                     help="replay this GSDC 2021 ground_truth.csv (re-timed to --start) instead")
     ap.add_argument("--trajectory-height-error", type=float, default=GSDC2021_TRUTH_HEIGHT_ERROR_M,
@@ -79,19 +92,19 @@ def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
     import numpy as np
 
     from fusion.eval.summary import skip_words
-    from fusion.io.gsdc_write import write_gsdc2021
-    from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
-    from fusion.sim.simulate import SimConfig, simulate_trajectory
+    from fusion.sim.config import config_from_options
+    from fusion.sim.simulate import _nav, simulate_trajectory
+    from fusion.sim.write import write_trace
 
     ap = build_parser(prog)
     args = ap.parse_args(argv)
     if args.epochs is not None and args.epochs < 1:
         ap.error("--epochs must be >= 1")
-    cfg = SimConfig(sigma_m=args.sigma, elevation_noise=args.elevation_noise,
-                    elev_mask_deg=args.elev_mask, max_sats=args.max_sats or None,
-                    nlos=args.bias_scenario)
     rng = np.random.default_rng(args.seed)
     try:
+        cfg = config_from_options(args.scenario, args.constellations, sigma_m=args.sigma,
+                                  elevation_noise=args.elevation_noise, elev_mask_deg=args.elev_mask,
+                                  max_sats=args.max_sats, nlos=args.bias_scenario)
         cfg.validate()
         traj = _trajectory(args, rng)
     except ValueError as exc:
@@ -99,10 +112,10 @@ def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
             raise
         ap.error(str(exc))
     out = out_folder(args.out)
-    res = simulate_trajectory(traj, nav=read_rinex_nav(args.nav or default_nav_path()), config=cfg, seed=rng)
+    res = simulate_trajectory(traj, nav=_nav(args.nav, cfg), config=cfg, seed=rng)
     collection = args.collection or f"{format_gps_ms(args.start)[:10]}-US-SIM-{args.seed}"
-    d_path, g_path = write_gsdc2021(res, out, collection, args.phone)
+    paths = write_trace(res, out, collection, args.phone, args.format)
     tr = res.trace
     print(f"simulated {tr.n_epochs} epochs, {tr.n_sats.mean():.1f} satellites/epoch "
-          f"(skipped: {skip_words(tr.skipped)}) -> {d_path} , {g_path}")
+          f"(skipped: {skip_words(tr.skipped)}) -> {' , '.join(map(str, paths))}")
     return 0

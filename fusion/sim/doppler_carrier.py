@@ -21,7 +21,7 @@ import numpy as np
 from fusion.geometry import range_rate
 
 if TYPE_CHECKING:  # the config lives with the simulator that imports this module
-    from fusion.sim.simulate import SimConfig
+    from fusion.sim.config import SimConfig
 
 
 def receiver_velocity(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray) -> np.ndarray:
@@ -56,23 +56,30 @@ def carrier_arcs(in_view: np.ndarray, seg_start: np.ndarray, cfg: "SimConfig", r
 
 
 def doppler_carrier_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, slots: dict,
-                           pick: np.ndarray, P: int, clock_drift: np.ndarray, rng_m: np.ndarray,
-                           cfg: "SimConfig", rng: np.random.Generator) -> dict[str, np.ndarray]:
+                           pick: np.ndarray, P: int, cfg: "SimConfig", rng: np.random.Generator,
+                           env: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Doppler and carrier slot arrays, empty when ``cfg`` asks for neither.
 
-    t_ms (E,), rx (E,3) true track, seg_start (E,) bool; slots: the simulator's (E,K) arrays so far
-    (``sat_pos``, ``sat_vel``, ``mask``, ``clock``); pick (E,K) PRN index of each slot out of P;
-    clock_drift (E,) [m/s]; rng_m (E,K) geometric ranges [m].
+    t_ms (E,), rx (E,3) true track, seg_start (E,) bool; slots: the simulator's arrays so far
+    ((E,K) ``sat_pos``, ``sat_vel``, ``mask``, ``range`` geometric range [m]; (E,) ``clock`` [m],
+    ``clock_drift`` [m/s]); pick (E,K) column index of each slot out of P.
+    env: optional extras: ``vel`` (E,3) receiver velocity when already computed, and the
+    environment's (E,K) slot arrays (:mod:`fusion.sim.measurements`): ``prr_error`` (NLOS and
+    multipath range-rate error) is added to the Doppler, ``prr_scale`` multiplies its noise sigma
+    (C/N0), and ``nlos_delay`` lengthens the carrier path like the code's.
     Returns prr, prr_sigma, prr_ok, rx_vel (E,3), clock_drift (E,) with ``cfg.doppler``, and adr,
     adr_sigma, adr_ok, adr_slip, ambiguity with ``cfg.carrier``.
     """
     out: dict[str, np.ndarray] = {}
     mask = slots["mask"]
+    env = env or {}
     if cfg.doppler:
-        vel = receiver_velocity(t_ms, rx, seg_start)
-        rate = range_rate(slots["sat_pos"], slots["sat_vel"], rx, vel)
-        noise = rng.standard_normal(mask.shape) * cfg.prr_sigma_mps
-        out.update(prr=rate + clock_drift[:, None] + noise, prr_sigma=np.where(mask, cfg.prr_sigma_mps, 1.0),
+        vel = env["vel"] if env.get("vel") is not None else receiver_velocity(t_ms, rx, seg_start)
+        clock_drift = slots["clock_drift"]
+        rate = range_rate(slots["sat_pos"], slots["sat_vel"], rx, vel) + env.get("prr_error", 0.0)
+        sigma = cfg.prr_sigma_mps * env.get("prr_scale", np.ones(mask.shape))
+        noise = rng.standard_normal(mask.shape) * sigma
+        out.update(prr=rate + clock_drift[:, None] + noise, prr_sigma=np.where(mask, sigma, 1.0),
                    prr_ok=mask.copy(), rx_vel=vel, clock_drift=clock_drift)
     if cfg.carrier:
         in_view = np.zeros((mask.shape[0], P), bool)
@@ -81,7 +88,7 @@ def doppler_carrier_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarr
         new_arc, amb = carrier_arcs(in_view, seg_start, cfg, rng)
         ambiguity = np.take_along_axis(amb, pick, axis=1)
         noise = rng.standard_normal(mask.shape) * cfg.adr_sigma_m
-        out.update(adr=rng_m + slots["clock"][:, None] + ambiguity + noise,
+        out.update(adr=slots["range"] + slots["clock"][:, None] + ambiguity + noise + env.get("nlos_delay", 0.0),
                    adr_sigma=np.where(mask, cfg.adr_sigma_m, 1.0), adr_ok=mask.copy(),
                    adr_slip=np.take_along_axis(new_arc, pick, axis=1) & mask,
                    ambiguity=np.where(mask, ambiguity, 0.0))
