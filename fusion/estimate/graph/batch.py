@@ -6,7 +6,7 @@ import time
 import gtsam
 import numpy as np
 
-from fusion.estimate.graph.build import build_graph
+from fusion.estimate.graph.build import graph_pieces, relinearise_carriers
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_estimates
@@ -37,30 +37,46 @@ def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndar
     return vel
 
 
+def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np.ndarray, E: int, cfg: GraphConfig):
+    """Levenberg-Marquardt from ``values``: (the optimiser, the solution, positions (E,3), NaN off ``epochs``)."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.lm_max_iter)
+    params.setRelativeErrorTol(cfg.lm_rel_tol)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = opt.optimize()
+    pos = np.full((E, 3), np.nan)
+    for k in epochs:
+        pos[k] = result.atPoint3(pos_key(int(k)))
+    return opt, result, pos
+
+
 def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     """Levenberg-Marquardt over the whole trace. Returns pos (E,3), valid (E,), cov (E,3,3)|None, info."""
     E = trace.n_epochs
     t0 = time.perf_counter()
-    graph, values, epochs = build_graph(trace, inp, cfg)
+    pieces = graph_pieces(trace, inp, cfg)
+    graph, values, epochs = pieces.graph(), pieces.values(), np.flatnonzero(inp.keep)
     t1 = time.perf_counter()
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.lm_max_iter)
-    params.setRelativeErrorTol(cfg.lm_rel_tol)
     try:
-        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        result = opt.optimize()
+        opt, result, pos = optimise(graph, values, epochs, E, cfg)
+        if pieces.carrier is not None and cfg.tdcp_relinearise:
+            # the carrier factors keep their linearisation point: move it from the WLS track to the
+            # solution and polish (a few warm iterations; see GraphConfig.tdcp_relinearise)
+            relinearise_carriers(graph, pieces, trace, inp, cfg, pos)
+            first = opt.iterations()
+            opt, result, pos = optimise(graph, result, epochs, E, cfg)
+            opt_iterations = first + opt.iterations()
+        else:
+            opt_iterations = opt.iterations()
         t2 = time.perf_counter()
-        pos = np.full((E, 3), np.nan)
-        for k in epochs:
-            pos[k] = result.atPoint3(pos_key(int(k)))
         cov = marginal_positions(graph, result, epochs, E) if want_cov else None
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
     t3 = time.perf_counter()
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
-    info = {"factors": int(graph.size()), "iterations": int(opt.iterations()),
+    info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
             "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
     return pos, valid, cov, info

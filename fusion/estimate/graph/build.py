@@ -53,6 +53,7 @@ class GraphPieces:
     points: list = field(default_factory=list)
     doubles: list = field(default_factory=list)
     value_sets: list = field(default_factory=list)
+    carrier: slice | None = None       # where add_carriers put its measurement factors in ``factors``
 
     def add(self, epochs, factors) -> None:
         """Factors (a list) introduced at ``epochs`` (one epoch each, or one int for all)."""
@@ -198,13 +199,23 @@ def add_carriers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfi
     unit = gtsam.noiseModel.Isotropic.Sigma(1, 1.0)
     p.add(starts, [gtsam.PriorFactorDouble(carrier_clock_key(int(k) - 1), float(inp.init_clock_m[k - 1]), unit)
                    for k in starts])
-    kk, ss = np.nonzero((raw.tdcp_prev >= 0) & has[:, None])
+    first = len(p.factors)
+    p.add(*carrier_factors(trace, inp, cfg, has, lin_pos))
+    p.carrier = slice(first, len(p.factors))
+
+
+def carrier_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin_pos: np.ndarray
+                    ) -> tuple[np.ndarray, list]:
+    """The time-differenced carrier factors of the epochs ``epochs`` (E,) bool, linearised at ``lin_pos``
+    (E,3), and the epoch of each."""
+    raw = inp.raw
+    kk, ss = np.nonzero((raw.tdcp_prev >= 0) & epochs[:, None])
     base = gtsam.noiseModel.Isotropic.Sigma
     prev = raw.tdcp_prev[kk, ss]
-    p.add(kk, [tdcp_factor_uqq(int(k), trace.adr[k, s] - trace.adr[k - 1, j], trace.sat_pos[k - 1, j],
-                               trace.sat_pos[k, s], lin_pos[k - 1], lin_pos[k],
-                               robust_model(cfg.robust, cfg.robust_k, base(1, float(raw.tdcp_sigma[k, s]))))
-               for k, s, j in zip(kk, ss, prev)])
+    return kk, [tdcp_factor_uqq(int(k), trace.adr[k, s] - trace.adr[k - 1, j], trace.sat_pos[k - 1, j],
+                                trace.sat_pos[k, s], lin_pos[k - 1], lin_pos[k],
+                                robust_model(cfg.robust, cfg.robust_k, base(1, float(raw.tdcp_sigma[k, s]))))
+                for k, s, j in zip(kk, ss, prev)]
 
 
 def add_priors(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
@@ -266,3 +277,19 @@ def build_graph(trace: Trace, inp: EpochInputs, cfg: GraphConfig
     """The whole-trace graph over the epochs in ``inp.keep``; returns (graph, initial values, epochs)."""
     p = graph_pieces(trace, inp, cfg)
     return p.graph(), p.values(), np.flatnonzero(inp.keep)
+
+
+def relinearise_carriers(graph: gtsam.NonlinearFactorGraph, p: GraphPieces, trace: Trace, inp: EpochInputs,
+                         cfg: GraphConfig, pos: np.ndarray) -> None:
+    """Replace ``graph``'s carrier factors (built from ``p``) by the same ones linearised at ``pos`` (E,3)
+    (NaN rows: where they were)."""
+    if p.carrier is None or p.carrier.start == p.carrier.stop:
+        return
+    raw = inp.raw
+    old = inp.init_pos if raw.lin_pos is None else raw.lin_pos
+    lin = np.where(np.isfinite(pos).all(axis=1)[:, None], pos, old)
+    has = np.zeros(trace.n_epochs, bool)
+    has[np.asarray(p.factor_epoch[p.carrier], int)] = True
+    _, factors = carrier_factors(trace, inp, cfg, has, lin)
+    for i, f in zip(range(p.carrier.start, p.carrier.stop), factors):
+        graph.replace(i, f)

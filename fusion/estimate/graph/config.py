@@ -99,8 +99,11 @@ class GraphConfig:
     drift_start_sigma_mps: float = 1000.0
     # The carrier factors are linearised at the initial (WLS) track and keep that point (see
     # factors.tdcp_factor_uqq): the error this leaves is ~1e-4 of the WLS error per second of epoch gap.
-    # Linearising at a carrier-free graph solution instead took a second solve and scored 3.50 m against
-    # 3.49 m on the Pixel5 RINEX trace, so it was dropped.
+    # With tdcp_relinearise the batch solver then moves that point to its solution and polishes with a
+    # few warm iterations (one graph, no second build): on simulated traces whose WLS is off by tens of
+    # metres the carrier's p95 went from 1.09 back to 0.93 m (experiments/results/doppler_carrier.md).
+    # Incremental mode keeps the WLS track (it stays causal).
+    tdcp_relinearise: bool = True
     # Measurements used where the trace has them, and the solver.
     use_doppler: bool = True
     use_carrier: bool = True
