@@ -51,7 +51,7 @@ MODES = ("wls", "dnn", "fused", "fused-nodnn")
 
 
 def accuracy(root: Path, weights: Path | None) -> None:
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
 
     for name, signals in TEST.items():
         d = root / name / "Pixel4"
@@ -99,7 +99,7 @@ PRIOR_GRID = tuple(
 
 def tune_graph(root: Path, grid=GRAPH_GRID) -> None:
     """fused-nodnn on the three training traces for each variation of GraphConfig (defaults first)."""
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
 
     data = []
     for name in TRAIN:
@@ -123,7 +123,7 @@ def tune_prior(root: Path, weights: Path | None, trace_name: str = "2020-09-04-U
     WLS positions) and its output reused for every prior setting, so the table isolates the effect
     of the settings.
     """
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
     from fusion.estimate.graph.batch import solve_batch
     from fusion.estimate.graph.priors import LearnedGraphInputs
     from learned.infer import Corrector, calibration
@@ -175,7 +175,7 @@ def speed(root: Path, repeats: int) -> list[dict]:
     d = root / "2021-04-28-US-MTV-1" / "Pixel4"
     d = d if d.is_dir() else REPO_TRACE
     if d.is_dir():
-        from fusion.io.load import load_trace
+        from fusion.prepare.load import load_trace
 
         trace = load_trace(d)
     else:

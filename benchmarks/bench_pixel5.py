@@ -48,8 +48,8 @@ def _timed(cmd: list[str], env: dict | None = None) -> tuple[float, subprocess.C
 
 def _truth():
     """(E,) receiver epochs [GPS ms] and (E, 3) truth of the trace, as the CLI loads them."""
-    from fusion.io.load import load_trace
-    from fusion.io.raw_load import RawSources
+    from fusion.prepare.load import load_trace
+    from fusion.prepare.raw_load import RawSources
 
     tr = load_trace(TRACE, signals=None, min_sats=1, raw_sources=RawSources(nav=(NAV,)))
     return tr.t_ms, tr.truth

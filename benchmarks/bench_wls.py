@@ -16,7 +16,7 @@ and pymap3d there):
 
 When gnss_lib_py is not importable, ``$GNSSFUSE_GLP_PYTHON`` (an interpreter that has it) is used
 to re-run this script as a whole; without it the script says "gnss_lib_py not installed: ours
-only" and times ours alone, loading with ``fusion.io.load``. ``run(quick)`` follows the
+only" and times ours alone, loading with ``fusion.prepare.load``. ``run(quick)`` follows the
 ``benchmarks/README.md`` convention (records; quick = one timing repeat instead of 10).
 """
 from __future__ import annotations
@@ -86,8 +86,8 @@ def _acc_records(label: str, s: dict, note: str) -> list[dict]:
 
 
 def _ours_only(trace: Path, repeat: int, why: str) -> list[dict]:
-    """Ours alone on the trace as ``fusion.io.load`` loads it (no gnss_lib_py parser)."""
-    from fusion.io.load import load_trace
+    """Ours alone on the trace as ``fusion.prepare.load`` loads it (no gnss_lib_py parser)."""
+    from fusion.prepare.load import load_trace
     print(f"{NO_GLP} ({why})")
     tr = load_trace(trace)
     arrays = (tr.sat_pos, tr.pr, tr.mask, tr.pr_sigma)
@@ -96,7 +96,7 @@ def _ours_only(trace: Path, repeat: int, why: str) -> list[dict]:
         t_ours, res = time_ours(arrays, repeat, weighting=w)
         line, s = accuracy(res.pos, tr.truth)
         print(f"ours ({w:9s}): {tr.n_epochs / t_ours:10.0f} epochs/s  ({t_ours:.4f} s)  {line}")
-        note = (f"{NO_GLP}; {trace.parent.name}/{trace.name} via fusion.io.load, {tr.n_epochs} epochs, "
+        note = (f"{NO_GLP}; {trace.parent.name}/{trace.name} via fusion.prepare.load, {tr.n_epochs} epochs, "
                 f"best of {repeat}, cpu")
         recs += [{"name": f"ours WLS ({w} weights) throughput", "value": round(tr.n_epochs / t_ours, 1),
                   "unit": "epochs/s", "note": note},

@@ -232,7 +232,7 @@ def interp_truth(truth_t_ms: np.ndarray, truth_ecef: np.ndarray, t_ms: np.ndarra
 
 def gogps_comparison(shared: Path = SHARED_DATA) -> list[dict] | None:
     """goGPS WLS and our WLS on the goGPS trace, both scored with fusion.eval.metrics. None if absent."""
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
     from fusion.eval.metrics import ned_errors, summarize
     from fusion.estimate.wls import estimate_wls
     from fusion.eval.metrics import mode_metrics
@@ -385,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
         gogps = gogps_comparison()
         if gogps is not None:
             sections.append(("goGPS WLS baseline vs gnssfuse WLS (2020-05-14-US-MTV-1 Pixel4)",
-                             "Both scored with `fusion.eval.metrics` against the truth `fusion.io.load` "
+                             "Both scored with `fusion.eval.metrics` against the truth `fusion.prepare.load` "
                              "loads for the trace (SPAN NMEA where present, else ground_truth.csv with "
                              "the 63 m height fix). goGPS reports at whole GPS seconds; its truth "
                              "is interpolated to those times.\n\n" + gogps_markdown(gogps)))

@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
 from fusion.errors import CheckpointError, GnssfuseError, ModeUnavailableError  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.eval.metrics import format_table, mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial
 from fusion.run_types import RunOptions

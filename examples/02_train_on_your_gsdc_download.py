@@ -19,7 +19,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # run from a checkout without installing
 
-from fusion.io.load import find_traces, load_trace  # noqa: E402
+from fusion.prepare.load import find_traces, load_trace  # noqa: E402
 from fusion.eval.metrics import format_table, mode_metrics  # noqa: E402
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions

@@ -27,7 +27,7 @@ sys.path.insert(0, str(REPO))
 
 from fusion.errors import GeometryError  # noqa: E402
 from fusion.geometry import ned_rotation  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.eval.metrics import horizontal, ned_errors  # noqa: E402
 from fusion.estimate.wls import solve_wls  # noqa: E402
 from learned.factor import learned_prior_factors  # noqa: E402

@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO))
 from fusion.estimate.wls import solve_wls  # noqa: E402
 from fusion.eval.metrics import horizontal, ned_errors  # noqa: E402
 from fusion.geometry import C_LIGHT  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
 from learned.factor import learned_pseudorange_factors  # noqa: E402
 from learned.infer import Corrector  # noqa: E402
 

@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 
 from fusion.eval.metrics import ned_errors, summarize  # noqa: E402
 from fusion.geometry import ecef2ned_cov  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.augment import parse_guess_mix  # noqa: E402

@@ -18,7 +18,7 @@ sys.path.insert(0, str(REPO))
 
 from fusion.errors import GeometryError  # noqa: E402
 from fusion.eval.metrics import ned_errors, summarize  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.modes import solve_initial  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.factor import learned_prior  # noqa: E402

@@ -21,7 +21,7 @@ from fusion.estimate.graph.batch import solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.estimate.graph.priors import LearnedGraphInputs
-from fusion.io.load import load_trace
+from fusion.prepare.load import load_trace
 from fusion.eval.metrics import mode_metrics
 from fusion.modes import run_modes, solve_initial
 from fusion.run_types import ModeResult, RunOptions

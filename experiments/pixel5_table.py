@@ -17,7 +17,7 @@ sys.path.insert(0, str(REPO))
 
 from fusion.options import load_options  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 

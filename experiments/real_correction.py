@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fusion.io.load import load_trace
+from fusion.prepare.load import load_trace
 from fusion.eval.metrics import ned_errors, summarize
 from fusion.estimate.wls import solve_wls
 from learned.augment import draw_guesses, epoch_generator

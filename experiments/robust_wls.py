@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.eval.metrics import mode_metrics
-from fusion.io.load import load_trace
+from fusion.prepare.load import load_trace
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
 from fusion.trace import Trace

@@ -9,7 +9,7 @@ from __future__ import annotations
 import importlib
 
 _PUBLIC = {
-    "load_trace": "fusion.io.load", "find_traces": "fusion.io.load",
+    "load_trace": "fusion.prepare.load", "find_traces": "fusion.prepare.load",
     "run_modes": "fusion.modes", "MODES": "fusion.modes",
     "RunOptions": "fusion.run_types", "ModeResult": "fusion.run_types",
     "Trace": "fusion.trace", "SIGNALS": "fusion.trace",

@@ -22,7 +22,7 @@ from fusion.eval.metrics import mode_metrics, trace_errors
 from fusion.eval.report import (TraceEval, markdown_table, metrics_table, write_figures, write_report_md,
                                 write_trace_figures)
 from fusion.io.estimates import write_outputs
-from fusion.io.load import load_trace, trace_name
+from fusion.prepare.load import load_trace, trace_name
 from fusion.modes import get_mode, run_modes, solve_initial
 from fusion.parallel import guarded, map_traces
 from fusion.run_types import RunOptions

@@ -100,7 +100,7 @@ def graph_config(args: argparse.Namespace) -> GraphConfig:
 
 
 def load_options(opts: RunOptions) -> dict:
-    """Keyword arguments of :func:`fusion.io.load.load_trace` that come from the run options."""
-    from fusion.io.raw_load import RawSources
+    """Keyword arguments of :func:`fusion.prepare.load.load_trace` that come from the run options."""
+    from fusion.prepare.raw_load import RawSources
 
     return {"signals": opts.signals, "raw_sources": RawSources(opts.nav, opts.sp3, opts.clk, opts.iono_free)}

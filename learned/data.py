@@ -24,8 +24,8 @@ import numpy as np
 
 from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.graph.fuse import fuse
-from fusion.io.load import find_traces, load_trace
-from fusion.io.raw_load import RawSources
+from fusion.prepare.load import find_traces, load_trace
+from fusion.prepare.raw_load import RawSources
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate_dataset
@@ -228,7 +228,7 @@ def check_not_forbidden(path: Path) -> None:
 
 def load_real_traces(paths: list[str | Path], signals=("GPS_L1",), raw_sources: RawSources | None = None
                      ) -> list[Trace]:
-    """Every ``<collection>/<phone>`` folder at or under ``paths`` (via :mod:`fusion.io.load`); folders
+    """Every ``<collection>/<phone>`` folder at or under ``paths`` (via :mod:`fusion.prepare.load`); folders
     with a RINEX file or GnssLogger log take their navigation from ``raw_sources`` (None: the folder's)."""
     traces = []
     for p in paths:

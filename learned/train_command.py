@@ -12,7 +12,7 @@ import torch
 
 from fusion.errors import DataError
 from fusion.eval.summary import skip_words
-from fusion.io.raw_load import RawSources
+from fusion.prepare.raw_load import RawSources
 from learned import distributed as dist
 from learned.augment import parse_guess_mix
 from learned.checkpoint import read_checkpoint

@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 
 from fusion.cli import main
-from fusion.io.load import load_trace
+from fusion.prepare.load import load_trace
 
 N_ROWS = 3000                                   # ~400 epochs of the shipped trace
 DERIVED = "Pixel4_derived.csv"

@@ -11,8 +11,8 @@ import pytest
 
 from fusion.errors import DataError
 from fusion.io.discover import files_of_kind, rinex_kind
-from fusion.io.load import load_trace
-from fusion.io.raw_load import navigation_files, raw_log_files
+from fusion.prepare.load import load_trace
+from fusion.prepare.raw_load import navigation_files, raw_log_files
 from fusion.io.rinex_nav import default_nav_path, read_nav
 from fusion.io.rinex_obs import read_rinex_obs
 from fusion.io.sp3 import read_sp3

@@ -261,7 +261,7 @@ def test_loader_flagged_clock_reset_breaks_the_clock_chain(trace):
 def test_real_trace_graph_beats_wls(shipped_trace_dir):
     if not shipped_trace_dir.is_dir():
         pytest.skip("shipped trace not present")
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
 
     tr = load_trace(shipped_trace_dir).select(np.arange(300, 700))
     w = solve_wls(tr)
@@ -339,7 +339,7 @@ def test_cli_keeps_and_fused_solves_two_satellite_epochs(shipped_trace_dir, tmp_
         out[mode] = (est, rec)
     est_w, rec_w = out["wls"]
     assert rec_w["epochs_solved"] == 240 - len(thin_t) and rec_w["info"]["lt4_sats"] == len(thin_t)
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
 
     tr = load_trace(d, min_sats=1)
     few = np.flatnonzero(tr.n_sats == 2)

@@ -249,7 +249,7 @@ def test_shipped_weights_on_held_out_trace(shared_data):
     """The shipped network, from WLS, on the held-out real trace: runs, solves every usable epoch."""
     if not SHIPPED_WEIGHTS.is_file():
         pytest.skip("no shipped weights yet")
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
     from fusion.run_types import RunOptions
     from fusion.estimate.wls import solve_wls
     tr = load_trace(shared_data / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel4")
@@ -272,7 +272,7 @@ def test_predict_rejects_bad_shapes_with_our_error():
 def test_shipped_weights_load_run_and_match_training_md(shipped_trace_dir):
     """The shipped checkpoint loads without /work/shared, is a product (median-clock) model, corrects
     the shipped trace from WLS, and its stored config is the recipe learned/weights/TRAINING.md states."""
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
     from fusion.estimate.wls import solve_wls
     from learned.model import count_parameters
 
@@ -313,7 +313,7 @@ def test_shipped_weights_beat_their_baselines_on_the_held_out_shipped_trace(ship
     """The issue's held-out target, kept as a regression check of the shipped weights: on the shipped
     trace (never trained or tuned on) dnn beats wls and fused beats fused-nodnn in GSDC score."""
     from fusion.eval.metrics import mode_metrics
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
     from fusion.modes import run_modes
 
     tr = load_trace(shipped_trace_dir)
@@ -341,7 +341,7 @@ def test_other_constellations_lower_the_trust_of_a_gps_network(shipped_trace_dir
     trust (here half of every epoch's: none left), so that a GPS-only correction does not override a
     guess from every constellation; on the GPS slots alone the trust is what its inputs give."""
     from fusion.estimate.wls import solve_wls
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
 
     corr = Corrector.load()
     gps = load_trace(shipped_trace_dir).select(np.arange(200))

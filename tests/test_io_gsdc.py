@@ -13,7 +13,7 @@ from fusion.errors import DataError, GnssfuseError
 from fusion.geometry import C_LIGHT, ecef2geodetic, ecef2ned_vec, geodetic2ecef
 from fusion.gpstime import GPS_EPOCH_UNIX_MS, gps_ms_to_unix_ms, unix_ms_to_gps_ms
 from fusion.io.gsdc import load_derived_2021, load_device_gnss
-from fusion.io.load import find_traces, load_dataset, load_trace
+from fusion.prepare.load import find_traces, load_dataset, load_trace
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, gsdc2021_height_offsets, interp_gapped, read_truth_csv)
 from fusion.io.nmea import read_span_nmea
 from fusion.trace import SIGNALS

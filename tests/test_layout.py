@@ -56,3 +56,17 @@ def test_public_api():
     from learned import Corrector, learned_prior_factor, learned_pseudorange_factors
     assert all(callable(f) for f in (RunOptions, load_trace, run_modes, Corrector, learned_prior_factor,
                                      learned_pseudorange_factors))
+
+
+def test_io_only_parses():
+    """fusion/io reads and writes files: it imports nothing that computes (estimators, the layer that
+    turns records into a Trace, the simulator, evaluation, the application layer). Besides the shared
+    vocabulary (trace, run types, geometry, time), the navigation record types it fills
+    (fusion.nav.orbits.GpsNav, fusion.nav.glonass) are the one other thing it takes."""
+    above = ("fusion.prepare", "fusion.estimate", "fusion.sim", "fusion.eval", "fusion.modes", "fusion.cli",
+             "fusion.evaluate", "fusion.parallel")
+    allowed_nav = {"fusion.nav.orbits", "fusion.nav.glonass"}
+    offenders = [f"{p.relative_to(ROOT)}: {m}" for p in _modules("fusion/io")
+                 for m in _imported(ast.parse(p.read_text()))
+                 if m.startswith(above) or (m.startswith("fusion.nav") and m not in allowed_nav)]
+    assert not offenders, offenders

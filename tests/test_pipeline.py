@@ -9,7 +9,7 @@ import pytest
 
 from fusion.cli import main
 from fusion.geometry import geodetic2ecef
-from fusion.io.load import load_trace
+from fusion.prepare.load import load_trace
 from fusion.eval.metrics import ned_errors, summarize
 from fusion.io.estimates import ESTIMATE_COLUMNS, SIGMA_COLUMNS
 from fusion.modes import run_modes

@@ -14,10 +14,10 @@ from fusion.errors import DataError
 from fusion.estimate.wls import solve_wls
 from fusion.geometry import C_LIGHT, geodetic2ecef, line_of_sight
 from fusion.gpstime import gps_ms_from_calendar
-from fusion.io.load import load_trace
+from fusion.prepare.load import load_trace
 from fusion.io.raw import RawObs, finish_raw
-from fusion.io.raw_load import RawSources
-from fusion.io.raw_trace import raw_to_trace
+from fusion.prepare.raw_load import RawSources
+from fusion.prepare.raw_trace import raw_to_trace
 from fusion.io.rinex_nav import default_nav_path, read_nav
 from fusion.io.rinex_obs import read_rinex_obs
 from fusion.nav.orbits import select_ephemeris, transmit_states

@@ -68,7 +68,7 @@ def test_report_writes_tables_figures_and_report_md(wls_report):
 
 
 def test_table_metrics_equal_summarize_of_estimates(wls_report):
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
 
     _, out, trace_dir = wls_report
     trace = load_trace(trace_dir, min_sats=1)          # as evaluate loads it

@@ -12,7 +12,7 @@ from fusion.estimate.graph.config import GraphConfig
 from fusion.geometry import C_LIGHT, geodetic2ecef, line_of_sight
 from fusion.gpstime import gps_ms_from_calendar
 from fusion.io.raw import RawObs, finish_raw
-from fusion.io.raw_trace import raw_to_trace
+from fusion.prepare.raw_trace import raw_to_trace
 from fusion.io.rinex_nav import GAMMA_L2, default_nav_path, read_nav
 from fusion.nav.orbits import select_ephemeris, transmit_states
 from fusion.trace import SIGNALS

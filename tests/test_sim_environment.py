@@ -233,7 +233,7 @@ def test_carrier_follows_the_reflected_path(urban):
 # ------------------------------------------------------------------------------ output and read-back
 def test_device_gnss_round_trip_and_wls(tmp_path, urban, open_sky):
     from fusion.estimate.wls import solve_wls
-    from fusion.io.load import find_traces, load_trace
+    from fusion.prepare.load import find_traces, load_trace
     errors = {}
     for name, res in (("urban", urban), ("open", open_sky)):
         d_path, g_path, l_path = write_device_gnss(res, tmp_path, f"2021-04-28-US-SIM-{name}")

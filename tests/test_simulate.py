@@ -278,7 +278,7 @@ def test_gsdc2021_files_round_trip(tmp_path, nav):
 
 
 def test_round_trip_through_load_trace(tmp_path, nav):
-    from fusion.io import load as io
+    from fusion.prepare import load as io
 
     res = simulate(n_epochs=40, nav=nav, seed=13, config=SimConfig(nlos=True))
     a = res.trace

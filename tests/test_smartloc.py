@@ -12,8 +12,8 @@ import pytest
 
 from fusion.cli import main
 from fusion.errors import DataError
-from fusion.io.load import find_traces, load_trace, trace_name
-from fusion.io.smartloc import DRIVE_START_GPS, UNKNOWN_START_GPS_MS, load_smartloc
+from fusion.prepare.load import find_traces, load_trace, trace_name
+from fusion.prepare.smartloc import DRIVE_START_GPS, UNKNOWN_START_GPS_MS, load_smartloc
 from fusion.trace import SIGNALS
 
 HEAD = Path(__file__).parent / "data" / "smartloc_berlin_head"

@@ -199,7 +199,7 @@ def test_empty_trace():
 
 
 def test_shipped_trace_wls_accuracy(shipped_trace_dir):
-    from fusion.io import load as io
+    from fusion.prepare import load as io
     from fusion.eval.metrics import ned_errors, summarize
     if not shipped_trace_dir.is_dir():
         pytest.skip(f"shipped trace not present at {shipped_trace_dir}")

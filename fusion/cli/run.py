@@ -29,7 +29,7 @@ def main(argv: list[str], prog: str = "gnssfuse run") -> int:
     from fusion.eval.summary import run_summary
     from fusion.io.estimates import export_frame, write_outputs
     from fusion.io.export import write_exports
-    from fusion.io.load import load_trace
+    from fusion.prepare.load import load_trace
     from fusion.modes import run_modes
 
     args = build_parser(prog).parse_args(argv)

@@ -124,7 +124,7 @@ def _navigation(folder: Path, src: RawSources):
 def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, truth: str = "auto",
                    fix_truth_height: bool = True, min_sats: int = 1, name: str | None = None) -> Trace:
     """Read ``log``, compute satellite states from the navigation, attach interpolated truth."""
-    from fusion.io.raw_trace import raw_to_trace
+    from fusion.prepare.raw_trace import raw_to_trace
 
     nav, precise = _navigation(folder, src)
     raw = read_raw(log, nav.glonass_channels() if nav is not None else None)
@@ -137,7 +137,7 @@ def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, tr
 
 def _truth(folder: Path, trace: Trace, truth: str, fix_truth_height: bool) -> np.ndarray | None:
     """(E, 3) truth interpolated at the epochs (SPAN NMEA first when ``truth`` is auto/nmea)."""
-    from fusion.io.load import _span_file
+    from fusion.prepare.load import _span_file
     from fusion.io.nmea import read_span_nmea
 
     t = trace.t_ms

@@ -2,10 +2,10 @@
 
 The format is detected from the files: ``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
 -> GSDC 2022/23 (:mod:`fusion.io.gsdc`); failing those, a RINEX observation file or GnssLogger
-log in the folder or its ``supplemental/`` (:mod:`fusion.io.raw_load`, with navigation from the
+log in the folder or its ``supplemental/`` (:mod:`fusion.prepare.raw_load`, with navigation from the
 folder or the caller). Truth comes from the folder's ``ground_truth.csv`` or SPAN NMEA log
 (:mod:`fusion.io.truth`). A smartLoc drive (``<drive>_Input.txt`` + ``<drive>_GT.txt``, libRSF text)
-is read by :mod:`fusion.io.smartloc`.
+is read by :mod:`fusion.prepare.smartloc`.
 """
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ from pathlib import Path
 
 from fusion.errors import DataError, GnssfuseError
 from fusion.io.gsdc import load_derived_2021, load_device_gnss
-from fusion.io.raw_load import RawSources, load_raw_trace, raw_log_files
-from fusion.io.smartloc import load_smartloc, smartloc_input
+from fusion.prepare.raw_load import RawSources, load_raw_trace, raw_log_files
+from fusion.prepare.smartloc import load_smartloc, smartloc_input
 from fusion.io.truth import TRUTH_TOL_MS
 from fusion.trace import Trace
 
@@ -92,9 +92,9 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
                raw_sources: RawSources | None = None) -> Trace:
     """Load one trace: a ``<collection>/<phone>`` folder, or a measurement file inside one.
 
-    Format is detected from the files (``<drive>_Input.txt`` -> smartLoc libRSF, :mod:`fusion.io.smartloc`;
+    Format is detected from the files (``<drive>_Input.txt`` -> smartLoc libRSF, :mod:`fusion.prepare.smartloc`;
     ``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]`` -> GSDC 2022/23, else a raw log with navigation from ``raw_sources`` or the folder, see
-    :mod:`fusion.io.raw_load`). ``signals``: names, or None for the format's default (GSDC: GPS L1;
+    :mod:`fusion.prepare.raw_load`). ``signals``: names, or None for the format's default (GSDC: GPS L1;
     raw logs: every signal with ephemerides; smartLoc: every supported signal in the file). ``truth``: ``"auto"`` (SPAN NMEA when present, else
     ``ground_truth.csv``, else none), ``"csv"`` (ignore NMEA), ``"nmea"`` (require it), ``"none"``.
     The trace is named ``<collection>/<phone>`` after its folder, or ``<folder>/<stem>`` when that
