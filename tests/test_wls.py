@@ -382,3 +382,33 @@ def test_fault_test_calibrated_on_the_trace():
         return variance_factor(sat, p, w, x, mask, np.ones(300, bool))
     assert factor(noisy) in (2.0 ** 3, 2.0 ** 3.5)      # ~9, in half-octave steps
     assert factor(pr + np.random.default_rng(9).normal(0, 1.0, pr.shape)) == 1.0
+
+
+def test_settings_are_frozen_checked_and_normalised():
+    from dataclasses import FrozenInstanceError
+
+    from fusion.estimate.wls_state import WlsSettings
+    s = WlsSettings(robust=True)
+    assert s.robust == "exclude" and WlsSettings(robust=False).robust == "none"
+    with pytest.raises(FrozenInstanceError):
+        s.elev_mask_deg = 5.0
+    assert s.replace(elev_mask_deg=5.0).elev_mask_deg == 5.0 and s.elev_mask_deg == 10.0
+    with pytest.raises(DataError, match="unknown WLS option"):
+        s.replace(elev_mask=5.0)
+    with pytest.raises(DataError, match="robust"):
+        WlsSettings(robust="maybe")
+
+
+def test_settings_object_and_keywords_solve_alike():
+    from fusion.estimate.wls import TRACE_DEFAULTS
+    sat, pr, mask, _, _ = synthetic(E=6)
+    pr = pr.copy()
+    pr[2, 3] += 200.0
+    tr = Trace(**{**empty_trace(6, pr.shape[1]), "sat_pos": sat, "pr": pr, "mask": mask,
+                  "t_ms": np.arange(6) * 1000})
+    by_kw = solve_wls(tr, elev_mask_deg=5.0)
+    by_obj = solve_wls(tr, TRACE_DEFAULTS.replace(elev_mask_deg=5.0))
+    assert np.array_equal(by_kw.pos, by_obj.pos, equal_nan=True) and by_kw.dropped == by_obj.dropped
+    assert by_kw.dropped.get("outlier") == 1                    # the default is the robust solve
+    plain = solve_wls_arrays(sat, pr, mask, settings=TRACE_DEFAULTS, robust=False)
+    assert "outlier" not in plain.dropped and np.abs(plain.pos[2] - by_kw.pos[2]).max() > 1.0

@@ -28,6 +28,7 @@ from math import comb
 import numpy as np
 
 from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations, standardised_residuals
+from fusion.estimate.wls_state import FitState, WlsSettings
 from fusion.trace import count_skip
 
 #: Normal quantile of the default false-alarm probability 1e-3 (one-sided).
@@ -173,53 +174,53 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, 
     return remove, decided & ~ambiguous
 
 
-def exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, *, max_exclusions: int,
-                   max_iter: int, tol: float, max_cond: float, n_iter, dropped,
-                   separation: float = SEPARATION, scale: float = 1.0):
-    """Fault detection and exclusion (module docstring) on the epochs in ``eligible``.
+def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,
+                   separation: float = SEPARATION) -> FitState:
+    """Fault detection and exclusion (module docstring) on the epochs in ``eligible`` (E,) bool.
 
-    sat_pos: (E, S, 3); pr, used, w_prior: (E, S); x: (E, 4) converged states; eligible, conv, bad,
-    runaway: (E,) bool. ``scale``: variance factor of ``w_prior`` for the test (:func:`variance_factor`).
-    Returns (x, used, conv, bad, runaway, w_fit, flagged, n_excluded), the last two
-    (E,) bool and int. Excluded slots are counted in ``dropped["outlier"]``.
+    fit: the converged fit (its ``used`` slots are the candidates); settings: ``max_exclusions`` and the
+    Gauss-Newton limits of the re-solve. ``scale``: variance factor of ``fit.w_prior`` for the test
+    (:func:`variance_factor`). Returns the fit with the exclusions removed from ``used`` and re-solved,
+    ``w_fit`` the a-priori weights of the used slots, ``flagged`` the undecided epochs and
+    ``n_excluded`` this pass's exclusions; excluded slots are counted in ``fit.dropped["outlier"]``.
     """
-    w = np.where(used, w_prior, 0.0)
-    _, fails = chi2_test(sat_pos, pr, w, x, used, scale)
+    w = fit.weights
+    _, fails = chi2_test(fit.sat_pos, fit.pr, w, fit.x, fit.used, scale)
     fails &= eligible
-    remove, decided = _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, scale)
-    used = used & ~remove
+    remove, decided = _best_exclusion(fit.sat_pos, fit.pr, w, fit.x, fit.used, fails, settings.max_exclusions,
+                                      separation, scale)
     n_excl = remove.sum(1)
-    count_skip(dropped, "outlier", remove)
+    count_skip(fit.dropped, "outlier", remove)
+    fit = fit.replace(used=fit.used & ~remove)
     redo = n_excl > 0
     if redo.any():
-        x, c2, b2, r2 = gauss_newton(sat_pos, pr, np.where(used, w_prior, 0.0), x, redo, max_iter, tol,
-                                     max_cond, n_iter)
-        conv = np.where(redo, c2, conv)
-        bad = bad | (redo & b2)
-        runaway = runaway | (redo & r2)
-    return x, used, conv, bad, runaway, np.where(used, w_prior, 0.0), fails & ~decided, n_excl
+        fit = fit.solve(redo, fit.weights, settings.max_iter, settings.tol_m, settings.max_cond)
+    return fit.replace(w_fit=fit.weights, flagged=fails & ~decided, n_excluded=n_excl)
 
 
-def huber_irls(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, k, max_iter, tol,
-               max_cond, n_iter, rounds: int = 8):
-    """Iteratively reweighted LS with Huber weights on standardised residuals.
+def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, rounds: int = 8) -> FitState:
+    """Iteratively reweighted LS with Huber weights (``settings.huber_k``) on standardised residuals,
+    on the ``eligible`` (E,) epochs, starting from the a-priori weights of the used slots.
 
-    Shapes as :func:`exclude_faults`; returns (x, conv, bad, runaway, w_fit).
+    Returns the re-solved fit with ``w_fit`` the final (down-weighted) weights.
     """
-    w = np.where(used, w_prior, 0.0)
+    used, w_prior, k = fit.used, fit.w_prior, settings.huber_k
+    x, conv, bad, runaway = fit.x.copy(), fit.conv, fit.bad, fit.runaway
+    w = fit.weights
     for _ in range(rounds):
         # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
         # residual would look small next round and the weights would oscillate.
-        z = standardised_residuals(sat_pos, pr, np.where(used, w_prior, 0.0), x, used)
+        z = standardised_residuals(fit.sat_pos, fit.pr, np.where(used, w_prior, 0.0), x, used)
         w_new = np.where(used, w_prior * np.minimum(1.0, k / np.maximum(z, 1e-12)), 0.0)
         w_new = np.where(eligible[:, None], w_new, w)
         changed = eligible & (np.abs(w_new - w).max(1) > 1e-3 * w_prior.max(1, initial=0))
         w = w_new
         if not changed.any():
             break
-        x, c2, b2, r2 = gauss_newton(sat_pos, pr, w, x, changed, max_iter, tol, max_cond, n_iter)
+        x, c2, b2, r2 = gauss_newton(fit.sat_pos, fit.pr, w, x, changed, settings.max_iter, settings.tol_m,
+                                     settings.max_cond, fit.n_iter)
         conv = np.where(changed, c2, conv)
         bad = bad | (changed & b2)
         runaway = runaway | (changed & r2)
         eligible = eligible & ~(changed & (~c2 | b2 | r2))
-    return x, conv, bad, runaway, w
+    return fit.replace(x=x, conv=conv, bad=bad, runaway=runaway, w_fit=w)
