@@ -9,14 +9,15 @@ that prediction, with the receiver clock taken as the median residual (robust to
 of tens of metres stands out of the other residuals. Slots whose deviation exceeds
 ``GATE * sqrt(sigma^2 * scale + PRED_SIGMA_M^2)`` are excluded (at most ``max_exclusions``, never fewer
 than five satellites left), the epoch is re-solved, and the exclusion is kept only if the re-solved
-epoch then passes the chi-square test; otherwise nothing changes and the epoch stays flagged.
+epoch then passes the chi-square test (and the exclusion guard, :func:`fusion.estimate.raim.costly_exclusions`,
+does not keep the satellites down-weighted instead); otherwise nothing changes and the epoch stays flagged.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from fusion.estimate.lsq import gauss_newton
-from fusion.estimate.raim import chi2_test
+from fusion.estimate.raim import chi2_test, costly_exclusions
 from fusion.estimate.wls_state import FitState, WlsSettings
 from fusion.geometry import line_of_sight
 from fusion.trace import count_skip
@@ -94,6 +95,8 @@ def exclude_by_neighbours(fit: FitState, candidates: np.ndarray, targets: np.nda
                                   settings.max_cond, fit.n_iter)
     _, fails = chi2_test(fit.sat_pos, fit.pr, w, x2, trial_used, scale)
     repaired = trial & c2 & ~b2 & ~r2 & ~fails
+    repaired &= ~costly_exclusions(fit.replace(used=np.where(trial[:, None], candidates, fit.used)),
+                                   fit.replace(used=trial_used, x=x2), settings)
     used = np.where(repaired[:, None], trial_used, fit.used)
     n_new = np.where(repaired, (candidates & ~used).sum(1), fit.n_excluded)
     count_skip(fit.dropped, "outlier", int((n_new - fit.n_excluded).sum()))

@@ -13,7 +13,10 @@ Fault detection and exclusion (:func:`exclude_faults`), every epoch at once:
    (typical of multipath spread over several satellites) and nothing is excluded. Searching
    sets rather than dropping the largest residual one at a time finds two faults that drag the fit
    toward each other, where the largest standardised residual often points at a good satellite.
-3. Re-solve the epochs that lost satellites.
+3. Re-solve the epochs that lost satellites. With an exclusion guard (``exclude_above_m``, set by
+   :data:`fusion.estimate.wls.TRACE_DEFAULTS`), an exclusion whose removed residuals at the re-solved
+   position are all below ``exclude_above_m`` metres and that raises the weighted position DOP by
+   more than ``max_dop_growth`` is undone (:func:`costly_exclusions`): the epoch is flagged instead.
 
 An epoch whose test fails and that no allowed exclusion repairs (5 satellites, more faults than
 ``max_exclusions``, or an ambiguous best set) is *flagged*: the test cannot decide which measurement
@@ -27,7 +30,8 @@ from math import comb
 
 import numpy as np
 
-from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations, standardised_residuals
+from fusion.estimate.lsq import (gauss_newton, ill_conditioned, normal_equations, position_dop,
+                                 standardised_residuals)
 from fusion.estimate.wls_state import FitState, WlsSettings
 from fusion.trace import count_skip
 
@@ -174,6 +178,30 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, 
     return remove, decided & ~ambiguous
 
 
+def costly_exclusions(before: FitState, after: FitState, settings: WlsSettings) -> np.ndarray:
+    """(E,) bool: epochs whose exclusions (slots used in ``before``, not in ``after``) removed only
+    moderate residuals (each below ``settings.exclude_above_m`` at ``after``'s solution) and raised the
+    position DOP (weighted with the a-priori weights) by more than the factor ``settings.max_dop_growth``.
+
+    Such an exclusion is not worth its cost in a street canyon: multipath spreads errors of tens of
+    metres over many satellites, the chi-square test cannot single out the one to drop, and the
+    satellite's geometry is worth more down-weighted (Huber) than lost. A gross fault (hundreds of
+    metres: a wrong ephemeris, a clock or code error) is still excluded whatever the geometry.
+    """
+    removed = before.used & ~after.used
+    out = np.zeros(removed.shape[0], bool)
+    rows = np.flatnonzero(removed.any(1))
+    if rows.size == 0 or not np.isfinite(settings.exclude_above_m):
+        return out
+    sp, w = before.sat_pos[rows], before.w_prior[rows]
+    _, _, r, _ = normal_equations(sp, before.pr[rows], np.where(after.used[rows], w, 0.0), after.x[rows])
+    moderate = np.where(removed[rows], np.abs(r), 0.0).max(1) < settings.exclude_above_m
+    dop_before = position_dop(sp, before.x[rows], np.where(before.used[rows], w, 0.0))
+    dop_after = position_dop(sp, before.x[rows], np.where(after.used[rows], w, 0.0))
+    out[rows] = moderate & ~(dop_after <= settings.max_dop_growth * dop_before)
+    return out
+
+
 def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,
                    separation: float = SEPARATION) -> FitState:
     """Fault detection and exclusion (module docstring) on the epochs in ``eligible`` (E,) bool.
@@ -189,13 +217,27 @@ def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *
     fails &= eligible
     remove, decided = _best_exclusion(fit.sat_pos, fit.pr, w, fit.x, fit.used, fails, settings.max_exclusions,
                                       separation, scale)
-    n_excl = remove.sum(1)
-    count_skip(fit.dropped, "outlier", remove)
-    fit = fit.replace(used=fit.used & ~remove)
-    redo = n_excl > 0
+    after = fit.replace(used=fit.used & ~remove)
+    redo = remove.any(1)
     if redo.any():
-        fit = fit.solve(redo, fit.weights, settings.max_iter, settings.tol_m, settings.max_cond)
-    return fit.replace(w_fit=fit.weights, flagged=fails & ~decided, n_excluded=n_excl)
+        after = after.solve(redo, after.weights, settings.max_iter, settings.tol_m, settings.max_cond)
+        # an exclusion of a moderate residual that leaves much weaker geometry is undone: the epoch
+        # stays undecided (flagged), and Huber IRLS down-weights the satellite instead of losing it
+        held = costly_exclusions(fit, after, settings)
+        if held.any():
+            after = _undo(fit, after, held)
+            remove[held] = False
+            decided &= ~held
+    count_skip(fit.dropped, "outlier", remove)
+    return after.replace(w_fit=after.weights, flagged=fails & ~decided, n_excluded=remove.sum(1))
+
+
+def _undo(before: FitState, after: FitState, rows: np.ndarray) -> FitState:
+    """``after`` with the epochs in ``rows`` (E,) bool back at ``before``'s fit."""
+    r = rows[:, None]
+    return after.replace(used=np.where(r, before.used, after.used), x=np.where(r, before.x, after.x),
+                         conv=np.where(rows, before.conv, after.conv), bad=np.where(rows, before.bad, after.bad),
+                         runaway=np.where(rows, before.runaway, after.runaway))
 
 
 def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, rounds: int = 8) -> FitState:

@@ -23,7 +23,11 @@ Procedure
    :func:`solve_wls` and of the pipeline): RAIM-style fault detection and exclusion - a chi-square
    test on the weighted residuals, then the smallest set of satellites (at most ``max_exclusions``,
    never below 5 left) whose removal passes it excluded; an epoch no allowed exclusion repairs is
-   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. With epoch
+   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. An
+   exclusion whose removed residuals are all moderate (below ``exclude_above_m``, 80 m in
+   :data:`TRACE_DEFAULTS`) is undone and the epoch flagged and down-weighted the same way: in a street
+   canyon multipath spreads tens of metres over many satellites, and a satellite's geometry is worth
+   more down-weighted than lost (``experiments/results/robust_wls.md``). With epoch
    times (``t_ms``), the flagged epochs and those left with at most
    :data:`NEIGHBOUR_CHECK_MAX_SATS` satellites (a test of little power) are first checked against
    the position predicted from the settled epochs around them (:mod:`fusion.estimate.neighbour_fde`). ``robust="huber"``: iteratively reweighted least
@@ -169,8 +173,11 @@ class WlsResult:
 
 
 # ---------------------------------------------------------------------------------------- public API
-#: What :func:`solve_wls` runs unless told otherwise: fault exclusion, its test calibrated on the trace.
-TRACE_DEFAULTS = WlsSettings(robust="exclude", test_scale="trace")
+#: What :func:`solve_wls` (and so every mode) runs unless told otherwise: fault exclusion, its test
+#: calibrated on the trace, and only residuals over 80 m excluded - smaller ones are down-weighted
+#: (Huber) instead (:func:`fusion.estimate.raim.costly_exclusions`; chosen leave-one-drive-out on the
+#: twelve GSDC training drives, ``experiments/robust_wls.py --tune``).
+TRACE_DEFAULTS = WlsSettings(robust="exclude", test_scale="trace", exclude_above_m=80.0, max_dop_growth=1.0)
 
 
 def solve_wls(trace, settings: WlsSettings | None = None, *, x0: np.ndarray | None = None,
@@ -251,16 +258,19 @@ def _fde(fit: FitState, eligible: np.ndarray, cfg: WlsSettings) -> tuple[FitStat
     """Fault detection and exclusion (:func:`fusion.estimate.raim.exclude_faults`). With
     ``test_scale="trace"`` a first pass at the a-priori variance gives the residuals of the epochs
     it settled, whose robust variance factor (:func:`fusion.estimate.raim.variance_factor`) sets the
-    test of the second, final pass; a factor of 1 keeps the first pass. Returns (the fit after
-    exclusion, the variance factor of the test)."""
+    test of the second, final pass (the first pass is kept when the factor is 1 and no exclusion guard
+    is set). Returns (the fit after exclusion, the variance factor of the test)."""
     if cfg.test_scale != "trace":
         scale = float(cfg.test_scale)
         return exclude_faults(fit, eligible, cfg, scale=scale), scale
-    # the trial pass counts its exclusions apart: only the pass that is kept adds them to the fit's
-    first = exclude_faults(fit.replace(dropped={}), eligible, cfg, scale=1.0)
+    # The trial pass counts its exclusions apart: only the pass that is kept adds them to the fit's.
+    # It runs without the exclusion guard: the factor measures the trace's noise, and the epochs whose
+    # moderate faults the guard would keep (down-weighted, flagged) are most of what it must see.
+    unguarded = cfg.replace(exclude_above_m=float("inf"))
+    first = exclude_faults(fit.replace(dropped={}), eligible, unguarded, scale=1.0)
     settled = eligible & ~first.flagged & ~first.bad & ~first.runaway
     scale = variance_factor(first.sat_pos, first.pr, first.w_fit, first.x, first.used, settled)
-    if scale == 1.0:
+    if scale == 1.0 and cfg == unguarded:
         count_skip(fit.dropped, "outlier", first.n_excluded)
         return first.replace(dropped=fit.dropped), scale
     return exclude_faults(fit, eligible, cfg, scale=scale), scale

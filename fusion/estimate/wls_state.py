@@ -43,6 +43,12 @@ class WlsSettings:
     tol_m:          Gauss-Newton step tolerance of the fine stage [m].
     test_scale:     variance factor of the a-priori sigmas for the fault test: a number, or
                     ``"trace"`` to estimate it from the batch's own residuals.
+    exclude_above_m, max_dop_growth: an exclusion whose removed residuals are all below
+                    ``exclude_above_m`` [m] (at the re-solved position) and that raises the weighted
+                    position DOP by more than the factor ``max_dop_growth`` is undone: the epoch is
+                    flagged and down-weighted by Huber IRLS instead
+                    (:func:`fusion.estimate.raim.costly_exclusions`). ``inf``: every identified fault
+                    is excluded (the behaviour before the guard).
     """
 
     elev_mask_deg: float = 10.0
@@ -56,6 +62,8 @@ class WlsSettings:
     cov_scale: str = "posterior"
     tol_m: float = 1e-4
     test_scale: float | str = 1.0
+    exclude_above_m: float = float("inf")
+    max_dop_growth: float = 1.0
 
     def __post_init__(self) -> None:
         if self.weighting not in WEIGHTINGS:
@@ -67,6 +75,9 @@ class WlsSettings:
             raise DataError(f"max_iter must be >= 1, got {self.max_iter}")
         if self.max_exclusions < 0:
             raise DataError(f"max_exclusions must be >= 0, got {self.max_exclusions}")
+        if not self.exclude_above_m > 0 or not self.max_dop_growth >= 1.0:
+            raise DataError(f"exclude_above_m must be > 0 and max_dop_growth >= 1, got {self.exclude_above_m}, "
+                            f"{self.max_dop_growth}")
 
     def replace(self, **options) -> WlsSettings:
         """A copy with ``options`` changed; an unknown option name is a :class:`DataError`."""
