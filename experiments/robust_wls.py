@@ -8,6 +8,14 @@ exclusion can reach: losing 5% of the satellites costs geometry.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python experiments/robust_wls.py --seeds 0 1 2 3 4 --dnn
 
+With ``--drives``: the GSDC score per drive of the plain WLS, the robust WLS as it was before the
+exclusion guard (``exclude_above_m=inf``: every identified fault excluded) and the default robust WLS,
+over the twelve training drives, the two test traces and the Pixel5 RINEX trace (GPS broadcast
+navigation). With ``--tune``: the guard's settings chosen leave-one-drive-out on the twelve training
+drives (the test traces are never used to choose).
+
+    OMP_NUM_THREADS=1 PYTHONPATH=. python experiments/robust_wls.py --drives --tune --seeds 0 1 2 3 4
+
 Data: ``$GNSSFUSE_SHARED_DATA`` (default ``<repo>/../shared/data``). Results: ``experiments/results/robust_wls.md``.
 """
 from __future__ import annotations
@@ -19,8 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from fusion.estimate.wls import TRACE_DEFAULTS, estimate_wls, solve_wls
 from fusion.eval.metrics import mode_metrics
 from fusion.prepare.load import load_trace
+from fusion.prepare.raw_load import RawSources
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
@@ -30,6 +40,18 @@ SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", Path(__file__).resolve().pa
 TRACES = ("gsdc2021/train/2020-05-14-US-MTV-1/Pixel4", "gsdc2021/train/2020-06-05-US-MTV-1/Pixel4",
           "gsdc2021/train/2020-09-04-US-SF-2/Pixel4")
 FAULT_M, FAULT_RATE = 200.0, 0.05
+#: The twelve training drives (``--drives``, ``--tune``) and the test traces (``--drives`` only).
+TRAIN = tuple(f"gsdc2021/train/{d}/Pixel4" for d in (
+    "2020-05-14-US-MTV-1", "2020-05-14-US-MTV-2", "2020-05-21-US-MTV-1", "2020-05-21-US-MTV-2",
+    "2020-05-29-US-MTV-1", "2020-05-29-US-MTV-2", "2020-06-04-US-MTV-1", "2020-06-05-US-MTV-1",
+    "2020-06-05-US-MTV-2", "2020-06-11-US-MTV-1", "2020-07-08-US-MTV-1", "2020-09-04-US-SF-2"))
+TEST = ("gsdc2021/train/2021-04-28-US-MTV-1/Pixel4", "gsdc2021/train/2021-04-28-US-SJC-1/Pixel4")
+PIXEL5, PIXEL5_NAV = "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5", "ephemeris/gps_nav/hour1180.21n"
+FAULT_TRACE = TRAIN[0]
+#: The robust WLS before the exclusion guard: every identified fault excluded.
+BEFORE = TRACE_DEFAULTS.replace(exclude_above_m=float("inf"))
+#: The guard's settings searched by ``--tune``: (exclude_above_m, max_dop_growth, huber_k).
+GRID = tuple((h, g, k) for h in (50.0, 80.0, 120.0) for g in (1.0, 1.3) for k in (1.0, 1.5, 2.0))
 
 
 def with_faults(trace: Trace, seed: int) -> tuple[Trace, np.ndarray]:
@@ -63,12 +85,116 @@ def trace_rows(rel: str, modes: list[str], seeds: list[int]) -> list[str]:
     return rows
 
 
+def load(rel: str) -> Trace:
+    """A trace as the CLI loads it (the Pixel5 RINEX log with its GPS broadcast navigation file)."""
+    sources = RawSources(nav=(SHARED / PIXEL5_NAV,)) if rel == PIXEL5 else None
+    # signals=None: the format's default, as the CLI (GPS L1 for the GSDC files, GPS L1 + L5 for the RINEX)
+    return load_trace(SHARED / rel, min_sats=1, signals=None, raw_sources=sources)
+
+
+def wls_score(trace: Trace, settings) -> float:
+    """GSDC score of the WLS mode with ``settings`` (a :class:`fusion.estimate.wls_state.WlsSettings`)."""
+    return mode_metrics(trace, estimate_wls(trace, solve_wls(trace, settings), RunOptions()))["gsdc_score"]
+
+
+def drive_table(traces: dict[str, Trace]) -> None:
+    """Per drive: plain, robust before the guard, robust now (the default), and the ratios to plain."""
+    print("| drive | set | plain | robust before | robust now | before / plain | now / plain |")
+    print("|---|---|---|---|---|---|---|")
+    for rel, tr in traces.items():
+        plain = wls_score(tr, TRACE_DEFAULTS.replace(robust=False))
+        before, now = wls_score(tr, BEFORE), wls_score(tr, TRACE_DEFAULTS)
+        kind = "train" if rel in TRAIN else "test"
+        print(f"| {rel.split('/', 2)[2]} | {kind} | {plain:.2f} | {before:.2f} | {now:.2f} | {before / plain:.3f} "
+              f"| {now / plain:.3f} |", flush=True)
+
+
+def _setting(h: float, g: float, k: float):
+    return TRACE_DEFAULTS.replace(exclude_above_m=h, max_dop_growth=g, huber_k=k)
+
+
+def tune(traces: dict[str, Trace], seeds: list[int]) -> None:
+    """Leave one training drive out: on the other eleven, the grid point with the least mean
+    robust / plain ratio among those keeping the fault-injection result (faulty robust within 1 m of
+    clean plain on :data:`FAULT_TRACE`); its ratio on the drive left out."""
+    plain = {rel: wls_score(tr, TRACE_DEFAULTS.replace(robust=False)) for rel, tr in traces.items()}
+    ratio = {p: np.array([wls_score(traces[r], _setting(*p)) / plain[r] for r in TRAIN]) for p in GRID}
+    faulty = [with_faults(traces[FAULT_TRACE], s)[0] for s in seeds]
+    fault = {p: np.mean([wls_score(f, _setting(*p)) for f in faulty]) - plain[FAULT_TRACE] for p in GRID}
+    print("| exclude_above_m | max_dop_growth | huber_k | mean ratio (12 drives) | worst ratio | fault: faulty - clean plain [m] |")
+    print("|---|---|---|---|---|---|")
+    for p in GRID:
+        print(f"| {p[0]:.0f} | {p[1]:.1f} | {p[2]:.1f} | {ratio[p].mean():.4f} | {ratio[p].max():.3f} | {fault[p]:+.2f} |")
+    allowed = [p for p in GRID if fault[p] <= 1.0]
+    print("\n| drive left out | chosen on the other 11 (exclude_above_m, max_dop_growth, huber_k) | its ratio on the drive left out |")
+    print("|---|---|---|")
+    for i, rel in enumerate(TRAIN):
+        rest = np.arange(len(TRAIN)) != i
+        best = min(allowed, key=lambda p: ratio[p][rest].mean())
+        print(f"| {rel.split('/', 2)[2]} | {best[0]:.0f}, {best[1]:.1f}, {best[2]:.1f} | {ratio[best][i]:.3f} |")
+    best = min(allowed, key=lambda p: ratio[p].mean())
+    print(f"\nChosen on all twelve: exclude_above_m={best[0]:.0f}, max_dop_growth={best[1]:.1f}, huber_k={best[2]:.1f}")
+
+
+def exclusion_gains(traces: dict[str, Trace]) -> None:
+    """Training drives, robust WLS before the guard: for the epochs where it excluded satellites (and
+    was not left undecided), the change of the horizontal error against plain WLS, before and with
+    the guard, by the growth of the weighted position DOP the exclusion caused and by the largest
+    excluded residual."""
+    from fusion.estimate.lsq import position_dop
+    from fusion.eval.metrics import horizontal, ned_errors
+    rows = []
+    for rel in TRAIN:
+        tr = traces[rel]
+        plain, rob = solve_wls(tr, TRACE_DEFAULTS.replace(robust=False)), solve_wls(tr, BEFORE)
+        now = solve_wls(tr, TRACE_DEFAULTS)
+        sel = (plain.valid & rob.valid & now.valid & (rob.n_excluded > 0) & ~rob.flagged
+               & np.isfinite(tr.truth).all(1))
+        err0 = horizontal(ned_errors(plain.pos[sel], tr.truth[sel]))
+        gain = horizontal(ned_errors(rob.pos[sel], tr.truth[sel])) - err0
+        gain_now = horizontal(ned_errors(now.pos[sel], tr.truth[sel])) - err0
+        x = np.concatenate([plain.pos[sel], plain.clock_m[sel, None]], axis=1)
+        w = 1.0 / (3.0 / np.sin(np.radians(np.maximum(plain.elev_deg[sel], 1.0)))) ** 2
+        growth = (position_dop(tr.sat_pos[sel], x, np.where(rob.used[sel], w, 0.0))
+                  / position_dop(tr.sat_pos[sel], x, np.where(plain.used[sel], w, 0.0)))
+        removed = np.where(plain.used[sel] & ~rob.used[sel], np.abs(rob.resid[sel]), 0.0).max(1)
+        rows.append(np.stack([growth, removed, gain, gain_now], axis=1))
+    R = np.concatenate(rows)
+    print("| exclusions by | bin | epochs | before: mean change of horizontal error [m] | median [m] "
+          "| worse by > 5 m | better by > 5 m | with the guard: mean change [m] |")
+    print("|---|---|---|---|---|---|---|---|")
+    for col, name, edges in ((0, "PDOP growth", (1.0, 1.05, 1.15, 1.3, 1.6, np.inf)),
+                             (1, "largest excluded residual [m]", (0.0, 20.0, 30.0, 50.0, 80.0, 100.0, np.inf))):
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            inside = (R[:, col] >= lo) & (R[:, col] < hi)
+            b = R[inside, 2]
+            if b.size:
+                print(f"| {name} | [{lo:g}, {hi:g}) | {b.size} | {b.mean():+.2f} | {np.median(b):+.2f} "
+                      f"| {np.sum(b > 5)} | {np.sum(b < -5)} | {R[inside, 3].mean():+.2f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--dnn", action="store_true", help="also the dnn mode (shipped weights)")
     ap.add_argument("--traces", nargs="+", default=list(TRACES), help="paths under the shared data folder")
+    ap.add_argument("--drives", action="store_true", help="per-drive plain / robust before / robust now table")
+    ap.add_argument("--tune", action="store_true", help="leave-one-drive-out choice of the exclusion guard")
+    ap.add_argument("--no-faults", action="store_true", help="skip the fault-injection table")
     args = ap.parse_args()
+    if args.drives or args.tune:
+        rels = TRAIN + (TEST + ((PIXEL5,) if (SHARED / PIXEL5_NAV).exists() else ()) if args.drives else ())
+        traces = {rel: load(rel) for rel in rels}
+        if args.tune:
+            exclusion_gains(traces)
+            print()
+            tune(traces, args.seeds)
+            print()
+        if args.drives:
+            drive_table(traces)
+            print()
+    if args.no_faults:
+        return
     modes = ["wls", "dnn"] if args.dnn else ["wls"]
     print(f"GSDC score [m]; faulty: +{FAULT_M:.0f} m on {FAULT_RATE:.0%} of pseudoranges, mean over seeds "
           f"{args.seeds} (min-max)\n")

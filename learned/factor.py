@@ -20,6 +20,8 @@ whose noise (and bias) the network predicts for each measurement (``examples/05_
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, fields
+
 import gtsam
 import numpy as np
 
@@ -144,10 +146,29 @@ def learned_prior(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray,
     return _epoch_prior(corrector, trace, init_pos, 1.0, 0.0)
 
 
+@dataclass(frozen=True)
+class PriorNoise:
+    """How a learned prior's covariance becomes its factor's noise model: ``cov_scale * cov +
+    sigma_floor_m**2 * I``, wrapped in a robust loss (``robust``: "huber", "cauchy" or "none") on the
+    Mahalanobis distance (``robust_k`` in sigmas). The defaults use the network's covariance as is."""
+
+    cov_scale: float = 1.0
+    sigma_floor_m: float = 0.0
+    robust: str = "none"
+    robust_k: float = 1.0
+
+    @classmethod
+    def of(cls, options: dict) -> PriorNoise:
+        """From keyword options (any of the fields); an unknown name is a ``TypeError``, as Python's own."""
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TypeError(f"unexpected keyword argument(s) {', '.join(unknown)}")
+        return cls(**options)
+
+
 def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
                          init_pos: np.ndarray, key: int, *, pr_sigma: np.ndarray | None = None,
-                         cn0: np.ndarray | None = None, signal: np.ndarray | None = None, cov_scale: float = 1.0,
-                         sigma_floor_m: float = 0.0, robust: str = "none", robust_k: float = 1.0
+                         cn0: np.ndarray | None = None, signal: np.ndarray | None = None, **noise
                          ) -> tuple[gtsam.PriorFactorPoint3, np.ndarray, np.ndarray]:
     """A ``PriorFactorPoint3`` on ``key`` at the DNN-corrected position of one epoch.
 
@@ -167,8 +188,8 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
     A lone epoch has no history (residual change, arc age): the network reads it like a trace's first epoch.
     With a whole trace, :func:`learned_prior_factors` gives what the ``fused`` mode uses.
 
-    cov_scale, sigma_floor_m, robust, robust_k: the covariance used is
-        ``cov_scale * cov + sigma_floor_m**2 * I``, wrapped in a robust loss ("huber", "cauchy" or
+    noise: ``cov_scale``, ``sigma_floor_m``, ``robust``, ``robust_k`` (:class:`PriorNoise`): the covariance
+        used is ``cov_scale * cov + sigma_floor_m**2 * I``, wrapped in a robust loss ("huber", "cauchy" or
         "none") on the Mahalanobis distance (``robust_k`` in sigmas). The defaults use the network's
         covariance as is; our own graph uses ``fusion.estimate.graph.config.GraphConfig``'s prior_cov_scale,
         prior_sigma_floor_m, prior_robust, prior_robust_k (1, 2 m, "cauchy", 1; tuning table in its
@@ -179,25 +200,26 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
     pseudoranges, so the factor involves the position only. Raises :class:`GeometryError` if the
     corrector cannot produce an estimate.
     """
+    nm = PriorNoise.of(noise)
     trace = _lone_epoch(corrector, sat_pos, pr, mask, pr_sigma, cn0, signal)
-    mean, cov = _epoch_prior(corrector, trace, init_pos, cov_scale, sigma_floor_m)
-    return gtsam.PriorFactorPoint3(key, mean, prior_noise_model(cov, robust, robust_k)), mean, cov
+    mean, cov = _epoch_prior(corrector, trace, init_pos, nm.cov_scale, nm.sigma_floor_m)
+    return gtsam.PriorFactorPoint3(key, mean, prior_noise_model(cov, nm.robust, nm.robust_k)), mean, cov
 
 
 def learned_pose_translation_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.ndarray,
                                     mask: np.ndarray, init_pos: np.ndarray, key: int, *,
                                     pr_sigma: np.ndarray | None = None, cn0: np.ndarray | None = None,
-                                    signal: np.ndarray | None = None, cov_scale: float = 1.0,
-                                    sigma_floor_m: float = 0.0, robust: str = "none", robust_k: float = 1.0
+                                    signal: np.ndarray | None = None, **noise
                                     ) -> tuple[gtsam.PoseTranslationPrior3D, np.ndarray, np.ndarray]:
     """Like :func:`learned_prior_factor` (same options) for a ``Pose3`` variable whose translation is ECEF.
 
     ``PoseTranslationPrior3D``'s error is ``translation - measured`` in the *world* frame (checked
     in ``tests/test_factor.py``), so the ECEF covariance is used as is, whatever the pose's rotation.
     """
+    nm = PriorNoise.of(noise)
     trace = _lone_epoch(corrector, sat_pos, pr, mask, pr_sigma, cn0, signal)
-    mean, cov = _epoch_prior(corrector, trace, init_pos, cov_scale, sigma_floor_m)
-    return gtsam.PoseTranslationPrior3D(key, mean, prior_noise_model(cov, robust, robust_k)), mean, cov
+    mean, cov = _epoch_prior(corrector, trace, init_pos, nm.cov_scale, nm.sigma_floor_m)
+    return gtsam.PoseTranslationPrior3D(key, mean, prior_noise_model(cov, nm.robust, nm.robust_k)), mean, cov
 
 
 def learned_prior_factors(corrector: PriorProvider, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,

@@ -235,6 +235,8 @@ def test_factor_safety_options_inflate_floor_and_robustify():
     assert f.error(v) == pytest.approx(10.0 - 0.5, rel=1e-6)           # Huber: linear, not 50
     with pytest.raises(GeometryError):
         learned_prior_factor(provider, tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0], key, cov_scale=-1.0)
+    with pytest.raises(TypeError, match="cov_scal"):                    # a misspelt option is not ignored
+        learned_prior_factor(provider, tr.sat_pos[0], tr.pr[0], tr.mask[0], tr.truth[0], key, cov_scal=4.0)
 
 
 def test_one_prior_rule_for_factor_and_graph():

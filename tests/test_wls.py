@@ -368,8 +368,10 @@ def test_fault_test_calibrated_on_the_trace():
     keeps factor 1."""
     sat, pr, mask, rx, _ = synthetic(E=300)
     noisy = pr + np.random.default_rng(8).normal(0, 9.0, pr.shape)
-    prior = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude")
-    calib = solve_wls_arrays(sat, noisy, mask, None, weighting="none", robust="exclude", test_scale="trace")
+    # the test's calibration alone: the guard (which keeps residuals of this size) is off
+    kw = dict(weighting="none", robust="exclude", exclude_above_m=float("inf"))
+    prior = solve_wls_arrays(sat, noisy, mask, None, **kw)
+    calib = solve_wls_arrays(sat, noisy, mask, None, test_scale="trace", **kw)
     assert prior.n_excluded.sum() > 100 and calib.n_excluded.sum() < 0.5 * prior.n_excluded.sum()
     from fusion.estimate.raim import variance_factor
     from fusion.estimate.lsq import gauss_newton
@@ -382,3 +384,54 @@ def test_fault_test_calibrated_on_the_trace():
         return variance_factor(sat, p, w, x, mask, np.ones(300, bool))
     assert factor(noisy) in (2.0 ** 3, 2.0 ** 3.5)      # ~9, in half-octave steps
     assert factor(pr + np.random.default_rng(9).normal(0, 1.0, pr.shape)) == 1.0
+
+
+def test_settings_are_frozen_checked_and_normalised():
+    from dataclasses import FrozenInstanceError
+
+    from fusion.estimate.wls_state import WlsSettings
+    s = WlsSettings(robust=True)
+    assert s.robust == "exclude" and WlsSettings(robust=False).robust == "none"
+    with pytest.raises(FrozenInstanceError):
+        s.elev_mask_deg = 5.0
+    assert s.replace(elev_mask_deg=5.0).elev_mask_deg == 5.0 and s.elev_mask_deg == 10.0
+    with pytest.raises(DataError, match="unknown WLS option"):
+        s.replace(elev_mask=5.0)
+    with pytest.raises(DataError, match="robust"):
+        WlsSettings(robust="maybe")
+
+
+def test_settings_object_and_keywords_solve_alike():
+    from fusion.estimate.wls import TRACE_DEFAULTS
+    sat, pr, mask, _, _ = synthetic(E=6)
+    pr = pr.copy()
+    pr[2, 3] += 200.0
+    tr = Trace(**{**empty_trace(6, pr.shape[1]), "sat_pos": sat, "pr": pr, "mask": mask,
+                  "t_ms": np.arange(6) * 1000})
+    by_kw = solve_wls(tr, elev_mask_deg=5.0)
+    by_obj = solve_wls(tr, TRACE_DEFAULTS.replace(elev_mask_deg=5.0))
+    assert np.array_equal(by_kw.pos, by_obj.pos, equal_nan=True) and by_kw.dropped == by_obj.dropped
+    assert by_kw.dropped.get("outlier") == 1                    # the default is the robust solve
+    plain = solve_wls_arrays(sat, pr, mask, settings=TRACE_DEFAULTS, robust=False)
+    assert "outlier" not in plain.dropped and np.abs(plain.pos[2] - by_kw.pos[2]).max() > 1.0
+
+
+def test_moderate_residual_is_down_weighted_not_excluded():
+    """Exclusion guard: a 40 m error (multipath-sized) is kept and down-weighted (flagged, Huber IRLS)
+    unless the geometry would barely suffer; a 300 m fault is excluded whatever the geometry."""
+    sat, pr, mask, rx, _ = synthetic(E=3)
+    pr = pr + np.random.default_rng(3).normal(0, 0.5, pr.shape)
+    pr[:, 0] += [40.0, 300.0, 40.0]
+    guard = dict(robust="exclude", exclude_above_m=100.0, max_dop_growth=1.0)
+    res = solve_wls_arrays(sat, pr, mask, None, **guard)
+    assert res.n_excluded.tolist() == [0, 1, 0] and res.dropped["outlier"] == 1
+    assert res.used[[0, 2], 0].all() and res.flagged.tolist() == [True, False, True]
+    plain = solve_wls_arrays(sat, pr, mask, None)
+    err, err_plain = (np.linalg.norm(r.pos - rx, axis=1) for r in (res, plain))
+    assert np.all(err[[0, 2]] < 0.5 * err_plain[[0, 2]]) and err[1] < 3.0
+    # without the guard, or with a DOP growth it tolerates, the 40 m satellite is excluded
+    for other in (dict(exclude_above_m=float("inf")), dict(max_dop_growth=100.0)):
+        res = solve_wls_arrays(sat, pr, mask, None, **{**guard, **other})
+        assert res.n_excluded.tolist() == [1, 1, 1] and not res.flagged.any()
+    with pytest.raises(DataError, match="max_dop_growth"):
+        solve_wls_arrays(sat, pr, mask, None, max_dop_growth=0.5)

@@ -96,3 +96,13 @@ def standardised_residuals(sat_pos, pr, w, x, used):
     qv = np.where(used, 1.0 / np.where(used, w, 1.0) - hnh, 1.0)
     z = np.abs(r) / np.sqrt(np.maximum(qv, 1e-12))
     return np.where(used, z, 0.0)
+
+
+def position_dop(sat_pos, x, w):
+    """(E,) weighted position dilution of precision ``sqrt(trace((H^T W H)^-1)[:3, :3])`` [m per m of
+    unit-weight range error] at state x (E, 4), with sat_pos (E, S, 3) and weights w (E, S) (0 on
+    unused slots); inf where the normal matrix is singular."""
+    N, _, _, _ = normal_equations(sat_pos, np.zeros(w.shape), w, x)
+    sing = ill_conditioned(N, 1e12)
+    Q = np.linalg.inv(np.where(sing[:, None, None], np.eye(4), N))
+    return np.where(sing, np.inf, np.sqrt(np.trace(Q[:, :3, :3], axis1=1, axis2=2)))

@@ -9,14 +9,16 @@ that prediction, with the receiver clock taken as the median residual (robust to
 of tens of metres stands out of the other residuals. Slots whose deviation exceeds
 ``GATE * sqrt(sigma^2 * scale + PRED_SIGMA_M^2)`` are excluded (at most ``max_exclusions``, never fewer
 than five satellites left), the epoch is re-solved, and the exclusion is kept only if the re-solved
-epoch then passes the chi-square test; otherwise nothing changes and the epoch stays flagged.
+epoch then passes the chi-square test (and the exclusion guard, :func:`fusion.estimate.raim.costly_exclusions`,
+does not keep the satellites down-weighted instead); otherwise nothing changes and the epoch stays flagged.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from fusion.estimate.lsq import gauss_newton
-from fusion.estimate.raim import chi2_test
+from fusion.estimate.raim import chi2_test, costly_exclusions
+from fusion.estimate.wls_state import FitState, WlsSettings
 from fusion.geometry import line_of_sight
 from fusion.trace import count_skip
 
@@ -63,37 +65,40 @@ def outlying_slots(sat_pos: np.ndarray, pr: np.ndarray, used: np.ndarray, w_prio
     return used & (dev > GATE * np.sqrt(var))
 
 
-def exclude_by_neighbours(sat_pos, pr, candidates, used, w_prior, x, targets, settled, t_ms, conv, bad, runaway,
-                          n_excl, *, scale: float, max_exclusions: int, max_iter: int, tol: float,
-                          max_cond: float, n_iter, dropped):
+def exclude_by_neighbours(fit: FitState, candidates: np.ndarray, targets: np.ndarray, settled: np.ndarray,
+                          t_ms: np.ndarray, settings: WlsSettings, scale: float) -> tuple[FitState, np.ndarray]:
     """The module docstring's exclusion on the ``targets`` (E,) epochs, predicted from ``settled`` (E,).
 
-    sat_pos: (E, S, 3); pr, w_prior: (E, S); candidates: (E, S) bool, the satellites above the mask
-    (snapshot exclusions are reconsidered: with few satellites the snapshot test may have removed a
-    good one and kept the fault); used: (E, S) bool, the snapshot's choice; x: (E, 4) states; t_ms:
-    (E,); conv, bad, runaway: (E,) bool; n_excl: (E,) int, exclusions so far.
-    Returns (x, used, conv, bad, runaway, repaired (E,) bool, n_excl); ``dropped["outlier"]``
-    follows the changed exclusions.
+    fit: the snapshot exclusion's fit (``used`` its choice, ``n_excluded`` its exclusions);
+    candidates: (E, S) bool, the satellites above the mask (snapshot exclusions are reconsidered: with
+    few satellites the snapshot test may have removed a good one and kept the fault); t_ms: (E,);
+    settings: ``max_exclusions`` and the Gauss-Newton limits; scale: the test's variance factor.
+    Returns (the fit with the repaired epochs re-solved, their ``used``, ``conv`` and ``n_excluded``
+    changed, repaired (E,) bool); ``fit.dropped["outlier"]`` follows the changed exclusions.
     """
     idx = np.flatnonzero(targets)
-    pred, ok = predict_positions(t_ms, x[:, :3], settled, idx)
+    pred, ok = predict_positions(t_ms, fit.x[:, :3], settled, idx)
     idx, pred = idx[ok], pred[ok]
-    out = outlying_slots(sat_pos[idx], pr[idx], candidates[idx], w_prior[idx], pred, scale)
+    out = outlying_slots(fit.sat_pos[idx], fit.pr[idx], candidates[idx], fit.w_prior[idx], pred, scale)
     new = candidates[idx] & ~out
-    take = ((new != used[idx]).any(1) & (out.sum(1) <= max_exclusions) & (new.sum(1) >= 5))
-    repaired = np.zeros(used.shape[0], bool)
+    take = ((new != fit.used[idx]).any(1) & (out.sum(1) <= settings.max_exclusions) & (new.sum(1) >= 5))
+    repaired = np.zeros(fit.used.shape[0], bool)
     if not take.any():
-        return x, used, conv, bad, runaway, repaired, n_excl
+        return fit, repaired
     idx, new = idx[take], new[take]
-    trial_used = used.copy()
+    trial_used = fit.used.copy()
     trial_used[idx] = new
     trial = np.zeros_like(repaired)
     trial[idx] = True
-    w = np.where(trial_used, w_prior, 0.0)
-    x2, c2, b2, r2 = gauss_newton(sat_pos, pr, w, x.copy(), trial, max_iter, tol, max_cond, n_iter)
-    _, fails = chi2_test(sat_pos, pr, w, x2, trial_used, scale)
+    w = np.where(trial_used, fit.w_prior, 0.0)
+    x2, c2, b2, r2 = gauss_newton(fit.sat_pos, fit.pr, w, fit.x.copy(), trial, settings.max_iter, settings.tol_m,
+                                  settings.max_cond, fit.n_iter)
+    _, fails = chi2_test(fit.sat_pos, fit.pr, w, x2, trial_used, scale)
     repaired = trial & c2 & ~b2 & ~r2 & ~fails
-    used = np.where(repaired[:, None], trial_used, used)
-    n_new = np.where(repaired, (candidates & ~used).sum(1), n_excl)
-    count_skip(dropped, "outlier", int((n_new - n_excl).sum()))
-    return (np.where(repaired[:, None], x2, x), used, conv | repaired, bad, runaway, repaired, n_new)
+    repaired &= ~costly_exclusions(fit.replace(used=np.where(trial[:, None], candidates, fit.used)),
+                                   fit.replace(used=trial_used, x=x2), settings)
+    used = np.where(repaired[:, None], trial_used, fit.used)
+    n_new = np.where(repaired, (candidates & ~used).sum(1), fit.n_excluded)
+    count_skip(fit.dropped, "outlier", int((n_new - fit.n_excluded).sum()))
+    return fit.replace(x=np.where(repaired[:, None], x2, fit.x), used=used, conv=fit.conv | repaired,
+                       n_excluded=n_new), repaired

@@ -13,7 +13,10 @@ Fault detection and exclusion (:func:`exclude_faults`), every epoch at once:
    (typical of multipath spread over several satellites) and nothing is excluded. Searching
    sets rather than dropping the largest residual one at a time finds two faults that drag the fit
    toward each other, where the largest standardised residual often points at a good satellite.
-3. Re-solve the epochs that lost satellites.
+3. Re-solve the epochs that lost satellites. With an exclusion guard (``exclude_above_m``, set by
+   :data:`fusion.estimate.wls.TRACE_DEFAULTS`), an exclusion whose removed residuals at the re-solved
+   position are all below ``exclude_above_m`` metres and that raises the weighted position DOP by
+   more than ``max_dop_growth`` is undone (:func:`costly_exclusions`): the epoch is flagged instead.
 
 An epoch whose test fails and that no allowed exclusion repairs (5 satellites, more faults than
 ``max_exclusions``, or an ambiguous best set) is *flagged*: the test cannot decide which measurement
@@ -27,7 +30,9 @@ from math import comb
 
 import numpy as np
 
-from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations, standardised_residuals
+from fusion.estimate.lsq import (gauss_newton, ill_conditioned, normal_equations, position_dop,
+                                 standardised_residuals)
+from fusion.estimate.wls_state import FitState, WlsSettings
 from fusion.trace import count_skip
 
 #: Normal quantile of the default false-alarm probability 1e-3 (one-sided).
@@ -173,53 +178,91 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, 
     return remove, decided & ~ambiguous
 
 
-def exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, *, max_exclusions: int,
-                   max_iter: int, tol: float, max_cond: float, n_iter, dropped,
-                   separation: float = SEPARATION, scale: float = 1.0):
-    """Fault detection and exclusion (module docstring) on the epochs in ``eligible``.
+def costly_exclusions(before: FitState, after: FitState, settings: WlsSettings) -> np.ndarray:
+    """(E,) bool: epochs whose exclusions (slots used in ``before``, not in ``after``) removed only
+    moderate residuals (each below ``settings.exclude_above_m`` at ``after``'s solution) and raised the
+    position DOP (weighted with the a-priori weights) by more than the factor ``settings.max_dop_growth``.
 
-    sat_pos: (E, S, 3); pr, used, w_prior: (E, S); x: (E, 4) converged states; eligible, conv, bad,
-    runaway: (E,) bool. ``scale``: variance factor of ``w_prior`` for the test (:func:`variance_factor`).
-    Returns (x, used, conv, bad, runaway, w_fit, flagged, n_excluded), the last two
-    (E,) bool and int. Excluded slots are counted in ``dropped["outlier"]``.
+    Such an exclusion is not worth its cost in a street canyon: multipath spreads errors of tens of
+    metres over many satellites, the chi-square test cannot single out the one to drop, and the
+    satellite's geometry is worth more down-weighted (Huber) than lost. A gross fault (hundreds of
+    metres: a wrong ephemeris, a clock or code error) is still excluded whatever the geometry.
     """
-    w = np.where(used, w_prior, 0.0)
-    _, fails = chi2_test(sat_pos, pr, w, x, used, scale)
+    removed = before.used & ~after.used
+    out = np.zeros(removed.shape[0], bool)
+    rows = np.flatnonzero(removed.any(1))
+    if rows.size == 0 or not np.isfinite(settings.exclude_above_m):
+        return out
+    sp, w = before.sat_pos[rows], before.w_prior[rows]
+    _, _, r, _ = normal_equations(sp, before.pr[rows], np.where(after.used[rows], w, 0.0), after.x[rows])
+    moderate = np.where(removed[rows], np.abs(r), 0.0).max(1) < settings.exclude_above_m
+    dop_before = position_dop(sp, before.x[rows], np.where(before.used[rows], w, 0.0))
+    dop_after = position_dop(sp, before.x[rows], np.where(after.used[rows], w, 0.0))
+    out[rows] = moderate & ~(dop_after <= settings.max_dop_growth * dop_before)
+    return out
+
+
+def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,
+                   separation: float = SEPARATION) -> FitState:
+    """Fault detection and exclusion (module docstring) on the epochs in ``eligible`` (E,) bool.
+
+    fit: the converged fit (its ``used`` slots are the candidates); settings: ``max_exclusions`` and the
+    Gauss-Newton limits of the re-solve. ``scale``: variance factor of ``fit.w_prior`` for the test
+    (:func:`variance_factor`). Returns the fit with the exclusions removed from ``used`` and re-solved,
+    ``w_fit`` the a-priori weights of the used slots, ``flagged`` the undecided epochs and
+    ``n_excluded`` this pass's exclusions; excluded slots are counted in ``fit.dropped["outlier"]``.
+    """
+    w = fit.weights
+    _, fails = chi2_test(fit.sat_pos, fit.pr, w, fit.x, fit.used, scale)
     fails &= eligible
-    remove, decided = _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, scale)
-    used = used & ~remove
-    n_excl = remove.sum(1)
-    count_skip(dropped, "outlier", remove)
-    redo = n_excl > 0
+    remove, decided = _best_exclusion(fit.sat_pos, fit.pr, w, fit.x, fit.used, fails, settings.max_exclusions,
+                                      separation, scale)
+    after = fit.replace(used=fit.used & ~remove)
+    redo = remove.any(1)
     if redo.any():
-        x, c2, b2, r2 = gauss_newton(sat_pos, pr, np.where(used, w_prior, 0.0), x, redo, max_iter, tol,
-                                     max_cond, n_iter)
-        conv = np.where(redo, c2, conv)
-        bad = bad | (redo & b2)
-        runaway = runaway | (redo & r2)
-    return x, used, conv, bad, runaway, np.where(used, w_prior, 0.0), fails & ~decided, n_excl
+        after = after.solve(redo, after.weights, settings.max_iter, settings.tol_m, settings.max_cond)
+        # an exclusion of a moderate residual that leaves much weaker geometry is undone: the epoch
+        # stays undecided (flagged), and Huber IRLS down-weights the satellite instead of losing it
+        held = costly_exclusions(fit, after, settings)
+        if held.any():
+            after = _undo(fit, after, held)
+            remove[held] = False
+            decided &= ~held
+    count_skip(fit.dropped, "outlier", remove)
+    return after.replace(w_fit=after.weights, flagged=fails & ~decided, n_excluded=remove.sum(1))
 
 
-def huber_irls(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, k, max_iter, tol,
-               max_cond, n_iter, rounds: int = 8):
-    """Iteratively reweighted LS with Huber weights on standardised residuals.
+def _undo(before: FitState, after: FitState, rows: np.ndarray) -> FitState:
+    """``after`` with the epochs in ``rows`` (E,) bool back at ``before``'s fit."""
+    r = rows[:, None]
+    return after.replace(used=np.where(r, before.used, after.used), x=np.where(r, before.x, after.x),
+                         conv=np.where(rows, before.conv, after.conv), bad=np.where(rows, before.bad, after.bad),
+                         runaway=np.where(rows, before.runaway, after.runaway))
 
-    Shapes as :func:`exclude_faults`; returns (x, conv, bad, runaway, w_fit).
+
+def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, rounds: int = 8) -> FitState:
+    """Iteratively reweighted LS with Huber weights (``settings.huber_k``) on standardised residuals,
+    on the ``eligible`` (E,) epochs, starting from the a-priori weights of the used slots.
+
+    Returns the re-solved fit with ``w_fit`` the final (down-weighted) weights.
     """
-    w = np.where(used, w_prior, 0.0)
+    used, w_prior, k = fit.used, fit.w_prior, settings.huber_k
+    x, conv, bad, runaway = fit.x.copy(), fit.conv, fit.bad, fit.runaway
+    w = fit.weights
     for _ in range(rounds):
         # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
         # residual would look small next round and the weights would oscillate.
-        z = standardised_residuals(sat_pos, pr, np.where(used, w_prior, 0.0), x, used)
+        z = standardised_residuals(fit.sat_pos, fit.pr, np.where(used, w_prior, 0.0), x, used)
         w_new = np.where(used, w_prior * np.minimum(1.0, k / np.maximum(z, 1e-12)), 0.0)
         w_new = np.where(eligible[:, None], w_new, w)
         changed = eligible & (np.abs(w_new - w).max(1) > 1e-3 * w_prior.max(1, initial=0))
         w = w_new
         if not changed.any():
             break
-        x, c2, b2, r2 = gauss_newton(sat_pos, pr, w, x, changed, max_iter, tol, max_cond, n_iter)
+        x, c2, b2, r2 = gauss_newton(fit.sat_pos, fit.pr, w, x, changed, settings.max_iter, settings.tol_m,
+                                     settings.max_cond, fit.n_iter)
         conv = np.where(changed, c2, conv)
         bad = bad | (changed & b2)
         runaway = runaway | (changed & r2)
         eligible = eligible & ~(changed & (~c2 | b2 | r2))
-    return x, conv, bad, runaway, w
+    return fit.replace(x=x, conv=conv, bad=bad, runaway=runaway, w_fit=w)

@@ -23,7 +23,11 @@ Procedure
    :func:`solve_wls` and of the pipeline): RAIM-style fault detection and exclusion - a chi-square
    test on the weighted residuals, then the smallest set of satellites (at most ``max_exclusions``,
    never below 5 left) whose removal passes it excluded; an epoch no allowed exclusion repairs is
-   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. With epoch
+   kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. An
+   exclusion whose removed residuals are all moderate (below ``exclude_above_m``, 80 m in
+   :data:`TRACE_DEFAULTS`) is undone and the epoch flagged and down-weighted the same way: in a street
+   canyon multipath spreads tens of metres over many satellites, and a satellite's geometry is worth
+   more down-weighted than lost (``experiments/results/robust_wls.md``). With epoch
    times (``t_ms``), the flagged epochs and those left with at most
    :data:`NEIGHBOUR_CHECK_MAX_SATS` satellites (a test of little power) are first checked against
    the position predicted from the settled epochs around them (:mod:`fusion.estimate.neighbour_fde`). ``robust="huber"``: iteratively reweighted least
@@ -32,6 +36,13 @@ Procedure
 5. Three-satellite epochs (with ``t_ms``): solved for position alone with the receiver clock
    interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`); flagged in
    ``clock_predicted``, or left unsolved as ``three_sats_no_clock``.
+
+State and settings
+------------------
+The options are one frozen :class:`fusion.estimate.wls_state.WlsSettings` (``solve_wls`` and
+``solve_wls_arrays`` also take its fields as keywords); every stage takes the fit so far, a
+:class:`fusion.estimate.wls_state.FitState` (positions, clocks, used slots, weights, convergence flags),
+and returns the next one.
 
 Weighting (``weighting=``)
 --------------------------
@@ -73,15 +84,14 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.estimate.clock_bridge import interpolate_clock, solve_fixed_clock
-from fusion.estimate.lsq import gauss_newton, ill_conditioned, normal_equations
+from fusion.estimate.lsq import ill_conditioned, normal_equations
 from fusion.estimate.neighbour_fde import exclude_by_neighbours
 from fusion.estimate.raim import exclude_faults, huber_irls, variance_factor
+from fusion.estimate.wls_state import SIGMA0_M, FitState, WlsSettings  # noqa: F401 (SIGMA0_M: public here too)
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.run_types import ModeResult
 from fusion.trace import count_skip
 
-#: goGPS default a-priori code standard deviation (``STD_CODE``) [m].
-SIGMA0_M = 3.0
 #: Epochs with at most this many satellites after exclusion are also checked against their neighbours:
 #: with one or two redundant measurements the chi-square test misses many gross faults.
 NEIGHBOUR_CHECK_MAX_SATS = 6
@@ -97,7 +107,6 @@ STATUS_NAMES: tuple[str, ...] = (
 )
 (OK, FEW_SATS, FEW_SATS_AFTER_MASK, DEGENERATE, DIVERGED, NOT_CONVERGED,
  THREE_SATS_NO_CLOCK) = range(len(STATUS_NAMES))
-_WEIGHTINGS = ("elevation", "uncertainty", "none")
 
 
 @dataclass
@@ -164,30 +173,34 @@ class WlsResult:
 
 
 # ---------------------------------------------------------------------------------------- public API
-def solve_wls(trace, *, x0: np.ndarray | None = None, elev_mask_deg: float = 10.0,
-              weighting: str = "elevation", robust: bool | str = "exclude", max_iter: int = 10,
-              **kwargs) -> WlsResult:
+#: What :func:`solve_wls` (and so every mode) runs unless told otherwise: fault exclusion, its test
+#: calibrated on the trace, and only residuals over 80 m excluded - smaller ones are down-weighted
+#: (Huber) instead (:func:`fusion.estimate.raim.costly_exclusions`; chosen leave-one-drive-out on the
+#: twelve GSDC training drives, ``experiments/robust_wls.py --tune``).
+TRACE_DEFAULTS = WlsSettings(robust="exclude", test_scale="trace", exclude_above_m=80.0, max_dop_growth=1.0)
+
+
+def solve_wls(trace, settings: WlsSettings | None = None, *, x0: np.ndarray | None = None,
+              **options) -> WlsResult:
     """WLS over every epoch of a :class:`fusion.trace.Trace` (see :func:`solve_wls_arrays`), with
     fault detection and exclusion by default (``robust=False`` / ``"none"``: the plain baseline) and
     three-satellite epochs solved with the clock interpolated from their neighbours. The fault test's
     variance is calibrated on the trace (``test_scale="trace"``, :func:`fusion.estimate.raim.variance_factor`).
 
+    settings: defaults to :data:`TRACE_DEFAULTS`; ``options`` (any :class:`WlsSettings` field, e.g.
+    ``robust=False``, ``elev_mask_deg=5.0``) change it.
     x0: optional (E, 3) ECEF starting positions (NaN rows fall back to the coarse start); it is
     a *starting point* only - the result does not depend on it when Gauss-Newton converges.
     """
-    kwargs.setdefault("test_scale", "trace")
-    return solve_wls_arrays(trace.sat_pos, trace.pr, trace.mask, trace.pr_sigma, x0,
-                            elev_mask_deg=elev_mask_deg, weighting=weighting, robust=robust,
-                            max_iter=max_iter, t_ms=trace.t_ms, clock_reset=trace.clock_reset, **kwargs)
+    settings = (TRACE_DEFAULTS if settings is None else settings).replace(**options)
+    return solve_wls_arrays(trace.sat_pos, trace.pr, trace.mask, trace.pr_sigma, x0, settings=settings,
+                            t_ms=trace.t_ms, clock_reset=trace.clock_reset)
 
 
-def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
-                     sigma: np.ndarray | None = None, x0: np.ndarray | None = None, *,
-                     elev_mask_deg: float = 10.0, weighting: str = "elevation",
-                     robust: bool | str = False, max_iter: int = 10, max_cond: float = 1e7,
-                     max_exclusions: int = 3, huber_k: float = 1.5, sigma0: float = SIGMA0_M,
-                     cov_scale: str = "posterior", tol_m: float = 1e-4, t_ms: np.ndarray | None = None,
-                     clock_reset: np.ndarray | None = None, test_scale: float | str = 1.0) -> WlsResult:
+def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigma: np.ndarray | None = None,
+                     x0: np.ndarray | None = None, *, settings: WlsSettings | None = None,
+                     t_ms: np.ndarray | None = None, clock_reset: np.ndarray | None = None,
+                     **options) -> WlsResult:
     """Batched WLS on raw padded arrays (the engine behind :func:`solve_wls`).
 
     sat_pos:     (E, S, 3) transmit-time satellite ECEF [m].
@@ -195,89 +208,72 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     mask:        (E, S)    bool, real slots.
     sigma:       (E, S)    1-sigma pseudorange uncertainty [m]; needed only for ``"uncertainty"``.
     x0:          (E, 3)    optional starting positions (NaN rows -> coarse start).
+    settings:    :class:`WlsSettings` (default: plain WLS, ``WlsSettings()``); ``options`` (its field
+                 names) change it.
     t_ms:        (E,)      epoch times; with it, three-satellite epochs are solved with the clock
                            interpolated from neighbouring valid epochs (:mod:`fusion.estimate.clock_bridge`).
     clock_reset: (E,)      bool, known clock jumps (no clock is interpolated across one).
-    test_scale:  variance factor of the a-priori sigmas for the fault test: a number, or ``"trace"``
-                 to estimate it from this batch's residuals (then epochs are no longer independent).
 
     Real slots with non-finite inputs (or a non-positive sigma under ``"uncertainty"``) are not
     used and are counted in ``dropped``; wrong shapes or option values raise :class:`DataError`.
     """
-    sat_pos, pr, mask, sigma, x0 = _check_inputs(sat_pos, pr, mask, sigma, x0, weighting)
-    robust_mode = _robust_mode(robust)
-    _check_options(cov_scale, max_iter, max_exclusions)
+    cfg = (WlsSettings() if settings is None else settings).replace(**options)
+    sat_pos, pr, mask, sigma, x0 = _check_inputs(sat_pos, pr, mask, sigma, x0, cfg.weighting)
     dropped: dict[str, int] = {}
-    sat_pos, pr, real = _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped)
-    E = pr.shape[0]
+    sat_pos, pr, real = _usable_slots(sat_pos, pr, mask, sigma, cfg.weighting, dropped)
     status = np.where(real.sum(1) < 4, FEW_SATS, OK).astype(np.int8)
-    n_iter = np.zeros(E, np.int64)
-    x, used, el, w_prior = _coarse_and_mask(sat_pos, pr, real, x0, status, elev_mask_deg, weighting,
-                                            sigma, sigma0, max_iter, max_cond, n_iter, dropped)
+    fit, el = _coarse_and_mask(_start_fit(sat_pos, pr, real, x0, dropped), status, sigma, cfg)
     # fine stage: weighted, to the step tolerance
     alive = status == OK
-    x, conv, bad, runaway = gauss_newton(sat_pos, pr, w_prior, x, alive, max_iter, tol_m, max_cond, n_iter)
-    eligible = alive & conv & ~bad & ~runaway
-    flagged, n_excluded = np.zeros(E, bool), np.zeros(E, np.int64)
-    w_fit = w_prior
-    if robust_mode == "exclude":
-        kw = dict(max_exclusions=max_exclusions, max_iter=max_iter, tol=tol_m, max_cond=max_cond, n_iter=n_iter)
-        x, used, conv, bad, runaway, w_fit, flagged, n_excluded = _exclude(
-            sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped, t_ms)
-        if flagged.any():
-            x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, flagged, conv, bad,
-                                                      runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
-    elif robust_mode == "huber":
-        x, conv, bad, runaway, w_fit = huber_irls(sat_pos, pr, used, w_prior, x, eligible, conv, bad,
-                                                  runaway, huber_k, max_iter, tol_m, max_cond, n_iter)
-    res = _finish(sat_pos, pr, real, used, w_fit, x, el, status, alive, conv, bad, runaway, n_iter,
-                  max_cond, cov_scale, dropped)
-    res.flagged = flagged & res.valid
-    res.n_excluded = n_excluded
+    fit = fit.solve(alive, fit.w_prior, cfg.max_iter, cfg.tol_m, cfg.max_cond)
+    eligible = alive & fit.conv & ~fit.bad & ~fit.runaway
+    if cfg.robust == "exclude":
+        fit = _exclude(fit, eligible, cfg, t_ms)
+        if fit.flagged.any():
+            fit = huber_irls(fit, fit.flagged, cfg)
+    elif cfg.robust == "huber":
+        fit = huber_irls(fit, eligible, cfg)
+    res = _finish(fit, el, status, alive, cfg)
     if t_ms is not None:
-        _bridge_three_sat_epochs(res, sat_pos, pr, real, np.asarray(t_ms), clock_reset, elev_mask_deg,
-                                 weighting, sigma, sigma0, max_iter, tol_m)
+        _bridge_three_sat_epochs(res, fit, sigma, np.asarray(t_ms), clock_reset, cfg)
     return res
 
 
 # ------------------------------------------------------------------------------------- the stages
-def _exclude(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped, t_ms):
+def _exclude(fit: FitState, eligible: np.ndarray, cfg: WlsSettings, t_ms) -> FitState:
     """Snapshot fault detection and exclusion (:func:`_fde`), then, with epoch times, the epochs it
-    could not decide identified from their neighbours (:mod:`fusion.estimate.neighbour_fde`).
-    Returns :func:`fusion.estimate.raim.exclude_faults`'s tuple."""
-    above_mask = used
-    (x, used, conv, bad, runaway, w_fit, flagged, n_excl), scale = _fde(
-        sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped)
-    settled = eligible & ~flagged & conv & ~bad & ~runaway
+    could not decide identified from their neighbours (:mod:`fusion.estimate.neighbour_fde`)."""
+    above_mask = fit.used
+    fit, scale = _fde(fit, eligible, cfg)
+    settled = eligible & ~fit.flagged & fit.conv & ~fit.bad & ~fit.runaway
     # the undecided epochs, and those whose test has little power (one or two redundant satellites)
-    weak = flagged | (settled & (used.sum(1) <= NEIGHBOUR_CHECK_MAX_SATS))
+    weak = fit.flagged | (settled & (fit.used.sum(1) <= NEIGHBOUR_CHECK_MAX_SATS))
     if t_ms is None or not weak.any():
-        return x, used, conv, bad, runaway, w_fit, flagged, n_excl
-    x, used, conv, bad, runaway, repaired, n_excl = exclude_by_neighbours(
-        sat_pos, pr, above_mask, used, w_prior, x, weak, settled & ~weak, np.asarray(t_ms), conv, bad,
-        runaway, n_excl, scale=scale, dropped=dropped, **kw)
-    return x, used, conv, bad, runaway, np.where(used, w_prior, 0.0), flagged & ~repaired, n_excl
+        return fit
+    fit, repaired = exclude_by_neighbours(fit, above_mask, weak, settled & ~weak, np.asarray(t_ms), cfg, scale)
+    return fit.replace(w_fit=fit.weights, flagged=fit.flagged & ~repaired)
 
 
-def _fde(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, test_scale, kw, dropped):
+def _fde(fit: FitState, eligible: np.ndarray, cfg: WlsSettings) -> tuple[FitState, float]:
     """Fault detection and exclusion (:func:`fusion.estimate.raim.exclude_faults`). With
     ``test_scale="trace"`` a first pass at the a-priori variance gives the residuals of the epochs
     it settled, whose robust variance factor (:func:`fusion.estimate.raim.variance_factor`) sets the
-    test of the second, final pass; a factor of 1 keeps the first pass. Returns
-    (:func:`fusion.estimate.raim.exclude_faults`'s tuple, the variance factor of the test)."""
-    scale = 1.0 if test_scale == "trace" else float(test_scale)
-    first = exclude_faults(sat_pos, pr, used, w_prior, x.copy(), eligible, conv, bad.copy(), runaway.copy(),
-                           dropped=dropped if test_scale != "trace" else {}, scale=scale, **kw)
-    if test_scale != "trace":
-        return first, scale
-    x1, used1, _, bad1, run1, w1, flagged1, _ = first
-    settled = eligible & ~flagged1 & ~bad1 & ~run1
-    scale = variance_factor(sat_pos, pr, w1, x1, used1, settled)
-    if scale == 1.0:
-        count_skip(dropped, "outlier", first[-1])
-        return first, scale
-    return exclude_faults(sat_pos, pr, used, w_prior, x, eligible, conv, bad, runaway, dropped=dropped,
-                          scale=scale, **kw), scale
+    test of the second, final pass (the first pass is kept when the factor is 1 and no exclusion guard
+    is set). Returns (the fit after exclusion, the variance factor of the test)."""
+    if cfg.test_scale != "trace":
+        scale = float(cfg.test_scale)
+        return exclude_faults(fit, eligible, cfg, scale=scale), scale
+    # The trial pass counts its exclusions apart: only the pass that is kept adds them to the fit's.
+    # It runs without the exclusion guard: the factor measures the trace's noise, and the epochs whose
+    # moderate faults the guard would keep (down-weighted, flagged) are most of what it must see.
+    unguarded = cfg.replace(exclude_above_m=float("inf"))
+    first = exclude_faults(fit.replace(dropped={}), eligible, unguarded, scale=1.0)
+    settled = eligible & ~first.flagged & ~first.bad & ~first.runaway
+    scale = variance_factor(first.sat_pos, first.pr, first.w_fit, first.x, first.used, settled)
+    if scale == 1.0 and cfg == unguarded:
+        count_skip(fit.dropped, "outlier", first.n_excluded)
+        return first.replace(dropped=fit.dropped), scale
+    return exclude_faults(fit, eligible, cfg, scale=scale), scale
 
 
 def _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped):
@@ -296,29 +292,39 @@ def _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped):
     return np.where(real[..., None], sat_pos, 0.0), np.where(real, pr, 0.0), real
 
 
-def _coarse_and_mask(sat_pos, pr, real, x0, status, elev_mask_deg, weighting, sigma, sigma0, max_iter,
-                     max_cond, n_iter, dropped):
+def _start_fit(sat_pos, pr, real, x0, dropped) -> FitState:
+    """The fit before any stage: every usable slot used at unit weight, from :func:`_start_state`."""
+    E = pr.shape[0]
+    w = real.astype(float)
+    return FitState(sat_pos=sat_pos, pr=pr, real=real, w_prior=w, used=real, x=_start_state(sat_pos, pr, real, x0),
+                    w_fit=w, conv=np.zeros(E, bool), bad=np.zeros(E, bool), runaway=np.zeros(E, bool),
+                    flagged=np.zeros(E, bool), n_excluded=np.zeros(E, np.int64), n_iter=np.zeros(E, np.int64),
+                    dropped=dropped)
+
+
+def _coarse_and_mask(fit: FitState, status: np.ndarray, sigma: np.ndarray,
+                     cfg: WlsSettings) -> tuple[FitState, np.ndarray]:
     """Coarse fix (all satellites, unit weights), then the elevation mask and a-priori weights.
 
-    ``status`` (E,) is updated in place. Returns x (E,4), used (E,S), elevations (E,S) [deg] and
-    weights (E,S). 100 m is ample for the coarse stage: elevations only need km accuracy, and one
-    Gauss-Newton step from 100 m off lands within ~1e-6 m.
+    ``status`` (E,) is updated in place. Returns the fit at the coarse state with ``used``, ``w_prior``
+    and ``w_fit`` set by the mask and weighting (and fresh ``conv`` / ``bad`` / ``runaway``), and the
+    elevations (E,S) [deg]. 100 m is ample for the coarse stage: elevations only need km accuracy, and
+    one Gauss-Newton step from 100 m off lands within ~1e-6 m.
     """
-    x = _start_state(sat_pos, pr, real, x0)
     alive = status == OK
-    x, _, _, runaway = gauss_newton(sat_pos, pr, real.astype(float), x, alive, max(max_iter, 10), 100.0,
-                                    max_cond, n_iter)
+    coarse = fit.solve(alive, fit.w_prior, max(cfg.max_iter, 10), 100.0, cfg.max_cond)
     # An ill-conditioned coarse stage may still recover once weights and mask change: the fine
     # stage decides about degeneracy.
-    status[alive & runaway] = DIVERGED
+    status[alive & coarse.runaway] = DIVERGED
     alive = status == OK
-    el = _elevations(sat_pos, x[:, :3], real & alive[:, None])
-    used = real & (el >= elev_mask_deg)
-    count_skip(dropped, "below_mask", real & ~used & alive[:, None])
+    real = fit.real
+    el = _elevations(fit.sat_pos, coarse.x[:, :3], real & alive[:, None])
+    used = real & (el >= cfg.elev_mask_deg)
+    count_skip(fit.dropped, "below_mask", real & ~used & alive[:, None])
     status[alive & (used.sum(1) < 4)] = FEW_SATS_AFTER_MASK
     used &= (status == OK)[:, None]
-    w_prior = np.where(used, 1.0 / _sigmas(weighting, el, sigma, sigma0) ** 2, 0.0)
-    return x, used, el, w_prior
+    w_prior = np.where(used, 1.0 / _sigmas(cfg, el, sigma) ** 2, 0.0)
+    return fit.replace(x=coarse.x, used=used, w_prior=w_prior, w_fit=w_prior), el
 
 
 def _elevations(sat_pos, pos, where):
@@ -328,30 +334,33 @@ def _elevations(sat_pos, pos, where):
     return np.where(where, el, 0.0)
 
 
-def _finish(sat_pos, pr, real, used, w_fit, x, el, status, alive, conv, bad, runaway, n_iter, max_cond,
-            cov_scale, dropped) -> WlsResult:
-    """Final evaluation at the solution: residuals, conditioning, plausibility, covariance."""
-    N, _, r, _ = normal_equations(sat_pos, pr, w_fit, x)
-    bad = bad | (alive & ill_conditioned(N, max_cond))
+def _finish(fit: FitState, el: np.ndarray, status: np.ndarray, alive: np.ndarray, cfg: WlsSettings) -> WlsResult:
+    """Final evaluation at the solution: residuals, conditioning, plausibility, covariance.
+
+    el: (E,S) elevations [deg]; status: (E,) codes, updated in place; alive: (E,) epochs that reached
+    the fine stage."""
+    x, used, w_fit = fit.x, fit.used, fit.w_fit
+    N, _, r, _ = normal_equations(fit.sat_pos, fit.pr, w_fit, x)
+    bad = fit.bad | (alive & ill_conditioned(N, cfg.max_cond))
     status[alive & bad] = DEGENERATE
-    status[(status == OK) & (runaway | ~_plausible(x))] = DIVERGED
-    status[(status == OK) & ~conv] = NOT_CONVERGED
+    status[(status == OK) & (fit.runaway | ~_plausible(x))] = DIVERGED
+    status[(status == OK) & ~fit.conv] = NOT_CONVERGED
     valid = status == OK
     cov = np.full((x.shape[0], 4, 4), np.nan)
     if valid.any():
         n = used[valid].sum(1)
         chi2 = np.sum(w_fit[valid] * r[valid] ** 2, axis=1)
         f = np.ones(n.shape)
-        if cov_scale == "posterior":
+        if cfg.cov_scale == "posterior":
             red = n > 4
             f[red] = np.maximum(1.0, chi2[red] / (n[red] - 4))
         cov[valid] = f[:, None, None] * np.linalg.inv(N[valid])
     used = used & valid[:, None]
     return WlsResult(
         pos=np.where(valid[:, None], x[:, :3], np.nan), clock_m=np.where(valid, x[:, 3], np.nan), cov=cov,
-        valid=valid, converged=conv, used=used, n_used=used.sum(1),
-        resid=np.where(real & valid[:, None], r, 0.0), elev_deg=el, status=status, n_iter=n_iter,
-        reasons=_reasons(status), dropped=dropped)
+        valid=valid, converged=fit.conv, used=used, n_used=used.sum(1),
+        resid=np.where(fit.real & valid[:, None], r, 0.0), elev_deg=el, status=status, n_iter=fit.n_iter,
+        reasons=_reasons(status), dropped=fit.dropped, flagged=fit.flagged & valid, n_excluded=fit.n_excluded)
 
 
 def _reasons(status: np.ndarray) -> dict[str, int]:
@@ -359,24 +368,27 @@ def _reasons(status: np.ndarray) -> dict[str, int]:
     return {k: v for k, v in counts.items() if v}
 
 
-def _bridge_three_sat_epochs(res: WlsResult, sat_pos, pr, real, t_ms, clock_reset, elev_mask_deg, weighting,
-                             sigma, sigma0, max_iter, tol) -> None:
+def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t_ms: np.ndarray, clock_reset,
+                             cfg: WlsSettings) -> None:
     """Solve (in place) epochs left with exactly three satellites above the mask, the clock
-    interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`)."""
+    interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`).
+    sigma: (E,S) the input sigmas; t_ms: (E,); clock_reset: (E,) bool or None."""
+    real = fit.real
     few = np.flatnonzero(np.isin(res.status, (FEW_SATS, FEW_SATS_AFTER_MASK)) & (real.sum(1) >= 3))
     good = np.flatnonzero(res.valid)
     if few.size == 0 or good.size == 0:
         return
     near = good[np.clip(np.searchsorted(good, few), 1, good.size) - 1]   # a valid neighbour's position
     pos0 = res.pos[near]
-    el = _elevations(sat_pos[few], pos0, real[few])
-    used = real[few] & (el >= elev_mask_deg)
+    el = _elevations(fit.sat_pos[few], pos0, real[few])
+    used = real[few] & (el >= cfg.elev_mask_deg)
     few, pos0, el, used = (a[used.sum(1) == 3] for a in (few, pos0, el, used))
     resets = np.zeros(res.n_epochs, bool) if clock_reset is None else np.asarray(clock_reset, bool)
     clock, ok = interpolate_clock(t_ms, res.clock_m, res.valid, resets, few)
     res.status[few[~ok]] = THREE_SATS_NO_CLOCK
-    w = np.where(used, 1.0 / _sigmas(weighting, el, sigma[few], sigma0) ** 2, 0.0)
-    pos, conv, cov3 = solve_fixed_clock(sat_pos[few], pr[few], w, pos0, np.where(ok, clock, 0.0), max_iter, tol)
+    w = np.where(used, 1.0 / _sigmas(cfg, el, sigma[few]) ** 2, 0.0)
+    pos, conv, cov3 = solve_fixed_clock(fit.sat_pos[few], fit.pr[few], w, pos0, np.where(ok, clock, 0.0),
+                                        cfg.max_iter, cfg.tol_m)
     good_fix = ok & conv & _plausible(np.concatenate([pos, clock[:, None]], axis=1))
     e = few[good_fix]
     res.status[e] = OK
@@ -408,8 +420,9 @@ def _start_state(sat_pos, pr, real, x0):
     return np.concatenate([pos, clock[:, None]], axis=1)
 
 
-def _sigmas(weighting, el_deg, sigma, sigma0):
-    """(E, S) a-priori pseudorange sigmas [m] for the chosen weighting."""
+def _sigmas(cfg: WlsSettings, el_deg, sigma):
+    """(E, S) a-priori pseudorange sigmas [m] for ``cfg.weighting``; el_deg, sigma (E, S)."""
+    weighting, sigma0 = cfg.weighting, cfg.sigma0
     if weighting == "elevation":
         # Floor at 1 degree so a zero/negative mask cannot produce infinite sigmas.
         return sigma0 / np.sin(np.radians(np.maximum(el_deg, 1.0)))
@@ -428,28 +441,7 @@ def _plausible(x):
     return out
 
 
-def _check_options(cov_scale, max_iter, max_exclusions) -> None:
-    if cov_scale not in ("posterior", "prior"):
-        raise DataError(f"cov_scale must be 'posterior' or 'prior', got {cov_scale!r}")
-    if max_iter < 1:
-        raise DataError(f"max_iter must be >= 1, got {max_iter}")
-    if max_exclusions < 0:
-        raise DataError(f"max_exclusions must be >= 0, got {max_exclusions}")
-
-
-def _robust_mode(robust) -> str:
-    if robust is False or robust is None or robust == "none":
-        return "none"
-    if robust is True or robust == "exclude":
-        return "exclude"
-    if robust == "huber":
-        return "huber"
-    raise DataError(f"robust must be False, True, 'exclude' or 'huber', got {robust!r}")
-
-
 def _check_inputs(sat_pos, pr, mask, sigma, x0, weighting):
-    if weighting not in _WEIGHTINGS:
-        raise DataError(f"weighting must be one of {_WEIGHTINGS}, got {weighting!r}")
     pr = np.asarray(pr, float)
     if pr.ndim != 2:
         raise DataError(f"pr must be (E, S), got shape {pr.shape}")
