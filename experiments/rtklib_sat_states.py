@@ -1,5 +1,5 @@
 """Reference satellite positions and clocks from RTKLIB for the broadcast-orbit cross-check test
-(tests/test_rtklib_crosscheck.py), and the before/after errors of our Galileo message choice.
+(tests/nav/test_rtklib_crosscheck.py), and the before/after errors of our Galileo message choice.
 
 Regenerates, from the multi-GNSS navigation files in ../shared/data/ephemeris/gnss_lib_py_nav/:
 

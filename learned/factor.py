@@ -214,7 +214,7 @@ def learned_pose_translation_factor(corrector: PriorProvider, sat_pos: np.ndarra
     """Like :func:`learned_prior_factor` (same options) for a ``Pose3`` variable whose translation is ECEF.
 
     ``PoseTranslationPrior3D``'s error is ``translation - measured`` in the *world* frame (checked
-    in ``tests/test_factor.py``), so the ECEF covariance is used as is, whatever the pose's rotation.
+    in ``tests/learned/test_factor.py``), so the ECEF covariance is used as is, whatever the pose's rotation.
     """
     nm = PriorNoise.of(noise)
     trace = _lone_epoch(corrector, sat_pos, pr, mask, pr_sigma, cn0, signal)

@@ -8,7 +8,7 @@ linear and exact as whitened ``JacobianFactor``s in C++.
 
 Sagnac: GTSAM 4.3's ``PseudorangeFactor`` already adds the Earth-rotation range term
 ``OMEGA_E / c * (x_sat * y_rx - y_sat * x_rx)`` to the geometric range (checked against
-:func:`fusion.geometry.line_of_sight` in ``tests/test_graph.py``), which is the first-order form of
+:func:`fusion.geometry.line_of_sight` in ``tests/estimate/test_graph.py``), which is the first-order form of
 :func:`fusion.geometry.sagnac_rotate`. Satellite positions are therefore passed at transmit time,
 unrotated: rotating them as well would apply the correction twice.
 """
@@ -26,7 +26,7 @@ from fusion.geometry import C_LIGHT, OMEGA_E
 def robust_model(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
     """``base`` wrapped in a robust loss. GTSAM applies the M-estimator to the norm of the
     *whitened* error, i.e. to the Mahalanobis distance for a full-covariance ``base`` (checked in
-    ``tests/test_graph.py``), so ``k`` is in sigmas whatever the covariance."""
+    ``tests/estimate/test_graph.py``), so ``k`` is in sigmas whatever the covariance."""
     if kind == "none":
         return base
     if kind == "huber":

@@ -22,7 +22,7 @@ from fusion.io.rinex_nav import default_nav_path, read_nav
 from fusion.io.rinex_obs import read_rinex_obs
 from fusion.nav.orbits import select_ephemeris, transmit_states
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 P5_HEAD = DATA / "pixel5_head.21o"
 #: Pixel5 truth at its first epoch (ground_truth.csv, height fixed by -63.1 m).
 P5_START = geodetic2ecef(np.array([[37.3958422483, -122.1029571933, 58.31 - 63.1]]))[0]

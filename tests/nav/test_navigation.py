@@ -16,7 +16,7 @@ from fusion.nav.orbits import sat_state
 from fusion.nav.sat_states import broadcast_states
 from fusion.trace import SIGNALS
 
-MIXED = Path(__file__).parent / "data" / "brdc_2023073_mixed_305.rnx"
+MIXED = Path(__file__).resolve().parents[1] / "data" / "brdc_2023073_mixed_305.rnx"
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from fusion.io.rinex_obs import read_rinex_obs
 from fusion.io.sp3 import read_sp3
 from fusion.io.text_open import read_bytes
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 MIXED = DATA / "brdc_2023073_mixed_305.rnx"
 P5_HEAD = DATA / "pixel5_head.21o"
 

@@ -12,7 +12,7 @@ from fusion.io.gnss_log import read_gnss_log
 from fusion.io.raw import check_raw
 from fusion.trace import SIGNALS, signal_index
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 PIXEL4_LOG = DATA / "pixel4_gnss_log.txt"              # GSDC 2021 samples/Pixel4_GnssLog.txt (one epoch)
 PIXEL4_DERIVED = DATA / "pixel4_derived_first_epoch.csv"  # its rows of samples/Pixel4_derived.csv
 P7_LOG = DATA / "pixel7pro_gnss_log_2ep.txt"           # first 2 epochs of the GSDC 2023 sample gnss_log.txt

@@ -16,7 +16,7 @@ from fusion.prepare.load import find_traces, load_trace, trace_name
 from fusion.prepare.smartloc import DRIVE_START_GPS, UNKNOWN_START_GPS_MS, load_smartloc
 from fusion.trace import SIGNALS
 
-HEAD = Path(__file__).parent / "data" / "smartloc_berlin_head"
+HEAD = Path(__file__).resolve().parents[1] / "data" / "smartloc_berlin_head"
 DRIVE = "Berlin_Potsdamer_Platz"
 INPUT = f"{DRIVE}_Input.txt"
 GT = f"{DRIVE}_GT.txt"

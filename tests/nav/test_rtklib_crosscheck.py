@@ -23,7 +23,7 @@ from fusion.nav.orbits import sat_state, select_ephemeris
 from fusion.nav.sat_states import group_delay, select_record
 from fusion.trace import SIGNALS
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 CTYPE = {"G": 1, "R": 3, "J": 4, "C": 5, "E": 6}
 
 

@@ -22,7 +22,7 @@ from fusion.eval.report import ALL, METRIC_KEYS, metrics_table
 from fusion.evaluate import evaluate_trace
 from fusion.trace import Trace, empty_trace
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 N_EPOCHS = 200
 

@@ -15,7 +15,7 @@ from learned.factor import (learned_pose_translation_factor, learned_prior_facto
                             one_epoch_trace)
 from learned.toy import toy_trace
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

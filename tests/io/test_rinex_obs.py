@@ -12,7 +12,7 @@ from fusion.errors import DataError
 from fusion.io.raw import RAW_COLUMNS, check_raw
 from fusion.io.rinex_obs import read_rinex_obs
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 FIXTURE = DATA / "pixel5_head.21o"  # header + first 5 epochs of the GSDC 2021 Pixel5 RINEX log
 C = 299_792_458.0
 
