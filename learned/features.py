@@ -28,7 +28,6 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import torch
 
 from fusion.geometry import C_LIGHT, OMEGA_E, ecef2ned_vec, elevation_azimuth, line_of_sight
 
@@ -172,6 +171,7 @@ def ned_rotation_torch(ref: torch.Tensor) -> torch.Tensor:
 
     Geodetic latitude by fixed-point iteration (5 steps reach < 1e-12 rad near the surface).
     """
+    import torch  # training only: inference never imports torch
     x, y, z = ref.unbind(-1)
     p = torch.sqrt(x * x + y * y)
     lon = torch.atan2(y, x)
@@ -192,6 +192,7 @@ def ned_rotation_torch(ref: torch.Tensor) -> torch.Tensor:
 
 def line_of_sight_torch(sat_pos: torch.Tensor, rx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Torch twin of :func:`fusion.geometry.line_of_sight`: (B,S,3), (B,3) -> range (B,S), los (B,S,3)."""
+    import torch  # training only: inference never imports torch
     rng0 = torch.linalg.vector_norm(sat_pos - rx[:, None, :], dim=-1)
     theta = OMEGA_E * rng0 / C_LIGHT
     c, s = torch.cos(theta), torch.sin(theta)
@@ -209,6 +210,7 @@ def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, 
     guess (B,3); ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only); ``extra``
     (B,S,C) float32 context channels (:func:`context_channels`).
     Returns ``x`` (B,S,4+C) float32 and the NED rotation at the guess (B,3,3) float64."""
+    import torch  # training only: inference never imports torch
     _check_clock(cfg, clock)
     rng, los = line_of_sight_torch(sat_pos, guess)
     raw = pr - rng
@@ -225,6 +227,7 @@ def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, 
 def target_torch(truth: torch.Tensor, guess: torch.Tensor, R: torch.Tensor,
                  cfg: FeatureConfig = FeatureConfig()) -> torch.Tensor:
     """(truth - guess) in the NED frame of the guess (R from :func:`features_torch`) over out_scale."""
+    import torch  # training only: inference never imports torch
     return torch.einsum("bij,bj->bi", R, truth - guess).float() / cfg.out_scale
 
 

@@ -11,7 +11,6 @@ or firmware the network never met gets the non-learned answer instead of a confi
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 MARGIN = 0.1
 SHARE_FULL, SHARE_NONE = 0.1, 0.5
@@ -22,6 +21,7 @@ _SKIP = slice(1, 4)
 
 def input_ranges(x: torch.Tensor, mask: torch.Tensor) -> dict:
     """Per-channel [lo, hi] of training inputs ``x`` (N,S,F) over real slots ``mask`` (N,S)."""
+    import torch  # training only
     v = x[mask].double()
     if v.shape[0] > 200_000:      # quantile has a size limit; an even subsample is as good for ranges
         v = v[torch.linspace(0, v.shape[0] - 1, 200_000).long()]

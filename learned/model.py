@@ -124,4 +124,6 @@ def count_parameters(model: nn.Module, include_heads: bool = True) -> int:
     """Parameters, or without the variance and per-satellite heads (the paper's mean path) when
     ``include_heads`` is False."""
     extra = ("logvar_head", "sat_head")
+    if hasattr(model, "weights"):          # a learned.npnet.NpNet (inference without torch)
+        return sum(int(v.size) for n, v in model.weights.items() if include_heads or not n.startswith(extra))
     return sum(p.numel() for n, p in model.named_parameters() if include_heads or not n.startswith(extra))

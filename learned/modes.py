@@ -1,14 +1,15 @@
 """The ``dnn`` and ``fused`` pipeline modes: the trained network wired into fusion's estimators.
 
-``fusion``'s mode registry names these functions by string (``"learned.modes:estimate_dnn"``), so the
-CLI imports torch only when one of them runs.
+``fusion``'s mode registry names these functions by string (``"learned.modes:estimate_dnn"``). Neither
+imports torch: the network runs in numpy (:mod:`learned.npnet`), asked once per run.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from fusion.estimate.graph.fuse import fuse
-from fusion.estimate.graph.priors import PriorProvider
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.fuse import solve_graph
+from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider, SlotNoiseProvider
 from fusion.estimate.wls import WlsResult
 from fusion.geometry import ecef2ned_cov, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
@@ -17,25 +18,27 @@ from learned.infer import Corrector
 
 
 def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
-    """Pipeline mode ``dnn``: WLS position as the guess, ``opts.dnn_passes`` corrections (features
-    recomputed at each corrected position). Epochs with invalid WLS or < 4 satellites: not solved."""
+    """Pipeline mode ``dnn``: one network pass at the WLS positions (learned-weight least squares or the
+    paper's correction, ``opts.dnn_output``). Epochs with invalid WLS or < 4 satellites: not solved.
+    ``opts.dnn_passes`` > 1 re-asks the network at its own output (features recomputed each pass)."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     pos, valid = np.asarray(wls.pos, float), np.asarray(wls.valid, bool)
-    cov, too_few, trust = None, 0, np.full(trace.n_epochs, np.nan)
+    cov, too_few, c = None, 0, None
     for _ in range(max(1, int(opts.dnn_passes))):
         c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg, output=opts.dnn_output)
         too_few += c.n_too_few
-        pos, valid, cov, trust = c.mean_ecef, c.valid, c.cov_ecef, c.trust
+        pos, valid, cov = c.mean_ecef, c.valid, c.cov_ecef
     info = {"passes": int(max(1, opts.dnn_passes)), "unsolved": int((~valid).sum()),
             "unsolved_wls": int((~np.asarray(wls.valid, bool)).sum()), "too_few_sats": too_few,
             "output": opts.dnn_output or corrector.output, "weights": str(corrector.path),
-            "guard_shrunk": int((trust[valid] < 1).sum()), "guard_off": int((trust[valid] == 0).sum())}
+            "guard_shrunk": c.info["epochs_guard_shrunk"], "guard_off": c.info["epochs_guard_off"],
+            "guard": c.info}
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
 def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
-    """Apply a provider ``passes`` times, each pass starting from the previous pass's mean
-    (features recomputed at the corrected position, as ``dnn_passes`` does for the dnn mode)."""
+    """Apply a provider ``passes`` times, each pass starting from the previous pass's mean (kept for
+    callers composing their own providers; the modes ask the network once)."""
     if passes <= 1:
         return provider
 
@@ -48,20 +51,35 @@ def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
     return run
 
 
-def learned_provider(opts: RunOptions, corrector: Corrector | None = None) -> PriorProvider:
-    """The checkpoint's corrector as a prior provider, under the run's elevation mask (as ``dnn``),
-    applied ``opts.dnn_passes`` times."""
+def cached_providers(learned: LearnedGraphInputs, prior: bool, sigmas: bool
+                     ) -> tuple[PriorProvider | None, SlotNoiseProvider | None]:
+    """The one pass's arrays behind the graph's two provider interfaces (whatever positions the graph
+    asks at, the answer is the pass's: the network is asked once per run)."""
+    def provider(trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
+        return learned.prior_mean, learned.prior_cov, learned.prior_ok & np.asarray(valid, bool)
+
+    def slot_noise(trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
+        return learned.pr_sigma, learned.pr_bias
+    return (provider if prior else None), (slot_noise if sigmas else None)
+
+
+def learned_inputs(trace: Trace, wls: WlsResult, opts: RunOptions,
+                   corrector: Corrector | None = None) -> LearnedGraphInputs:
+    """The network's one pass for the graph, at the WLS positions under the run's elevation mask."""
     corrector = corrector or Corrector.load(opts.weights, device=opts.device)
-    return iterated(corrector.provider(opts.elev_mask_deg), int(opts.dnn_passes))
+    return corrector.graph_inputs(trace, np.asarray(wls.pos, float), np.asarray(wls.valid, bool),
+                                  elev_mask_deg=opts.elev_mask_deg)
 
 
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
-    + motion; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
+    + motion, from one network pass; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
-    provider = learned_provider(opts, corrector) if opts.learned_prior else None
-    noise = corrector.slot_noise(opts.elev_mask_deg) if opts.learned_sigmas else None
-    res = fuse(trace, wls, opts, provider=provider, slot_noise=noise)
+    learned = learned_inputs(trace, wls, opts, corrector)
+    provider, noise = cached_providers(learned, opts.learned_prior, opts.learned_sigmas)
+    # asked at the WLS track (prior_guess None): the pass above is the only one
+    res = solve_graph(trace, wls, opts, GraphConfig(), provider, None, slot_noise=noise)
+    res.info["guard"] = learned.info
     if res.cov is not None and res.valid.any():
         # the graph's marginals, scaled per NED axis as measured on unseen drives (ones if not calibrated)
         ok = res.valid

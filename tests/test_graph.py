@@ -498,5 +498,5 @@ def test_fused_feeds_the_network_the_runs_elevation_mask(trace, wls, tmp_path, m
         return real(self, trace, init_pos, valid, elev_mask_deg=elev_mask_deg, **kw)
     monkeypatch.setattr(Corrector, "predict", spy)
     run_modes(trace, ["dnn", "fused"], RunOptions(weights=ckpt, elev_mask_deg=17.0), wls=wls)
-    # dnn once, fused for its prior and for its slot noise: all with the run's mask
-    assert len(seen) >= 3 and set(seen) == {17.0}
+    # one network pass per mode (issue 21), each with the run's mask
+    assert len(seen) == 2 and set(seen) == {17.0}

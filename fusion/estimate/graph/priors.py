@@ -28,6 +28,27 @@ PRIOR_MIN_EIG = 1e-6
 
 
 @dataclass
+class LearnedGraphInputs:
+    """Everything a learned model hands the graph, from one pass over a trace (E epochs, S slots).
+
+    prior_mean (E,3) ECEF [m] and prior_cov (E,3,3) [m^2] of the position prior, prior_ok (E,) bool where
+    one exists; pr_sigma, pr_bias (E,S) pseudorange sigma and bias [m]; prr_sigma, prr_bias (E,S)
+    pseudorange-rate (Doppler) sigma and bias [m/s], or None when the model has no Doppler head. NaN in a
+    sigma or bias: no opinion (the graph keeps its own model). info: counts of what the model's guard did
+    (by reason), for the report.
+    """
+
+    prior_mean: np.ndarray
+    prior_cov: np.ndarray
+    prior_ok: np.ndarray
+    pr_sigma: np.ndarray | None = None
+    pr_bias: np.ndarray | None = None
+    prr_sigma: np.ndarray | None = None
+    prr_bias: np.ndarray | None = None
+    info: dict | None = None
+
+
+@dataclass
 class Priors:
     """A provider's output made safe for the graph (see :func:`clean_priors`), E epochs.
 
