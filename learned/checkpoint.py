@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from fusion.errors import CheckpointError
-from learned.features import FEATURE_VERSION
+from learned.features import SUPPORTED_VERSIONS
 from learned.model import MODELS, build_model
 from learned.npz_weights import file_sha256, npz_path_for, write_npz
 
@@ -69,8 +69,8 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict) or not isinstance(cfg.get("features"), dict):
         raise CheckpointError(f"{path}: checkpoint has no model/feature config (or they are not dicts)")
     fv = cfg["features"].get("version")
-    if fv != FEATURE_VERSION:
-        raise CheckpointError(f"{path}: feature version {fv!r} does not match this code's {FEATURE_VERSION} "
+    if fv not in SUPPORTED_VERSIONS:
+        raise CheckpointError(f"{path}: feature version {fv!r}; this code reads versions {SUPPORTED_VERSIONS} "
                               "(retrain or use a matching gnssfuse version)")
     if cfg["model"].get("kind") not in MODELS:
         raise CheckpointError(f"{path}: unknown model kind {cfg['model'].get('kind')!r}")

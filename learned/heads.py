@@ -43,3 +43,23 @@ def weighted_ls_step(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, gues
     N = N + RIDGE * np.trace(N, axis1=1, axis2=2)[:, None, None] / 4 * np.eye(4)
     step = np.linalg.solve(N, Hw.transpose(0, 2, 1) @ r[..., None])[..., 0]
     return guess + step[:, :3], np.linalg.inv(N)[:, :3, :3]
+
+
+#: Pseudorange sigma [m] when a measurement has neither a reported sigma nor a C/N0 (the raw reader's
+#: model at 10 dB-Hz below its reference C/N0).
+DEFAULT_SIGMA_M = 3.0 * 10 ** 0.5
+
+
+def cn0_sigma(cn0: np.ndarray) -> np.ndarray:
+    """Pseudorange sigma [m] from C/N0 [dB-Hz], the raw reader's model (fusion/io/raw_trace.py):
+    ``3 m * 10^((35 - C/N0) / 20)`` within [3, 100] m."""
+    from fusion.io.raw_trace import CN0_REF, SIGMA_PR_M, SIGMA_PR_MAX_M
+    return np.clip(SIGMA_PR_M * 10 ** ((CN0_REF - np.asarray(cn0, float)) / 20), SIGMA_PR_M, SIGMA_PR_MAX_M)
+
+
+def report_sigma(pr_sigma: np.ndarray, reported: np.ndarray, cn0: np.ndarray) -> np.ndarray:
+    """(N,S) the pseudorange sigma [m] the physical model starts from: the receiver's report where it
+    gave one, else the C/N0 model where the file has C/N0, else :data:`DEFAULT_SIGMA_M`."""
+    cn0 = np.asarray(cn0, float)
+    model = np.where(cn0 > 0, cn0_sigma(np.where(cn0 > 0, cn0, 35.0)), DEFAULT_SIGMA_M)
+    return np.where(np.asarray(reported, bool), pr_sigma, model)

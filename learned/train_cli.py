@@ -16,12 +16,17 @@ from learned.augment import parse_guess_mix
 from learned.checkpoint import read_checkpoint
 from learned.data import (Samples, build_samples, load_real_traces, simulated_traces, split_blocks, split_random,
                           split_traces)
-from learned.features import CHANNELS, FeatureConfig
+from learned.features import CHANNELS, CHANNELS_V2, FeatureConfig
 from learned.model import build_model, count_parameters
 from learned.train import OUTPUTS, LossWeights, TrainConfig, train
 
 #: Inputs of the shipped recipe: the paper's (residual, line of sight) and every context channel.
 DEFAULT_INPUTS = ",".join(CHANNELS)
+
+
+def default_inputs(version: int) -> str:
+    """The CLI's default ``--inputs`` when training feature version ``version`` (2: the previous release)."""
+    return ",".join(CHANNELS_V2) if version == 2 else DEFAULT_INPUTS
 
 
 def _parser(prog: str) -> argparse.ArgumentParser:
