@@ -36,6 +36,7 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="fused modes: ignore the trace's Doppler (pseudorange rates)")
     p.add_argument("--no-carrier", action="store_true",
                    help="fused modes: ignore the trace's carrier phase (accumulated delta ranges)")
+    p.add_argument("--odometry", action="store_true", help="fused modes: use the trace's vehicle odometry (smartLoc odom3)")
     p.add_argument("--device", default="cpu")
     p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
     p.add_argument("--no-learned-sigmas", action="store_true",
@@ -62,6 +63,7 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
                       use_doppler=not args.no_doppler, use_carrier=not args.no_carrier,
+                      use_odometry=args.odometry,
                       nav=tuple(args.nav), sp3=args.sp3, clk=args.clk)
 
 

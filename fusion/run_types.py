@@ -34,6 +34,7 @@ class RunOptions:
     # fused modes: use the trace's Doppler / carrier phase where it has them (no effect otherwise)
     use_doppler: bool = True
     use_carrier: bool = True
+    use_odometry: bool = False           # fused modes: the trace's vehicle odometry (smartLoc), off by default
 
 
 @dataclass

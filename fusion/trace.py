@@ -100,6 +100,8 @@ class Trace:
     adr_ok:      (E,S)    bool, the slot has a valid carrier phase.
     adr_slip:    (E,S)    bool, the carrier phase of this slot's satellite/signal was reset or
                           slipped since the previous epoch (its chain must break here).
+    odometry:    (E,12)   float64 vehicle odometry per epoch, columns :data:`ODOMETRY_COLUMNS` (body
+                          frame: x forward, z up), NaN rows where none; None when the source has none.
     """
 
     t_ms: np.ndarray
@@ -123,6 +125,7 @@ class Trace:
     adr_sigma: np.ndarray | None = None
     adr_ok: np.ndarray | None = None
     adr_slip: np.ndarray | None = None
+    odometry: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.validate()
@@ -143,6 +146,9 @@ class Trace:
             if got != shape:
                 raise DataError(f"{self.name}: {key} has shape {got}, expected {shape}")
         self._validate_optional(E, S)
+        if self.odometry is not None and np.shape(self.odometry) != (E, len(ODOMETRY_COLUMNS)):
+            raise DataError(f"{self.name}: odometry has shape {np.shape(self.odometry)}, "
+                            f"expected {(E, len(ODOMETRY_COLUMNS))}")
         if self.truth is not None and np.shape(self.truth) != (E, 3):
             raise DataError(f"{self.name}: truth has shape {np.shape(self.truth)}, expected {(E, 3)}")
         if self.mask.dtype != bool:
@@ -233,6 +239,7 @@ class Trace:
             pr=take(self.pr), pr_sigma=take(self.pr_sigma), sat_id=take(self.sat_id),
             signal=take(self.signal), mask=take(self.mask), clock_reset=reset,
             truth=None if self.truth is None else self.truth[idx], skipped=dict(self.skipped), **optional,
+            odometry=None if self.odometry is None else self.odometry[idx],
         )
 
     def select_slots(self, keep: np.ndarray) -> "Trace":
@@ -245,6 +252,8 @@ class Trace:
 
 #: Optional per-slot fields of :class:`Trace` (None when the source has none).
 OPTIONAL_SLOT_FIELDS = ("cn0", "pr_sigma_ok", "prr", "prr_sigma", "prr_ok", "adr", "adr_sigma", "adr_ok", "adr_slip")
+#: Columns of ``Trace.odometry``: body velocity [m/s], turn rate [rad/s], and their variances.
+ODOMETRY_COLUMNS = ("vx", "vy", "vz", "wx", "wy", "wz", "var_vx", "var_vy", "var_vz", "var_wx", "var_wy", "var_wz")
 #: Fields that come together or not at all.
 OPTIONAL_GROUPS = (("prr", "prr_sigma", "prr_ok"), ("adr", "adr_sigma", "adr_ok", "adr_slip"))
 

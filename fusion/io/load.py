@@ -4,7 +4,8 @@ The format is detected from the files: ``*_derived.csv[.gz]`` -> GSDC 2021, ``de
 -> GSDC 2022/23 (:mod:`fusion.io.gsdc`); failing those, a RINEX observation file or GnssLogger
 log in the folder or its ``supplemental/`` (:mod:`fusion.io.raw_load`, with navigation from the
 folder or the caller). Truth comes from the folder's ``ground_truth.csv`` or SPAN NMEA log
-(:mod:`fusion.io.truth`).
+(:mod:`fusion.io.truth`). A smartLoc drive (``<drive>_Input.txt`` + ``<drive>_GT.txt``, libRSF text)
+is read by :mod:`fusion.io.smartloc`.
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from pathlib import Path
 from fusion.errors import DataError, GnssfuseError
 from fusion.io.gsdc import load_derived_2021, load_device_gnss
 from fusion.io.raw_load import RawSources, load_raw_trace, raw_log_files
+from fusion.io.smartloc import load_smartloc, smartloc_input
 from fusion.io.truth import TRUTH_TOL_MS
 from fusion.trace import Trace
 
@@ -77,6 +79,9 @@ def trace_name(path: str | Path) -> str:
     """The name :func:`load_trace` gives the trace at ``path``, without reading it (the path itself
     when it is not a loadable trace)."""
     try:
+        smartloc = smartloc_input(Path(path))
+        if smartloc is not None:
+            return f"{smartloc.parent.parent.name}/{smartloc.parent.name}"
         return _name(*_locate(Path(path)))
     except DataError:
         return str(path)
@@ -87,10 +92,10 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
                raw_sources: RawSources | None = None) -> Trace:
     """Load one trace: a ``<collection>/<phone>`` folder, or a measurement file inside one.
 
-    Format is detected from the files (``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]``
-    -> GSDC 2022/23, else a raw log with navigation from ``raw_sources`` or the folder, see
+    Format is detected from the files (``<drive>_Input.txt`` -> smartLoc libRSF, :mod:`fusion.io.smartloc`;
+    ``*_derived.csv[.gz]`` -> GSDC 2021, ``device_gnss.csv[.gz]`` -> GSDC 2022/23, else a raw log with navigation from ``raw_sources`` or the folder, see
     :mod:`fusion.io.raw_load`). ``signals``: names, or None for the format's default (GSDC: GPS L1;
-    raw logs: every signal with ephemerides). ``truth``: ``"auto"`` (SPAN NMEA when present, else
+    raw logs: every signal with ephemerides; smartLoc: every supported signal in the file). ``truth``: ``"auto"`` (SPAN NMEA when present, else
     ``ground_truth.csv``, else none), ``"csv"`` (ignore NMEA), ``"nmea"`` (require it), ``"none"``.
     The trace is named ``<collection>/<phone>`` after its folder, or ``<folder>/<stem>`` when that
     folder holds several measurement files (e.g. ``samples/Pixel4_derived``).
@@ -98,6 +103,9 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
     path = Path(path)
     if truth not in ("auto", "csv", "nmea", "none"):
         raise GnssfuseError(f"truth must be 'auto', 'csv', 'nmea' or 'none', got {truth!r}")
+    smartloc = smartloc_input(path)
+    if smartloc is not None:
+        return load_smartloc(smartloc, signals=signals, truth=truth, min_sats=min_sats, truth_tol_ms=truth_tol_ms)
     raw = _raw_log(path)
     if raw is not None:
         return load_raw_trace(raw[0], raw[1], raw_sources or RawSources(), signals=signals, truth=truth,
@@ -162,6 +170,8 @@ def find_traces(root: str | Path, include_raw: bool = False) -> list[Path]:
     for folder in sorted({root, *(p for p in root.rglob("*") if p.is_dir())}):
         files = _measurement_files(folder)
         found.extend([folder] if len(files) == 1 else files)
+        if not files and smartloc_input(folder) is not None:
+            found.append(folder)
         # a raw-log folder (its logs may sit in supplemental/, which is not a trace of its own)
         if (include_raw or folder == root) and not files and folder.name != "supplemental" and raw_log_files(folder):
             found.append(folder)

@@ -132,6 +132,8 @@ def epoch_factors(k: int, trace: Trace, inp: EpochInputs, motion, cfg: GraphConf
     if inp.prior_ok[k]:
         model = prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k)
         factors.append(position_prior_factor_x(k, inp.prior_mean[k], model))
+    if inp.odometry is not None:
+        factors += inp.odometry.add_at(k, values)
     motion.add_values(k, values)
     factors += motion.link_factors(k) if (k > 0 and inp.pos_link[k]) else motion.start_factors(k)
     return factors, values

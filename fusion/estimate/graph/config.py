@@ -95,3 +95,13 @@ class GraphConfig:
     # for one more, carrier-free (fast) solve; on the simulated benchmark trace (WLS good to ~11 m)
     # the two differ by only 4 mm at p50 (benchmarks/doppler_carrier_speed.py).
     tdcp_linearize_at: str = "graph"
+    # Vehicle odometry (RunOptions.use_odometry; fusion.estimate.graph.odometry), chosen a priori, not
+    # tuned: speed sigma floor [m/s] under the file's variance (wheel speed quantisation, slip); heading
+    # sigma per step [rad] beyond the fitted offset and gyro drift (1.7 deg: the file's turn-rate noise,
+    # 0.002 rad/s, integrated over minutes, doubled); pitch [rad] for slopes the body frame hides (5 %);
+    # priors on the heading state's offset [rad] and gyro bias [rad/s] around the fit to the WLS track.
+    odom_speed_sigma_floor_mps: float = 0.1
+    odom_heading_sigma_rad: float = 0.03
+    odom_pitch_sigma_rad: float = 0.05
+    odom_heading_prior_rad: float = 0.2
+    odom_gyro_bias_prior_radps: float = 0.002

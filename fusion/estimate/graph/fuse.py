@@ -37,7 +37,8 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     if on_undetermined not in ("drop", "raise"):
         raise GnssfuseError(f"on_undetermined must be 'drop' or 'raise', got {on_undetermined!r}")
     inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, provider, prior_guess=prior_guess,
-                         slot_noise=slot_noise, use_doppler=opts.use_doppler, use_carrier=opts.use_carrier)
+                         slot_noise=slot_noise, use_doppler=opts.use_doppler, use_carrier=opts.use_carrier,
+                         use_odometry=opts.use_odometry)
     if inp.raw is not None and inp.raw.has_tdcp:
         inp.raw.lin_pos = carrier_linearisation(trace, wls, inp.init_pos, opts, cfg, provider, prior_guess,
                                                 slot_noise)

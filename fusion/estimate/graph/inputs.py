@@ -12,6 +12,7 @@ from fusion.errors import GeometryError
 from fusion.estimate.graph.clock import clock_chain
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
+from fusion.estimate.graph.odometry import OdometryFactors, odometry_factors
 from fusion.estimate.graph.priors import (PriorProvider, Priors, SlotNoiseProvider, ask_provider,
                                           clean_priors)
 from fusion.estimate.graph.raw_inputs import RawInputs, raw_inputs
@@ -60,6 +61,7 @@ class EpochInputs:
     raw: RawInputs | None = None
     clock_drift_mps: np.ndarray | None = None
     clock_span_s: np.ndarray | None = None
+    odometry: OdometryFactors | None = None
 
 
 def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -180,13 +182,14 @@ def trace_raw_inputs(trace: Trace, init_pos: np.ndarray, elev_mask_deg: float, h
 def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg: float = 10.0,
                    provider: PriorProvider | None = None, prior_guess: np.ndarray | None = None,
                    slot_noise: SlotNoiseProvider | None = None, use_doppler: bool = True,
-                   use_carrier: bool = True) -> EpochInputs:
+                   use_carrier: bool = True, use_odometry: bool = False) -> EpochInputs:
     """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
 
     prior_guess: (E,3) positions at which to ask the providers (NaN rows: the initial position);
     None = the initial positions (WLS, interpolated where it failed).
     slot_noise: per-slot pseudorange sigma and bias provider (None: the config's sigma model).
     use_doppler / use_carrier: add the trace's Doppler / carrier factors where it has them.
+    use_odometry: add the trace's odometry steps (:mod:`fusion.estimate.graph.odometry`).
     Raises :class:`GeometryError` when no epoch has any usable initial position.
     """
     t = trace.t_ms.astype(float) / 1000.0
@@ -217,4 +220,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
                       clock_drift_mps=chain.drift_mps, clock_span_s=chain.span_s)
     if inp.raw is not None:
         inp.dropped.update(inp.raw.counts)
+    if use_odometry:
+        inp.odometry = odometry_factors(trace, init_pos, wls_ok, pos_link, comp, keep, cfg)
+        inp.dropped.update(inp.odometry.counts if inp.odometry is not None else {"odometry_steps": 0})
     return inp
