@@ -31,7 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fusion.errors import GnssfuseError
 from fusion.estimate.wls import WlsResult
+from fusion.geometry import line_of_sight
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
@@ -112,8 +114,9 @@ def context_wls(trace: Trace, elev_mask_deg: float) -> WlsResult:
     return solve_initial(trace, RunOptions(elev_mask_deg=elev_mask_deg, wls_robust=False))
 
 
-def slot_context(trace: Trace, wls: WlsResult) -> SlotContext:
-    """The context of every slot of ``trace`` (E epochs, S slots) given its WLS solution."""
+def slot_context(trace: Trace, wls: WlsResult, elev_mask_deg: float = 10.0) -> SlotContext:
+    """The context of every slot of ``trace`` (E epochs, S slots) given its WLS solution (``elev_mask_deg``:
+    the mask of the reference-signal WLS that measures inter-system biases)."""
     t_s = trace.t_ms.astype(float) / 1000.0
     step_ok = np.r_[False, np.diff(t_s) <= MAX_STEP_S] & ~np.asarray(trace.clock_reset, bool)
     keys = _slot_keys(trace)
@@ -133,30 +136,37 @@ def slot_context(trace: Trace, wls: WlsResult) -> SlotContext:
     return SlotContext(pr_sigma=np.where(m, trace.pr_sigma, 1.0), cn0=np.where(m, cn0, 0.0),
                        dres=np.where(prev_ok, dres, 0.0), prev_ok=prev_ok, arc_s=arc, pr_sigma_ok=reported,
                        signal=np.where(m, trace.signal, 0).astype(np.int64),
-                       isb=np.where(m, signal_biases(trace, resid), 0.0), cmd=cmd, cmd_ok=cmd_ok,
+                       isb=np.where(m, signal_biases(trace, elev_mask_deg), 0.0), cmd=cmd, cmd_ok=cmd_ok,
                        adr_has=m & has_adr, adr_ok=m & (trace.adr_ok if has_adr else False),
                        adr_slip=m & (trace.adr_slip if has_adr else False))
 
 
-def signal_biases(trace: Trace, resid: np.ndarray) -> np.ndarray:
+def signal_biases(trace: Trace, elev_mask_deg: float = 10.0) -> np.ndarray:
     """(E,S) inter-system bias [m] of each slot's signal against the reference signal (GPS L1 where
-    present, else the most used one): the median over the trace of the slot's WLS residual minus the
-    median residual of the reference slots of its epoch. resid (E,S), NaN where not solved."""
+    present, else the most used one): the trace-wide median of the slot's residual at the reference
+    signal's own WLS position minus the median residual of the epoch's reference slots (a WLS with one
+    clock for every signal would move its positions to absorb part of the bias)."""
     sig = np.asarray(trace.signal, np.int64)
-    used = trace.mask & np.isfinite(resid)
-    present, counts = np.unique(sig[used], return_counts=True)
+    present, counts = np.unique(sig[trace.mask], return_counts=True)
     out = np.zeros(sig.shape)
     if present.size <= 1:
         return out                                  # one signal: its clock is the receiver clock
     ref = 0 if 0 in present else int(present[np.argmax(counts)])
-    ref_med = np.nanmedian(np.where(used & (sig == ref), resid, np.nan), axis=1) \
-        if (used & (sig == ref)).any() else np.full(sig.shape[0], np.nan)
-    for g in present:                               # a handful of signals, not epochs
-        if g == ref:
-            continue
-        d = np.where(used & (sig == g), resid - ref_med[:, None], np.nan)
-        b = np.nanmedian(d) if np.isfinite(d).any() else 0.0
-        out[trace.mask & (sig == g)] = b
+    own = trace.select_slots(sig == ref)
+    try:
+        w = solve_initial(own, RunOptions(elev_mask_deg=elev_mask_deg, wls_robust=False))
+    except GnssfuseError:
+        return out                                  # the reference alone solves nothing: no estimate
+    pos = np.where(np.asarray(w.valid, bool)[:, None], w.pos, np.nan)
+    rng, _ = line_of_sight(trace.sat_pos, np.nan_to_num(pos))
+    raw = np.where(trace.mask & np.isfinite(pos).all(1)[:, None], trace.pr - rng, np.nan)
+    ref_raw = np.where(sig == ref, raw, np.nan)
+    have = np.isfinite(ref_raw).any(1)
+    clock = np.full(sig.shape[0], np.nan)
+    clock[have] = np.nanmedian(ref_raw[have], axis=1)      # epochs without a reference slot: no estimate
+    for g in present[present != ref]:               # a handful of signals, not epochs
+        d = np.where(sig == g, raw - clock[:, None], np.nan)
+        out[trace.mask & (sig == g)] = np.nanmedian(d) if np.isfinite(d).any() else 0.0
     return out
 
 

@@ -110,7 +110,7 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     skipped["lt4_sats"] = int((~enough).sum())
     idx, mask, truth = idx[enough], mask[enough], truth[enough]
     w = context_wls(trace, elev_mask_deg) if (with_wls or with_graph) else None
-    ctx = slot_context(trace, w).as_dict() if w is not None else None
+    ctx = slot_context(trace, w, elev_mask_deg).as_dict() if w is not None else None
     # Real slots first, padding trimmed; padded slots zeroed so no stale measurement lingers there.
     extra = [ctx[k][idx] for k in CONTEXT_KEYS] if ctx is not None else []
     sat_pos, pr, mask, *extra = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask, *extra)

@@ -165,7 +165,7 @@ class Corrector:
         trace asked (held, so that a new trace can never reuse its identity)."""
         if self._ctx_cache is None or self._ctx_cache[0] is not trace:
             wls = context_wls(trace, self.features.elev_mask_deg)
-            self._ctx_cache = (trace, slot_context(trace, wls).as_dict())
+            self._ctx_cache = (trace, slot_context(trace, wls, self.features.elev_mask_deg).as_dict())
         return self._ctx_cache[1]
 
     def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float

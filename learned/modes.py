@@ -32,7 +32,8 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
             "unsolved_wls": int((~np.asarray(wls.valid, bool)).sum()), "too_few_sats": too_few,
             "output": opts.dnn_output or corrector.output, "weights": str(corrector.path),
             "guard_shrunk": c.info["epochs_guard_shrunk"], "guard_off": c.info["epochs_guard_off"],
-            "guard": c.info}
+            # flat, so that metrics.json (which keeps scalar info) and the report carry them
+            **{f"learned_{k}": v for k, v in c.info.items()}}
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
@@ -79,7 +80,7 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
     provider, noise = cached_providers(learned, opts.learned_prior, opts.learned_sigmas)
     # asked at the WLS track (prior_guess None): the pass above is the only one
     res = solve_graph(trace, wls, opts, GraphConfig(), provider, None, slot_noise=noise)
-    res.info["guard"] = learned.info
+    res.info.update({f"learned_{k}": v for k, v in (learned.info or {}).items()})
     if res.cov is not None and res.valid.any():
         # the graph's marginals, scaled per NED axis as measured on unseen drives (ones if not calibrated)
         ok = res.valid

@@ -159,6 +159,6 @@ class TorchNet:
         return tuple(o.detach().cpu().numpy() for o in out)
 
 
-def as_net(model) -> "NpNet | TorchNet":
-    """An :class:`NpNet` as is; a torch module wrapped in :class:`TorchNet`."""
-    return model if isinstance(model, (NpNet, TorchNet)) else TorchNet(model)
+def as_net(model):
+    """A torch module wrapped in :class:`TorchNet`; an :class:`NpNet` (or any numpy callable) as is."""
+    return TorchNet(model) if hasattr(model, "state_dict") and hasattr(model, "eval") else model

@@ -24,9 +24,12 @@ _META = ("__format__", "__config__", "__epoch__", "__source_sha256__")
 
 
 def npz_path_for(path: str | Path) -> Path:
-    """``weights.pt`` -> ``weights.npz`` (a path ending in .npz is returned as is)."""
+    """``weights.pt`` -> ``weights.npz``; ``weights.pt.last`` -> ``weights.pt.last.npz``; a path ending in
+    .npz is returned as is."""
     path = Path(path)
-    return path if path.suffix == ".npz" else path.with_suffix(".npz")
+    if path.suffix == ".npz":
+        return path
+    return path.with_suffix(".npz") if path.suffix == ".pt" else path.with_name(path.name + ".npz")
 
 
 def file_sha256(path: str | Path) -> str:
