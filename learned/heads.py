@@ -7,6 +7,8 @@ import numpy as np
 
 from fusion.geometry import line_of_sight
 
+#: Outputs a checkpoint can serve: the learned-weight least squares, or the paper's correction.
+OUTPUTS = ("wls", "correction")
 #: The per-satellite log-multiplier is clamped to this range (sigma between 1/50 and 50 x the model's).
 LOGSIG_RANGE = (-4.0, 4.0)
 #: Zenith term of the physical sigma model [m] (the graph's default: GraphConfig.pr_sigma_zenith_m).

@@ -21,12 +21,10 @@ from fusion.trace import SIGNALS, Trace
 from learned.context import context_wls, slot_context
 from learned.features import SUPPORTED_VERSIONS, FeatureConfig, context_channels, elevation_mask, features_numpy
 from learned.guard import feature_guard, slot_out_of_range, trust
-from learned.heads import base_sigma, report_sigma, sat_sigma_bias, weighted_ls_step
+from learned.heads import OUTPUTS, base_sigma, report_sigma, sat_sigma_bias, weighted_ls_step
 from learned.npnet import KINDS, NpNet, as_net
 from learned.npz_weights import load_for_inference
 
-#: Outputs a checkpoint can serve: the learned-weight least squares, or the paper's correction.
-OUTPUTS = ("wls", "correction")
 
 #: Weights shipped with the package (see learned/weights/TRAINING.md).
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.pt"
