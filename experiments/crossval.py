@@ -13,6 +13,10 @@ drives, applied to this fold's). ``--store-calibration CKPT`` writes the pooled 
 checkpoint (the shipped one is calibrated this way).
 
     python experiments/crossval.py --data ../shared/data/gsdc2021/train --out /tmp/cv --jobs 2
+
+Quicker, on a busy machine: ``--two-fold`` (two folds of six drives), ``--modes wls,dnn,fused-nodnn,fused``,
+``--epochs 8``; ``--feature-version 2`` trains the previous release's recipe on the same folds, and
+``--weights CKPT`` evaluates one checkpoint on every fold (in-sample if it was trained on them).
 """
 from __future__ import annotations
 
@@ -37,8 +41,9 @@ from fusion.run_types import RunOptions  # noqa: E402
 from learned.augment import parse_guess_mix  # noqa: E402
 from learned.calibrate import sigma_scale  # noqa: E402
 from learned.data import concat_samples, samples_from_trace, split_traces  # noqa: E402
-from learned.features import CHANNELS, FeatureConfig  # noqa: E402
+from learned.features import FEATURE_VERSION, SUPPORTED_VERSIONS, FeatureConfig  # noqa: E402
 from learned.train import LossWeights, TrainConfig, train  # noqa: E402
+from learned.train_command import default_inputs, parse_dropout  # noqa: E402
 
 FOLDS = {
     "A": ("2020-05-14-US-MTV-1", "2020-05-14-US-MTV-2", "2020-07-08-US-MTV-1"),
@@ -46,6 +51,8 @@ FOLDS = {
     "C": ("2020-05-29-US-MTV-1", "2020-05-29-US-MTV-2", "2020-06-11-US-MTV-1"),
     "D": ("2020-06-04-US-MTV-1", "2020-06-05-US-MTV-1", "2020-06-05-US-MTV-2"),
 }
+#: ``--two-fold``: two folds of six drives (A+B, C+D), a quicker check on a busy machine.
+FOLDS2 = {"AB": FOLDS["A"] + FOLDS["B"], "CD": FOLDS["C"] + FOLDS["D"]}
 #: mode label -> (pipeline mode, RunOptions changes)
 MODES = {
     "wls": ("wls", {}), "wls-prunc": ("wls", {"wls_weighting": "uncertainty"}),
@@ -76,7 +83,8 @@ def train_fold(fold: str, args) -> Path:
         return ckpt
     import torch
     torch.set_num_threads(1)
-    drives = [d for f, ds in FOLDS.items() if f != fold for d in ds]
+    table = fold_table(args)
+    drives = [d for f, ds in table.items() if f != fold for d in ds]
     parts = [drive_samples(args.data, d, args.out / "cache") for d in drives]
     samples = concat_samples([replace(p, trace=np.zeros(len(p), int)) for p in parts])
     # validation: one whole drive of the nine, so the best epoch is the one that generalises
@@ -88,12 +96,17 @@ def train_fold(fold: str, args) -> Path:
     return ckpt
 
 
+def fold_table(args) -> dict:
+    return FOLDS2 if args.two_fold else FOLDS
+
+
 def recipe(args, data: dict) -> TrainConfig:
     """The training recipe under test (the shipped one by default)."""
     w = LossWeights(**{k: float(v) for k, v in (kv.split("=") for kv in args.loss.split(",") if kv)})
+    inputs = args.inputs or default_inputs(args.feature_version)
     return TrainConfig(epochs=args.epochs, batch=args.batch, seed=args.seed, data=data, loss=w,
-                       guess_mix=parse_guess_mix(args.guess_mix),
-                       features=FeatureConfig(inputs=tuple(args.inputs.split(","))), output="wls")
+                       guess_mix=parse_guess_mix(args.guess_mix), output="wls", dropout=parse_dropout(args.dropout),
+                       features=FeatureConfig(version=args.feature_version, inputs=tuple(inputs.split(","))))
 
 
 def eval_drive(drive: str, ckpt: Path, args) -> dict:
@@ -104,7 +117,7 @@ def eval_drive(drive: str, ckpt: Path, args) -> dict:
     base = RunOptions(weights=ckpt)
     wls = solve_initial(trace, base)
     out = {}
-    for label, (mode, changes) in MODES.items():
+    for label, (mode, changes) in ((k, MODES[k]) for k in args.modes.split(",")):
         opts = replace(base, **changes)
         w = wls if mode != "wls" or not changes else solve_initial(trace, opts)
         res = run_modes(trace, [mode], opts, wls=w)[mode]
@@ -118,8 +131,8 @@ def eval_drive(drive: str, ckpt: Path, args) -> dict:
 
 
 def run_fold(fold: str, args) -> dict:
-    ckpt = train_fold(fold, args)
-    return {d: eval_drive(d, ckpt, args) for d in FOLDS[fold]}
+    ckpt = args.weights or train_fold(fold, args)
+    return {d: eval_drive(d, ckpt, args) for d in fold_table(args)[fold]}
 
 
 def pooled(results: dict, folds, label: str) -> dict:
@@ -154,12 +167,12 @@ def cross_fitted(results: dict, label: str) -> dict:
 def tables(results: dict) -> str:
     lines = ["| fold | mode | GSDC score | h p50 | h p95 | MAE N | MAE E | MAE D | epochs |", "|---|---|---|---|---|---|---|---|---|"]
     for name, folds in [*((f, [f]) for f in results), ("pooled", list(results))]:
-        for label in MODES:
+        for label in labels(results):
             s = pooled(results, folds, label)
             lines.append(f"| {name} | {label} | {s['gsdc_score']:.2f} | {s['h_p50']:.2f} | {s['h_p95']:.2f} | "
                          f"{s['mae_n']:.2f} | {s['mae_e']:.2f} | {s['mae_d']:.2f} | {s['n']} |")
     lines += ["", "| mode | calibration | within 1 sigma N / E / D | within 2 sigma N / E / D | n |", "|---|---|---|---|---|"]
-    for label in CALIBRATED:
+    for label in (m for m in CALIBRATED if m in labels(results)):
         for how, c in (("checkpoint's", coverage(results, list(results), label)),
                        ("cross-fitted", cross_fitted(results, label))):
             lines.append(f"| {label} | {how} | {' / '.join(f'{v:.2f}' for v in c['within_1sigma'])} | "
@@ -167,10 +180,16 @@ def tables(results: dict) -> str:
     return "\n".join(lines)
 
 
+def labels(results: dict) -> list[str]:
+    """The mode labels a results dict holds, in MODES order."""
+    first = next(iter(next(iter(results.values())).values()))
+    return [m for m in MODES if m in first]
+
+
 def pooled_scales(results: dict) -> dict:
     """Sigma scales fitted on every fold's unseen drives, per calibrated mode (to store in a checkpoint)."""
     out = {}
-    for label in CALIBRATED:
+    for label in (m for m in CALIBRATED if m in labels(results)):
         z = np.concatenate([np.abs(results[f][d][label]["err"]) / results[f][d][label]["sigma"]
                             for f in results for d in results[f]])
         out[label] = sigma_scale(z)
@@ -181,13 +200,20 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "gsdc2021" / "train")
     p.add_argument("--out", type=Path, default=Path("/tmp/gnssfuse_cv"))
-    p.add_argument("--folds", default="A,B,C,D")
+    p.add_argument("--folds", default=None, help="folds to run (default: all of the fold table)")
+    p.add_argument("--two-fold", action="store_true", help="two folds of six drives (AB, CD) instead of four")
+    p.add_argument("--modes", default=",".join(MODES), help=f"mode labels to evaluate, from {','.join(MODES)}")
+    p.add_argument("--feature-version", type=int, default=FEATURE_VERSION, choices=SUPPORTED_VERSIONS,
+                   help="input feature version of the recipe (2: the previous release's)")
+    p.add_argument("--weights", type=Path, default=None,
+                   help="evaluate this checkpoint on every fold instead of training one per fold")
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--loss", default="correction=1,sat=0.1,wls=1,shrink=1")
     p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3")
-    p.add_argument("--inputs", default=",".join(CHANNELS))
+    p.add_argument("--inputs", default=None, help="input groups (default: every group of the feature version)")
+    p.add_argument("--dropout", default=None, help="feature dropout rates (gnssfuse train --dropout)")
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
     p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")
     p.add_argument("--from-results", action="store_true",
@@ -199,7 +225,10 @@ def parse_args(argv=None):
 def main(argv=None) -> int:
     args = parse_args(argv)
     (args.out / "cache").mkdir(parents=True, exist_ok=True)
-    folds = args.folds.split(",")
+    folds = args.folds.split(",") if args.folds else list(fold_table(args))
+    unknown = [m for m in args.modes.split(",") if m not in MODES]
+    if unknown:
+        raise SystemExit(f"--modes: unknown {unknown} (known: {', '.join(MODES)})")
     if args.from_results:
         results = pickle.loads((args.out / "results.pkl").read_bytes())
     else:

@@ -90,6 +90,8 @@ class Trace:
     Optional per-slot measurements (None when the source has none; padded slots hold 0 / False):
 
     cn0:         (E,S)    float64, carrier-to-noise density [dB-Hz]; 0 where unknown.
+    pr_sigma_ok: (E,S)    bool, ``pr_sigma`` is the receiver's own report (False: a model filled it in,
+                          e.g. from C/N0 for RINEX, which reports none); None: reported wherever real.
     prr:         (E,S)    float64, pseudorange rate from Doppler [m/s] (``-wavelength * doppler``),
                           satellite clock drift removed (``+ c * d(dt_sv)/dt``), like ``pr``.
     prr_sigma:   (E,S)    float64, its 1-sigma [m/s] (1 where not ``prr_ok``).
@@ -118,6 +120,7 @@ class Trace:
     name: str = "trace"
     skipped: dict[str, int] = field(default_factory=dict)
     cn0: np.ndarray | None = None
+    pr_sigma_ok: np.ndarray | None = None
     prr: np.ndarray | None = None
     prr_sigma: np.ndarray | None = None
     prr_ok: np.ndarray | None = None
@@ -172,7 +175,7 @@ class Trace:
                 continue
             if np.shape(a) != (E, S):
                 raise DataError(f"{self.name}: {key} has shape {np.shape(a)}, expected {(E, S)}")
-            if key in ("prr_ok", "adr_ok", "adr_slip") and np.asarray(a).dtype != bool:
+            if key in ("pr_sigma_ok", "prr_ok", "adr_ok", "adr_slip") and np.asarray(a).dtype != bool:
                 raise DataError(f"{self.name}: {key} must be bool, got {np.asarray(a).dtype}")
         for value, ok in (("prr", "prr_ok"), ("adr", "adr_ok")):
             if getattr(self, ok) is not None and not np.all(np.isfinite(getattr(self, value)[getattr(self, ok)])):
@@ -251,7 +254,7 @@ class Trace:
 
 
 #: Optional per-slot fields of :class:`Trace` (None when the source has none).
-OPTIONAL_SLOT_FIELDS = ("cn0", "prr", "prr_sigma", "prr_ok", "adr", "adr_sigma", "adr_ok", "adr_slip")
+OPTIONAL_SLOT_FIELDS = ("cn0", "pr_sigma_ok", "prr", "prr_sigma", "prr_ok", "adr", "adr_sigma", "adr_ok", "adr_slip")
 #: Columns of ``Trace.odometry``: body velocity [m/s], turn rate [rad/s], and their variances.
 ODOMETRY_COLUMNS = ("vx", "vy", "vz", "wx", "wy", "wz", "var_vx", "var_vy", "var_vz", "var_wx", "var_wy", "var_wz")
 #: Fields that come together or not at all.

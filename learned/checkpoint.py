@@ -7,6 +7,9 @@ numbers only: no pickled code runs on load)::
      "config": {"model": {"kind": ..., "hparams": {...}}, "features": FeatureConfig dict,
                 "eta": ..., "data": ..., "seed": ..., ...},
      "model_state": state_dict, "optimizer_state": ... | None, "epoch": int, "history": [...]}
+
+Every save also writes the weights and config as ``<name>.npz`` beside it (:mod:`learned.npz_weights`): what
+inference reads without torch.
 """
 from __future__ import annotations
 
@@ -18,8 +21,9 @@ import torch
 from torch import nn
 
 from fusion.errors import CheckpointError
-from learned.features import FEATURE_VERSION
+from learned.features import SUPPORTED_VERSIONS
 from learned.model import MODELS, build_model
+from learned.npz_weights import file_sha256, npz_path_for, write_npz
 
 FORMAT = "gnssfuse-checkpoint"
 FORMAT_VERSION = 1
@@ -36,6 +40,9 @@ def save_checkpoint(path: str | Path, model: nn.Module, config: dict, *, optimiz
     tmp = path.with_name(path.name + ".tmp")
     torch.save(blob, tmp)
     os.replace(tmp, path)
+    # inference reads this twin and never imports torch (learned.npz_weights)
+    write_npz(npz_path_for(path), {k: v.detach().cpu().float().numpy() for k, v in model.state_dict().items()},
+              config, epoch, file_sha256(path))
     return path
 
 
@@ -62,8 +69,8 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict) or not isinstance(cfg.get("features"), dict):
         raise CheckpointError(f"{path}: checkpoint has no model/feature config (or they are not dicts)")
     fv = cfg["features"].get("version")
-    if fv != FEATURE_VERSION:
-        raise CheckpointError(f"{path}: feature version {fv!r} does not match this code's {FEATURE_VERSION} "
+    if fv not in SUPPORTED_VERSIONS:
+        raise CheckpointError(f"{path}: feature version {fv!r}; this code reads versions {SUPPORTED_VERSIONS} "
                               "(retrain or use a matching gnssfuse version)")
     if cfg["model"].get("kind") not in MODELS:
         raise CheckpointError(f"{path}: unknown model kind {cfg['model'].get('kind')!r}")

@@ -8,7 +8,19 @@ All of it comes from the measurements and the WLS solution of the same trace (no
 - ``dres``: change of the satellite's WLS post-fit residual since the previous epoch [m] (a jump is
   what multipath or a reflection appearing looks like), with ``prev_ok`` saying it exists;
 - ``arc_s``: seconds since the satellite (this signal) was first seen in its current unbroken arc
-  (newly acquired signals are the noisy ones).
+  (newly acquired signals are the noisy ones);
+- ``pr_sigma_ok``: ``pr_sigma`` is the receiver's own report (RINEX reports none: its reader models it
+  from C/N0);
+- ``signal``: the slot's index into :data:`fusion.trace.SIGNALS`;
+- ``isb``: the inter-system bias of the slot's signal against the reference signal (GPS L1 where present)
+  [m], one value per signal and trace, from the plain WLS's residuals: subtracted from the pseudorange
+  before the network and its least squares see it, so that every signal's slots take the clock as the
+  reference's (0 for GSDC derived files, whose ``isrbM`` already removes it);
+- ``cmd``: code minus Doppler [m], the pseudorange change since the previous epoch minus the Doppler
+  integrated over the step (receiver clock drift and motion cancel; multipath and reflections do not),
+  with ``cmd_ok`` where both epochs have a Doppler;
+- ``adr_has``, ``adr_ok``, ``adr_slip``: the trace carries carrier phase for the slot; it is valid; it
+  slipped or reset since the previous epoch.
 
 A slot's "previous epoch" is the epoch before it in the trace, if no more than :data:`MAX_STEP_S`
 earlier, with the same satellite and signal, neither epoch's WLS failed, and no clock reset between.
@@ -19,7 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fusion.errors import GnssfuseError
 from fusion.estimate.wls import WlsResult
+from fusion.geometry import line_of_sight
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
@@ -29,7 +43,8 @@ MAX_STEP_S = 1.5
 #: Arc ages are capped here [s]: beyond ten minutes an arc is simply "old".
 MAX_ARC_S = 600.0
 #: The per-slot context arrays, in a fixed order.
-CONTEXT_KEYS = ("pr_sigma", "cn0", "dres", "prev_ok", "arc_s")
+CONTEXT_KEYS = ("pr_sigma", "cn0", "dres", "prev_ok", "arc_s", "pr_sigma_ok", "signal", "isb", "cmd", "cmd_ok",
+                "adr_has", "adr_ok", "adr_slip")
 
 
 @dataclass
@@ -41,6 +56,14 @@ class SlotContext:
     dres: np.ndarray
     prev_ok: np.ndarray
     arc_s: np.ndarray
+    pr_sigma_ok: np.ndarray
+    signal: np.ndarray
+    isb: np.ndarray
+    cmd: np.ndarray
+    cmd_ok: np.ndarray
+    adr_has: np.ndarray
+    adr_ok: np.ndarray
+    adr_slip: np.ndarray
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {k: getattr(self, k) for k in CONTEXT_KEYS}
@@ -91,8 +114,9 @@ def context_wls(trace: Trace, elev_mask_deg: float) -> WlsResult:
     return solve_initial(trace, RunOptions(elev_mask_deg=elev_mask_deg, wls_robust=False))
 
 
-def slot_context(trace: Trace, wls: WlsResult) -> SlotContext:
-    """The context of every slot of ``trace`` (E epochs, S slots) given its WLS solution."""
+def slot_context(trace: Trace, wls: WlsResult, elev_mask_deg: float = 10.0) -> SlotContext:
+    """The context of every slot of ``trace`` (E epochs, S slots) given its WLS solution (``elev_mask_deg``:
+    the mask of the reference-signal WLS that measures inter-system biases)."""
     t_s = trace.t_ms.astype(float) / 1000.0
     step_ok = np.r_[False, np.diff(t_s) <= MAX_STEP_S] & ~np.asarray(trace.clock_reset, bool)
     keys = _slot_keys(trace)
@@ -105,5 +129,59 @@ def slot_context(trace: Trace, wls: WlsResult) -> SlotContext:
     dres = resid - np.where(prev >= 0, prev_resid, np.nan)
     prev_ok = np.isfinite(dres)
     cn0 = trace.cn0 if trace.cn0 is not None else np.zeros(trace.mask.shape)
-    return SlotContext(pr_sigma=np.where(trace.mask, trace.pr_sigma, 1.0), cn0=np.where(trace.mask, cn0, 0.0),
-                       dres=np.where(prev_ok, dres, 0.0), prev_ok=prev_ok, arc_s=arc)
+    m = trace.mask
+    reported = m if trace.pr_sigma_ok is None else m & trace.pr_sigma_ok
+    cmd, cmd_ok = code_minus_doppler(trace, prev, t_s)
+    has_adr = trace.adr_ok is not None
+    return SlotContext(pr_sigma=np.where(m, trace.pr_sigma, 1.0), cn0=np.where(m, cn0, 0.0),
+                       dres=np.where(prev_ok, dres, 0.0), prev_ok=prev_ok, arc_s=arc, pr_sigma_ok=reported,
+                       signal=np.where(m, trace.signal, 0).astype(np.int64),
+                       isb=np.where(m, signal_biases(trace, elev_mask_deg), 0.0), cmd=cmd, cmd_ok=cmd_ok,
+                       adr_has=m & has_adr, adr_ok=m & (trace.adr_ok if has_adr else False),
+                       adr_slip=m & (trace.adr_slip if has_adr else False))
+
+
+def signal_biases(trace: Trace, elev_mask_deg: float = 10.0) -> np.ndarray:
+    """(E,S) inter-system bias [m] of each slot's signal against the reference signal (GPS L1 where
+    present, else the most used one): the trace-wide median of the slot's residual at the reference
+    signal's own WLS position minus the median residual of the epoch's reference slots (a WLS with one
+    clock for every signal would move its positions to absorb part of the bias)."""
+    sig = np.asarray(trace.signal, np.int64)
+    present, counts = np.unique(sig[trace.mask], return_counts=True)
+    out = np.zeros(sig.shape)
+    if present.size <= 1:
+        return out                                  # one signal: its clock is the receiver clock
+    ref = 0 if 0 in present else int(present[np.argmax(counts)])
+    own = trace.select_slots(sig == ref)
+    try:
+        w = solve_initial(own, RunOptions(elev_mask_deg=elev_mask_deg, wls_robust=False))
+    except GnssfuseError:
+        return out                                  # the reference alone solves nothing: no estimate
+    pos = np.where(np.asarray(w.valid, bool)[:, None], w.pos, np.nan)
+    rng, _ = line_of_sight(trace.sat_pos, np.nan_to_num(pos))
+    raw = np.where(trace.mask & np.isfinite(pos).all(1)[:, None], trace.pr - rng, np.nan)
+    ref_raw = np.where(sig == ref, raw, np.nan)
+    have = np.isfinite(ref_raw).any(1)
+    clock = np.full(sig.shape[0], np.nan)
+    clock[have] = np.nanmedian(ref_raw[have], axis=1)      # epochs without a reference slot: no estimate
+    for g in present[present != ref]:               # a handful of signals, not epochs
+        d = np.where(sig == g, raw - clock[:, None], np.nan)
+        out[trace.mask & (sig == g)] = np.nanmedian(d) if np.isfinite(d).any() else 0.0
+    return out
+
+
+def code_minus_doppler(trace: Trace, prev: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(E,S) pseudorange change since the previous epoch minus the mean Doppler range rate times the step
+    [m], and (E,S) bool where it exists (both epochs with a Doppler; ``prev`` from :func:`_previous_slot`)."""
+    E, S = trace.mask.shape
+    if trace.prr_ok is None or E < 2:
+        return np.zeros((E, S)), np.zeros((E, S), bool)
+    p = np.maximum(prev, 0)
+    ok = np.zeros((E, S), bool)
+    ok[1:] = (prev[1:] >= 0) & trace.prr_ok[1:] & np.take_along_axis(trace.prr_ok[:-1], p[1:], axis=1)
+    cmd = np.zeros((E, S))
+    dt = np.diff(t_s)[:, None]
+    dpr = trace.pr[1:] - np.take_along_axis(trace.pr[:-1], p[1:], axis=1)
+    rate = 0.5 * (trace.prr[1:] + np.take_along_axis(trace.prr[:-1], p[1:], axis=1))
+    cmd[1:] = np.where(ok[1:], dpr - rate * dt, 0.0)
+    return cmd, ok & trace.mask

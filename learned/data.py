@@ -110,12 +110,15 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     skipped["lt4_sats"] = int((~enough).sum())
     idx, mask, truth = idx[enough], mask[enough], truth[enough]
     w = context_wls(trace, elev_mask_deg) if (with_wls or with_graph) else None
-    ctx = slot_context(trace, w).as_dict() if w is not None else None
+    ctx = slot_context(trace, w, elev_mask_deg).as_dict() if w is not None else None
     # Real slots first, padding trimmed; padded slots zeroed so no stale measurement lingers there.
     extra = [ctx[k][idx] for k in CONTEXT_KEYS] if ctx is not None else []
     sat_pos, pr, mask, *extra = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask, *extra)
     sat_pos, pr = sat_pos * mask[..., None], pr * mask
-    ctx = None if ctx is None else {k: np.where(mask, v, 1.0 if k == "pr_sigma" else 0.0)
+    if ctx is not None:
+        # every signal's pseudoranges on the reference signal's clock (learned.context: ``isb``)
+        pr = pr - np.where(mask, extra[CONTEXT_KEYS.index("isb")], 0.0)
+    ctx = None if ctx is None else {k: np.where(mask, v, np.asarray(1.0 if k == "pr_sigma" else 0).astype(v.dtype))
                                     for k, v in zip(CONTEXT_KEYS, extra)}
     wls = graph = None
     if with_wls:

@@ -28,15 +28,30 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import torch
 
 from fusion.geometry import C_LIGHT, OMEGA_E, ecef2ned_vec, elevation_azimuth, line_of_sight
 
 #: Bump when the meaning or scaling of the inputs changes; checkpoints record it.
-FEATURE_VERSION = 2
+FEATURE_VERSION = 3
+#: Versions this code reads: 2 (the previous release's weights: GPS L1, one clock) and 3.
+SUPPORTED_VERSIONS = (2, 3)
 
-#: Input channel groups and their widths. "res" and "los" are the paper's and always first.
-CHANNELS = {"res": 1, "los": 3, "pr_sigma": 1, "cn0": 2, "dres": 2, "arc": 1}
+#: Constellation of each :data:`fusion.trace.SIGNALS` index (GPS, GLO, GAL, BDS, QZS) for the "system" one-hot.
+SIGNAL_SYSTEM = (0, 0, 1, 2, 2, 3, 4, 4)
+N_SYSTEMS, N_SIGNALS = 5, len(SIGNAL_SYSTEM)
+
+#: Input channel groups and their widths (version 3). "res" and "los" are the paper's and always first.
+#: Each group a file may lack carries its own "present" flag (missing: flag 0 and value 0): pr_sigma (the
+#: receiver's report; RINEX has none), cn0, cmd (code minus Doppler), carrier (has phase, valid, slip).
+#: system / signal: one-hot with a last "unknown" entry (a signal never seen in training reads as unknown).
+CHANNELS = {"res": 1, "los": 3, "pr_sigma": 2, "cn0": 2, "dres": 2, "arc": 1, "cmd": 2, "carrier": 3,
+            "system": N_SYSTEMS + 1, "signal": N_SIGNALS + 1}
+#: Version 2's groups and widths (its pr_sigma has no flag: every 2021 file reports one).
+CHANNELS_V2 = {"res": 1, "los": 3, "pr_sigma": 1, "cn0": 2, "dres": 2, "arc": 1}
+#: Groups a file may lack (with a present flag as their last channel but one, see :func:`context_channels`).
+OPTIONAL_GROUPS = ("pr_sigma", "cn0", "cmd", "carrier")
+#: One-hot groups whose last channel is "unknown".
+CATEGORY_GROUPS = ("system", "signal")
 #: The paper's inputs.
 PAPER_INPUTS = ("res", "los")
 #: Reference values of the context scalings: a typical phone pseudorange sigma [m], C/N0 [dB-Hz].
@@ -86,15 +101,30 @@ class FeatureConfig:
         if self.clock not in CLOCK_MODES:
             raise ValueError(f"FeatureConfig.clock must be one of {CLOCK_MODES}, got {self.clock!r}")
         object.__setattr__(self, "inputs", tuple(self.inputs))
-        unknown = [c for c in self.inputs if c not in CHANNELS]
+        if self.version not in SUPPORTED_VERSIONS:
+            raise ValueError(f"FeatureConfig.version {self.version!r}: this code reads {SUPPORTED_VERSIONS}")
+        unknown = [c for c in self.inputs if c not in self.widths]
         if unknown or self.inputs[:2] != PAPER_INPUTS:
             raise ValueError(f"FeatureConfig.inputs must start with {PAPER_INPUTS} and name channels from "
-                             f"{tuple(CHANNELS)}; got {self.inputs}")
+                             f"{tuple(self.widths)}; got {self.inputs}")
+
+    @property
+    def widths(self) -> dict[str, int]:
+        """Channel groups of this version and their widths."""
+        return CHANNELS_V2 if self.version == 2 else CHANNELS
 
     @property
     def n_inputs(self) -> int:
         """Input width per slot."""
-        return sum(CHANNELS[c] for c in self.inputs)
+        return sum(self.widths[c] for c in self.inputs)
+
+    def slices(self) -> dict[str, slice]:
+        """Each input group's channels in ``x`` (N,S,n_inputs)."""
+        out, a = {}, 0
+        for c in self.inputs:
+            out[c] = slice(a, a + self.widths[c])
+            a += self.widths[c]
+        return out
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -107,11 +137,56 @@ class FeatureConfig:
         return cls(**{k: d[k] for k in keys if k in d})
 
 
-def context_channels(ctx: dict[str, np.ndarray], mask: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
+def context_channels(ctx: dict[str, np.ndarray], mask: np.ndarray, cfg: FeatureConfig,
+                     missing: dict[str, np.ndarray] | None = None) -> np.ndarray:
     """The context channels ``cfg.inputs`` asks for beyond the paper's: (N,S,C) float32, zeros on padding.
 
     ctx: (N,S) arrays keyed as :data:`learned.context.CONTEXT_KEYS`; mask (N,S) bool real slots.
+    missing: group name -> (N,S) bool slots where that group is to read as missing (optional groups) or
+    unknown (system / signal): training's feature dropout and the guard (:mod:`learned.guard`).
     """
+    if cfg.version == 2:
+        return _context_channels_v2(ctx, mask, cfg)
+    missing = missing or {}
+    drop = {k: np.asarray(missing.get(k, False), bool) for k in (*OPTIONAL_GROUPS, *CATEGORY_GROUPS)}
+    cols = []
+    for name in cfg.inputs[2:]:
+        cols += _group(name, ctx, drop, cfg)
+    if not cols:
+        return np.zeros(mask.shape + (0,), np.float32)
+    x = np.stack([np.broadcast_to(np.asarray(c, float), mask.shape) for c in cols], axis=-1)
+    return np.where(mask[..., None], x, 0.0).astype(np.float32)
+
+
+def _group(name: str, ctx: dict, drop: dict, cfg: FeatureConfig) -> list:
+    """The (N,S) columns of one version-3 input group."""
+    if name == "pr_sigma":
+        have = (np.asarray(ctx["pr_sigma_ok"]) > 0) & ~drop["pr_sigma"]
+        return [np.where(have, np.log(np.clip(ctx["pr_sigma"], 0.1, 1000.0) / _PR_SIGMA_REF_M), 0.0), have]
+    if name == "cn0":
+        have = (ctx["cn0"] > 0) & ~drop["cn0"]
+        return [np.where(have, (ctx["cn0"] - _CN0_REF) / _CN0_SCALE, 0.0), have]
+    if name == "dres":
+        return [np.clip(ctx["dres"] / cfg.res_scale, -10.0, 10.0), ctx["prev_ok"]]
+    if name == "arc":
+        return [np.log1p(ctx["arc_s"]) / np.log1p(600.0)]
+    if name == "cmd":
+        have = (np.asarray(ctx["cmd_ok"]) > 0) & ~drop["cmd"]
+        return [np.where(have, np.clip(ctx["cmd"] / cfg.res_scale, -10.0, 10.0), 0.0), have]
+    if name == "carrier":
+        has = (np.asarray(ctx["adr_has"]) > 0) & ~drop["carrier"]
+        return [has, has & (np.asarray(ctx["adr_ok"]) > 0), has & (np.asarray(ctx["adr_slip"]) > 0)]
+    sig = np.asarray(ctx["signal"], np.int64)
+    known = (sig >= 0) & (sig < N_SIGNALS)
+    if name == "system":
+        idx = np.where(known & ~drop["system"], np.asarray(SIGNAL_SYSTEM)[np.clip(sig, 0, N_SIGNALS - 1)], N_SYSTEMS)
+        return list(np.eye(N_SYSTEMS + 1, dtype=bool)[idx].transpose(2, 0, 1))
+    idx = np.where(known & ~drop["signal"], sig, N_SIGNALS)
+    return list(np.eye(N_SIGNALS + 1, dtype=bool)[idx].transpose(2, 0, 1))
+
+
+def _context_channels_v2(ctx: dict[str, np.ndarray], mask: np.ndarray, cfg: FeatureConfig) -> np.ndarray:
+    """Version 2's context channels (the previous release's weights), unchanged."""
     cols = []
     for name in cfg.inputs[2:]:
         if name == "pr_sigma":
@@ -172,6 +247,7 @@ def ned_rotation_torch(ref: torch.Tensor) -> torch.Tensor:
 
     Geodetic latitude by fixed-point iteration (5 steps reach < 1e-12 rad near the surface).
     """
+    import torch  # training only: inference never imports torch
     x, y, z = ref.unbind(-1)
     p = torch.sqrt(x * x + y * y)
     lon = torch.atan2(y, x)
@@ -192,6 +268,7 @@ def ned_rotation_torch(ref: torch.Tensor) -> torch.Tensor:
 
 def line_of_sight_torch(sat_pos: torch.Tensor, rx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Torch twin of :func:`fusion.geometry.line_of_sight`: (B,S,3), (B,3) -> range (B,S), los (B,S,3)."""
+    import torch  # training only: inference never imports torch
     rng0 = torch.linalg.vector_norm(sat_pos - rx[:, None, :], dim=-1)
     theta = OMEGA_E * rng0 / C_LIGHT
     c, s = torch.cos(theta), torch.sin(theta)
@@ -209,6 +286,7 @@ def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, 
     guess (B,3); ``clock`` (B,) [m] only with ``cfg.clock == "given"`` (experiment only); ``extra``
     (B,S,C) float32 context channels (:func:`context_channels`).
     Returns ``x`` (B,S,4+C) float32 and the NED rotation at the guess (B,3,3) float64."""
+    import torch  # training only: inference never imports torch
     _check_clock(cfg, clock)
     rng, los = line_of_sight_torch(sat_pos, guess)
     raw = pr - rng
@@ -225,6 +303,7 @@ def features_torch(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, 
 def target_torch(truth: torch.Tensor, guess: torch.Tensor, R: torch.Tensor,
                  cfg: FeatureConfig = FeatureConfig()) -> torch.Tensor:
     """(truth - guess) in the NED frame of the guess (R from :func:`features_torch`) over out_scale."""
+    import torch  # training only: inference never imports torch
     return torch.einsum("bij,bj->bi", R, truth - guess).float() / cfg.out_scale
 
 

@@ -7,11 +7,9 @@ from __future__ import annotations
 import torch
 
 from learned.features import FeatureConfig
+from learned.heads import OUTPUTS  # noqa: F401  (re-exported: training imports it from here)
 from learned.losses import weighted_ls_step
 from learned.model import base_sigma, sat_sigma_bias
-
-#: Outputs a checkpoint can serve: the learned-weight least squares, or the paper's correction.
-OUTPUTS = ("wls", "correction")
 
 
 def take(t: dict, idx: torch.Tensor) -> dict:

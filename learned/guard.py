@@ -1,5 +1,12 @@
 """Out-of-distribution guard: how far to trust the network on an epoch it was not trained for.
 
+Version-3 features (:func:`feature_guard`) are guarded per measurement and per feature: a feature the
+training data never had present (C/N0 for the 2021 files) or a value outside its training range reads
+as *missing* for that measurement; a constellation or signal never seen in training reads as *unknown*
+(both learned with feature dropout); only a measurement whose own residual, residual change or arc age
+leaves the training range is handed to the physical sigma model, and the epoch's trust falls with the
+share of those. Version-2 checkpoints keep the rule below.
+
 Training stores, per input channel, the range the training inputs spanned (quantiles 0.1 % and 99.9 % over
 real slots, at the samples' WLS solutions; :func:`input_ranges`). At inference a slot is *out of range* when
 any channel leaves that range widened by :data:`MARGIN` of its width; an epoch's trust is 1 while at most
@@ -11,7 +18,6 @@ or firmware the network never met gets the non-learned answer instead of a confi
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 MARGIN = 0.1
 SHARE_FULL, SHARE_NONE = 0.1, 0.5
@@ -22,6 +28,7 @@ _SKIP = slice(1, 4)
 
 def input_ranges(x: torch.Tensor, mask: torch.Tensor) -> dict:
     """Per-channel [lo, hi] of training inputs ``x`` (N,S,F) over real slots ``mask`` (N,S)."""
+    import torch  # training only
     v = x[mask].double()
     if v.shape[0] > 200_000:      # quantile has a size limit; an even subsample is as good for ranges
         v = v[torch.linspace(0, v.shape[0] - 1, 200_000).long()]
@@ -38,6 +45,51 @@ def slot_out_of_range(x: np.ndarray, mask: np.ndarray, ranges: dict | None) -> n
     out = (x < lo - pad) | (x > hi + pad)
     out[..., _SKIP] = False
     return out.any(-1) & mask
+
+
+def _widened(ranges: dict) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = np.asarray(ranges["lo"], float), np.asarray(ranges["hi"], float)
+    pad = MARGIN * (hi - lo)
+    return lo - pad, hi + pad
+
+
+def feature_guard(x: np.ndarray, mask: np.ndarray, ranges: dict | None, cfg) -> tuple[dict, np.ndarray, dict]:
+    """Per-measurement, per-feature guard of version-3 inputs ``x`` (N,S,F) on real slots ``mask`` (N,S).
+
+    Returns ``missing`` (group -> (N,S) bool: read that group as missing / unknown there, for
+    :func:`learned.features.context_channels`), ``core`` (N,S) bool (the slot's own residual, residual
+    change or arc age is outside the training range: handed to the physical model) and counts by reason.
+    """
+    from learned.features import CATEGORY_GROUPS, OPTIONAL_GROUPS
+    missing, counts = {}, {}
+    if not ranges:
+        return missing, np.zeros(mask.shape, bool), counts
+    lo, hi = _widened(ranges)
+    seen = np.asarray(ranges["hi"], float) >= 0.5
+    sl = cfg.slices()
+    for g in (k for k in OPTIONAL_GROUPS if k in sl):
+        a = sl[g].start
+        flag = a if g == "carrier" else a + 1
+        present = mask & (x[..., flag] > 0.5)
+        if not seen[flag]:
+            drop = present
+            counts[f"meas_{g}_unseen_in_training"] = int(drop.sum())
+        elif g == "carrier":
+            continue
+        else:
+            drop = present & ((x[..., a] < lo[a]) | (x[..., a] > hi[a]))
+            counts[f"meas_{g}_out_of_range"] = int(drop.sum())
+        missing[g] = drop
+    for g in (k for k in CATEGORY_GROUPS if k in sl):
+        cols = np.arange(sl[g].start, sl[g].stop - 1)          # the last one is "unknown" itself
+        unseen = mask & (x[..., cols[~seen[cols]]] > 0.5).any(-1)
+        missing[g] = unseen
+        counts[f"meas_{g}_unseen_in_training"] = int(unseen.sum())
+    core_idx = [0] + [sl[g].start for g in ("dres", "arc") if g in sl]
+    v = x[..., core_idx]
+    core = mask & ((v < lo[core_idx]) | (v > hi[core_idx])).any(-1)
+    counts["meas_out_of_range"] = int(core.sum())
+    return missing, core, {k: v for k, v in counts.items() if v}
 
 
 def trust(out_of_range: np.ndarray, mask: np.ndarray, unseen: np.ndarray | None = None) -> np.ndarray:

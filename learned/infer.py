@@ -2,6 +2,10 @@
 
 Honest protocol: the initial guess comes from WLS (or any estimate that never saw the truth); the receiver
 clock is re-estimated from the measurements at every guess (:mod:`learned.features`).
+
+Runs without torch: the network is evaluated in numpy (:mod:`learned.npnet`) from the checkpoint's ``.npz``
+twin (:mod:`learned.npz_weights`). :meth:`Corrector.graph_inputs` is the one network pass the ``fused``
+mode makes: the prior, the per-satellite sigmas and biases and the guard's counts together.
 """
 from __future__ import annotations
 
@@ -9,17 +13,18 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from fusion.errors import CheckpointError, GeometryError
+from fusion.estimate.graph.priors import LearnedGraphInputs
+from fusion.geometry import ned_rotation
 from fusion.trace import SIGNALS, Trace
-from learned.checkpoint import load_model
 from learned.context import context_wls, slot_context
-from learned.features import FeatureConfig, context_channels, elevation_mask, features_torch
-from learned.forward import outputs
-from learned.guard import slot_out_of_range, trust
-from learned.losses import weighted_ls_step
-from learned.forward import OUTPUTS
+from learned.features import SUPPORTED_VERSIONS, FeatureConfig, context_channels, elevation_mask, features_numpy
+from learned.guard import feature_guard, slot_out_of_range, trust
+from learned.heads import OUTPUTS, base_sigma, report_sigma, sat_sigma_bias, weighted_ls_step
+from learned.npnet import KINDS, NpNet, as_net
+from learned.npz_weights import load_for_inference
+
 
 #: Weights shipped with the package (see learned/weights/TRAINING.md).
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.pt"
@@ -40,6 +45,7 @@ class Correction:
     sigma, bias: (E,S) learned pseudorange sigma and bias [m] per trace slot, NaN where the network was
                not asked or the slot's inputs are out of the training range (:mod:`learned.guard`).
     trust:     (E,) the guard's trust in [0, 1] (NaN where not valid); the correction is shrunk by it.
+    info:      what the guard did: counts by reason (:meth:`Corrector.guard_counts`).
     """
 
     mean_ecef: np.ndarray
@@ -51,6 +57,7 @@ class Correction:
     sigma: np.ndarray | None = None
     bias: np.ndarray | None = None
     trust: np.ndarray | None = None
+    info: dict | None = None
 
 
 def _calibration_scales(config: dict, path, calibrated: bool) -> dict[str, np.ndarray]:
@@ -97,14 +104,17 @@ class Corrector:
     training range. Only the signals the network was trained on are used (``config["signals"]``).
     """
 
-    def __init__(self, model: torch.nn.Module, config: dict, device: str = "cpu", path: Path | None = None,
+    def __init__(self, model, config: dict, device: str = "cpu", path: Path | None = None,
                  calibrated: bool = True):
-        self.model, self.config, self.path = model.eval(), config, path
+        """model: an :class:`learned.npnet.NpNet` (what :meth:`load` builds) or a torch module (tests,
+        experiments); device: kept for callers of the torch era, inference runs on the CPU in numpy."""
+        self.net, self.config, self.path = as_net(model), config, path
+        self.model = model
         try:
             self.features = FeatureConfig.from_dict(config["features"])
         except (TypeError, ValueError) as exc:
             raise CheckpointError(f"{path}: bad feature config {config['features']!r}: {exc}") from exc
-        # refused here, not at the first forward pass deep inside torch
+        # refused here, not at the first forward pass
         d_in = ((config.get("model") or {}).get("hparams") or {}).get("d_in", 4)
         if d_in != self.features.n_inputs:
             raise CheckpointError(f"{path}: the network reads {d_in} channels per satellite but the feature "
@@ -120,84 +130,122 @@ class Corrector:
         self.signals = signals
         self._signal_idx = np.array([SIGNALS.index(s) for s in signals], np.int8)
         self.output = config.get("output", "correction")
-        self.device = torch.device(device)
+        self.device = device
         self.var_scale = _calibration_scales(config, path, calibrated)
         self.ranges = _input_ranges(config, self.features.n_inputs, path)
         self._ctx_cache: tuple[Trace, dict] | None = None
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str = "cpu", calibrated: bool = True) -> "Corrector":
+        """The checkpoint at ``path`` (.pt or its .npz twin; None: the shipped weights), without torch when
+        the .npz is there."""
         path = SHIPPED_WEIGHTS if path is None else Path(path)
         if not path.is_file():
             raise CheckpointError(f"{path}: checkpoint not found"
                                   + (" (shipped weights missing from learned/weights/)" if path == SHIPPED_WEIGHTS else ""))
-        model, blob = load_model(path, map_location=device)
-        return cls(model, blob["config"], device=device, path=path, calibrated=calibrated)
+        weights, config, read = load_for_inference(path)
+        _check_config(config, path)
+        mcfg = config["model"]
+        try:
+            net = NpNet(mcfg["kind"], mcfg.get("hparams") or {}, weights)
+        except (TypeError, ValueError) as exc:
+            raise CheckpointError(f"{path}: model hyper-parameters do not fit this code: "
+                                  f"{type(exc).__name__}: {str(exc)[:200]}") from exc
+        try:
+            net.check()
+        except (KeyError, ValueError) as exc:
+            raise CheckpointError(f"{path}: weights do not fit a {mcfg['kind']!r} model with hyper-parameters "
+                                  f"{mcfg.get('hparams')}: {type(exc).__name__}: {str(exc)[:200]}") from exc
+        return cls(net, config, device=device, path=path, calibrated=calibrated)
 
     def _context(self, trace: Trace) -> dict[str, np.ndarray]:
         """The trace's per-slot context (E,S) from its own plain WLS (as in training), cached for the last
         trace asked (held, so that a new trace can never reuse its identity)."""
         if self._ctx_cache is None or self._ctx_cache[0] is not trace:
             wls = context_wls(trace, self.features.elev_mask_deg)
-            self._ctx_cache = (trace, slot_context(trace, wls).as_dict())
+            self._ctx_cache = (trace, slot_context(trace, wls, self.features.elev_mask_deg).as_dict())
         return self._ctx_cache[1]
 
     def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """Epochs asked (N,), their slot masks (N,S) (valid guess, trained signals, >= 4 above ``elev``),
-        the number of other satellites above ``elev`` (N,) (signals the network cannot read), and
+        """Epochs asked (N,), their slot masks (N,S) (valid guess, readable signals, >= 4 above ``elev``),
+        the number of other satellites above ``elev`` (N,) (signals a version-2 network cannot read), and
         the number of epochs with too few."""
         E = trace.n_epochs
         if init_pos.shape != (E, 3) or np.shape(valid) != (E,):
             raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
                                 f"got {init_pos.shape} and {np.shape(valid)}")
         idx = np.flatnonzero(np.asarray(valid, bool) & np.isfinite(init_pos).all(1))
-        # Only the signals the network was trained on (a GPS-L1 network fed other constellations' slots
-        # would see their inter-system clock offsets as residuals it has never met).
-        own = trace.mask[idx] & np.isin(trace.signal[idx], self._signal_idx)
+        own = trace.mask[idx]
+        if self.features.version == 2:
+            # a GPS-L1 network fed other constellations' slots would see their inter-system clock offsets as
+            # residuals it has never met; version 3 reads every signal (its clock offset removed)
+            own = own & np.isin(trace.signal[idx], self._signal_idx)
         mask = elevation_mask(trace.sat_pos[idx], own, init_pos[idx], elev)
         unseen = elevation_mask(trace.sat_pos[idx], trace.mask[idx] & ~own, init_pos[idx], elev).sum(1)
         enough = mask.sum(1) >= 4
         return idx[enough], mask[enough], unseen[enough], int((~enough).sum())
 
-    @torch.no_grad()
     def _forward(self, trace: Trace, idx: np.ndarray, mask: np.ndarray, guess: np.ndarray) -> dict:
         """Network outputs for epochs ``idx`` (N,) with slot mask (N,S) at ``guess`` (N,3), in trace slots."""
         ctx = {k: v[idx] for k, v in self._context(trace).items()}
-        extra = context_channels(ctx, mask, self.features)
         order = np.argsort(~mask, axis=1, kind="stable")[:, :max(int(mask.sum(1).max(initial=0)), 1)]
-        sat_pos, pr, m, extra, prs = (np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)
-                                      for a in (trace.sat_pos[idx], trace.pr[idx], mask, extra, ctx["pr_sigma"]))
-        parts = [self._chunk(sat_pos[sl], pr[sl], m[sl], extra[sl], prs[sl], guess[sl])
+
+        def take(a: np.ndarray) -> np.ndarray:
+            return np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)
+        sat_pos, pr, m = take(trace.sat_pos[idx]), take(trace.pr[idx] - ctx["isb"]), take(mask)
+        ctx = {k: take(v) for k, v in ctx.items()}
+        parts = [self._chunk(sat_pos[sl], pr[sl], m[sl], {k: v[sl] for k, v in ctx.items()}, guess[sl])
                  for sl in (slice(a, a + INFER_CHUNK) for a in range(0, len(idx), INFER_CHUNK))]
+        counts = {}
+        for p in parts:
+            for k, v in p.pop("counts").items():
+                counts[k] = counts.get(k, 0) + v
         out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        out["oor"] = slot_out_of_range(out.pop("x"), m, self.ranges)
-        for k in ("sigma", "bias", "oor"):      # back from compacted to trace slots
+        out["counts"] = counts
+        for k in ("sigma", "bias", "oor", "base"):      # back from compacted to trace slots
             full = np.zeros(mask.shape, out[k].dtype)
             np.put_along_axis(full, order, out[k], axis=1)
             out[k] = np.where(mask, full, False if k == "oor" else np.nan)
         return out
 
-    def _chunk(self, sat_pos, pr, mask, extra, pr_sigma, guess) -> dict:
-        """One chunk (N epochs, S slots: sat_pos (N,S,3), pr, mask, pr_sigma (N,S), extra (N,S,C), guess
-        (N,3)) through the network; the learned-weight solution iterated twice from the guess."""
-        f64 = dict(dtype=torch.float64, device=self.device)
-        b = {"sat_pos": torch.as_tensor(sat_pos, **f64), "pr": torch.as_tensor(pr, **f64),
-             "pr_sigma": torch.as_tensor(pr_sigma, **f64),
-             "mask": torch.as_tensor(mask, device=self.device), "guess": torch.as_tensor(guess, **f64)}
-        b["x"], R = features_torch(b["sat_pos"], b["pr"], b["mask"], b["guess"], self.features,
-                                   extra=torch.as_tensor(extra, device=self.device))
-        o = outputs(self.model, b, self.features)
+    def _inputs(self, sat_pos, pr, mask, ctx: dict, guess) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+        """Network inputs x (N,S,F), the slots handed to the physical model (N,S), the physical model's
+        sigma (N,S) [m] and the guard's counts. Version 3: the guard reads the inputs, then the groups
+        it marks read as missing / unknown."""
+        fc = self.features
+        sin_el = -features_numpy(sat_pos, pr, mask, guess, FeatureConfig(version=fc.version))[0][..., 3]
+        if fc.version == 2:
+            x, _ = features_numpy(sat_pos, pr, mask, guess, fc, extra=context_channels(ctx, mask, fc))
+            return x, slot_out_of_range(x, mask, self.ranges), base_sigma(ctx["pr_sigma"], sin_el), {}
+        base = base_sigma(report_sigma(ctx["pr_sigma"], ctx["pr_sigma_ok"], ctx["cn0"]), sin_el)
+        x, _ = features_numpy(sat_pos, pr, mask, guess, fc, extra=context_channels(ctx, mask, fc))
+        missing, core, counts = feature_guard(x, mask, self.ranges, fc)
+        if missing:
+            x[..., 4:] = context_channels(ctx, mask, fc, missing)
+        return x, core, base, counts
+
+    def _chunk(self, sat_pos, pr, mask, ctx: dict, guess) -> dict:
+        """One chunk (N epochs, S slots: sat_pos (N,S,3), pr, mask (N,S), ctx (N,S) arrays, guess (N,3))
+        through the network; the learned-weight solution iterated twice from the guess. Slots the guard
+        hands to the physical model keep its sigma and no bias."""
+        sat_pos = np.where(mask[..., None], sat_pos, 0.0)
+        pr = np.where(mask, pr, 0.0)
+        x, oor, base, counts = self._inputs(sat_pos, pr, mask, ctx, guess)
+        mean, logvar, sat = self.net(x, mask)
+        sigma, bias = sat_sigma_bias(sat, self.features.res_scale, base)
+        if self.features.version > 2:
+            sigma, bias = np.where(oor, base, sigma), np.where(oor, 0.0, bias)
+        pos, _ = weighted_ls_step(sat_pos, pr, mask, guess, sigma, bias)
         # the weights come from the guess's features; a second step removes the linearisation error
-        pos, cov = weighted_ls_step(b["sat_pos"], b["pr"], b["mask"], o["pos"], o["sigma"], o["bias"])
+        pos, cov = weighted_ls_step(sat_pos, pr, mask, pos, sigma, bias)
         s = self.features.out_scale
-        R = R.cpu().numpy()
-        corr_ned = {"wls": np.einsum("nij,nj->ni", R, (pos - b["guess"]).cpu().numpy()),
-                    "correction": o["mean"].double().cpu().numpy() * s}
-        var_ned = {"wls": np.einsum("nij,njk,nlk->nil", R, cov.cpu().numpy(), R),
-                   "correction": np.apply_along_axis(np.diag, 1, torch.exp(o["logvar"]).double().cpu().numpy() * s * s)}
-        return {"x": b["x"].cpu().numpy(), "sigma": o["sigma"].cpu().numpy(), "bias": o["bias"].cpu().numpy(),
-                "R": R, **{f"corr_{k}": v for k, v in corr_ned.items()}, **{f"cov_{k}": v for k, v in var_ned.items()}}
+        R = ned_rotation(guess)
+        corr_ned = {"wls": np.einsum("nij,nj->ni", R, pos - guess), "correction": np.asarray(mean, float) * s}
+        var_ned = {"wls": np.einsum("nij,njk,nlk->nil", R, cov, R),
+                   "correction": np.apply_along_axis(np.diag, 1, np.exp(np.asarray(logvar, float)) * s * s)}
+        return {"sigma": sigma, "bias": bias, "oor": oor, "base": base, "R": R, "counts": counts,
+                **{f"corr_{k}": v for k, v in corr_ned.items()}, **{f"cov_{k}": v for k, v in var_ned.items()}}
 
     def predict(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
                 elev_mask_deg: float | None = None, output: str | None = None) -> Correction:
@@ -213,11 +261,38 @@ class Corrector:
         res = Correction(np.full((E, 3), np.nan), np.full((E, 3, 3), np.nan), np.full((E, 3), np.nan),
                          np.full((E, 3, 3), np.nan), np.zeros(E, bool), n_too_few, np.full((E, S), np.nan),
                          np.full((E, S), np.nan), np.full(E, np.nan))
+        oor, counts = np.zeros(mask.shape, bool), {}
         if len(idx):
             out = self._forward(trace, idx, mask, init_pos[idx])
             out["trust"] = trust(out["oor"], mask, unseen)
             self._fill(res, out, idx, init_pos[idx], output)
+            oor, counts = out["oor"], out["counts"]
+        res.info = dict(self.guard_counts(res, mask, oor, unseen), **counts)
         return res
+
+    @staticmethod
+    def guard_counts(res: Correction, mask: np.ndarray, oor: np.ndarray, unseen: np.ndarray) -> dict:
+        """What the guard did, for the report: epochs asked, epochs with too few satellites, epochs whose
+        correction it shrank / switched off, measurements outside the training range (given the physical
+        model) and measurements of signals the network cannot read (version 2; version 3 reads them all)."""
+        t = res.trust[res.valid]
+        return {"epochs_asked": int(res.valid.sum()), "epochs_too_few_sats": int(res.n_too_few),
+                "epochs_guard_shrunk": int((t < 1).sum()), "epochs_guard_off": int((t == 0).sum()),
+                "meas_asked": int(mask.sum()), "meas_out_of_range": int(oor.sum()),
+                "meas_unseen_signal": int(np.sum(unseen))}
+
+    def graph_inputs(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
+                     elev_mask_deg: float | None = None) -> LearnedGraphInputs:
+        """Everything the graph takes from the network, from ONE pass at ``init_pos`` (E,3) ECEF for the
+        epochs in ``valid`` (E,): the position prior (mean (E,3), covariance (E,3,3), ok (E,)), the
+        per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion), no Doppler head (None), and the
+        guard's counts."""
+        c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
+        # an epoch the guard switched off has its guess as the "prior": information the graph already has
+        ok = c.valid & (np.nan_to_num(c.trust) > 0)
+        return LearnedGraphInputs(prior_mean=c.mean_ecef, prior_cov=c.cov_ecef, prior_ok=ok,
+                                  pr_sigma=c.sigma, pr_bias=c.bias, prr_sigma=None, prr_bias=None,
+                                  info=dict(c.info or {}, pr_sigma_learned=int(np.isfinite(c.sigma).sum())))
 
     def _fill(self, res: Correction, out: dict, idx, guess, output: str) -> None:
         """Shrink by the guard's trust, scale the covariance, rotate to ECEF, write rows ``idx``."""
@@ -233,8 +308,10 @@ class Corrector:
         res.corr_ned[idx], res.cov_ned[idx], res.trust[idx], res.valid[idx] = corr, cov, a, True
         res.mean_ecef[idx] = guess + np.einsum("nji,nj->ni", R, corr)
         res.cov_ecef[idx] = np.einsum("nji,njk,nkl->nil", R, cov, R)
-        res.sigma[idx] = np.where(out["oor"], np.nan, out["sigma"])
-        res.bias[idx] = np.where(out["oor"], np.nan, out["bias"])
+        # version 2: no opinion on out-of-range slots; version 3 gives them the physical model
+        off = out["oor"] & (self.features.version == 2)
+        res.sigma[idx] = np.where(off, np.nan, out["sigma"])
+        res.bias[idx] = np.where(off, np.nan, out["bias"])
 
     def __call__(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
         return self.provider()(trace, init_pos, valid)
@@ -255,6 +332,19 @@ class Corrector:
             c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
             return c.sigma, c.bias
         return ask
+
+
+def _check_config(config: dict, path) -> None:
+    """The checks :func:`learned.checkpoint.read_checkpoint` makes, for weights read without torch."""
+    if not isinstance(config, dict) or not isinstance(config.get("model"), dict) \
+            or not isinstance(config.get("features"), dict):
+        raise CheckpointError(f"{path}: checkpoint has no model/feature config (or they are not dicts)")
+    fv = config["features"].get("version")
+    if fv not in SUPPORTED_VERSIONS:
+        raise CheckpointError(f"{path}: feature version {fv!r}; this code reads versions {SUPPORTED_VERSIONS} "
+                              "(retrain or use a matching gnssfuse version)")
+    if config["model"].get("kind") not in KINDS:
+        raise CheckpointError(f"{path}: unknown model kind {config['model'].get('kind')!r}")
 
 
 def calibration(err_ned: np.ndarray, cov_ned: np.ndarray) -> dict:

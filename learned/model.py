@@ -23,12 +23,9 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-#: Log-variance output is clamped to this range (variance between ~5e-5 and ~2e4 out_scale^2).
-LOGVAR_RANGE = (-10.0, 10.0)
-#: The per-satellite log-multiplier is clamped to this range (sigma between 1/50 and 50 x the model's).
-LOGSIG_RANGE = (-4.0, 4.0)
-#: Zenith term of the physical sigma model [m] (the graph's default: GraphConfig.pr_sigma_zenith_m).
-ZENITH_SIGMA_M = 1.0
+# one definition of each constant, shared with the torch-free inference (learned/heads.py, learned/npnet.py)
+from learned.heads import LOGSIG_RANGE, ZENITH_SIGMA_M  # noqa: E402,F401
+from learned.npnet import LOGVAR_RANGE  # noqa: E402,F401
 
 
 def base_sigma(pr_sigma: torch.Tensor, sin_el: torch.Tensor) -> torch.Tensor:
@@ -124,4 +121,6 @@ def count_parameters(model: nn.Module, include_heads: bool = True) -> int:
     """Parameters, or without the variance and per-satellite heads (the paper's mean path) when
     ``include_heads`` is False."""
     extra = ("logvar_head", "sat_head")
+    if hasattr(model, "weights"):          # a learned.npnet.NpNet (inference without torch)
+        return sum(int(v.size) for n, v in model.weights.items() if include_heads or not n.startswith(extra))
     return sum(p.numel() for n, p in model.named_parameters() if include_heads or not n.startswith(extra))

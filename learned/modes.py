@@ -1,7 +1,7 @@
 """The ``dnn`` and ``fused`` pipeline modes: the trained network wired into fusion's estimators.
 
-``fusion``'s mode registry names these functions by string (``"learned.modes:estimate_dnn"``), so the
-CLI imports torch only when one of them runs.
+``fusion``'s mode registry names these functions by string (``"learned.modes:estimate_dnn"``). Neither
+imports torch: the network runs in numpy (:mod:`learned.npnet`), asked once per run.
 """
 from __future__ import annotations
 
@@ -17,25 +17,28 @@ from learned.infer import Corrector
 
 
 def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
-    """Pipeline mode ``dnn``: WLS position as the guess, ``opts.dnn_passes`` corrections (features
-    recomputed at each corrected position). Epochs with invalid WLS or < 4 satellites: not solved."""
+    """Pipeline mode ``dnn``: one network pass at the WLS positions (learned-weight least squares or the
+    paper's correction, ``opts.dnn_output``). Epochs with invalid WLS or < 4 satellites: not solved.
+    ``opts.dnn_passes`` > 1 re-asks the network at its own output (features recomputed each pass)."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     pos, valid = np.asarray(wls.pos, float), np.asarray(wls.valid, bool)
-    cov, too_few, trust = None, 0, np.full(trace.n_epochs, np.nan)
+    cov, too_few, c = None, 0, None
     for _ in range(max(1, int(opts.dnn_passes))):
         c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg, output=opts.dnn_output)
         too_few += c.n_too_few
-        pos, valid, cov, trust = c.mean_ecef, c.valid, c.cov_ecef, c.trust
+        pos, valid, cov = c.mean_ecef, c.valid, c.cov_ecef
     info = {"passes": int(max(1, opts.dnn_passes)), "unsolved": int((~valid).sum()),
             "unsolved_wls": int((~np.asarray(wls.valid, bool)).sum()), "too_few_sats": too_few,
             "output": opts.dnn_output or corrector.output, "weights": str(corrector.path),
-            "guard_shrunk": int((trust[valid] < 1).sum()), "guard_off": int((trust[valid] == 0).sum())}
+            "guard_shrunk": c.info["epochs_guard_shrunk"], "guard_off": c.info["epochs_guard_off"],
+            # flat, so that metrics.json (which keeps scalar info) and the report carry them
+            **{f"learned_{k}": v for k, v in c.info.items()}}
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
 def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
-    """Apply a provider ``passes`` times, each pass starting from the previous pass's mean
-    (features recomputed at the corrected position, as ``dnn_passes`` does for the dnn mode)."""
+    """Apply a provider ``passes`` times, each pass starting from the previous pass's mean (kept for
+    callers composing their own providers; the modes ask the network once)."""
     if passes <= 1:
         return provider
 
@@ -48,26 +51,17 @@ def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
     return run
 
 
-def learned_provider(opts: RunOptions, corrector: Corrector | None = None) -> PriorProvider:
-    """The checkpoint's corrector as a prior provider, under the run's elevation mask (as ``dnn``),
-    applied ``opts.dnn_passes`` times."""
-    corrector = corrector or Corrector.load(opts.weights, device=opts.device)
-    return iterated(corrector.provider(opts.elev_mask_deg), int(opts.dnn_passes))
-
-
 def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOptions) -> LearnedGraphInputs:
-    """One network pass at :func:`learned_guess`: the position prior and the per-satellite sigmas and biases
-    the graph uses (``opts.learned_prior`` / ``opts.learned_sigmas`` switch each off), and the guard's counts."""
+    """The network's one pass at :func:`learned_guess` under the run's elevation mask: the position prior
+    and the per-measurement sigmas and biases the graph uses (``opts.learned_prior`` /
+    ``opts.learned_sigmas`` switch each off), and what the guard did (info keys ``learned_*``)."""
     at = learned_guess(trace, wls, opts)
-    c = corrector.predict(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg)
-    ok = c.valid
-    info = {"guard_shrunk": int((c.trust[ok] < 1).sum()), "guard_off": int((c.trust[ok] == 0).sum()),
-            "network_epochs": int(ok.sum())}
-    out = LearnedGraphInputs(info=info)
-    if opts.learned_prior:
-        out.prior_mean, out.prior_cov, out.prior_ok = c.mean_ecef, c.cov_ecef, c.valid
-    if opts.learned_sigmas:
-        out.pr_sigma, out.pr_bias = c.sigma, c.bias
+    out = corrector.graph_inputs(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg)
+    out.info = {f"learned_{k}": v for k, v in (out.info or {}).items()}
+    if not opts.learned_prior:
+        out.prior_mean = out.prior_cov = out.prior_ok = None
+    if not opts.learned_sigmas:
+        out.pr_sigma = out.pr_bias = out.prr_sigma = out.prr_bias = None
     return out
 
 

@@ -37,7 +37,9 @@ from learned.augment import draw_guesses, draw_mixed_guesses, epoch_generator, p
 from learned.calibrate import calibrate_checkpoint
 from learned.checkpoint import read_checkpoint, save_checkpoint
 from learned.data import Samples
-from learned.features import FeatureConfig, context_channels, features_torch, target_torch
+from learned.features import (CATEGORY_GROUPS, OPTIONAL_GROUPS, FeatureConfig, context_channels, features_torch,
+                              target_torch)
+from learned.heads import report_sigma
 from learned.losses import gaussian_nll, position_loss, sat_nll
 from learned.forward import OUTPUTS, outputs, predict_all, take
 from learned.guard import input_ranges
@@ -45,6 +47,8 @@ from learned.model import build_model
 
 #: Feature chunk size when regenerating a whole epoch's inputs (bounded memory on any device).
 CHUNK = 16384
+#: Feature dropout of the shipped recipe (:attr:`TrainConfig.dropout`).
+DEFAULT_DROPOUT = {"pr_sigma": 0.5, "cn0": 0.3, "cmd": 0.3, "carrier": 0.3, "system": 0.05, "signal": 0.1}
 
 
 @dataclass
@@ -84,6 +88,10 @@ class TrainConfig:
     signals: tuple[str, ...] = ("GPS_L1",)
     loss: LossWeights = field(default_factory=LossWeights)
     output: str = "wls"                   # what the dnn mode returns (one of OUTPUTS)
+    # feature dropout (version 3): per sample, the chance that a file-level group reads as missing
+    # (pr_sigma: as in RINEX, which reports none; the physical model then starts from C/N0 or a default);
+    # per slot, the chance that the constellation / signal reads as unknown
+    dropout: dict = field(default_factory=lambda: dict(DEFAULT_DROPOUT))
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
@@ -97,6 +105,7 @@ class TrainConfig:
             "val_frac": self.val_frac, "data": self.data, "guess_mix": parse_guess_mix(self.guess_mix),
             "wls_jitter": self.wls_jitter, "wls_max_err": self.wls_max_err, "signals": list(self.signals),
             "loss": vars(self.loss).copy(), "output": self.output,
+            **({"dropout": dict(self.dropout)} if self.features.version > 2 else {}),
         }
 
 
@@ -117,15 +126,56 @@ def sample_tensors(s: Samples, fcfg: FeatureConfig, device, max_err: float = mat
         raise DataError(f"features {fcfg.inputs} need per-slot context but the samples carry none")
     f64 = dict(dtype=torch.float64, device=device)
     extra = context_channels(s.ctx, s.mask, fcfg) if s.ctx is not None else np.zeros(s.mask.shape + (0,))
+    prs, alt = _physical_sigmas(s, fcfg)
     graph = {} if s.graph is None else _guess_source("graph", s.graph, s.truth, max_err, device)
     return {"sat_pos": torch.as_tensor(s.sat_pos, **f64), "pr": torch.as_tensor(s.pr, **f64),
             "mask": torch.as_tensor(s.mask, device=device), "truth": torch.as_tensor(s.truth, **f64),
             "extra": torch.as_tensor(extra, dtype=torch.float32, device=device),
-            "pr_sigma": torch.as_tensor(s.ctx["pr_sigma"] if s.ctx is not None else np.ones(s.mask.shape), **f64),
+            "pr_sigma": torch.as_tensor(prs, **f64), "pr_sigma_alt": torch.as_tensor(alt, **f64),
             "real": torch.as_tensor(s.real_or_false(), device=device),
             # the simulator's true clock: only for the paper-leak experiment (FeatureConfig(clock="given"))
             **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)}),
             **_guess_source("wls", s.wls_or_nan(), s.truth, max_err, device), **graph}
+
+
+def _physical_sigmas(s: Samples, fcfg: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(N,S) the sigma [m] the physical model starts from, and the same without the receiver's report
+    (what a file without one gives: feature dropout). Version 2: the trace's pr_sigma, both."""
+    if s.ctx is None:
+        return np.ones(s.mask.shape), np.ones(s.mask.shape)
+    if fcfg.version == 2:
+        return s.ctx["pr_sigma"], s.ctx["pr_sigma"]
+    c = s.ctx
+    return (report_sigma(c["pr_sigma"], c["pr_sigma_ok"], c["cn0"]),
+            report_sigma(c["pr_sigma"], np.zeros(s.mask.shape, bool), c["cn0"]))
+
+
+def feature_dropout(t: dict, cfg: TrainConfig, generator: torch.Generator) -> dict:
+    """Sample tensors with this epoch's feature dropout applied to ``extra`` (and the physical model's
+    starting sigma where the report is dropped). Version 2 or no dropout: ``t`` as is."""
+    fc, p = cfg.features, cfg.dropout or {}
+    if fc.version == 2 or not any(p.values()) or t["extra"].shape[-1] == 0:
+        return t
+    extra, prs = t["extra"].clone(), t["pr_sigma"]
+    N, S = t["mask"].shape
+    dev = extra.device
+
+    def draw(rate: float, per_slot: bool) -> torch.Tensor:
+        u = torch.rand((N, S) if per_slot else (N, 1), generator=generator, device=dev, dtype=torch.float64)
+        return (u < rate).expand(N, S)
+    for g, sl in fc.slices().items():
+        sl = slice(sl.start - 4, sl.stop - 4)            # extra holds the channels after res and los
+        if g in OPTIONAL_GROUPS and p.get(g, 0) > 0:
+            d = draw(p[g], False)
+            extra[..., sl] = extra[..., sl].masked_fill(d[..., None], 0.0)
+            if g == "pr_sigma":
+                prs = torch.where(d, t["pr_sigma_alt"], prs)
+        elif g in CATEGORY_GROUPS and p.get(g, 0) > 0:
+            d = draw(p[g], True) & t["mask"]
+            unknown = torch.zeros(sl.stop - sl.start, dtype=extra.dtype, device=dev)
+            unknown[-1] = 1.0
+            extra[..., sl] = torch.where(d[..., None], unknown, extra[..., sl])
+    return dict(t, extra=extra, pr_sigma=prs)
 
 
 def guesses_for(t: dict, cfg: TrainConfig, generator: torch.Generator) -> torch.Tensor:
@@ -220,7 +270,7 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     now = cfg.to_checkpoint_config()
     # everything but the epoch count shapes the run: a resumed run must draw what an uninterrupted one would
     for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss", "batch",
-                "lr", "betas", "warmup_epochs", "val_frac", "wls_max_err", "signals", "output"):
+                "lr", "betas", "warmup_epochs", "val_frac", "wls_max_err", "signals", "output", "dropout"):
         if blob["config"].get(key) != now.get(key):
             raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
                                   f"({blob['config'].get(key)!r} in checkpoint vs {now.get(key)!r} now)")
@@ -287,7 +337,8 @@ def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: in
     t0 = time.perf_counter()
     gen = epoch_generator(cfg.seed, epoch, tr["truth"].device, rank=dist.rank())
     fixed = epoch_generator(cfg.seed, -1, tr["truth"].device)       # --no-augment: the same guesses every epoch
-    inp = make_inputs(tr, guesses_for(tr, cfg, gen if cfg.augment else fixed), cfg.features)
+    guess = guesses_for(tr, cfg, gen if cfg.augment else fixed)
+    inp = make_inputs(feature_dropout(tr, cfg, gen), guess, cfg.features)
     # one permutation shared by every rank (same seed), each rank taking its own shard of it
     order = dist.shard(torch.randperm(tr["truth"].shape[0], generator=epoch_generator(cfg.seed, epoch)))
     t1 = time.perf_counter()

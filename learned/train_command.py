@@ -18,12 +18,17 @@ from learned.augment import parse_guess_mix
 from learned.checkpoint import read_checkpoint
 from learned.data import (Samples, build_samples, load_real_traces, simulated_traces, split_blocks, split_random,
                           split_traces)
-from learned.features import CHANNELS, FeatureConfig
+from learned.features import CHANNELS, CHANNELS_V2, FeatureConfig
 from learned.model import build_model, count_parameters
-from learned.train import LossWeights, TrainConfig, train
+from learned.train import DEFAULT_DROPOUT, LossWeights, TrainConfig, train
 
 #: Inputs of the shipped recipe: the paper's (residual, line of sight) and every context channel.
 DEFAULT_INPUTS = ",".join(CHANNELS)
+
+
+def default_inputs(version: int) -> str:
+    """The default ``--inputs`` when training feature version ``version`` (2: the previous release)."""
+    return ",".join(CHANNELS_V2) if version == 2 else DEFAULT_INPUTS
 
 
 def parse_loss(text: str) -> LossWeights:
@@ -61,6 +66,23 @@ def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, 
     return samples, desc
 
 
+def parse_dropout(text: str | None) -> dict:
+    """``pr_sigma=0.25,signal=0.1`` -> the recipe's dropout with those rates replaced."""
+    out = dict(DEFAULT_DROPOUT)
+    for item in filter(None, (text or "").split(",")):
+        key, _, val = item.partition("=")
+        if key.strip() not in DEFAULT_DROPOUT:
+            raise DataError(f"--dropout: unknown group {key!r} (known: {', '.join(DEFAULT_DROPOUT)})")
+        try:
+            rate = float(val)
+        except ValueError:
+            raise DataError(f"--dropout: {item!r} is not name=number") from None
+        if not 0 <= rate <= 1:
+            raise DataError(f"--dropout: {key} rate must be in [0, 1], got {rate}")
+        out[key.strip()] = rate
+    return out
+
+
 def config_from_args(args, desc: dict) -> TrainConfig:
     try:
         mix = parse_guess_mix(args.guess_mix)
@@ -72,7 +94,7 @@ def config_from_args(args, desc: dict) -> TrainConfig:
                        model=args.model, augment=not args.no_augment, warmup_epochs=args.warmup_epochs,
                        val_frac=args.val_frac, device=args.device, features=features, data=desc, guess_mix=mix,
                        wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate,
-                       loss=parse_loss(args.loss), output=args.output)
+                       loss=parse_loss(args.loss), output=args.output, dropout=parse_dropout(args.dropout))
 
 
 def check_args(args) -> None:

@@ -30,12 +30,15 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
     p.add_argument("--wls-jitter", type=float, default=2.0, help="[m] per NED axis around WLS / graph guesses")
     p.add_argument("--wls-max-err", type=float, default=100.0, help="[m] farther guess sources -> box guess")
     p.add_argument("--inputs", default=None,
-                   help="comma-separated input channel groups from res,los,pr_sigma,cn0,dres,arc "
-                        "(default: all of them, the shipped recipe)")
+                   help="comma-separated input channel groups from res,los,pr_sigma,cn0,dres,arc,cmd,carrier,"
+                        "system,signal (feature version 3; default: all of them)")
     p.add_argument("--output", default="wls", choices=OUTPUTS,
                    help="dnn output: learned-weight least squares (wls) or the paper's correction")
     p.add_argument("--loss", default="correction=1,sat=0.1,wls=1,shrink=1",
                    help="loss weights (correction, sat, wls, wls_scale, shrink)")
+    p.add_argument("--dropout", default=None,
+                   help="feature dropout (feature version 3): group=rate pairs, e.g. pr_sigma=0.25,signal=0.1; "
+                        "groups not named keep the recipe's rates (learned/weights/TRAINING.md)")
     p.add_argument("--resume", action="store_true", help="continue from <out>.last")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="training device (default cpu)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the split, augmentation and model")

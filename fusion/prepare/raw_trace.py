@@ -312,14 +312,15 @@ def _columns(rows: pd.DataFrame, st: dict[str, np.ndarray], pr: np.ndarray) -> d
     sigma = rows["pr_sigma_m"].to_numpy()
     model = np.clip(SIGMA_PR_M * 10 ** ((CN0_REF - np.nan_to_num(cn0, nan=CN0_REF - 10)) / 20),
                     SIGMA_PR_M, SIGMA_PR_MAX_M)
-    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, model * rows["sigma_scale"].to_numpy())
+    reported = np.isfinite(sigma) & (sigma > 0)
+    sigma = np.where(reported, sigma, model * rows["sigma_scale"].to_numpy())
     prr = rows["prr_mps"].to_numpy() + C_LIGHT * st["clock_drift"]
     prr_ok = np.isfinite(prr)
     adr = rows["adr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     adr_ok = rows["adr_ok"].to_numpy(bool) & np.isfinite(adr)
     prr_sig, adr_sig = rows["prr_sigma_mps"].to_numpy(), rows["adr_sigma_m"].to_numpy()
     return {
-        "sat_pos": st["pos"], "sat_vel": st["vel"], "pr": pr, "pr_sigma": sigma,
+        "sat_pos": st["pos"], "sat_vel": st["vel"], "pr": pr, "pr_sigma": sigma, "pr_sigma_ok": reported,
         "sat_id": rows["sat_id"].to_numpy(np.int32), "signal": st["signal"],
         "cn0": np.nan_to_num(cn0, nan=0.0),
         "prr": np.where(prr_ok, prr, 0.0), "prr_ok": prr_ok,

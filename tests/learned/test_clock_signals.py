@@ -104,7 +104,9 @@ def test_predict_uses_only_the_trained_signals():
     tr.pr[:, 6:] += 300.0
     init = tr.truth + 4.0
     valid = np.ones(20, bool)
-    base = TrainConfig().to_checkpoint_config()
+    # feature version 2 (the previous release's weights) reads only its trained signals; version 3 reads
+    # every signal on the reference clock (tests/test_learned_v3.py)
+    base = TrainConfig(features=FeatureConfig(version=2)).to_checkpoint_config()
     assert base["signals"] == ["GPS_L1"]
     gps_only = tr.select_slots(tr.signal != glo)
     c = Corrector(_net(), base).predict(tr, init, valid)

@@ -93,14 +93,25 @@ def test_context_channels_are_scaled_and_zero_on_padding(ctx_trace):
     extra = context_channels(ctx, tr.mask, cfg)
     assert extra.shape == tr.mask.shape + (cfg.n_inputs - 4,) and extra.dtype == np.float32
     assert (extra[~tr.mask] == 0).all()
-    # channel order follows cfg.inputs: pr_sigma, cn0 (value, have), dres (value, prev_ok), arc
+    # channel order follows cfg.inputs: pr_sigma (value, reported), cn0 (value, have), dres (value, prev_ok),
+    # arc, cmd (value, have), carrier (has, ok, slip), system one-hot (+ unknown), signal one-hot (+ unknown)
     np.testing.assert_allclose(extra[..., 0][tr.mask], np.log(tr.pr_sigma[tr.mask] / 3.0), rtol=1e-5)
-    np.testing.assert_allclose(extra[..., 3][tr.mask], (ctx["dres"][tr.mask] / cfg.res_scale).clip(-10, 10),
+    np.testing.assert_array_equal(extra[..., 1][tr.mask], 1.0)
+    np.testing.assert_allclose(extra[..., 4][tr.mask], (ctx["dres"][tr.mask] / cfg.res_scale).clip(-10, 10),
                                rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(extra[..., 4][tr.mask], ctx["prev_ok"][tr.mask])
-    assert extra[..., 5].max() <= 1.0 and (np.diff(extra[:8, 0, 5]) > 0).all()
+    np.testing.assert_array_equal(extra[..., 5][tr.mask], ctx["prev_ok"][tr.mask])
+    assert extra[..., 6].max() <= 1.0 and (np.diff(extra[:8, 0, 6]) > 0).all()
+    sl = cfg.slices()
+    one_hot = extra[..., sl["signal"].start - 4:sl["signal"].stop - 4][tr.mask]
+    np.testing.assert_array_equal(one_hot.sum(-1), 1.0)
+    np.testing.assert_array_equal(one_hot.argmax(-1), tr.signal[tr.mask])
+    # missing: the report's value and flag zero; a signal read as unknown: its last entry
+    gone = context_channels(ctx, tr.mask, cfg, {"pr_sigma": np.ones(tr.mask.shape, bool),
+                                                  "signal": np.ones(tr.mask.shape, bool)})
+    assert (gone[..., :2] == 0).all()
+    np.testing.assert_array_equal(gone[..., sl["signal"].stop - 5][tr.mask], 1.0)
     only_arc = context_channels(ctx, tr.mask, FeatureConfig(inputs=("res", "los", "arc")))
-    np.testing.assert_array_equal(only_arc[..., 0], extra[..., 5])
+    np.testing.assert_array_equal(only_arc[..., 0], extra[..., 6])
     assert context_channels(ctx, tr.mask, FeatureConfig()).shape == tr.mask.shape + (0,)
     assert FeatureConfig().n_inputs == 4 and cfg.n_inputs == 4 + sum(CHANNELS[c] for c in cfg.inputs[2:])
     with pytest.raises(ValueError, match="must start with"):
@@ -113,12 +124,17 @@ def test_context_channels_are_scaled_and_zero_on_padding(ctx_trace):
 def test_feature_version_1_checkpoint_is_refused_naming_the_version(tmp_path):
     cfg = TrainConfig().to_checkpoint_config()
     old = save_checkpoint(tmp_path / "v1.pt", SetTransformer(), dict(cfg, features={**cfg["features"], "version": 1}))
-    with pytest.raises(CheckpointError, match=r"v1\.pt: feature version 1 does not match this code's 2"):
+    with pytest.raises(CheckpointError, match=r"v1\.pt: feature version 1; this code reads versions \(2, 3\)"):
         Corrector.load(old)
     with pytest.raises(CheckpointError, match="feature version 1"):
         load_model(old)
-    ok = save_checkpoint(tmp_path / "v2.pt", SetTransformer(), cfg)
-    assert Corrector.load(ok).features.version == 2
+    ok = save_checkpoint(tmp_path / "v3.pt", SetTransformer(), cfg)
+    assert Corrector.load(ok).features.version == 3
+    # version 2 (the previous release's weights) still loads and reads its own channels
+    v2 = FeatureConfig(version=2, inputs=("res", "los", "pr_sigma")).to_dict()
+    old2 = save_checkpoint(tmp_path / "v2.pt", SetTransformer(d_in=5),
+                           dict(cfg, features=v2, model={"kind": "set", "hparams": {"d_in": 5}}))
+    assert Corrector.load(old2).features.n_inputs == 5
 
 
 # -------------------------------------------------------------------------- (3) per-satellite head maths
@@ -244,17 +260,23 @@ def test_corrector_shrinks_to_the_guess_where_inputs_leave_the_training_range(ou
     assert free.valid.all() and (free.trust == 1).all()
     assert np.linalg.norm(free.mean_ecef - init, axis=1).min() > 1.0      # without the guard it corrects
     assert np.isfinite(free.sigma[tr.mask]).all()
-    tiny = {"lo": [5.0] * 4, "hi": [5.0 + 1e-6] * 4}                      # nothing real fits in it
+    n = FeatureConfig.from_dict(cfg["features"]).n_inputs
+    tiny = {"lo": [5.0] * n, "hi": [5.0 + 1e-6] * n}                      # nothing real fits in it
     c = Corrector(_HeadNet(), dict(cfg, input_ranges=tiny)).predict(tr, init, valid)
     assert c.valid.all()
     np.testing.assert_array_equal(c.trust, 0.0)
     np.testing.assert_allclose(c.mean_ecef, init, atol=1e-9)
     np.testing.assert_allclose(c.corr_ned, 0.0, atol=1e-12)
-    assert np.isnan(c.sigma).all() and np.isnan(c.bias).all()
+    # version 3: every slot handed to the physical model (sigma from the report and elevation, no bias)
+    m = tr.mask
+    assert np.isfinite(c.sigma[m]).all() and (c.bias[m] == 0).all() and np.isnan(c.sigma[~m]).all()
+    assert (c.sigma[m] >= np.sqrt(tr.pr_sigma[m] ** 2 + 1.0) - 1e-9).all()
+    assert c.info["meas_out_of_range"] == int(m.sum()) == c.info["meas_asked"]
+    assert c.info["epochs_guard_off"] == 15
     # what the shrink left out is carried by the covariance
     assert (np.diagonal(c.cov_ned, axis1=1, axis2=2) >= np.diagonal(free.cov_ned, axis1=1, axis2=2) - 1e-9).all()
     # a wide range: full trust, the same answer as without a guard
-    wide = {"lo": [-1e6] * 4, "hi": [1e6] * 4}
+    wide = {"lo": [-1e6] * n, "hi": [1e6] * n}
     w = Corrector(_HeadNet(), dict(cfg, input_ranges=wide)).predict(tr, init, valid)
     np.testing.assert_allclose(w.mean_ecef, free.mean_ecef)
 

@@ -135,12 +135,13 @@ def test_cli_writes_checkpoint_with_config(tmp_path, capsys):
     assert cfg["eta"] == 20.0 and cfg["features"]["version"] == FEATURE_VERSION and cfg["seed"] == 5
     assert cfg["model"]["kind"] == "set" and cfg["data"]["n_train"] + cfg["data"]["n_val"] == 80
     # the defaults: every context channel, learned-weight WLS output, three-loss mix, box/wls/graph guesses
-    assert cfg["features"]["inputs"] == list(CHANNELS) and cfg["model"]["hparams"]["d_in"] == 10
+    assert cfg["features"]["inputs"] == list(CHANNELS) and cfg["model"]["hparams"]["d_in"] == 4 + sum(CHANNELS.values()) - 4
+    assert cfg["dropout"]["pr_sigma"] > 0 and (tmp_path / "ck.npz").is_file()
     assert cfg["output"] == "wls" and cfg["loss"]["sat"] == 0.1 and cfg["loss"]["wls"] == 1.0
     assert cfg["guess_mix"] == {"box": 0.2, "wls": 0.5, "graph": 0.3} and cfg["data"]["val_split"] == "traces"
     assert set(cfg["calibration"]) == {"wls", "correction"}
     assert all(len(c["scale_ned"]) == 3 for c in cfg["calibration"].values())
-    assert len(cfg["input_ranges"]["lo"]) == len(cfg["input_ranges"]["hi"]) == 10
+    assert len(cfg["input_ranges"]["lo"]) == len(cfg["input_ranges"]["hi"]) == 4 + sum(CHANNELS.values()) - 4
     assert "best epoch 1" in capsys.readouterr().out
 
 
@@ -169,7 +170,7 @@ def test_cli_inputs_output_and_loss_options(tmp_path, capsys):
 def test_train_config_checkpoint_config_follows_the_inputs():
     cfg = TrainConfig(features=FeatureConfig(inputs=("res", "los", "pr_sigma", "arc")), hparams={"d_model": 32})
     c = cfg.to_checkpoint_config()
-    assert c["model"]["hparams"] == {"d_model": 32, "d_in": 6} and c["features"]["inputs"] == ["res", "los",
+    assert c["model"]["hparams"] == {"d_model": 32, "d_in": 7} and c["features"]["inputs"] == ["res", "los",
                                                                                              "pr_sigma", "arc"]
     assert c["output"] == "wls" and set(c["loss"]) == {"correction", "sat", "wls", "wls_scale", "shrink"}
     assert TrainConfig().to_checkpoint_config()["model"]["hparams"]["d_in"] == 4      # the paper's inputs
