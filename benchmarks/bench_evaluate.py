@@ -1,11 +1,14 @@
-"""``gnssfuse evaluate --jobs N``: four traces with one worker process against two, same run.
+"""``gnssfuse evaluate``: four traces in one process, in two worker processes (``--jobs 2``), and on a
+two-worker Dask ``LocalCluster`` (``--scheduler``), same run.
 
 Each setting runs the real command in a fresh process (``python -m fusion.cli evaluate ... --jobs N``,
 imports and report writing included, ``OMP_NUM_THREADS=1`` so that one job is one core), twice,
-alternating, and the better time counts (the machine may be shared; the CPU seconds of each setting,
-workers included, and the load average are printed so that a slow wall clock can be told from
-extra work). The metrics tables of the two settings must be
-identical; the script says so.
+alternating, and the better time counts (the machine may be shared; the CPU seconds of ``--jobs 1``
+and the load average are printed so that a slow wall clock can be told from extra work). The Dask
+settings, when dask is installed: a LocalCluster that the command starts itself (its workers' start
+and imports counted: what ``--jobs 2`` would cost on Dask), and ``--scheduler`` on a LocalCluster
+that this script started once (workers already up and warm from the earlier runs: the cost of
+Dask's scheduling alone). The metrics tables of all settings must be identical; the script says so.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/bench_evaluate.py            # full traces
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/bench_evaluate.py --quick    # 300 epochs each
@@ -16,6 +19,7 @@ or four copies of the shipped trace when that folder is absent.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import resource
 import shutil
@@ -46,10 +50,28 @@ def four_traces(tmp: Path) -> tuple[list[Path], str]:
     return copies, "four copies of the shipped trace"
 
 
-def timed_evaluate(traces: list[Path], out: Path, jobs: int, max_epochs: int | None) -> tuple[float, float]:
-    """(wall seconds, CPU seconds of the command and its workers)."""
-    cmd = [sys.executable, "-m", "fusion.cli", "evaluate", *map(str, traces), "--modes", MODES,
-           "--out", str(out), "--no-progress", "--jobs", str(jobs)]
+#: ``gnssfuse evaluate`` on a two-worker Dask ``LocalCluster`` that the command starts and stops itself:
+#: what ``--jobs 2`` would cost if Dask replaced ``fusion.parallel``'s own workers (one task per worker
+#: at a time, as ``--jobs`` runs one trace per process).
+LOCAL_CLUSTER_DRIVER = """
+import sys, dask
+from distributed import LocalCluster
+from fusion.cli import main
+with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}), LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+    rc = main(sys.argv[1:] + ["--scheduler", cluster.scheduler_address])
+sys.exit(rc)
+"""
+
+
+def timed_evaluate(traces: list[Path], out: Path, how: list[str], max_epochs: int | None) -> tuple[float, float]:
+    """(wall seconds, CPU seconds of the command and the workers it waited for) of ``evaluate`` with
+    the options ``how`` (``["--jobs", "2"]``, ``["--scheduler", ADDRESS]``, or ``["local-cluster"]``:
+    :data:`LOCAL_CLUSTER_DRIVER`)."""
+    head = [sys.executable, "-c", LOCAL_CLUSTER_DRIVER] if how == ["local-cluster"] else \
+        [sys.executable, "-m", "fusion.cli"]
+    cmd = [*head, "evaluate", *map(str, traces), "--modes", MODES, "--out", str(out), "--no-progress"]
+    cmd += [] if how == ["local-cluster"] else how
     if max_epochs:
         cmd += ["--max-epochs", str(max_epochs)]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(REPO)}
@@ -60,33 +82,64 @@ def timed_evaluate(traces: list[Path], out: Path, jobs: int, max_epochs: int | N
     cpu1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
     if proc.returncode != 0:
-        raise RuntimeError(f"evaluate --jobs {jobs} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
+        raise RuntimeError(f"evaluate {' '.join(how)} failed ({proc.returncode}): {proc.stderr.strip()[-500:]}")
     return elapsed, cpu
+
+
+def _settings(address: str | None) -> dict[str, list[str]]:
+    """Setting name -> ``timed_evaluate``'s ``how``; the Dask ones only when dask is installed."""
+    out = {"--jobs 1": ["--jobs", "1"], "--jobs 2": ["--jobs", "2"]}
+    if address:
+        out[LOCAL] = ["local-cluster"]
+        out[WARM] = ["--scheduler", address]
+    return out
+
+
+LOCAL = "on a Dask LocalCluster of 2 workers started by the command"
+WARM = "--scheduler on a running Dask LocalCluster of 2 workers"
+
+
+def _running_cluster(stack: contextlib.ExitStack) -> str | None:
+    """The address of a two-worker LocalCluster that lives as long as ``stack``; None without dask."""
+    try:
+        import dask
+        from distributed import LocalCluster
+    except ImportError:
+        return None
+    stack.enter_context(dask.config.set({"distributed.scheduler.worker-saturation": 1.0}))
+    cluster = stack.enter_context(LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                               dashboard_address=":0"))
+    return cluster.scheduler_address
 
 
 def run(quick: bool = False, repeats: int = 2) -> list[dict]:
     max_epochs = 300 if quick else None
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         tmp = Path(tmp)
         traces, what = four_traces(tmp)
+        settings = _settings(_running_cluster(stack))
         # alternate the settings so that a change in the machine's load hits both alike
-        runs = {1: [], 2: []}
+        runs: dict[str, list] = {name: [] for name in settings}
         for k in range(repeats):
-            for jobs in (1, 2):
-                runs[jobs].append(timed_evaluate(traces, tmp / f"r{jobs}_{k}", jobs, max_epochs))
-        times = {j: min(w for w, _ in r) for j, r in runs.items()}
-        cpu = {j: min(c for _, c in r) for j, r in runs.items()}
-        same = pd.read_csv(tmp / "r1_0" / "metrics.csv").equals(pd.read_csv(tmp / "r2_0" / "metrics.csv"))
+            for j, (name, how) in enumerate(settings.items()):
+                runs[name].append(timed_evaluate(traces, tmp / f"r{j}_{k}", how, max_epochs))
+        times = {name: min(w for w, _ in r) for name, r in runs.items()}
+        cpu = {name: min(c for _, c in r) for name, r in runs.items()}
+        tables = [(tmp / f"r{j}_0" / "metrics.csv").read_bytes() for j in range(len(settings))]
     load = os.getloadavg()[0]
     note = (f"{what}, modes {MODES}, {'first 300 epochs' if quick else 'all epochs'}, {os.cpu_count()} CPUs, "
-            f"load average {load:.1f} after the runs (best of {repeats}); metrics.csv identical: {same}")
-    return [{"name": "evaluate --jobs 1", "value": round(times[1], 2), "unit": "s", "note": note},
-            {"name": "evaluate --jobs 2", "value": round(times[2], 2), "unit": "s", "note": note},
-            {"name": "evaluate speed-up --jobs 2 vs 1", "value": round(times[1] / times[2], 2), "unit": "x",
-             "note": note},
-            # --jobs 2's workers are the forkserver's children, not this script's: their CPU time is not
-            # visible here, so only --jobs 1's is reported (wall time close to it = a core to itself)
-            {"name": "evaluate CPU time --jobs 1", "value": round(cpu[1], 2), "unit": "s", "note": note}]
+            f"load average {load:.1f} after the runs (best of {repeats}); metrics.csv identical: "
+            f"{all(t == tables[0] for t in tables)}")
+    recs = [{"name": f"evaluate {name}", "value": round(t, 2), "unit": "s", "note": note} for name, t in times.items()]
+    recs.append({"name": "evaluate speed-up --jobs 2 vs 1", "value": round(times["--jobs 1"] / times["--jobs 2"], 2),
+                 "unit": "x", "note": note})
+    if LOCAL in times:
+        recs.append({"name": "evaluate Dask LocalCluster (started by the command) vs --jobs 2", "unit": "x",
+                     "value": round(times[LOCAL] / times["--jobs 2"], 2), "note": note + " (time ratio, > 1: slower)"})
+    # --jobs 2's workers are the forkserver's children, not this script's: their CPU time is not
+    # visible here, so only --jobs 1's is reported (wall time close to it = a core to itself)
+    recs.append({"name": "evaluate CPU time --jobs 1", "value": round(cpu["--jobs 1"], 2), "unit": "s", "note": note})
+    return recs
 
 
 def main() -> None:
@@ -96,7 +149,7 @@ def main() -> None:
     args = ap.parse_args()
     recs = run(args.quick, args.repeats)
     for r in recs:
-        print(f"{r['name']:<34} {r['value']:>8} {r['unit']}")
+        print(f"{r['name']:<72} {r['value']:>8} {r['unit']}")
     print(recs[0]["note"])
 
 

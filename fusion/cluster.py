@@ -1,0 +1,79 @@
+"""Traces on a Dask cluster (``dask.distributed``): the ``--scheduler ADDRESS`` back end of
+:func:`fusion.parallel.map_traces`.
+
+Dask is an optional extra (``pip install gnssfuse[cluster]``) and is imported only here, only when a
+scheduler is asked for. Each call runs as one Dask task through :func:`fusion.parallel.guarded`, so an
+exception on a worker becomes that trace's one-line failure, as with ``--jobs``; a worker that dies
+while running a call is Dask's to retry (``distributed.scheduler.allowed-failures`` times), after which
+the call fails alone (``KilledWorker``). The workers must be able to import ``fusion`` (gnssfuse
+installed where they run) and see the input and output folders under the same paths (a shared file
+system); they are best started with one thread each (``dask worker ADDRESS --nthreads 1``): the
+pipeline's Python holds the GIL, so threads of one worker would take turns. How long to wait for
+the scheduler is Dask's own setting ``distributed.comm.timeouts.connect`` (environment variable
+``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT``, default 30 s).
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+from tqdm import tqdm
+
+from fusion.errors import GnssfuseError
+from fusion.parallel import _one_thread, failure, guarded
+
+
+class ClusterError(GnssfuseError):
+    """The Dask scheduler asked for cannot be used (dask missing, bad or unreachable address)."""
+
+
+def _client(address: str):
+    """A ``distributed.Client`` connected to ``address``, or a one-line :class:`ClusterError`."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ClusterError("--scheduler needs dask.distributed, which is not installed: "
+                           "pip install 'gnssfuse[cluster]'") from None
+    if not address.strip():
+        raise ClusterError("--scheduler needs an address, e.g. tcp://HOST:8786")
+    try:
+        return Client(address, set_as_default=False)
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise ClusterError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+
+
+def _on_worker(func: Callable, a: tuple):
+    """On a Dask worker: ``func(*a)`` with one BLAS/torch thread, an exception becoming its failure line."""
+    _one_thread()
+    return guarded(func, *a)
+
+
+def map_on_cluster(func: Callable, args: Sequence[tuple], address: str, progress: bool = False,
+                   costs: Sequence[float] | None = None) -> list:
+    """``[func(*a) for a in args]`` on the Dask cluster whose scheduler is at ``address``, results in
+    the order of ``args``; a call that fails (raises, or kills its worker past Dask's retries) has
+    its one-line reason as result, as in :func:`fusion.parallel.map_traces`. ``costs``: the costliest
+    calls get the highest Dask priority, so they start first."""
+    rank = {i: r for r, i in enumerate(sorted(range(len(args)), key=lambda i: costs[i]))} if costs else {}
+    out: list = [None] * len(args)
+    with _client(address) as client:
+        # pure=False: two identical calls (the same trace given twice) are two tasks, not one result
+        futures = {client.submit(_on_worker, func, a, pure=False, priority=rank.get(i, 0)): i
+                   for i, a in enumerate(args)}
+        from distributed import as_completed
+        with tqdm(total=len(args), desc="traces", disable=not progress) as bar:
+            for fut in as_completed(futures, loop=client.loop):
+                out[futures[fut]] = _result(fut)
+                bar.update()
+    return out
+
+
+def _result(fut):
+    """A finished future's value, or the failure line of what stopped it (a worker killed past the
+    retries: ``KilledWorker``; a lost scheduler: cancelled)."""
+    try:
+        return fut.result()
+    except Exception as exc:  # noqa: BLE001 - one trace's failure must not stop the others
+        from distributed import KilledWorker
+        if isinstance(exc, KilledWorker):
+            return f"the worker process died ({exc})"
+        return failure(exc)
