@@ -51,14 +51,12 @@ def four_traces(tmp: Path) -> tuple[list[Path], str]:
 
 
 #: ``gnssfuse evaluate`` on a two-worker Dask ``LocalCluster`` that the command starts and stops itself:
-#: what ``--jobs 2`` would cost if Dask replaced ``fusion.parallel``'s own workers (one task per worker
-#: at a time, as ``--jobs`` runs one trace per process).
+#: what ``--jobs 2`` would cost if Dask replaced ``fusion.parallel``'s own workers.
 LOCAL_CLUSTER_DRIVER = """
-import sys, dask
+import sys
 from distributed import LocalCluster
 from fusion.cli import main
-with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}), LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
     rc = main(sys.argv[1:] + ["--scheduler", cluster.scheduler_address])
 sys.exit(rc)
 """
@@ -102,11 +100,9 @@ WARM = "--scheduler on a running Dask LocalCluster of 2 workers"
 def _running_cluster(stack: contextlib.ExitStack) -> str | None:
     """The address of a two-worker LocalCluster that lives as long as ``stack``; None without dask."""
     try:
-        import dask
         from distributed import LocalCluster
     except ImportError:
         return None
-    stack.enter_context(dask.config.set({"distributed.scheduler.worker-saturation": 1.0}))
     cluster = stack.enter_context(LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                                dashboard_address=":0"))
     return cluster.scheduler_address

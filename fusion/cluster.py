@@ -5,10 +5,10 @@ Dask is an optional extra (``pip install gnssfuse[cluster]``) and is imported on
 scheduler is asked for. Each call runs as one Dask task through :func:`fusion.parallel.guarded`, so an
 exception on a worker becomes that trace's one-line failure, as with ``--jobs``; a worker that dies
 while running a call is Dask's to retry (``distributed.scheduler.allowed-failures`` times), after which
-the call fails alone (``KilledWorker``). The workers must be able to import ``fusion`` (gnssfuse
-installed where they run) and see the input and output folders under the same paths (a shared file
-system); they are best started with one thread each (``dask worker ADDRESS --nthreads 1``): the
-pipeline's Python holds the GIL, so threads of one worker would take turns. How long to wait for
+the call fails alone (``KilledWorker``). The workers must be able to import ``fusion``
+(gnssfuse installed where they run) and see the input and output folders under the same paths (a
+shared file system); they are best started with one thread each (``dask worker ADDRESS --nthreads
+1``), since much of the pipeline is Python, which holds the GIL. How long to wait for
 the scheduler is Dask's own setting ``distributed.comm.timeouts.connect`` (environment variable
 ``DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT``, default 30 s).
 """
@@ -51,19 +51,34 @@ def map_on_cluster(func: Callable, args: Sequence[tuple], address: str, progress
                    costs: Sequence[float] | None = None) -> list:
     """``[func(*a) for a in args]`` on the Dask cluster whose scheduler is at ``address``, results in
     the order of ``args``; a call that fails (raises, or kills its worker past Dask's retries) has
-    its one-line reason as result, as in :func:`fusion.parallel.map_traces`. ``costs``: the costliest
-    calls get the highest Dask priority, so they start first."""
-    rank = {i: r for r, i in enumerate(sorted(range(len(args)), key=lambda i: costs[i]))} if costs else {}
+    its one-line reason as result, as in :func:`fusion.parallel.map_traces`.
+
+    Calls are handed to the scheduler only as worker threads free up (as many in flight as the
+    cluster has threads, counted again after each call, so that workers that join are used), the
+    costliest first: a worker then never holds a second trace queued behind the one it runs, which
+    a crash of the first would take down too, and the longest traces do not start last.
+    """
+    order = sorted(range(len(args)), key=lambda i: -costs[i]) if costs is not None else list(range(len(args)))
+    todo = order[::-1]
     out: list = [None] * len(args)
     with _client(address) as client:
-        # pure=False: two identical calls (the same trace given twice) are two tasks, not one result
-        futures = {client.submit(_on_worker, func, a, pure=False, priority=rank.get(i, 0)): i
-                   for i, a in enumerate(args)}
         from distributed import as_completed
+        running, index = as_completed(loop=client.loop), {}
+
+        def fill() -> None:
+            while todo and running.count() < max(1, sum(client.nthreads().values())):
+                i = todo.pop()
+                # pure=False: the same trace given twice is two calls, not one result
+                fut = client.submit(_on_worker, func, args[i], pure=False)
+                index[fut.key] = i
+                running.add(fut)
+
+        fill()
         with tqdm(total=len(args), desc="traces", disable=not progress) as bar:
-            for fut in as_completed(futures, loop=client.loop):
-                out[futures[fut]] = _result(fut)
+            for fut in running:
+                out[index[fut.key]] = _result(fut)
                 bar.update()
+                fill()
     return out
 
 
@@ -74,6 +89,6 @@ def _result(fut):
         return fut.result()
     except Exception as exc:  # noqa: BLE001 - one trace's failure must not stop the others
         from distributed import KilledWorker
-        if isinstance(exc, KilledWorker):
-            return f"the worker process died ({exc})"
+        if isinstance(exc, KilledWorker):       # its own text is a paragraph; the workers' logs say why
+            return f"the worker process died (each of the {exc.allowed_failures + 1} Dask workers that ran it)"
         return failure(exc)
