@@ -47,19 +47,19 @@ def _on_worker(func: Callable, a: tuple):
     return guarded(func, *a)
 
 
-def map_on_cluster(func: Callable, args: Sequence[tuple], address: str, progress: bool = False,
-                   costs: Sequence[float] | None = None) -> list:
-    """``[func(*a) for a in args]`` on the Dask cluster whose scheduler is at ``address``, results in
-    the order of ``args``; a call that fails (raises, or kills its worker past Dask's retries) has
-    its one-line reason as result, as in :func:`fusion.parallel.map_traces`.
+def map_on_cluster(func: Callable, args: Sequence[tuple], order: Sequence[int], address: str,
+                   progress: bool = False) -> list:
+    """``[func(*a) for a in args]`` on the Dask cluster whose scheduler is at ``address``, started in
+    ``order`` (indices into ``args``), results in the order of ``args``; a call that fails (raises,
+    or kills its worker past Dask's retries) has its one-line reason as result, as in
+    :func:`fusion.parallel.map_traces`.
 
     Calls are handed to the scheduler only as worker threads free up (as many in flight as the
-    cluster has threads, counted again after each call, so that workers that join are used), the
-    costliest first: a worker then never holds a second trace queued behind the one it runs, which
-    a crash of the first would take down too, and the longest traces do not start last.
+    cluster has threads, counted again after each call, so that workers that join are used), in
+    ``order``: a worker then never holds a second trace queued behind the one it runs, which a crash
+    of the first would take down too, and the costliest traces (first in ``order``) do not start last.
     """
-    order = sorted(range(len(args)), key=lambda i: -costs[i]) if costs is not None else list(range(len(args)))
-    todo = order[::-1]
+    todo = list(order)[::-1]
     out: list = [None] * len(args)
     with _client(address) as client:
         from distributed import as_completed

@@ -54,23 +54,15 @@ def map_traces(func: Callable, args: Sequence[tuple], jobs: int = 1, progress: b
     """
     if jobs < 1:
         raise GnssfuseError("--jobs must be >= 1")
+    if scheduler is None and jobs == 1:         # one at a time: the order of args, whatever the costs
+        return [guarded(func, *a) for a in tqdm(args, desc="traces", disable=not progress)]
     order = list(range(len(args)))
     if costs is not None:
         order.sort(key=lambda i: -costs[i])
     if scheduler is not None:
         from fusion.cluster import map_on_cluster
-        return map_on_cluster(func, args, scheduler, progress, costs)
-    if jobs == 1:
-        return _in_process(func, args, order, progress)
+        return map_on_cluster(func, args, order, scheduler, progress)
     return _in_processes(func, args, order, jobs, progress)
-
-
-def _in_process(func: Callable, args: Sequence[tuple], order: list[int], progress: bool) -> list:
-    """:func:`map_traces` with ``jobs=1``: each call :func:`guarded`, here, in ``order``."""
-    out: list = [None] * len(args)
-    for i in tqdm(order, desc="traces", disable=not progress):
-        out[i] = guarded(func, *args[i])
-    return out
 
 
 def _in_processes(func: Callable, args: Sequence[tuple], order: list[int], jobs: int, progress: bool) -> list:
