@@ -14,12 +14,13 @@ the scheduler is Dask's own setting ``distributed.comm.timeouts.connect`` (envir
 """
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable, Sequence
 
 from tqdm import tqdm
 
 from fusion.errors import GnssfuseError
-from fusion.parallel import _one_thread, failure, guarded
+from fusion.parallel import _one_thread, failure, guarded, one_line
 
 
 class ClusterError(GnssfuseError):
@@ -36,9 +37,31 @@ def _client(address: str):
     if not address.strip():
         raise ClusterError("--scheduler needs an address, e.g. tcp://HOST:8786")
     try:
-        return Client(address, set_as_default=False)
+        client = Client(address, set_as_default=False)
     except (OSError, TimeoutError, ValueError) as exc:
         raise ClusterError(f"cannot reach the Dask scheduler at {address}: {exc}") from None
+    try:
+        check_environment(client, address)
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
+def check_environment(client, address: str) -> None:
+    """One round trip before any work: the scheduler (which unpickles the tasks) and every worker
+    must import this module, i.e. have this gnssfuse installed; otherwise every trace would fail
+    with the same paragraph from Dask."""
+    try:
+        where = {"the scheduler": client.run_on_scheduler(importlib.util.find_spec, __name__),
+                 **client.run(importlib.util.find_spec, __name__)}
+    except Exception as exc:  # noqa: BLE001 - whatever Dask raises, the run cannot start
+        raise ClusterError(f"the Dask cluster at {address} did not answer: {type(exc).__name__}: "
+                           f"{one_line(str(exc))}") from None
+    missing = [str(w) for w, spec in where.items() if spec is None]
+    if missing:
+        raise ClusterError(f"{', '.join(missing)} of the Dask cluster at {address} cannot import {__name__}: "
+                           "install this gnssfuse (with its [cluster] extra) where the scheduler and workers run")
 
 
 def _on_worker(func: Callable, a: tuple):

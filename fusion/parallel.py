@@ -220,4 +220,9 @@ def failure(exc: BaseException) -> str:
     stderr, since the one line alone would not locate it."""
     if not isinstance(exc, GnssfuseError):
         traceback.print_exception(exc, file=sys.stderr)
-    return f"{type(exc).__name__}: {exc}"
+    return f"{type(exc).__name__}: {one_line(str(exc))}"
+
+
+def one_line(text: str) -> str:
+    """``text`` with its lines joined by spaces (some libraries' messages are paragraphs)."""
+    return " ".join(line.strip() for line in text.splitlines() if line.strip())

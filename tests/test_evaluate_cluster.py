@@ -81,6 +81,33 @@ def test_the_costliest_calls_start_first_on_a_cluster_and_results_keep_their_ord
     assert set(started[:2]) == {1, 3} and set(started[2:]) == {0, 2}    # two workers: two at a time
 
 
+class _Cluster:
+    """A stand-in for a ``distributed.Client`` whose scheduler and workers answer ``find_spec`` as given."""
+
+    def __init__(self, on_scheduler, on_workers):
+        self.on_scheduler, self.on_workers = on_scheduler, on_workers
+
+    def run_on_scheduler(self, func, name):
+        return self.on_scheduler
+
+    def run(self, func, name):
+        if isinstance(self.on_workers, Exception):
+            raise self.on_workers
+        return self.on_workers
+
+
+def test_a_cluster_without_gnssfuse_is_one_error_before_any_work():
+    pytest.importorskip("distributed")
+    from fusion.cluster import ClusterError, check_environment
+    spec = object()
+    check_environment(_Cluster(spec, {"tcp://w1": spec, "tcp://w2": spec}), "tcp://s:1")
+    with pytest.raises(ClusterError, match=r"^the scheduler, tcp://w2 of the Dask cluster at tcp://s:1 cannot "
+                                           r"import fusion.cluster: install this gnssfuse"):
+        check_environment(_Cluster(None, {"tcp://w1": spec, "tcp://w2": None}), "tcp://s:1")
+    with pytest.raises(ClusterError, match=r"^the Dask cluster at tcp://s:1 did not answer: OSError: gone away$"):
+        check_environment(_Cluster(spec, OSError("gone\n away")), "tcp://s:1")
+
+
 def _closed_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
