@@ -11,7 +11,9 @@ has imported the pipeline once (:data:`PRELOAD`: numpy, pandas, matplotlib, GTSA
 milliseconds instead of re-importing for a second or more; elsewhere they are spawned. The server and
 its workers are limited to one BLAS/OpenMP/torch thread each, so ``--jobs N`` uses N cores, not N times
 all of them. A trace whose worker raises, or dies, is reported as a failure of that trace alone;
-the others go on.
+the others go on. (Not a Dask ``LocalCluster`` for ``--jobs``: started by each command, its spawned
+workers import everything anew, and ``benchmarks/bench_evaluate.py`` measures it slower than these
+forked workers; Dask serves ``--scheduler``, a cluster that is already running.)
 """
 from __future__ import annotations
 
