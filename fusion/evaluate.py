@@ -24,7 +24,7 @@ from fusion.eval.report import (TraceEval, markdown_table, metrics_table, write_
 from fusion.io.estimates import write_outputs
 from fusion.prepare.load import load_trace, trace_name
 from fusion.modes import get_mode, run_modes, solve_initial
-from fusion.parallel import guarded, map_traces
+from fusion.parallel import map_traces
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
 
@@ -103,15 +103,19 @@ def load_and_run(d: Path, slug: str, modes: list[str], opts: RunOptions, max_epo
 
 
 def run_all(trace_dirs: list[Path], modes: list[str], opts: RunOptions, max_epochs: int | None,
-            fix_truth_height: bool, progress: bool, jobs: int, out_dir: Path) -> list[TraceEval | str]:
-    """:func:`load_and_run` on every folder, in order; in ``jobs`` processes when > 1. Output
-    folders are named (slugs) here, before any work, so that they do not depend on ``jobs``."""
+            fix_truth_height: bool, progress: bool, jobs: int, out_dir: Path,
+            scheduler: str | None = None) -> list[TraceEval | str]:
+    """:func:`load_and_run` on every folder through :func:`fusion.parallel.map_traces` (here, in
+    ``jobs`` processes, or on the Dask cluster at ``scheduler``). Output folders are named (slugs)
+    here, before any work, so that they do not depend on where the traces run."""
     taken: set[str] = set()
-    args = [(Path(d), _slug(trace_name(d), taken), modes, opts, max_epochs, fix_truth_height, out_dir)
-            for d in trace_dirs]
-    if jobs == 1:
-        return [guarded(load_and_run, *a, progress=progress) for a in tqdm(args, desc="traces", disable=not progress)]
-    return map_traces(load_and_run, args, jobs, progress, costs=[_input_bytes(Path(d)) for d in trace_dirs])
+    here = jobs == 1 and scheduler is None          # only then can a trace's own mode bars be shown
+    # a cluster's workers have working directories of their own: absolute paths
+    place = Path if scheduler is None else (lambda p: Path(p).absolute())
+    args = [(place(d), _slug(trace_name(d), taken), modes, opts, max_epochs, fix_truth_height, place(out_dir),
+             progress and here) for d in trace_dirs]
+    return map_traces(load_and_run, args, jobs, progress, costs=[_input_bytes(Path(d)) for d in trace_dirs],
+                      scheduler=scheduler)
 
 
 def _input_bytes(trace_dir: Path) -> int:
@@ -125,12 +129,14 @@ def _input_bytes(trace_dir: Path) -> int:
 
 def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
              max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
-             argv: list[str] | None = None, jobs: int = 1) -> tuple[pd.DataFrame, dict[str, str]]:
+             argv: list[str] | None = None, jobs: int = 1,
+             scheduler: str | None = None) -> tuple[pd.DataFrame, dict[str, str]]:
     """Load, run, tabulate, plot and write the report. Returns (metrics table, load failures).
 
     A trace that fails to load is reported and skipped; only when none loads is it an error.
-    ``jobs`` > 1 runs traces in that many worker processes (:mod:`fusion.parallel`); the tables are
-    the same as with one.
+    ``jobs`` > 1 runs traces in that many worker processes (:mod:`fusion.parallel`), ``scheduler``
+    (a Dask scheduler's address) on that cluster's workers (:mod:`fusion.cluster`); the tables are
+    the same as with one process.
     """
     check_modes(modes)
     missing = [str(d) for d in trace_dirs if not Path(d).is_dir()]
@@ -140,9 +146,11 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
         raise GnssfuseError("--max-epochs must be >= 1")
     if jobs < 1:
         raise GnssfuseError("--jobs must be >= 1")
+    if scheduler is not None and jobs > 1:
+        raise GnssfuseError("--jobs and --scheduler exclude each other (the cluster's workers set the pace)")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    outcomes = run_all(trace_dirs, modes, opts, max_epochs, fix_truth_height, progress, jobs, out_dir)
+    outcomes = run_all(trace_dirs, modes, opts, max_epochs, fix_truth_height, progress, jobs, out_dir, scheduler)
     evals = [o for o in outcomes if not isinstance(o, str)]
     failures = {str(d): o for d, o in zip(trace_dirs, outcomes) if isinstance(o, str)}
     if not evals:

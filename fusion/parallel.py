@@ -1,4 +1,9 @@
-"""Traces in parallel processes: one process per trace, at most ``jobs`` at a time, one thread each.
+"""Traces in parallel: :func:`map_traces` is the one entry (``evaluate``'s traces, its pooled figures,
+and any later command that maps a function over traces), in this process (``jobs=1``), in worker
+processes on this machine (``jobs`` > 1), or on a Dask cluster (``scheduler=ADDRESS``:
+:mod:`fusion.cluster`).
+
+Worker processes on this machine: one process per trace, at most ``jobs`` at a time, one thread each.
 
 Workers are not forked from the caller (a forked child of a process that has already started torch or
 OpenMP threads can deadlock): on Linux they fork from a *forkserver*, a fresh single-threaded process that
@@ -6,7 +11,9 @@ has imported the pipeline once (:data:`PRELOAD`: numpy, pandas, matplotlib, GTSA
 milliseconds instead of re-importing for a second or more; elsewhere they are spawned. The server and
 its workers are limited to one BLAS/OpenMP/torch thread each, so ``--jobs N`` uses N cores, not N times
 all of them. A trace whose worker raises, or dies, is reported as a failure of that trace alone;
-the others go on.
+the others go on. (Not a Dask ``LocalCluster`` for ``--jobs``: started by each command, its spawned
+workers import everything anew, and ``benchmarks/bench_evaluate.py`` measures it slower than these
+forked workers; Dask serves ``--scheduler``, a cluster that is already running.)
 """
 from __future__ import annotations
 
@@ -35,23 +42,37 @@ def _one_thread() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
-def map_traces(func: Callable, args: Sequence[tuple], jobs: int, progress: bool = False,
-               costs: Sequence[float] | None = None) -> list:
-    """``[func(*a) for a in args]`` in ``jobs`` worker processes at a time, results in the order of ``args``.
+def map_traces(func: Callable, args: Sequence[tuple], jobs: int = 1, progress: bool = False,
+               costs: Sequence[float] | None = None, scheduler: str | None = None) -> list:
+    """``[func(*a) for a in args]``, results in the order of ``args``: in this process when ``jobs``
+    is 1, in ``jobs`` worker processes at a time when more, on the Dask cluster whose scheduler is at
+    ``scheduler`` when given (``jobs`` is then not used: the cluster's workers set the pace).
 
     ``func`` must be importable by name (a module-level function). An exception in one call becomes
-    that call's result as the string ``"<type>: <message>"``, a worker's death as
-    ``"the worker process died (exit code N)"``. ``costs`` (one per call,
-    any unit): a guess of each call's run time; the costliest calls start first, so that a long one
-    does not start last and leave the other workers idle (longest-processing-time-first scheduling).
+    that call's result as the string ``"<type>: <message>"`` (:func:`failure`), a worker's death as
+    ``"the worker process died (...)"``. ``costs`` (one per call, any unit): a guess of each call's
+    run time; the costliest calls start first, so that a long one does not start last and leave the
+    other workers idle (longest-processing-time-first scheduling).
     """
+    if jobs < 1:
+        raise GnssfuseError("--jobs must be >= 1")
+    if scheduler is None and jobs == 1:         # one at a time: the order of args, whatever the costs
+        return [guarded(func, *a) for a in tqdm(args, desc="traces", disable=not progress)]
+    order = list(range(len(args)))
+    if costs is not None:
+        order.sort(key=lambda i: -costs[i])
+    if scheduler is not None:
+        from fusion.cluster import map_on_cluster
+        return map_on_cluster(func, args, order, scheduler, progress)
+    return _in_processes(func, args, order, jobs, progress)
+
+
+def _in_processes(func: Callable, args: Sequence[tuple], order: list[int], jobs: int, progress: bool) -> list:
+    """:func:`map_traces` with ``jobs`` > 1: the environment set for one-thread workers around :func:`_schedule`."""
     ctx = _context()
     saved = {v: os.environ.get(v) for v in _THREAD_VARS}
     os.environ.update({v: "1" for v in _THREAD_VARS})      # inherited by the forkserver when it starts
     try:
-        order = list(range(len(args)))
-        if costs is not None:
-            order.sort(key=lambda i: -costs[i])
         return _schedule(func, args, order, jobs, ctx, progress)
     finally:
         _restore(saved)
@@ -106,7 +127,7 @@ def start_early() -> None:
 
 
 def _schedule(func: Callable, args: Sequence[tuple], order: list[int], jobs: int, ctx, progress: bool) -> list:
-    """The scheduling loop of :func:`map_traces`: calls started in ``order`` (indices into ``args``),
+    """The scheduling loop of :func:`map_traces` with ``jobs`` > 1: calls started in ``order`` (indices into ``args``),
     results returned in the order of ``args``.
 
     Each call runs in a process of its own, at most ``jobs`` at a time, and sends its result back on a
@@ -201,4 +222,9 @@ def failure(exc: BaseException) -> str:
     stderr, since the one line alone would not locate it."""
     if not isinstance(exc, GnssfuseError):
         traceback.print_exception(exc, file=sys.stderr)
-    return f"{type(exc).__name__}: {exc}"
+    return f"{type(exc).__name__}: {one_line(str(exc))}"
+
+
+def one_line(text: str) -> str:
+    """``text`` with its lines joined by spaces (some libraries' messages are paragraphs)."""
+    return " ".join(line.strip() for line in text.splitlines() if line.strip())

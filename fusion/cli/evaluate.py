@@ -25,6 +25,10 @@ def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
                    help="no progress bars (there are none anyway when stderr is not a terminal)")
     p.add_argument("--jobs", type=int, default=1,
                    help="traces in this many parallel processes (one thread each; default 1)")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="run the traces on the Dask cluster whose scheduler is at ADDRESS (e.g. "
+                        "tcp://host:8786; needs gnssfuse[cluster]; the workers must see the trace and --out "
+                        "folders under the same paths)")
     return p
 
 
@@ -39,7 +43,8 @@ def main(argv: list[str], prog: str = "gnssfuse evaluate") -> int:
         raise GnssfuseError("--modes is empty")
     df, failures = evaluate(args.trace_dirs, modes, out_folder(args.out), opts, max_epochs=args.max_epochs,
                             fix_truth_height=not args.no_truth_height_fix,
-                            progress=show_progress(not args.no_progress), argv=argv, jobs=args.jobs)
+                            progress=show_progress(not args.no_progress), argv=argv, jobs=args.jobs,
+                            scheduler=args.scheduler)
     print(markdown_table(df))
     print(f"wrote {args.out / 'report.md'}, metrics.csv, metrics.md and figures/")
     # The report for the good part is written; still exit non-zero so scripts notice the rest.
