@@ -155,3 +155,16 @@ def test_no_escape_codes_when_stderr_is_not_a_terminal(shipped_trace_dir, tmp_pa
                            "--max-epochs", "30", "--out", str(tmp_path / "r")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert "\x1b" not in proc.stderr + proc.stdout and "\r" not in proc.stderr + proc.stdout
+
+
+def test_the_run_summary_says_what_the_network_and_the_graph_did():
+    from fusion.eval.summary import run_summary
+
+    info = {"learned_epochs_asked": 10, "learned_meas_asked": 80, "learned_meas_out_of_range": 3,
+            "learned_meas_unseen_signal": 12, "learned_epochs_guard_shrunk": 2, "learned_epochs_guard_off": 1,
+            "epochs_bridged": 4, "longest_bridge_s": 4.0}
+    text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
+                        "info": info})
+    assert "asked at 10 epochs, 80 measurements" in text and "3 measurements with inputs outside" in text
+    assert "12 measurements of signals it cannot read" in text and "switched off in 1" in text
+    assert "4 epochs bridged" in text and "longest stretch 4 s" in text

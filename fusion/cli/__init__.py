@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 import sys
+import warnings
 
 from fusion.errors import GnssfuseError
 
@@ -53,6 +54,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gnssfuse: unknown command {cmd!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module, func = COMMANDS[cmd][0].split(":")
+    # a user's warning (a file read in part, navigation missing for a constellation) is one line naming
+    # the command, not Python's file and source line
+    warnings.formatwarning = lambda message, category, *args, **kwargs: f"gnssfuse {cmd}: warning: {message}\n"
     if cmd == "evaluate":
         from fusion.parallel import jobs_asked, start_early
         if jobs_asked(rest) > 1:

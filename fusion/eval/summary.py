@@ -21,6 +21,17 @@ def skip_words(skipped: dict[str, int]) -> str:
     return ", ".join(f"{v} {_reason_words(k)}" for k, v in items) or "nothing"
 
 
+def learned_words(info: dict) -> str:
+    """What the network and its guard did (a mode's ``learned_*`` info), in words."""
+    g = {k[len("learned_"):]: int(v) for k, v in info.items() if k.startswith("learned_") and isinstance(v, (int, float))}
+    return (f"network: asked at {g.get('epochs_asked', 0)} epochs, {g.get('meas_asked', 0)} measurements; its guard "
+            f"gave the physical sigma model {g.get('meas_out_of_range', 0)} measurements with inputs outside the "
+            f"training range; {g.get('meas_unseen_signal', 0)} measurements of signals it cannot read left to the "
+            f"graph's own model; "
+            f"correction shrunk in {g.get('epochs_guard_shrunk', 0)} epochs, switched off in "
+            f"{g.get('epochs_guard_off', 0)}")
+
+
 def run_summary(record: dict) -> str:
     """The lines ``gnssfuse run`` prints from a run record (:func:`fusion.io.estimates.run_record`)."""
     lines = [f"{record['trace']}: {record['epochs_solved']}/{record['epochs_total']} epochs solved in mode "
@@ -30,8 +41,11 @@ def run_summary(record: dict) -> str:
         lines.append(f"WLS fault detection: {info['excluded_measurements']} measurements excluded in "
                      f"{info['epochs_with_exclusions']} epochs; {info['epochs_fault_undecided']} epochs undecided"
                      " (see metrics.json 'info'; --wls-plain for the plain baseline)")
-    if info.get("guard_shrunk"):
-        lines.append(f"out-of-distribution guard: the network's correction shrunk in {info['guard_shrunk']} "
-                     f"epochs, switched off in {info.get('guard_off', 0)}")
+    if "learned_epochs_asked" in info:
+        lines.append(learned_words(info))
+    if info.get("epochs_bridged"):
+        lines.append(f"{info['epochs_bridged']} epochs bridged by the motion model alone (fewer than 4 satellites, "
+                     f"no prior; longest stretch {info.get('longest_bridge_s', 0):.0f} s): column 'bridged' in "
+                     "estimates.csv")
     lines.append(DATUM)
     return "\n".join(lines)
