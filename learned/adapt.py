@@ -7,7 +7,8 @@ only at epochs where the graph's own marginal horizontal sigma is at most ``max_
 stretches the measurements constrain); the rest of the log teaches nothing. The network is then
 fine-tuned from a base checkpoint with the ordinary training losses (:mod:`learned.train`) for a few
 epochs at a small learning rate, at guesses drawn as in training (the teacher plus jitter standing in for
-the ``graph`` source, the point where the ``fused`` mode asks the network).
+the ``graph`` source, the point where the ``fused`` mode asks the network), plus a leave-one-satellite-out
+consistency loss on the per-satellite head (:mod:`learned.consistency`), which needs no teacher at all.
 
 Ground truth is never read: every trace is loaded with ``truth="none"`` and a trace that still carries
 truth is refused. The adapted checkpoint keeps the base's calibration (nothing here can measure a new
@@ -16,7 +17,7 @@ adapted (traces by name, teacher, epochs), never a truth figure.
 
 Entry points into the training machinery, for whoever re-points them: :func:`learned.data.build_samples`,
 :func:`learned.train.sample_tensors`, :func:`learned.train.guesses_for`, :func:`learned.train.make_inputs`,
-:func:`learned.train.train_epoch`, :func:`learned.guard.input_ranges`, :mod:`learned.checkpoint`.
+:func:`learned.train.batch_loss`, :func:`learned.forward.outputs`, :func:`learned.guard.input_ranges`, :mod:`learned.checkpoint`.
 """
 from __future__ import annotations
 
@@ -44,7 +45,9 @@ from learned.features import FeatureConfig
 from learned.forward import take
 from learned.guard import input_ranges
 from learned.infer import SHIPPED_WEIGHTS
-from learned.train import LossWeights, TrainConfig, guesses_for, make_inputs, sample_tensors, train_epoch
+from learned.consistency import loo_nll
+from learned.forward import outputs
+from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
 
 #: The teacher: the graph without anything learned.
 TEACHER_MODE = "fused-nodnn"
@@ -62,6 +65,7 @@ class AdaptConfig:
     max_teacher_sigma_m: float = 3.0
     max_epochs: int | None = None
     elev_mask_deg: float = 10.0
+    loo: float = 0.1          # weight of the leave-one-satellite-out consistency loss (0: off)
 
 
 @dataclass
@@ -188,9 +192,9 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     if log:
         log(f"teacher ({TEACHER_MODE}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
             f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
-    history, ranges = fine_tune(model, samples, tcfg, progress)
+    history, ranges = fine_tune(model, samples, tcfg, cfg.loo, progress)
     record = {"from": weights.name, "teacher": TEACHER_MODE, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
-              "epochs": cfg.epochs, "lr": cfg.lr, "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
+              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
               "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
               "train_s": round(sum(h["time_s"] for h in history), 1)}
     config = copy.deepcopy(base)
@@ -200,9 +204,27 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     return record
 
 
-def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, progress: bool = False
+def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, loo: float, order: torch.Tensor) -> float:
+    """One pass over the rows ``order``: the training losses against the teacher plus ``loo`` x the
+    leave-one-satellite-out consistency at the teacher (:func:`learned.consistency.loo_nll`); the mean loss."""
+    model.train()
+    total = 0.0
+    for a in range(0, order.numel(), tcfg.batch):
+        b = take(inp, order[a:a + tcfg.batch])
+        out = outputs(model, b, tcfg.features)
+        loss = batch_loss(out, b, tcfg.loss, True)
+        if loo:
+            loss = loss + loo * loo_nll(b["sat_pos"], b["pr"], b["mask"], b["truth"], out["sigma"], out["bias"])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        total += float(loss.detach()) * b["x"].shape[0]
+    return total / max(order.numel(), 1)
+
+
+def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, loo: float = 0.0, progress: bool = False
               ) -> tuple[list[dict], dict | None]:
-    """``tcfg.epochs`` passes of the training step over ``samples`` from the model's current weights.
+    """``tcfg.epochs`` passes of :func:`adapt_epoch` over ``samples`` from the model's current weights.
     Returns the per-epoch history and the input ranges at the samples' WLS solutions (for the guard)."""
     torch.manual_seed(tcfg.seed)
     device = torch.device("cpu")
@@ -217,7 +239,7 @@ def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, progress: bool
         t0 = time.perf_counter()
         inp = make_inputs(tr, guesses_for(tr, tcfg, epoch_generator(tcfg.seed, epoch)), tcfg.features)
         order = torch.randperm(len(samples), generator=epoch_generator(tcfg.seed, epoch + 1_000))
-        loss = train_epoch(model, opt, inp, tcfg, epoch, order)
+        loss = adapt_epoch(model, opt, inp, tcfg, loo, order)
         if not math.isfinite(loss):
             raise DataError(f"adaptation diverged at epoch {epoch + 1} (loss {loss}); try a smaller --lr")
         history.append({"epoch": epoch + 1, "train_loss": loss, "samples": len(samples),

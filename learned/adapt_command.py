@@ -19,6 +19,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need --epochs >= 1 and --batch >= 1")
     if not args.lr > 0 or not args.max_teacher_sigma > 0:
         raise DataError("need --lr > 0 and --max-teacher-sigma > 0")
+    if not args.loo >= 0:
+        raise DataError("need --loo >= 0")
     if args.max_epochs is not None and args.max_epochs < 1:
         raise DataError("need --max-epochs >= 1")
     if args.jobs < 1:
@@ -57,7 +59,7 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
     if args.threads:
         torch.set_num_threads(args.threads)
     cfg = AdaptConfig(epochs=args.epochs, lr=args.lr, batch=args.batch, seed=args.seed,
-                      max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs,
+                      max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
                       elev_mask_deg=args.elev_mask)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr))
