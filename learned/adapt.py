@@ -65,7 +65,7 @@ class AdaptConfig:
     max_teacher_sigma_m: float = 3.0
     max_epochs: int | None = None
     elev_mask_deg: float = 10.0
-    loo: float = 0.1          # weight of the leave-one-satellite-out consistency loss (0: off)
+    loo: float = 1.0          # weight of the leave-one-satellite-out consistency loss (0: off)
 
 
 @dataclass
