@@ -49,8 +49,9 @@ from learned.consistency import loo_nll
 from learned.forward import outputs
 from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
 
-#: The teacher: the graph without anything learned.
-TEACHER_MODE = "fused-nodnn"
+#: The teachers: the graph with the base network (``fused``: the best answer the base gives, so the
+#: student starts from its own answer improved by Doppler / carrier / motion) or without anything learned.
+TEACHERS = ("fused", "fused-nodnn")
 
 
 @dataclass
@@ -65,6 +66,7 @@ class AdaptConfig:
     max_teacher_sigma_m: float = 3.0
     max_epochs: int | None = None
     elev_mask_deg: float = 10.0
+    teacher: str = "fused"
     loo: float = 1.0          # weight of the leave-one-satellite-out consistency loss (0: off)
 
 
@@ -93,11 +95,12 @@ def load_log(path: str | Path, opts: RunOptions, max_epochs: int | None = None) 
     return trace
 
 
-def teach(path: str | Path, opts: RunOptions, max_epochs: int | None = None) -> Teacher:
-    """Load one log (no truth) and solve its teacher trajectory with the marginal covariance."""
+def teach(path: str | Path, opts: RunOptions, max_epochs: int | None = None, mode: str = "fused") -> Teacher:
+    """Load one log (no truth) and solve its teacher trajectory (``mode``, with ``opts.weights`` for
+    ``fused``) with the marginal covariance."""
     t0 = time.perf_counter()
     trace = load_log(path, opts, max_epochs)
-    res = run_modes(trace, [TEACHER_MODE], opts)[TEACHER_MODE]
+    res = run_modes(trace, [mode], opts)[mode]
     sigma = np.full(trace.n_epochs, np.nan)
     if res.cov is not None and res.valid.any():
         ok = res.valid & np.isfinite(res.cov).all(axis=(1, 2))
@@ -108,11 +111,11 @@ def teach(path: str | Path, opts: RunOptions, max_epochs: int | None = None) -> 
                    time.perf_counter() - t0)
 
 
-def teachers(paths: list[str | Path], opts: RunOptions, max_epochs: int | None, jobs: int = 1,
-             progress: bool = False) -> list[Teacher]:
+def teachers(paths: list[str | Path], opts: RunOptions, max_epochs: int | None, mode: str = "fused",
+             jobs: int = 1, progress: bool = False) -> list[Teacher]:
     """:func:`teach` for every log: in ``jobs`` worker processes (:func:`fusion.parallel.map_traces`) when
     more than one, else here; a log that fails is a :class:`DataError` naming it."""
-    args = [(p, opts, max_epochs) for p in paths]
+    args = [(p, opts, max_epochs, mode) for p in paths]
     if jobs > 1 and len(paths) > 1:
         from fusion.parallel import map_traces
         out = map_traces(teach, args, jobs, progress=progress)
@@ -185,15 +188,17 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     base = blob["config"]
     tcfg = train_config(base, cfg)
     t0 = time.perf_counter()
-    taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg), cfg.max_epochs,
-                      jobs, progress)
+    if cfg.teacher not in TEACHERS:
+        raise DataError(f"teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
+    taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights),
+                      cfg.max_epochs, cfg.teacher, jobs, progress)
     samples, counts = adaptation_samples(taught, tcfg.signals, cfg)
     t_teacher = time.perf_counter() - t0
     if log:
-        log(f"teacher ({TEACHER_MODE}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
+        log(f"teacher ({cfg.teacher}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
             f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
     history, ranges = fine_tune(model, samples, tcfg, cfg.loo, progress)
-    record = {"from": weights.name, "teacher": TEACHER_MODE, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
+    record = {"from": weights.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
               "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
               "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
               "train_s": round(sum(h["time_s"] for h in history), 1)}

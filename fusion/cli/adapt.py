@@ -27,6 +27,9 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed of the guesses, batch order and model")
     p.add_argument("--max-teacher-sigma", type=float, default=3.0, metavar="M",
                    help="learn only at epochs where the teacher's horizontal 1-sigma is at most M metres")
+    p.add_argument("--teacher", default="fused", choices=("fused", "fused-nodnn"),
+                   help="the trajectory learned from: the graph with the base network (default) or without "
+                        "anything learned")
     p.add_argument("--loo", type=float, default=1.0, metavar="W",
                    help="weight of the leave-one-satellite-out consistency loss on the per-satellite head "
                         "(default 1; 0: off)")
