@@ -4,7 +4,8 @@ the adapted weights, and ``fused-nodnn``, against the truth (read here, for scor
 Markdown table: GSDC score (mean of horizontal p50 and p95) and the ratio adapted / shipped, the epochs
 the teacher trusted and the network's learned sigmas / guard counts in the adapted run, and the times.
 
-    python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] [--teacher fused|fused-nodnn] [LOG ...]
+    python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] \
+        [--teacher fused|fused-nodnn] [LOG ...]
 
 Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
 drives (2021-04-28 MTV-1 Pixel4 and SJC-1 Pixel4: out of the shipped network's training), and one of its
@@ -63,7 +64,8 @@ def main() -> int:
     p.add_argument("--loo", type=float, default=AdaptConfig.loo)
     p.add_argument("--teacher", default=AdaptConfig.teacher)
     a = p.parse_args()
-    cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo, teacher=a.teacher)
+    cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo,
+                      teacher=a.teacher)
     print(f"adapt: teacher {cfg.teacher}, epochs {cfg.epochs}, lr {cfg.lr}, max teacher sigma {cfg.max_teacher_sigma_m} m, "
           f"leave-one-out weight {cfg.loo}, seed {cfg.seed}\n")
     print("| log | base trained on it | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped "

@@ -1,9 +1,9 @@
 """Adapt the learned measurement models to a phone's own logs without ground truth.
 
-The teacher is the factor graph without anything learned (the ``fused-nodnn`` mode: pseudoranges +
-Doppler + time-differenced carrier where the log has them + motion + clock), whose trajectory is precise
-in shape where Doppler and carrier tie the epochs together. Its positions stand in for the truth, but
-only at epochs where the graph's own marginal horizontal sigma is at most ``max_teacher_sigma_m`` (the
+The teacher is the factor graph (pseudoranges + Doppler + time-differenced carrier where the log has
+them + motion + clock), with the base network (``fused``, default) or without anything learned
+(``fused-nodnn``); its trajectory is precise in shape where Doppler and carrier tie the epochs
+together. Its positions stand in for the truth, but only at epochs where the graph's own marginal horizontal sigma is at most ``max_teacher_sigma_m`` (the
 stretches the measurements constrain); the rest of the log teaches nothing. The network is then
 fine-tuned from a base checkpoint with the ordinary training losses (:mod:`learned.train`) for a few
 epochs at a small learning rate, at guesses drawn as in training (the teacher plus jitter standing in for
@@ -17,7 +17,8 @@ adapted (traces by name, teacher, epochs), never a truth figure.
 
 Entry points into the training machinery, for whoever re-points them: :func:`learned.data.build_samples`,
 :func:`learned.train.sample_tensors`, :func:`learned.train.guesses_for`, :func:`learned.train.make_inputs`,
-:func:`learned.train.batch_loss`, :func:`learned.forward.outputs`, :func:`learned.guard.input_ranges`, :mod:`learned.checkpoint`.
+:func:`learned.train.batch_loss`, :func:`learned.forward.outputs`, :func:`learned.guard.input_ranges`,
+:mod:`learned.checkpoint`.
 """
 from __future__ import annotations
 
@@ -40,13 +41,12 @@ from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, Trace
 from learned.augment import epoch_generator
 from learned.checkpoint import load_model, save_checkpoint
+from learned.consistency import loo_nll
 from learned.data import build_samples
 from learned.features import FeatureConfig
-from learned.forward import take
+from learned.forward import outputs, take
 from learned.guard import input_ranges
 from learned.infer import SHIPPED_WEIGHTS
-from learned.consistency import loo_nll
-from learned.forward import outputs
 from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
 
 #: The teachers: the graph with the base network (``fused``: the best answer the base gives, so the
@@ -199,7 +199,8 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
             f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
     history, ranges = fine_tune(model, samples, tcfg, cfg.loo, progress)
     record = {"from": weights.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
-              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
+              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo,
+              "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
               "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
               "train_s": round(sum(h["time_s"] for h in history), 1)}
     config = copy.deepcopy(base)

@@ -59,8 +59,8 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
     if args.threads:
         torch.set_num_threads(args.threads)
     cfg = AdaptConfig(epochs=args.epochs, lr=args.lr, batch=args.batch, seed=args.seed,
-                      max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo, teacher=args.teacher,
-                      elev_mask_deg=args.elev_mask)
+                      max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
+                      teacher=args.teacher, elev_mask_deg=args.elev_mask)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr))
     print(f"adapted {record['from']} on {len(record['traces'])} log(s) without ground truth, "
