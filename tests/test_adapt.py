@@ -81,7 +81,7 @@ def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, cap
     assert "without ground truth" in said and "2021-04-28-US-MTV-1/Pixel4" in said
     base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
     rec = new["config"]["adapted"][-1]
-    assert rec["teacher"] == "fused-nodnn" and rec["epochs"] == 1 and rec["from"] == SHIPPED_WEIGHTS.name
+    assert rec["teacher"] == "fused" and rec["loo"] == 1.0 and rec["epochs"] == 1 and rec["from"] == SHIPPED_WEIGHTS.name
     c = rec["traces"]["2021-04-28-US-MTV-1/Pixel4"]
     assert c["epochs"] == 300 and 0 < c["teacher_trusted"] <= c["teacher_solved"] <= 300
     assert not c["doppler"] and not c["carrier"]          # GSDC 2021 derived files carry neither
@@ -101,9 +101,13 @@ def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, cap
 def test_adapting_an_adapted_checkpoint_keeps_both_records(shipped_trace_dir, tmp_path):
     cfg = AdaptConfig(epochs=1, max_epochs=FEW)
     adapt([shipped_trace_dir], tmp_path / "one.pt", cfg=cfg)
-    adapt([shipped_trace_dir], tmp_path / "two.pt", weights=tmp_path / "one.pt", cfg=cfg)
+    adapt([shipped_trace_dir], tmp_path / "two.pt", weights=tmp_path / "one.pt",
+          cfg=AdaptConfig(epochs=1, max_epochs=FEW, teacher="fused-nodnn", loo=0.0))
     recs = read_checkpoint(tmp_path / "two.pt")["config"]["adapted"]
-    assert [r["from"] for r in recs] == [SHIPPED_WEIGHTS.name, "one.pt"]
+    assert [(r["from"], r["teacher"], r["loo"]) for r in recs] == [(SHIPPED_WEIGHTS.name, "fused", 1.0),
+                                                                   ("one.pt", "fused-nodnn", 0.0)]
+    with pytest.raises(GnssfuseError, match="teacher must be one of"):
+        adapt([shipped_trace_dir], tmp_path / "x.pt", cfg=AdaptConfig(teacher="wls"))
 
 
 def test_widened_ranges():
