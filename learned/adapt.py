@@ -155,17 +155,20 @@ def train_config(base: dict, cfg: AdaptConfig) -> TrainConfig:
 def adaptation_samples(taught: list[Teacher], signals: tuple[str, ...], cfg: AdaptConfig):
     """Training samples (:class:`learned.data.Samples`) from the teacher traces, with the teacher as the
     ``graph`` guess source (the point where ``fused`` asks), and the per-log counts."""
-    traces, counts = [], {}
+    traces, counts, keys = [], {}, []
     for t in taught:
-        tr, counts[t.trace.name] = teacher_trace(t, signals, cfg.max_teacher_sigma_m)
+        tr, c = teacher_trace(t, signals, cfg.max_teacher_sigma_m)
+        key = t.trace.name if t.trace.name not in counts else f"{t.trace.name} #{len(keys) + 1}"
+        counts[key] = c
+        keys.append(key)
         traces.append(tr)
     if not any(c["teacher_trusted"] for c in counts.values()):
         raise DataError(f"no epoch of {', '.join(counts)} has a teacher sigma <= {cfg.max_teacher_sigma_m} m "
                         "(raise --max-teacher-sigma?)")
     samples = build_samples(traces, cfg.elev_mask_deg, real=[True] * len(traces))
     samples.graph = samples.truth.copy()
-    for name, n in zip(samples.names, np.bincount(samples.trace, minlength=len(samples.names))):
-        counts[name]["samples"] = int(n)
+    for key, n in zip(keys, np.bincount(samples.trace, minlength=len(keys))):
+        counts[key]["samples"] = int(n)
     return samples, counts
 
 

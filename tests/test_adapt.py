@@ -174,3 +174,14 @@ def test_leave_one_out_loss_wants_a_large_sigma_for_the_satellite_the_others_ref
     # epochs with fewer than five satellites carry no term (the others cannot fix a position)
     sat4, pr4, mask4, rx4 = _epoch(4)
     assert float(loo_nll(sat4, pr4, mask4, rx4, torch.ones_like(pr4), torch.zeros_like(pr4))) == 0.0
+
+
+def test_teachers_in_worker_processes_match_in_process(shipped_trace_dir, tmp_path):
+    two = [_copy_trace(shipped_trace_dir, tmp_path / "a"), _copy_trace(shipped_trace_dir, tmp_path / "b")]
+    cfg = AdaptConfig(epochs=1, max_epochs=FEW)
+    rec = adapt(two, tmp_path / "j1.pt", cfg=cfg, jobs=1)
+    adapt(two, tmp_path / "j2.pt", cfg=cfg, jobs=2)
+    # two logs of the same name are both recorded
+    assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-MTV-1/Pixel4 #2"]
+    assert sum(c["samples"] for c in rec["traces"].values()) == rec["samples"]
+    assert _same_checkpoint(tmp_path / "j1.pt", tmp_path / "j2.pt")
