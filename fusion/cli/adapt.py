@@ -24,9 +24,10 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("--epochs", type=int, default=3, help="passes over the logs (default 3)")
     p.add_argument("--lr", type=float, default=1e-4, help="learning rate (default 1e-4)")
     p.add_argument("--batch", type=int, default=64, help="batch size (default 64)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the guesses, batch order and model")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the guesses and the batch order")
     p.add_argument("--max-teacher-sigma", type=float, default=3.0, metavar="M",
-                   help="learn only at epochs where the teacher's horizontal 1-sigma is at most M metres")
+                   help="learn only at epochs where the teacher's horizontal 1-sigma is at most M metres "
+                        "(default 3)")
     p.add_argument("--teacher", default="fused", choices=("fused", "fused-nodnn"),
                    help="the trajectory learned from: the graph with the base network (default) or without "
                         "anything learned")
