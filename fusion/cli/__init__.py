@@ -1,7 +1,7 @@
 """``gnssfuse`` command line: the dispatcher.
 
 Every subcommand is one thin module in this package (``run``, ``evaluate``, ``simulate``,
-``train``) exposing ``main(argv, prog) -> int``: it parses its arguments and calls the library.
+``train``, ``adapt``) exposing ``main(argv, prog) -> int``: it parses its arguments and calls the library.
 The dispatcher names each by a ``"module:function"`` string and imports it only when that
 subcommand runs, so ``gnssfuse run --mode wls`` never imports torch. Options several subcommands
 share are defined once in :mod:`fusion.options`. Adding a subcommand is one module here and one line
@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("fusion.cli.evaluate:main", "compare modes on traces: tables, CDFs, box plots, report.md"),
     "simulate": ("fusion.cli.simulate:main", "simulate a GNSS trace (GSDC 2021 derived format + truth)"),
     "train": ("fusion.cli.train:main", "train the set-transformer correction network"),
+    "adapt": ("fusion.cli.adapt:main", "fine-tune the learned models on logs without ground truth"),
 }
 
 

@@ -1,0 +1,88 @@
+"""Adaptation without ground truth (``gnssfuse adapt``), measured: for each log, adapt the shipped
+weights on that log alone (the adaptation never reads truth), then score ``fused`` with the shipped and
+the adapted weights, and ``fused-nodnn``, against the truth (read here, for scoring only). Prints a
+Markdown table: GSDC score (mean of horizontal p50 and p95) and the ratio adapted / shipped, the epochs
+the teacher trusted and the network's learned sigmas / guard counts in the adapted run, and the times.
+
+    python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] \
+        [--teacher fused|fused-nodnn] [LOG ...]
+
+Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
+drives (2021-04-28 MTV-1 Pixel4 and SJC-1 Pixel4: out of the shipped network's training), and one of its
+training drives (2020-05-14-US-MTV-1: in-sample for the base network).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from fusion.eval.metrics import mode_metrics  # noqa: E402
+from fusion.io.load import load_trace  # noqa: E402
+from fusion.io.raw_load import RawSources  # noqa: E402
+from fusion.modes import run_modes  # noqa: E402
+from fusion.run_types import RunOptions  # noqa: E402
+from learned.adapt import AdaptConfig, adapt  # noqa: E402
+
+SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
+TRAIN = SHARED / "gsdc2021/train"
+NAV = (SHARED / "ephemeris/gps_nav/hour1180.21n",)
+#: log -> (navigation for raw logs, whether the shipped network was trained on it)
+LOGS = {"2021-04-28-US-MTV-1/Pixel5": (NAV, False), "2021-04-28-US-MTV-1/Pixel4": ((), False),
+        "2021-04-28-US-SJC-1/Pixel4": ((), False), "2020-05-14-US-MTV-1/Pixel4": ((), True)}
+
+
+def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path) -> dict:
+    opts = RunOptions(signals=None, nav=tuple(nav))
+    t0 = time.perf_counter()
+    rec = adapt([TRAIN / name], folder / "w.pt", cfg=cfg, opts=opts)
+    t_adapt = time.perf_counter() - t0
+    trace = load_trace(TRAIN / name, signals=None, min_sats=1, raw_sources=RawSources(tuple(nav)))
+    shipped = run_modes(trace, ["fused-nodnn", "fused"], opts)
+    adapted = run_modes(trace, ["fused"], RunOptions(signals=None, nav=tuple(nav), weights=folder / "w.pt"))["fused"]
+    score = {k: mode_metrics(trace, r)["gsdc_score"] for k, r in shipped.items()}
+    score["adapted"] = mode_metrics(trace, adapted)["gsdc_score"]
+    c = next(iter(rec["traces"].values()))
+    return dict(score, trusted=f"{c['teacher_trusted']}/{c['epochs']}", sigmas=adapted.info.get("learned_sigmas"),
+                guard=f"{adapted.info.get('guard_shrunk')}/{adapted.info.get('guard_off')}",
+                shipped_guard=f"{shipped['fused'].info.get('guard_shrunk')}/{shipped['fused'].info.get('guard_off')}",
+                t_adapt=t_adapt)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser()
+    p.add_argument("logs", nargs="*", default=list(LOGS))
+    p.add_argument("--epochs", type=int, default=AdaptConfig.epochs)
+    p.add_argument("--lr", type=float, default=AdaptConfig.lr)
+    p.add_argument("--max-teacher-sigma", type=float, default=AdaptConfig.max_teacher_sigma_m)
+    p.add_argument("--loo", type=float, default=AdaptConfig.loo)
+    p.add_argument("--teacher", default=AdaptConfig.teacher)
+    a = p.parse_args()
+    cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo,
+                      teacher=a.teacher)
+    print(f"adapt: teacher {cfg.teacher}, epochs {cfg.epochs}, lr {cfg.lr}, max teacher sigma {cfg.max_teacher_sigma_m} m, "
+          f"leave-one-out weight {cfg.loo}, seed {cfg.seed}\n")
+    print("| log | base trained on it | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped "
+          "| teacher-trusted epochs | learned sigmas (adapted) | guard shrunk / off: shipped, adapted | adapt [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    ratios = []
+    for name in a.logs:
+        nav, insample = LOGS.get(name, ((), False))
+        with tempfile.TemporaryDirectory() as tmp:
+            r = one(name, nav, cfg, Path(tmp))
+        ratios.append(r["adapted"] / r["fused"])
+        print(f"| {name} | {'yes' if insample else 'no'} | {r['fused-nodnn']:.2f} | {r['fused']:.2f} | "
+              f"{r['adapted']:.2f} | {ratios[-1]:.3f} | {r['trusted']} | {r['sigmas']} | "
+              f"{r['shipped_guard']}, {r['guard']} | {r['t_adapt']:.0f} |", flush=True)
+    print(f"\nmean adapted / shipped: {sum(ratios) / len(ratios):.3f}; worst {max(ratios):.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

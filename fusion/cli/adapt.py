@@ -1,0 +1,55 @@
+"""``gnssfuse adapt``: fine-tune the learned measurement models on a phone's own logs, without ground
+truth (the graph without anything learned is the teacher); the work is ``learned.adapt_command:run``.
+
+``fusion`` never imports ``learned``: the work is named by a ``"module:function"`` string, so
+``gnssfuse adapt --help`` and a bad option answer without importing torch.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from fusion.options import TRACE_DIR_HELP, add_nav_options
+
+#: The library call that does the work once the arguments are parsed.
+WORK = "learned.adapt_command:run"
+
+
+def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description="Adapt the learned models to logs without ground truth "
+                                "(never reads a ground-truth file); use the result with run --weights.")
+    p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR", help=TRACE_DIR_HELP)
+    p.add_argument("--out", type=Path, required=True, help="adapted checkpoint path")
+    p.add_argument("--weights", type=Path, default=None, help="base checkpoint (default: shipped weights)")
+    p.add_argument("--epochs", type=int, default=3, help="passes over the logs (default 3)")
+    p.add_argument("--lr", type=float, default=1e-4, help="learning rate (default 1e-4)")
+    p.add_argument("--batch", type=int, default=64, help="batch size (default 64)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the guesses and the batch order")
+    p.add_argument("--max-teacher-sigma", type=float, default=3.0, metavar="M",
+                   help="learn only at epochs where the teacher's horizontal 1-sigma is at most M metres "
+                        "(default 3)")
+    p.add_argument("--teacher", default="fused", choices=("fused", "fused-nodnn"),
+                   help="the trajectory learned from: the graph with the base network (default) or without "
+                        "anything learned")
+    p.add_argument("--loo", type=float, default=1.0, metavar="W",
+                   help="weight of the leave-one-satellite-out consistency loss on the per-satellite head "
+                        "(default 1; 0: off)")
+    p.add_argument("--max-epochs", type=int, default=None, metavar="N", help="use only each log's first N epochs")
+    p.add_argument("--signals", default=None,
+                   help="signals the teacher uses (default: GPS_L1 for GSDC files, every signal with "
+                        "ephemerides for RINEX / GnssLogger logs); the network reads its own")
+    add_nav_options(p)
+    p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
+    p.add_argument("--jobs", type=int, default=1, help="solve the teachers of N logs at a time (processes)")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bar (there is none anyway when stderr is not a terminal)")
+    return p
+
+
+def main(argv: list[str], prog: str = "gnssfuse adapt") -> int:
+    from fusion.cli.common import call, out_file, show_progress
+
+    args = build_parser(prog).parse_args(argv)
+    out_file(args.out)
+    return call(WORK, args, prog=prog, progress=show_progress(not args.quiet))

@@ -1,0 +1,266 @@
+"""Adapt the learned measurement models to a phone's own logs without ground truth.
+
+The teacher is the factor graph (pseudoranges + Doppler + time-differenced carrier where the log has
+them + motion + clock), with the base network (``fused``, default) or without anything learned
+(``fused-nodnn``); its trajectory is precise in shape where Doppler and carrier tie the epochs
+together. Its positions stand in for the truth, but only at epochs where the graph's own marginal horizontal sigma is at most ``max_teacher_sigma_m`` (the
+stretches the measurements constrain); the rest of the log teaches nothing. The network is then
+fine-tuned from a base checkpoint with the ordinary training losses (:mod:`learned.train`) for a few
+epochs at a small learning rate, at guesses drawn as in training (the teacher plus jitter standing in for
+the ``graph`` source, the point where the ``fused`` mode asks the network), plus a leave-one-satellite-out
+consistency loss on the per-satellite head (:mod:`learned.consistency`), which needs no teacher at all.
+
+Ground truth is never read: every trace is loaded with ``truth="none"`` and a trace that still carries
+truth is refused. The adapted checkpoint keeps the base's calibration (nothing here can measure a new
+one) and widens the guard's input ranges by the inputs it was adapted on; its config records how it was
+adapted (traces by name, teacher, epochs), never a truth figure.
+
+Entry points into the training machinery, for whoever re-points them: :func:`learned.data.build_samples`,
+:func:`learned.train.sample_tensors`, :func:`learned.train.guesses_for`, :func:`learned.train.make_inputs`,
+:func:`learned.train.batch_loss`, :func:`learned.forward.outputs`, :func:`learned.guard.input_ranges`,
+:mod:`learned.checkpoint`.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fusion.errors import DataError
+from fusion.geometry import ecef2ned_cov
+from fusion.io.load import load_trace
+from fusion.io.raw_load import RawSources
+from fusion.modes import run_modes
+from fusion.run_types import RunOptions
+from fusion.trace import SIGNALS, Trace
+from learned.augment import epoch_generator
+from learned.checkpoint import load_model, save_checkpoint
+from learned.consistency import loo_nll
+from learned.data import build_samples
+from learned.features import FeatureConfig
+from learned.forward import outputs, take
+from learned.guard import input_ranges
+from learned.infer import SHIPPED_WEIGHTS
+from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
+
+#: The teachers: the graph with the base network (``fused``: the best answer the base gives, so the
+#: student starts from its own answer improved by Doppler / carrier / motion) or without anything learned.
+TEACHERS = ("fused", "fused-nodnn")
+
+
+@dataclass
+class AdaptConfig:
+    """How to adapt. ``max_teacher_sigma_m``: teacher epochs used only where its horizontal 1-sigma
+    (the graph's marginal) is at most this [m]; ``max_epochs``: use only each log's first N epochs."""
+
+    epochs: int = 3
+    lr: float = 1e-4
+    batch: int = 64
+    seed: int = 0
+    max_teacher_sigma_m: float = 3.0
+    max_epochs: int | None = None
+    elev_mask_deg: float = 10.0
+    teacher: str = "fused"
+    loo: float = 1.0          # weight of the leave-one-satellite-out consistency loss (0: off)
+
+
+@dataclass
+class Teacher:
+    """One log and its teacher: ``pos`` (E,3) ECEF, NaN where unsolved; ``sigma_h`` (E,) horizontal
+    1-sigma [m] (RMS of north and east), NaN where unsolved; ``doppler`` / ``carrier``: what the graph used."""
+
+    trace: Trace
+    pos: np.ndarray
+    sigma_h: np.ndarray
+    doppler: bool
+    carrier: bool
+    seconds: float
+
+
+def load_log(path: str | Path, opts: RunOptions, max_epochs: int | None = None) -> Trace:
+    """One log without its truth (``truth="none"``: no ground-truth file or SPAN log is opened), as
+    ``gnssfuse run`` loads it (every epoch with >= 1 satellite); the first ``max_epochs`` when given."""
+    trace = load_trace(path, signals=opts.signals, truth="none", min_sats=1,
+                       raw_sources=RawSources(opts.nav, opts.sp3, opts.clk))
+    if trace.truth is not None:       # the loader promised none: never let one reach the training loss
+        raise DataError(f"{path}: the loader returned ground truth although asked for none")
+    if max_epochs is not None and trace.n_epochs > max_epochs:
+        trace = trace.select(np.arange(max_epochs))
+    return trace
+
+
+def teach(path: str | Path, opts: RunOptions, max_epochs: int | None = None, mode: str = "fused") -> Teacher:
+    """Load one log (no truth) and solve its teacher trajectory (``mode``, with ``opts.weights`` for
+    ``fused``) with the marginal covariance."""
+    t0 = time.perf_counter()
+    trace = load_log(path, opts, max_epochs)
+    res = run_modes(trace, [mode], opts)[mode]
+    sigma = np.full(trace.n_epochs, np.nan)
+    if res.cov is not None and res.valid.any():
+        ok = res.valid & np.isfinite(res.cov).all(axis=(1, 2))
+        ned = ecef2ned_cov(res.cov[ok], res.pos[ok])
+        sigma[ok] = np.sqrt(0.5 * (ned[:, 0, 0] + ned[:, 1, 1]))
+    pos = np.where(res.valid[:, None], res.pos, np.nan)
+    return Teacher(trace, pos, sigma, opts.use_doppler and trace.has_doppler, opts.use_carrier and trace.has_carrier,
+                   time.perf_counter() - t0)
+
+
+def teachers(paths: list[str | Path], opts: RunOptions, max_epochs: int | None, mode: str = "fused",
+             jobs: int = 1, progress: bool = False) -> list[Teacher]:
+    """:func:`teach` for every log: in ``jobs`` worker processes (:func:`fusion.parallel.map_traces`) when
+    more than one, else here; a log that fails is a :class:`DataError` naming it."""
+    args = [(p, opts, max_epochs, mode) for p in paths]
+    if jobs > 1 and len(paths) > 1:
+        from fusion.parallel import map_traces
+        out = map_traces(teach, args, jobs, progress=progress)
+    else:
+        out = [teach(*a) for a in args]
+    for p, r in zip(paths, out):
+        if isinstance(r, str):
+            raise DataError(f"{p}: {r}")
+    return out
+
+
+def teacher_trace(t: Teacher, signals: tuple[str, ...], max_sigma_m: float) -> tuple[Trace, dict]:
+    """The log with the teacher in the truth's place at trusted epochs (NaN elsewhere), restricted to
+    the network's ``signals``; and counts of what was kept."""
+    trusted = np.isfinite(t.pos).all(axis=1) & (t.sigma_h <= max_sigma_m)
+    keep = np.isin(t.trace.signal, [SIGNALS.index(s) for s in signals])
+    tr = replace(t.trace, truth=np.where(trusted[:, None], t.pos, np.nan)).select_slots(keep)
+    counts = {"epochs": int(t.trace.n_epochs), "teacher_solved": int(np.isfinite(t.pos).all(axis=1).sum()),
+              "teacher_trusted": int(trusted.sum()),
+              "teacher_sigma_h_median_m": float(np.nanmedian(t.sigma_h)) if np.isfinite(t.sigma_h).any() else None,
+              "doppler": t.doppler, "carrier": t.carrier, "teacher_s": round(t.seconds, 1)}
+    return tr, counts
+
+
+def train_config(base: dict, cfg: AdaptConfig) -> TrainConfig:
+    """The base checkpoint's recipe (features, losses, guesses) with the adaptation's epochs, rate, seed."""
+    return TrainConfig(eta=base["eta"], epochs=cfg.epochs, batch=cfg.batch, lr=cfg.lr, seed=cfg.seed,
+                       model=base["model"]["kind"], hparams=dict(base["model"].get("hparams", {})),
+                       warmup_epochs=0,          # the base is past its warm-up: the variance term from the start
+                       features=FeatureConfig.from_dict(base["features"]), data=base.get("data", {}),
+                       guess_mix=dict(base.get("guess_mix") or {"box": 1.0, "wls": 0.0}),
+                       wls_jitter=base.get("wls_jitter", 2.0), wls_max_err=base.get("wls_max_err", 100.0),
+                       signals=tuple(base.get("signals") or ("GPS_L1",)),
+                       loss=LossWeights(**base.get("loss", {})), output=base.get("output", "wls"))
+
+
+def adaptation_samples(taught: list[Teacher], signals: tuple[str, ...], cfg: AdaptConfig):
+    """Training samples (:class:`learned.data.Samples`) from the teacher traces, with the teacher as the
+    ``graph`` guess source (the point where ``fused`` asks), and the per-log counts."""
+    traces, counts, keys = [], {}, []
+    for t in taught:
+        tr, c = teacher_trace(t, signals, cfg.max_teacher_sigma_m)
+        key = t.trace.name if t.trace.name not in counts else f"{t.trace.name} #{len(keys) + 1}"
+        counts[key] = c
+        keys.append(key)
+        traces.append(tr)
+    if not any(c["teacher_trusted"] for c in counts.values()):
+        raise DataError(f"no epoch of {', '.join(counts)} has a teacher sigma <= {cfg.max_teacher_sigma_m} m "
+                        "(raise --max-teacher-sigma?)")
+    samples = build_samples(traces, cfg.elev_mask_deg, real=[True] * len(traces))
+    samples.graph = samples.truth.copy()
+    for key, n in zip(keys, np.bincount(samples.trace, minlength=len(keys))):
+        counts[key]["samples"] = int(n)
+    return samples, counts
+
+
+def widened_ranges(base: dict | None, new: dict | None) -> dict | None:
+    """The guard's ranges covering both the base's training inputs and the adaptation's."""
+    if not base or not new:
+        return base or new
+    return {"lo": [min(a, b) for a, b in zip(base["lo"], new["lo"])],
+            "hi": [max(a, b) for a, b in zip(base["hi"], new["hi"])]}
+
+
+def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | None = None,
+          cfg: AdaptConfig | None = None, opts: RunOptions | None = None, jobs: int = 1,
+          progress: bool = False, log=None) -> dict:
+    """Fine-tune ``weights`` (None: the shipped ones) on the logs ``paths`` without truth and write the
+    checkpoint ``out``. Returns the adaptation record stored in its config (``config["adapted"]``)."""
+    cfg, opts = cfg or AdaptConfig(), opts or RunOptions()
+    weights = Path(weights) if weights is not None else SHIPPED_WEIGHTS
+    model, blob = load_model(weights)             # a bad checkpoint fails before any log is solved
+    base = blob["config"]
+    tcfg = train_config(base, cfg)
+    t0 = time.perf_counter()
+    if cfg.teacher not in TEACHERS:
+        raise DataError(f"teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
+    taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights),
+                      cfg.max_epochs, cfg.teacher, jobs, progress)
+    samples, counts = adaptation_samples(taught, tcfg.signals, cfg)
+    t_teacher = time.perf_counter() - t0
+    if log:
+        log(f"teacher ({cfg.teacher}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
+            f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
+    history, ranges = fine_tune(model, samples, tcfg, cfg.loo, progress)
+    record = {"from": weights.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
+              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo,
+              "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
+              "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
+              "train_s": round(sum(h["time_s"] for h in history), 1)}
+    config = copy.deepcopy(base)
+    config["adapted"] = list(base.get("adapted") or []) + [record]      # adapting an adapted one keeps both
+    config["input_ranges"] = widened_ranges(base.get("input_ranges"), ranges)
+    save_checkpoint(out, model, config, epoch=cfg.epochs, history=history)
+    return record
+
+
+def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, loo: float, order: torch.Tensor) -> float:
+    """One pass over the rows ``order``: the training losses against the teacher plus ``loo`` x the
+    leave-one-satellite-out consistency at the teacher (:func:`learned.consistency.loo_nll`); the mean loss."""
+    model.train()
+    total = 0.0
+    for a in range(0, order.numel(), tcfg.batch):
+        b = take(inp, order[a:a + tcfg.batch])
+        out = outputs(model, b, tcfg.features)
+        loss = batch_loss(out, b, tcfg.loss, True)
+        if loo:
+            loss = loss + loo * loo_nll(b["sat_pos"], b["pr"], b["mask"], b["truth"], out["sigma"], out["bias"])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        total += float(loss.detach()) * b["x"].shape[0]
+    return total / max(order.numel(), 1)
+
+
+def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, loo: float = 0.0, progress: bool = False
+              ) -> tuple[list[dict], dict | None]:
+    """``tcfg.epochs`` passes of :func:`adapt_epoch` over ``samples`` from the model's current weights.
+    Returns the per-epoch history and the input ranges at the samples' WLS solutions (for the guard)."""
+    torch.manual_seed(tcfg.seed)
+    device = torch.device("cpu")
+    opt = torch.optim.Adam(model.parameters(), lr=tcfg.lr, betas=tcfg.betas)
+    tr = sample_tensors(samples, tcfg.features, device, tcfg.wls_max_err)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=tcfg.epochs, desc="adapt", unit="epoch", file=sys.stderr, dynamic_ncols=True)
+    history = []
+    for epoch in range(tcfg.epochs):
+        t0 = time.perf_counter()
+        inp = make_inputs(tr, guesses_for(tr, tcfg, epoch_generator(tcfg.seed, epoch)), tcfg.features)
+        order = torch.randperm(len(samples), generator=epoch_generator(tcfg.seed, epoch + 1_000))
+        loss = adapt_epoch(model, opt, inp, tcfg, loo, order)
+        if not math.isfinite(loss):
+            raise DataError(f"adaptation diverged at epoch {epoch + 1} (loss {loss}); try a smaller --lr")
+        history.append({"epoch": epoch + 1, "train_loss": loss, "samples": len(samples),
+                        "time_s": time.perf_counter() - t0})
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(loss=f"{loss:.3f}")
+    if bar is not None:
+        bar.close()
+    model.eval()
+    rows = torch.nonzero(tr["wls_ok"]).flatten()
+    if not rows.numel():
+        return history, None
+    at_wls = make_inputs(take(tr, rows), tr["wls"][rows], tcfg.features)
+    return history, input_ranges(at_wls["x"], at_wls["mask"])

@@ -1,0 +1,69 @@
+"""What ``gnssfuse adapt`` does once :mod:`fusion.cli.adapt` has parsed its arguments: check them, build
+the run options the teacher solves with, adapt (:mod:`learned.adapt`) and print what was learned from."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import torch
+
+from fusion.errors import DataError
+from fusion.run_types import RunOptions
+from fusion.trace import SIGNALS, resolve_signals
+from learned.adapt import AdaptConfig, adapt
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """One-line errors for values no run can use, before any log is read."""
+    if args.epochs < 1 or args.batch < 1:
+        raise DataError("need --epochs >= 1 and --batch >= 1")
+    if not args.lr > 0 or not args.max_teacher_sigma > 0:
+        raise DataError("need --lr > 0 and --max-teacher-sigma > 0")
+    if not args.loo >= 0:
+        raise DataError("need --loo >= 0")
+    if args.max_epochs is not None and args.max_epochs < 1:
+        raise DataError("need --max-epochs >= 1")
+    if args.jobs < 1:
+        raise DataError("need --jobs >= 1")
+    if args.clk is not None and args.sp3 is None:
+        raise DataError("--clk needs --sp3")
+    for p in args.trace_dirs:
+        if not p.exists():
+            raise DataError(f"{p}: trace folder does not exist")
+
+
+def run_options(args: argparse.Namespace) -> RunOptions:
+    """The run options of the teacher (as ``gnssfuse run`` builds them from the same flags)."""
+    signals = None
+    if args.signals is not None:
+        names = [s.strip() for s in args.signals.split(",") if s.strip()]
+        signals = tuple(SIGNALS[i] for i in resolve_signals(names))
+    return RunOptions(elev_mask_deg=args.elev_mask, signals=signals, nav=tuple(args.nav), sp3=args.sp3,
+                      clk=args.clk)
+
+
+def describe(record: dict) -> str:
+    """One line per log: how many epochs the teacher solved and was trusted on."""
+    lines = []
+    for name, c in record["traces"].items():
+        med = c["teacher_sigma_h_median_m"]
+        lines.append(f"  {name}: {c['teacher_trusted']}/{c['epochs']} epochs trusted (teacher median horizontal "
+                     f"sigma {'-' if med is None else f'{med:.2f}'} m; Doppler {'yes' if c['doppler'] else 'no'}, "
+                     f"carrier {'yes' if c['carrier'] else 'no'}), {c.get('samples', 0)} samples")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool = True) -> int:
+    """Adapt and write the checkpoint; ``args`` as :mod:`fusion.cli.adapt` parses them. Returns the exit code."""
+    check_args(args)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    cfg = AdaptConfig(epochs=args.epochs, lr=args.lr, batch=args.batch, seed=args.seed,
+                      max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
+                      teacher=args.teacher, elev_mask_deg=args.elev_mask)
+    record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
+                   progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr))
+    print(f"adapted {record['from']} on {len(record['traces'])} log(s) without ground truth, "
+          f"{record['epochs']} epoch(s), {record['samples']} samples (teacher {record['teacher_s']:.0f} s, "
+          f"training {record['train_s']:.0f} s) -> {args.out}\n{describe(record)}")
+    return 0

@@ -1,0 +1,187 @@
+"""``gnssfuse adapt``: fine-tuning without ground truth (learned/adapt.py, fusion/cli/adapt.py)."""
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+import fusion.io.gsdc
+import fusion.io.raw_load
+import fusion.io.truth
+from fusion.cli import main as cli
+from fusion.errors import GnssfuseError
+from fusion.io.load import load_trace
+from learned.adapt import AdaptConfig, adapt, widened_ranges
+from learned.checkpoint import read_checkpoint
+from learned.infer import SHIPPED_WEIGHTS, Corrector
+
+#: A few hundred epochs of the shipped trace keep every adaptation here to seconds.
+FEW = 150
+
+
+def _copy_trace(src, root):
+    """The shipped trace copied to ``root/<collection>/<phone>`` (its name stays the same)."""
+    dst = root / src.parent.name / src.name
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _same_checkpoint(a, b) -> bool:
+    """Same weights and the same config, the adaptation's wall-clock times aside."""
+    ca, cb = read_checkpoint(a), read_checkpoint(b)
+    for c in (ca, cb):
+        for rec in c["config"]["adapted"]:
+            rec.pop("teacher_s"), rec.pop("train_s")
+            for t in rec["traces"].values():
+                t.pop("teacher_s")
+        for h in c["history"]:
+            h.pop("time_s")
+    same_w = all(torch.equal(ca["model_state"][k], cb["model_state"][k]) for k in ca["model_state"])
+    return same_w and ca["config"] == cb["config"] and ca["history"] == cb["history"]
+
+
+def test_never_reads_ground_truth(shipped_trace_dir, tmp_path, monkeypatch):
+    with_tripwire = _copy_trace(shipped_trace_dir, tmp_path / "a")
+    without = _copy_trace(shipped_trace_dir, tmp_path / "b")
+    # a truth file that fails any reader that opens it, and that the loaders would otherwise pick up
+    (with_tripwire / "ground_truth.csv").write_bytes(b"\x00\xff\x13garbage" * 100)
+    (without / "ground_truth.csv").unlink()
+    with pytest.raises(GnssfuseError):
+        load_trace(with_tripwire)
+    # and every truth reader raises if called at all
+    def boom(*a, **k):
+        raise AssertionError("a ground-truth reader was called")
+    for mod in (fusion.io.truth, fusion.io.gsdc, fusion.io.raw_load):
+        for name in ("read_truth_csv", "interp_gapped", "match_nearest", "check_overlap"):
+            if hasattr(mod, name):
+                monkeypatch.setattr(mod, name, boom)
+    cfg = AdaptConfig(epochs=1, max_epochs=FEW)
+    rec = adapt([with_tripwire], tmp_path / "a.pt", cfg=cfg)
+    adapt([without], tmp_path / "b.pt", cfg=cfg)
+    assert _same_checkpoint(tmp_path / "a.pt", tmp_path / "b.pt")
+    assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4"] and rec["samples"] > 0
+
+
+def test_seeded_and_reproducible(shipped_trace_dir, tmp_path):
+    runs = {}
+    for tag, seed in (("a", 3), ("b", 3), ("c", 4)):
+        adapt([shipped_trace_dir], tmp_path / f"{tag}.pt", cfg=AdaptConfig(epochs=1, max_epochs=FEW, seed=seed))
+        runs[tag] = tmp_path / f"{tag}.pt"
+    assert _same_checkpoint(runs["a"], runs["b"])
+    assert not _same_checkpoint(runs["a"], runs["c"])
+
+
+def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, capsys):
+    out = tmp_path / "w.pt"
+    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", "300", "--epochs", "1", "--out", str(out),
+                "--threads", "1"]) == 0
+    said = capsys.readouterr().out
+    assert "without ground truth" in said and "2021-04-28-US-MTV-1/Pixel4" in said
+    base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
+    rec = new["config"]["adapted"][-1]
+    assert rec["teacher"] == "fused" and rec["loo"] == 1.0 and rec["epochs"] == 1 and rec["from"] == SHIPPED_WEIGHTS.name
+    c = rec["traces"]["2021-04-28-US-MTV-1/Pixel4"]
+    assert c["epochs"] == 300 and 0 < c["teacher_trusted"] <= c["teacher_solved"] <= 300
+    assert not c["doppler"] and not c["carrier"]          # GSDC 2021 derived files carry neither
+    assert "truth" not in repr(new["config"]["adapted"]).lower()
+    # the weights moved, the base's calibration and recipe are kept, the guard's ranges only widen
+    assert any(not torch.equal(base["model_state"][k], new["model_state"][k]) for k in base["model_state"])
+    assert new["config"]["calibration"] == base["config"]["calibration"]
+    lo_b, hi_b = base["config"]["input_ranges"]["lo"], base["config"]["input_ranges"]["hi"]
+    lo_n, hi_n = new["config"]["input_ranges"]["lo"], new["config"]["input_ranges"]["hi"]
+    assert all(n <= b for n, b in zip(lo_n, lo_b)) and all(n >= b for n, b in zip(hi_n, hi_b))
+    Corrector.load(out)
+    assert cli(["run", str(shipped_trace_dir), "--mode", "fused", "--weights", str(out),
+                "--out", str(tmp_path / "run")]) == 0
+    assert (tmp_path / "run" / "estimates.csv").is_file()
+
+
+def test_adapting_an_adapted_checkpoint_keeps_both_records(shipped_trace_dir, tmp_path):
+    cfg = AdaptConfig(epochs=1, max_epochs=FEW)
+    adapt([shipped_trace_dir], tmp_path / "one.pt", cfg=cfg)
+    adapt([shipped_trace_dir], tmp_path / "two.pt", weights=tmp_path / "one.pt",
+          cfg=AdaptConfig(epochs=1, max_epochs=FEW, teacher="fused-nodnn", loo=0.0))
+    recs = read_checkpoint(tmp_path / "two.pt")["config"]["adapted"]
+    assert [(r["from"], r["teacher"], r["loo"]) for r in recs] == [(SHIPPED_WEIGHTS.name, "fused", 1.0),
+                                                                   ("one.pt", "fused-nodnn", 0.0)]
+    with pytest.raises(GnssfuseError, match="teacher must be one of"):
+        adapt([shipped_trace_dir], tmp_path / "x.pt", cfg=AdaptConfig(teacher="wls"))
+
+
+def test_widened_ranges():
+    assert widened_ranges({"lo": [0, 1], "hi": [2, 3]}, {"lo": [-1, 2], "hi": [1, 5]}) == {"lo": [-1, 1],
+                                                                                           "hi": [2, 5]}
+    assert widened_ranges(None, {"lo": [0], "hi": [1]}) == {"lo": [0], "hi": [1]}
+
+
+@pytest.mark.parametrize("extra, words", [
+    (["--epochs", "0"], "--epochs >= 1"),
+    (["--lr", "-1"], "--lr > 0"),
+    (["--max-teacher-sigma", "0"], "--max-teacher-sigma > 0"),
+    (["--max-epochs", "0"], "--max-epochs >= 1"),
+    (["--loo", "-1"], "--loo >= 0"),
+    (["--clk", "x.clk"], "--clk needs --sp3"),
+    (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "no epoch of 2021-04-28-US-MTV-1/Pixel4 has a teacher"),
+])
+def test_bad_arguments_are_one_line_errors(shipped_trace_dir, tmp_path, capsys, extra, words):
+    assert cli(["adapt", str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("gnssfuse adapt: error:") and words in err and "\n" not in err
+    assert not (tmp_path / "w.pt").exists()
+
+
+def test_bad_paths_are_one_line_errors(shipped_trace_dir, tmp_path, capsys):
+    bad_ckpt = tmp_path / "bad.pt"
+    bad_ckpt.write_text("not a checkpoint")
+    cases = [([str(tmp_path / "nope"), "--out", str(tmp_path / "w.pt")], "does not exist"),
+             ([str(shipped_trace_dir), "--out", str(tmp_path)], "is a folder"),
+             ([str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), "--weights", str(bad_ckpt)],
+              "bad.pt")]
+    for argv, words in cases:
+        assert cli(["adapt", *argv]) == 2
+        err = capsys.readouterr().err.strip()
+        assert words in err and "\n" not in err, err
+
+
+def _epoch(n_sats=8, seed=0):
+    """One epoch of consistent pseudoranges (B=1): satellites 20,000 km away in the upper half-sky."""
+    from learned.features import line_of_sight_torch
+    rng = np.random.default_rng(seed)
+    rx = torch.tensor([[6378137.0, 0.0, 0.0]], dtype=torch.float64)
+    d = rng.normal(size=(n_sats, 3))
+    d[:, 0] = np.abs(d[:, 0]) + 0.3                       # above the receiver's horizon
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    sat = rx[0] + 2.0e7 * torch.tensor(d)
+    r, _ = line_of_sight_torch(sat[None], rx)
+    return sat[None], r + 1234.5, torch.ones(1, n_sats, dtype=torch.bool), rx
+
+
+def test_leave_one_out_loss_wants_a_large_sigma_for_the_satellite_the_others_refute():
+    from learned.consistency import loo_nll
+    sat, pr, mask, rx = _epoch()
+    pr[0, 0] += 50.0                                       # one satellite 50 m off, the rest consistent
+    sigma = torch.full(pr.shape, 3.0, dtype=torch.float64, requires_grad=True)
+    loss = loo_nll(sat, pr, mask, rx + 5.0, sigma, torch.zeros_like(pr))
+    loss.backward()
+    assert sigma.grad[0, 0] < 0 and sigma.grad[0, 0] < sigma.grad[0, 1:].min()   # the outlier's sigma grows most
+    # a consistent epoch: every sigma larger than the (zero) noise shrinks
+    sat, pr, mask, rx = _epoch(seed=1)
+    sigma = torch.full(pr.shape, 3.0, dtype=torch.float64, requires_grad=True)
+    loo_nll(sat, pr, mask, rx + 5.0, sigma, torch.zeros_like(pr)).backward()
+    assert (sigma.grad > 0).all()
+    # epochs with fewer than five satellites carry no term (the others cannot fix a position)
+    sat4, pr4, mask4, rx4 = _epoch(4)
+    assert float(loo_nll(sat4, pr4, mask4, rx4, torch.ones_like(pr4), torch.zeros_like(pr4))) == 0.0
+
+
+def test_teachers_in_worker_processes_match_in_process(shipped_trace_dir, tmp_path):
+    two = [_copy_trace(shipped_trace_dir, tmp_path / "a"), _copy_trace(shipped_trace_dir, tmp_path / "b")]
+    cfg = AdaptConfig(epochs=1, max_epochs=FEW)
+    rec = adapt(two, tmp_path / "j1.pt", cfg=cfg, jobs=1)
+    adapt(two, tmp_path / "j2.pt", cfg=cfg, jobs=2)
+    # two logs of the same name are both recorded
+    assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-MTV-1/Pixel4 #2"]
+    assert sum(c["samples"] for c in rec["traces"].values()) == rec["samples"]
+    assert _same_checkpoint(tmp_path / "j1.pt", tmp_path / "j2.pt")
