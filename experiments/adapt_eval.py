@@ -24,8 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from fusion.eval.metrics import mode_metrics  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
-from fusion.io.raw_load import RawSources  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
+from fusion.prepare.raw_load import RawSources  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.adapt import AdaptConfig, adapt  # noqa: E402

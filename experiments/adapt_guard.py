@@ -16,8 +16,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from fusion.estimate.graph.fuse import learned_guess  # noqa: E402
-from fusion.io.load import load_trace  # noqa: E402
-from fusion.io.raw_load import RawSources  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
+from fusion.prepare.raw_load import RawSources  # noqa: E402
 from fusion.modes import solve_initial  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.infer import Corrector  # noqa: E402

@@ -34,8 +34,8 @@ import torch
 
 from fusion.errors import DataError
 from fusion.geometry import ecef2ned_cov
-from fusion.io.load import load_trace
-from fusion.io.raw_load import RawSources
+from fusion.prepare.load import load_trace
+from fusion.prepare.raw_load import RawSources
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, Trace

@@ -8,11 +8,11 @@ import pytest
 import torch
 
 import fusion.io.gsdc
-import fusion.io.raw_load
+import fusion.prepare.raw_load
 import fusion.io.truth
 from fusion.cli import main as cli
 from fusion.errors import GnssfuseError
-from fusion.io.load import load_trace
+from fusion.prepare.load import load_trace
 from learned.adapt import AdaptConfig, adapt, widened_ranges
 from learned.checkpoint import read_checkpoint
 from learned.infer import SHIPPED_WEIGHTS, Corrector
@@ -53,7 +53,7 @@ def test_never_reads_ground_truth(shipped_trace_dir, tmp_path, monkeypatch):
     # and every truth reader raises if called at all
     def boom(*a, **k):
         raise AssertionError("a ground-truth reader was called")
-    for mod in (fusion.io.truth, fusion.io.gsdc, fusion.io.raw_load):
+    for mod in (fusion.io.truth, fusion.io.gsdc, fusion.prepare.raw_load):
         for name in ("read_truth_csv", "interp_gapped", "match_nearest", "check_overlap"):
             if hasattr(mod, name):
                 monkeypatch.setattr(mod, name, boom)
