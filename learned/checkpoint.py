@@ -21,9 +21,8 @@ import torch
 from torch import nn
 
 from fusion.errors import CheckpointError
-from learned.features import SUPPORTED_VERSIONS
 from learned.model import MODELS, build_model
-from learned.npz_weights import file_sha256, npz_path_for, write_npz
+from learned.npz_weights import check_config, file_sha256, npz_path_for, write_npz
 
 FORMAT = "gnssfuse-checkpoint"
 FORMAT_VERSION = 1
@@ -65,15 +64,7 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     if blob.get("format_version") != FORMAT_VERSION:
         raise CheckpointError(f"{path}: checkpoint format version {blob.get('format_version')!r}, "
                               f"this code reads {FORMAT_VERSION}")
-    cfg = blob.get("config")
-    if not isinstance(cfg, dict) or not isinstance(cfg.get("model"), dict) or not isinstance(cfg.get("features"), dict):
-        raise CheckpointError(f"{path}: checkpoint has no model/feature config (or they are not dicts)")
-    fv = cfg["features"].get("version")
-    if fv not in SUPPORTED_VERSIONS:
-        raise CheckpointError(f"{path}: feature version {fv!r}; this code reads versions {SUPPORTED_VERSIONS} "
-                              "(retrain or use a matching gnssfuse version)")
-    if cfg["model"].get("kind") not in MODELS:
-        raise CheckpointError(f"{path}: unknown model kind {cfg['model'].get('kind')!r}")
+    check_config(blob.get("config"), path, MODELS)
     if not isinstance(blob.get("model_state"), dict):
         raise CheckpointError(f"{path}: checkpoint has no model weights")
     return blob

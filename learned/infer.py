@@ -19,11 +19,11 @@ from fusion.estimate.graph.priors import LearnedGraphInputs
 from fusion.geometry import ned_rotation
 from fusion.trace import SIGNALS, Trace
 from learned.context import context_wls, slot_context
-from learned.features import SUPPORTED_VERSIONS, FeatureConfig, context_channels, elevation_mask, features_numpy
+from learned.features import FeatureConfig, context_channels, elevation_mask, features_numpy
 from learned.guard import feature_guard, slot_out_of_range, trust
 from learned.heads import OUTPUTS, base_sigma, report_sigma, sat_sigma_bias, weighted_ls_step
 from learned.npnet import KINDS, NpNet, as_net
-from learned.npz_weights import load_for_inference
+from learned.npz_weights import check_config, load_for_inference
 
 
 #: Weights shipped with the package (see learned/weights/TRAINING.md).
@@ -144,7 +144,7 @@ class Corrector:
             raise CheckpointError(f"{path}: checkpoint not found"
                                   + (" (shipped weights missing from learned/weights/)" if path == SHIPPED_WEIGHTS else ""))
         weights, config, read = load_for_inference(path)
-        _check_config(config, path)
+        check_config(config, path, KINDS)
         mcfg = config["model"]
         try:
             net = NpNet(mcfg["kind"], mcfg.get("hparams") or {}, weights)
@@ -332,19 +332,6 @@ class Corrector:
             c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
             return c.sigma, c.bias
         return ask
-
-
-def _check_config(config: dict, path) -> None:
-    """The checks :func:`learned.checkpoint.read_checkpoint` makes, for weights read without torch."""
-    if not isinstance(config, dict) or not isinstance(config.get("model"), dict) \
-            or not isinstance(config.get("features"), dict):
-        raise CheckpointError(f"{path}: checkpoint has no model/feature config (or they are not dicts)")
-    fv = config["features"].get("version")
-    if fv not in SUPPORTED_VERSIONS:
-        raise CheckpointError(f"{path}: feature version {fv!r}; this code reads versions {SUPPORTED_VERSIONS} "
-                              "(retrain or use a matching gnssfuse version)")
-    if config["model"].get("kind") not in KINDS:
-        raise CheckpointError(f"{path}: unknown model kind {config['model'].get('kind')!r}")
 
 
 def calibration(err_ned: np.ndarray, cov_ned: np.ndarray) -> dict:

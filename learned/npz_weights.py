@@ -99,3 +99,20 @@ def load_for_inference(path: str | Path) -> tuple[dict[str, np.ndarray], dict, P
     from learned.checkpoint import read_checkpoint
     blob = read_checkpoint(path)
     return {k: v.detach().cpu().float().numpy() for k, v in blob["model_state"].items()}, blob["config"], path
+
+
+def check_config(config, path, kinds) -> None:
+    """The checks every checkpoint's config passes before a network is built from it, torch or not: model
+    and feature configs present, a feature version this code reads, a model kind among ``kinds``."""
+    from fusion.errors import CheckpointError
+    from learned.features import SUPPORTED_VERSIONS
+
+    if not isinstance(config, dict) or not isinstance(config.get("model"), dict) \
+            or not isinstance(config.get("features"), dict):
+        raise CheckpointError(f"{path}: checkpoint has no model/feature config (or they are not dicts)")
+    fv = config["features"].get("version")
+    if fv not in SUPPORTED_VERSIONS:
+        raise CheckpointError(f"{path}: feature version {fv!r}; this code reads versions {SUPPORTED_VERSIONS} "
+                              "(retrain or use a matching gnssfuse version)")
+    if config["model"].get("kind") not in kinds:
+        raise CheckpointError(f"{path}: unknown model kind {config['model'].get('kind')!r}")
