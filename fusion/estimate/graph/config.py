@@ -100,11 +100,12 @@ class GraphConfig:
     drift_start_sigma_mps: float = 1000.0
     # The carrier factors are linearised at the initial (WLS) track and keep that point (see
     # factors.tdcp_factor_uqq): the error this leaves is ~1e-4 of the WLS error per second of epoch gap.
-    # With tdcp_relinearise the batch solver then moves that point to its solution and polishes with a
-    # few warm iterations (one graph, no second build): on simulated traces whose WLS is off by tens of
-    # metres the carrier's p95 went from 1.09 back to 0.93 m (experiments/results/doppler_carrier.md).
-    # Incremental mode keeps the WLS track (it stays causal).
-    tdcp_relinearise: bool = True
+    # tdcp_relinearise moves that point to the batch solution and polishes with a few warm iterations (one
+    # graph, no second build): it cost 2 iterations and scored 3.52 vs 3.49 m on the Pixel5 trace, and
+    # 1.073 vs 1.074 m p95 on simulated traces whose WLS is off by tens of metres, so it is off; a track
+    # whose WLS is off by hundreds of metres is where it would pay. (A second, carrier-free solve for the
+    # linearisation point, as before, scored 3.50 m.) Incremental mode always keeps the WLS track (causal).
+    tdcp_relinearise: bool = False
     # Measurements used where the trace has them, and the solver.
     use_doppler: bool = True
     use_carrier: bool = True
