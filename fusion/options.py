@@ -60,7 +60,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-carrier", action="store_true",
                    help="fused modes: ignore the trace's carrier phase (accumulated delta ranges)")
     p.add_argument("--odometry", action="store_true", help="fused modes: use the trace's vehicle odometry (smartLoc odom3)")
-    p.add_argument("--device", default="cpu", help="torch device of the network (dnn, fused; default cpu)")
+    p.add_argument("--device", default="cpu",
+                   help="ignored at run time (kept for old scripts): the network runs in numpy on the CPU; "
+                        "gnssfuse train takes its own --device")
     p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
     p.add_argument("--no-learned-sigmas", action="store_true",
                    help="fused: without the per-satellite head's pseudorange sigmas and biases")

@@ -3,7 +3,7 @@
 ``forward(kind, weights, x, mask)`` returns what the torch module returns in eval mode, ``(mean (B,3),
 log_var (B,3), sat (B,S,H))``, from ``weights`` (the state dict as float32 numpy arrays, keys as torch names
 them) for inputs ``x`` (B,S,F) and ``mask`` (B,S) bool (True on real slots). Arithmetic in float32, as torch's
-CPU forward pass; ``tests/test_npnet.py`` holds the two within 1e-5 on random inputs with padding.
+CPU forward pass; ``tests/learned/test_npnet.py`` holds the two within 1e-5 on random inputs with padding.
 
 Semantics reproduced (PyTorch 2.x, ``batch_first=True``, ``dropout=0``): ``nn.TransformerEncoderLayer`` and
 ``nn.TransformerDecoderLayer`` in post-norm form (``norm_first=False``) with ReLU feed-forward and LayerNorm

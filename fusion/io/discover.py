@@ -16,8 +16,9 @@ from pathlib import Path
 from fusion.io.text_open import head_text
 
 #: RINEX 2 navigation file types -> the system they hold (``N`` GPS, ``G`` GLONASS, ``H`` SBAS,
-#: ``L`` / ``E`` Galileo in some 2.1x writers, ``C`` BeiDou in some 2.1x writers).
-_V2_NAV = {"N": "G", "G": "R", "H": "S", "L": "E", "E": "E", "C": "C", "J": "J", "Q": "J"}
+#: ``L`` / ``E`` Galileo in some 2.1x writers, ``J`` / ``Q`` QZSS). A RINEX 2 type ``C`` is a clock file;
+#: BeiDou navigation comes as RINEX 3 (whatever the file's name, e.g. Hong Kong's ``.21f``).
+_V2_NAV = {"N": "G", "G": "R", "H": "S", "L": "E", "E": "E", "J": "J", "Q": "J"}
 #: System letter -> constellation name for messages.
 SYSTEM_NAMES = {"G": "GPS", "R": "GLONASS", "E": "Galileo", "C": "BeiDou", "J": "QZSS", "I": "NavIC",
                 "S": "SBAS", "M": "mixed"}

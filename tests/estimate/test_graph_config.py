@@ -23,7 +23,11 @@ def test_a_file_sets_fields_and_round_trips(tmp_path):
                                         ('robust_k = "big"\n', "'robust_k' must be a number"),
                                         ('use_doppler = 1\n', "'use_doppler' must be true or false"),
                                         ('lm_max_iter = 2.5\n', "'lm_max_iter' must be a whole number"),
-                                        ('robust_k = \n', "not a TOML file")])
+                                        ('robust_k = \n', "not a TOML file"),
+                                        ('robust_k = -1.0\n', "'robust_k' must be a finite number > 0"),
+                                        ('lm_max_iter = 0\n', "'lm_max_iter' must be a finite number > 0"),
+                                        ('max_gap_s = nan\n', "'max_gap_s' must be a finite number > 0"),
+                                        ('prior_sigma_floor_m = -2.0\n', "must be a finite number >= 0")])
 def test_bad_files_name_the_file_and_the_setting(tmp_path, text, says):
     f = tmp_path / "g.toml"
     f.write_text(text)
@@ -32,6 +36,12 @@ def test_bad_files_name_the_file_and_the_setting(tmp_path, text, says):
     assert str(f) in str(exc.value) and "\n" not in str(exc.value)
     with pytest.raises(ConfigError, match="cannot read"):
         load_graph_config(tmp_path / "missing.toml")
+
+
+def test_a_zero_floor_is_allowed(tmp_path):
+    f = tmp_path / "g.toml"
+    f.write_text("prior_sigma_floor_m = 0.0\nprr_cn0_ref_dbhz = 0.0\n")
+    assert load_graph_config(f).prr_cn0_ref_dbhz == 0.0
 
 
 def test_flags_override_the_file(tmp_path):

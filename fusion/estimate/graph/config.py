@@ -123,6 +123,30 @@ class GraphConfig:
     odom_gyro_bias_prior_radps: float = 0.002
 
 
+#: numeric settings that may be 0 (a floor, an "off", a count of extra updates); every other one must be > 0
+MAY_BE_ZERO = {"prior_sigma_floor_m", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
+               "isam_settle", "isam_wildfire_m", "isam_relin_threshold", "clock_sigma_m",
+               "odom_speed_sigma_floor_mps"}
+
+
+def check_numbers(cfg: GraphConfig, where: str) -> None:
+    """Every numeric setting finite and > 0 (>= 0 for :data:`MAY_BE_ZERO`), or a :class:`ConfigError`
+    naming ``where`` and the setting (a negative sigma would otherwise surface as a GTSAM exception)."""
+    import math
+    from dataclasses import fields
+
+    from fusion.errors import ConfigError
+
+    for f in fields(cfg):
+        v = getattr(cfg, f.name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        low_ok = v >= 0 if f.name in MAY_BE_ZERO else v > 0
+        if not (math.isfinite(v) and low_ok):
+            bound = ">= 0" if f.name in MAY_BE_ZERO else "> 0"
+            raise ConfigError(f"{where}: graph setting {f.name!r} must be a finite number {bound}, got {v!r}")
+
+
 def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
     """``base`` (default: :class:`GraphConfig`'s defaults) with the settings of a TOML file: top-level
     ``name = value`` pairs (or a ``[graph]`` table of them) named as GraphConfig's fields, e.g.
@@ -152,7 +176,9 @@ def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
             kind = {"float": "a number", "int": "a whole number", "bool": "true or false", "str": "a string"}[types[name]]
             raise ConfigError(f"{path}: graph setting {name!r} must be {kind}, got {value!r}")
         out[name] = float(value) if types[name] == "float" else value
-    return replace(base or GraphConfig(), **out)
+    cfg = replace(base or GraphConfig(), **out)
+    check_numbers(cfg, str(path))
+    return cfg
 
 
 def graph_config_toml(cfg: GraphConfig) -> str:
