@@ -79,8 +79,11 @@ def map_on_cluster(func: Callable, args: Sequence[tuple], order: Sequence[int], 
 
     Calls are handed to the scheduler only as worker threads free up (as many in flight as the
     cluster has threads, counted again after each call, so that workers that join are used), in
-    ``order``: a worker then never holds a second trace queued behind the one it runs, which a crash
-    of the first would take down too, and the costliest traces (first in ``order``) do not start last.
+    ``order``, so that the costliest traces (first in ``order``) do not start last, and a worker does not
+    hold a second trace queued behind the one it runs (which a crash of the first would take down too)
+    provided the scheduler gives a worker no more tasks than threads: Dask's default worker-saturation
+    (1.1) lets a one-thread worker queue a second one, so start the scheduler with
+    ``DASK_DISTRIBUTED__SCHEDULER__WORKER_SATURATION=1.0`` (README).
     """
     todo = list(order)[::-1]
     out: list = [None] * len(args)

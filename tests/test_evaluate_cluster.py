@@ -27,10 +27,13 @@ def _traces(tmp_path, shipped_trace_dir):
 def cluster():
     """A two-worker, one-thread-each ``LocalCluster`` of processes (spawned, as on a real cluster)
     whose scheduler gives a task up after one worker death (Dask retries three times by default,
-    restarting a worker each time: slow for a test)."""
+    restarting a worker each time: slow for a test) and gives a worker no more tasks than it has threads
+    (worker-saturation 1.0, as the README asks of a cluster; Dask's default 1.1 lets a one-thread worker
+    queue a second task)."""
     dask = pytest.importorskip("dask")
     distributed = pytest.importorskip("distributed")
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                          "distributed.scheduler.worker-saturation": 1.0}):
         with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
                                       dashboard_address=":0") as local:
             yield local.scheduler_address
@@ -74,14 +77,12 @@ def _started_at(x: int, busy_s: float = 0.5) -> tuple[int, float]:
     return x, t
 
 
-def test_the_costliest_calls_start_first_on_a_cluster_and_results_keep_their_order(cluster):
-    # the costliest call holds one worker throughout; the other worker frees one call at a time, 0.3 s
-    # apart, so the dispatch order shows in the start times whatever the machine's load
-    busy = {1: 2.0, 3: 0.3, 2: 0.3, 0: 0.3}
-    out = map_traces(_started_at, [(i, busy[i]) for i in range(4)], scheduler=cluster, costs=[1.0, 30.0, 2.0, 7.0])
-    assert [x for x, _ in out] == [0, 1, 2, 3]
-    started = sorted(range(4), key=lambda i: out[i][1])
-    assert set(started[:2]) == {1, 3} and started[2:] == [2, 0]
+def test_results_keep_their_order_on_a_cluster_whatever_the_costs(cluster):
+    """Calls go out costliest first, but when each starts on a cluster is the scheduler's business (a
+    worker joining late, Dask's queueing): only the order of the results is promised, and every call runs.
+    The start order itself is tested without a cluster (tests/test_evaluate_jobs.py)."""
+    out = map_traces(_started_at, [(i, 0.1) for i in range(4)], scheduler=cluster, costs=[1.0, 30.0, 2.0, 7.0])
+    assert [x for x, _ in out] == [0, 1, 2, 3] and all(t > 0 for _, t in out)
 
 
 class _Cluster:
