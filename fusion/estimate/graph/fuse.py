@@ -14,7 +14,7 @@ from fusion.errors import GnssfuseError
 from fusion.estimate.graph.batch import solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.incremental import solve_incremental
-from fusion.estimate.graph.inputs import initial_positions, prepare_inputs
+from fusion.estimate.graph.inputs import EpochInputs, initial_positions, prepare_inputs
 from fusion.estimate.graph.priors import (LearnedGraphInputs, PriorProvider, SlotNoiseProvider,
                                           learned_from_providers)
 from fusion.estimate.graph.solve_errors import check_determined
@@ -52,7 +52,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
-def bridged_epochs(trace: Trace, inp, valid: np.ndarray) -> dict:
+def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     """Solved epochs that fewer than 4 pseudoranges and no prior determine (the motion model carries
     them from their neighbours): ``bridged`` (E,) bool, their count and the longest such stretch [s],
     so that a drift through an outage is flagged rather than passed off as a fix."""
