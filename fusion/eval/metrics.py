@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.errors import DataError
-from fusion.geometry import ecef2ned_vec
+from fusion.geometry import ecef2ned_cov, ecef2ned_vec
 from fusion.run_types import ModeResult
 from fusion.trace import Trace
 
@@ -90,10 +90,34 @@ def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:
     return ned_errors(est, trace.truth)
 
 
+def within_sigma(err_ned: np.ndarray, pos: np.ndarray, cov: np.ndarray) -> dict:
+    """Calibration of a covariance: the share of |error| within 1 and 2 sigma per NED axis.
+
+    err_ned (E,3) [m], pos (E,3) ECEF, cov (E,3,3) ECEF [m^2]; rows with a NaN are left out. Returns
+    ``within1sigma_n/e/d``, ``within2sigma_n/e/d`` (a Gaussian: 0.683 / 0.954) and ``n_cov`` (rows used)."""
+    ok = np.isfinite(err_ned).all(1) & np.isfinite(pos).all(1) & np.isfinite(cov).all((1, 2))
+    out: dict = {"n_cov": int(ok.sum())}
+    if not ok.any():
+        return out
+    var = np.diagonal(ecef2ned_cov(cov[ok], pos[ok]), axis1=1, axis2=2)
+    z = np.abs(err_ned[ok]) / np.sqrt(np.maximum(var, 1e-12))
+    for i, ax in enumerate("ned"):
+        out[f"within1sigma_{ax}"] = float((z[:, i] <= 1).mean())
+        out[f"within2sigma_{ax}"] = float((z[:, i] <= 2).mean())
+    return out
+
+
 def mode_metrics(trace: Trace, result: ModeResult) -> dict | None:
-    """Accuracy against truth (None when the trace has none): ``summarize(trace_errors(...))``."""
+    """Accuracy against truth (None when the trace has none): ``summarize(trace_errors(...))``, and for a
+    mode with a covariance its calibration per axis (:func:`within_sigma`): judged per trace and axis,
+    not only pooled."""
     err = trace_errors(trace, result)
-    return None if err is None else summarize(err)
+    if err is None:
+        return None
+    out = summarize(err)
+    if result.cov is not None:
+        out.update(within_sigma(err, np.where(result.valid[:, None], result.pos, np.nan), np.asarray(result.cov, float)))
+    return out
 
 
 def format_table(rows: dict[str, dict | None]) -> str:

@@ -215,6 +215,25 @@ def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:
     return lines
 
 
+def calibration_lines(evals: list[TraceEval], modes: list[str]) -> list[str]:
+    """report.md's calibration table: per trace and mode with a covariance, the share of errors within 1 and
+    2 sigma per NED axis (a Gaussian: 0.68 / 0.95); no lines when no mode has a covariance."""
+    rows = []
+    for ev in evals:
+        for mode in modes:
+            m = (ev.records.get(mode) or {}).get("metrics") or {}
+            if "within1sigma_n" in m:
+                one = " / ".join(f"{m[f'within1sigma_{a}']:.2f}" for a in "ned")
+                two = " / ".join(f"{m[f'within2sigma_{a}']:.2f}" for a in "ned")
+                rows.append(f"| {ev.trace.name} | {mode} | {one} | {two} | {m['n_cov']} |")
+    if not rows:
+        return []
+    return ["## Calibration", "", "Share of the errors within 1 and 2 of the mode's own sigmas, per NED axis "
+            "(a Gaussian: 0.68 and 0.95); judge per trace and axis.", "",
+            "| trace | mode | within 1 sigma N / E / D | within 2 sigma N / E / D | epochs |",
+            "|---|---|---|---|---|", *rows, ""]
+
+
 def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], figs: dict,
                     modes: list[str], opts: RunOptions, argv: list[str],
                     load_failures: dict[str, str]) -> Path:
@@ -242,6 +261,7 @@ def write_report_md(out_dir: Path, df: pd.DataFrame, evals: list[TraceEval], fig
               "Machine-readable: [metrics.csv](metrics.csv). Epoch counts: *scored* have truth and a "
               "solution, *solved* have a solution; *skipped at load* are rows/epochs the loader "
               "dropped, by reason.", ""]
+    lines += calibration_lines(evals, modes)
     if load_failures:
         lines += ["## Traces that could not be evaluated", ""]
         lines += [f"- `{p}`: {msg}" for p, msg in load_failures.items()] + [""]

@@ -47,5 +47,9 @@ def run_summary(record: dict) -> str:
         lines.append(f"{info['epochs_bridged']} epochs bridged by the motion model alone (fewer than 4 satellites, "
                      f"no prior; longest stretch {info.get('longest_bridge_s', 0):.0f} s): column 'bridged' in "
                      "estimates.csv")
+    m = record.get("metrics") or {}
+    if "within1sigma_n" in m:
+        lines.append("errors within the mode's 1 sigma, N / E / D: "
+                     + " / ".join(f"{m[f'within1sigma_{a}']:.2f}" for a in "ned") + " (a Gaussian: 0.68)")
     lines.append(DATUM)
     return "\n".join(lines)

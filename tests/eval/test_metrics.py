@@ -75,3 +75,22 @@ def test_cdf():
     np.testing.assert_allclose(f, [0.25, 0.5, 0.75, 1.0])
     v, f = cdf(np.array([np.nan]))
     assert v.size == 0 and f.size == 0
+
+
+def test_within_sigma_reads_a_gaussian_as_calibrated_and_names_an_overconfident_axis():
+    from fusion.eval.metrics import within_sigma
+    from fusion.geometry import geodetic2ecef, ned2ecef_cov
+
+    rng = np.random.default_rng(0)
+    n = 20000
+    pos = np.tile(geodetic2ecef(np.array([[37.4, -122.1, 10.0]])), (n, 1))
+    sd = np.array([1.0, 2.0, 3.0])
+    err = rng.standard_normal((n, 3)) * sd
+    cov = ned2ecef_cov(np.tile(sd ** 2, (n, 1)), pos)
+    got = within_sigma(err, pos, cov)
+    for ax in "ned":
+        assert abs(got[f"within1sigma_{ax}"] - 0.683) < 0.015 and abs(got[f"within2sigma_{ax}"] - 0.954) < 0.01
+    err[:, 1] *= 3.0                                   # east three times worse than its sigma says
+    assert within_sigma(err, pos, cov)["within1sigma_e"] < 0.35
+    err[0] = np.nan
+    assert within_sigma(err, pos, cov)["n_cov"] == n - 1

@@ -351,3 +351,18 @@ def test_gogps_baseline_is_scored_beside_our_wls(shared_data):
     assert gogps["n"] > 1600 and ours["n"] > 1600
     # both are metre-level smartphone WLS fixes; a time-convention slip would cost tens of metres
     assert gogps["h_p50"] < 6 and ours["h_p50"] < 6
+
+
+def test_report_has_a_per_trace_per_axis_calibration_table_for_modes_with_a_covariance():
+    from types import SimpleNamespace
+
+    from fusion.eval.report import calibration_lines
+
+    m = {"within1sigma_n": 0.7, "within1sigma_e": 0.4, "within1sigma_d": 0.6, "within2sigma_n": 0.95,
+         "within2sigma_e": 0.8, "within2sigma_d": 0.9, "n_cov": 12}
+    ev = SimpleNamespace(trace=SimpleNamespace(name="a/b"), records={"fused": {"metrics": m},
+                                                                      "wls": {"metrics": {"n": 12}}})
+    lines = calibration_lines([ev], ["wls", "fused"])
+    assert "| a/b | fused | 0.70 / 0.40 / 0.60 | 0.95 / 0.80 / 0.90 | 12 |" in lines
+    assert not any("| wls |" in ln for ln in lines)
+    assert calibration_lines([SimpleNamespace(trace=ev.trace, records={"wls": {"metrics": {"n": 1}}})], ["wls"]) == []
