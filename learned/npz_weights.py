@@ -96,7 +96,12 @@ def load_for_inference(path: str | Path) -> tuple[dict[str, np.ndarray], dict, P
         if sha == file_sha256(path):
             return weights, config, npz
     # no npz, or one exported from another .pt: read the .pt itself (imports torch)
-    from learned.checkpoint import read_checkpoint
+    try:
+        from learned.checkpoint import read_checkpoint
+    except ImportError as exc:
+        raise CheckpointError(f"{path}: no matching .npz beside it and the .pt needs torch ({exc}): run "
+                              f"`python -m learned.export {path}` where torch is installed, or pip install "
+                              "'gnssfuse[train]'") from None
     blob = read_checkpoint(path)
     return {k: v.detach().cpu().float().numpy() for k, v in blob["model_state"].items()}, blob["config"], path
 

@@ -47,7 +47,8 @@ def call(target: str, *args, **kwargs):
     try:
         mod = importlib.import_module(module)
     except ImportError as exc:
-        raise ModeUnavailableError(f"cannot import {module} ({exc})") from exc
+        hint = "; training needs torch: pip install 'gnssfuse[train]'" if exc.name == "torch" else ""
+        raise ModeUnavailableError(f"cannot import {module} ({exc}){hint}") from exc
     return getattr(mod, func)(*args, **kwargs)
 
 

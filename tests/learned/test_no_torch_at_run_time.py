@@ -64,3 +64,43 @@ def test_stale_npz_falls_back_to_the_pt(tmp_path):
     wb, _, read_b = load_for_inference(b)
     assert read_b == npz_path_for(b)
     assert not np.array_equal(w["head.weight"], wb["head.weight"])
+
+
+def _without_torch(code: str, cwd: Path) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh interpreter where ``import torch`` fails, as on an install without the
+    train extra."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
+    return subprocess.run([sys.executable, "-c", "import sys; sys.modules['torch'] = None\n" + textwrap.dedent(code)],
+                          capture_output=True, text=True, env=env, cwd=cwd, timeout=300)
+
+
+def test_an_install_without_torch_runs_fused_and_says_what_training_needs(shipped_trace_dir, tmp_path):
+    proc = _without_torch(f"""
+        from fusion.cli import main
+        assert main(["run", {str(shipped_trace_dir)!r}, "--mode", "fused", "--out", {str(tmp_path / 'o')!r}]) == 0
+    """, tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _without_torch(f"""
+        import sys
+        from fusion.cli import main
+        sys.exit(main(["train", "--data", "toy", "--out", {str(tmp_path / 'w.pt')!r}]))
+    """, tmp_path)
+    assert proc.returncode == 2
+    assert "gnssfuse[train]" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+
+
+def test_a_pt_without_its_npz_and_without_torch_is_a_one_line_error(tmp_path):
+    import shutil
+
+    from learned.infer import SHIPPED_WEIGHTS
+    pt = tmp_path / "copy.pt"
+    shutil.copy(SHIPPED_WEIGHTS, pt)                       # no .npz beside it
+    proc = _without_torch(f"""
+        from learned.infer import Corrector
+        try:
+            Corrector.load({str(pt)!r})
+        except Exception as exc:
+            print(type(exc).__name__, exc)
+    """, tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.startswith("CheckpointError") and "learned.export" in proc.stdout
