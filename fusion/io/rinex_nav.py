@@ -3,8 +3,8 @@ BeiDou ``.21f``, ...), RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too (file
 their header, :mod:`fusion.io.discover`).
 
 :func:`read_nav` keeps every system we model: Keplerian records of GPS, QZSS, Galileo and BeiDou
-in one :class:`~fusion.nav.orbits.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
-:class:`~fusion.nav.glonass.GloNav`, plus the header's GPS Klobuchar coefficients and leap
+in one :class:`~fusion.navdata.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
+:class:`~fusion.navdata.GloNav`, plus the header's GPS Klobuchar coefficients and leap
 seconds. SBAS and IRNSS records are skipped and counted. :func:`read_rinex_nav` is the GPS-only
 view the simulator uses.
 
@@ -25,8 +25,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.gpstime import WEEK_S, gps_ms_from_calendar, leap_seconds_at_unix_ms, GPS_EPOCH_UNIX_MS
-from fusion.nav.glonass import VALID_MS as GLO_VALID_MS, GloNav
-from fusion.nav.orbits import GpsNav
+from fusion.navdata import GLONASS_VALID_MS as GLO_VALID_MS, GloNav, GpsNav
 from fusion.io.text_open import read_lines
 from fusion.trace import count_skip
 

@@ -8,57 +8,18 @@ integration error is then below a centimetre over the 15-minute half-interval).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from fusion.errors import DataError
+from fusion.navdata import GLONASS_VALID_MS as VALID_MS, GloNav
 
 #: PZ-90 constants (GLONASS ICD 2008, 3.1.3).
 MU_GLO = 3.9860044e14
 J2_GLO = 1.0826257e-3
 RE_GLO = 6378136.0
 OMEGA_GLO = 7.292115e-5
-#: Frequency channel of each orbital slot (GLONASS ICD 2008 3.3.1.1: antipodal slots share a
-#: channel; the assignment has been stable since 2005, slots keep theirs when a satellite is
-#: replaced). For files whose header omits ``GLONASS SLOT / FRQ #`` and without GLONASS
-#: navigation records; a navigation record's own channel number wins over this table.
-SLOT_CHANNEL: dict[int, int] = {
-    1: 1, 2: -4, 3: 5, 4: 6, 5: 1, 6: -4, 7: 5, 8: 6, 9: -2, 10: -7, 11: 0, 12: -1,
-    13: -2, 14: -7, 15: 0, 16: -1, 17: 4, 18: -3, 19: 3, 20: 2, 21: 4, 22: -3, 23: 3, 24: 2,
-}
 #: Integration step bound [s].
 MAX_STEP_S = 60.0
-#: A record is used up to this far from its toe [ms] (records come every 30 minutes).
-VALID_MS = 1_800_000
-
-
-@dataclass
-class GloNav:
-    """Healthy GLONASS broadcast records, sorted by (sat_id, toe).
-
-    svid: (N,) slot number 1..24; sat_id: (N,) ``3000 + svid``; toe_ms: (N,) int64 GPS ms.
-    pos, vel, acc: (N, 3) PZ-90 ECEF position [m], velocity [m/s], lunisolar acceleration [m/s^2].
-    tau: (N,) clock bias ``-TauN`` [s] as RINEX writes it; gamma: (N,) relative frequency bias.
-    k: (N,) int frequency channel -7..6.
-    """
-
-    svid: np.ndarray
-    toe_ms: np.ndarray
-    pos: np.ndarray
-    vel: np.ndarray
-    acc: np.ndarray
-    tau: np.ndarray
-    gamma: np.ndarray
-    k: np.ndarray
-    source: str = ""
-
-    @property
-    def sat_id(self) -> np.ndarray:
-        return 3000 + np.asarray(self.svid, np.int64)
-
-    def __len__(self) -> int:
-        return int(self.svid.shape[0])
 
 
 def select_glonass(nav: GloNav, sat_id: np.ndarray, t_ms: np.ndarray) -> np.ndarray:

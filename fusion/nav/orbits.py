@@ -9,12 +9,11 @@ would only resolve ~0.2 us, i.e. ~70 m of light travel).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from fusion.errors import DataError
 from fusion.geometry import C_LIGHT, OMEGA_E, line_of_sight
+from fusion.navdata import GpsNav
 
 #: WGS-84 gravitational constant used by GPS [m^3/s^2] (IS-GPS-200).
 MU_GPS = 3.986005e14
@@ -25,60 +24,6 @@ F_REL = -4.442807633e-10
 #: GPS 1, QZSS 4 (IS-GPS-200); BeiDou 5 (CGCS2000); Galileo 6 (GTRF).
 _MU = {1: MU_GPS, 4: MU_GPS, 5: 3.986004418e14, 6: 3.986004418e14}
 _OMEGA = {1: OMEGA_E, 4: OMEGA_E, 5: 7.292115e-5, 6: 7.2921151467e-5}
-
-
-@dataclass
-class GpsNav:
-    """Healthy Keplerian broadcast ephemerides, one entry per distinct (satellite, toe).
-
-    The name is historical: records of GPS, QZSS, Galileo and BeiDou share this layout; ``sat_id``
-    says which (``1000 * constellationType + svid``, as in :class:`fusion.trace.Trace`; None means
-    GPS, ``1000 + prn``). Times of every system are GPS ms (BeiDou's BDT + 14 s). Sorted by
-    (sat_id, toe).
-
-    prn:    (N,) int, satellite number within its constellation (Android svid: QZSS 193..).
-    toc_ms: (N,) int64 clock reference time, GPS ms.   toe_ms: (N,) int64 ephemeris reference time.
-    params: name -> (N,) float64 (af0, af1, af2, crs, delta_n, m0, cuc, e, cus, sqrt_a, toe_sow,
-            cic, omega0, cis, i0, crc, omega, omega_dot, idot, week, accuracy, health, tgd, iodc,
-            iode, t_transmit, fit_h) in IS-GPS-200 units (s, m, rad, rad/s).
-    source: file path, for error messages.
-    skipped: counts of dropped records by reason.
-    msg:    (N,) int8 navigation message: 0 the system's default (Galileo I/NAV), 1 Galileo F/NAV
-            (None: all 0). Galileo broadcasts both, with clocks for different signal pairs; the
-            table keeps both and is sorted by (sat_id, msg, toe).
-    """
-
-    prn: np.ndarray
-    toc_ms: np.ndarray
-    toe_ms: np.ndarray
-    params: dict[str, np.ndarray]
-    source: str
-    skipped: dict[str, int]
-    sat_id: np.ndarray | None = None
-    msg: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.sat_id is None:
-            self.sat_id = 1000 + np.asarray(self.prn, np.int64)
-        self.sat_id = np.asarray(self.sat_id, np.int64)
-        self.msg = np.zeros(self.sat_id.shape, np.int8) if self.msg is None else np.asarray(self.msg, np.int8)
-
-    def __len__(self) -> int:
-        return int(self.prn.shape[0])
-
-    @property
-    def valid_from_ms(self) -> np.ndarray:
-        """(N,) start of each record's fit interval [GPS ms]."""
-        return self.toe_ms - (self.params["fit_h"] * 1800e3).astype(np.int64)
-
-    @property
-    def valid_to_ms(self) -> np.ndarray:
-        """(N,) end of each record's fit interval [GPS ms]."""
-        return self.toe_ms + (self.params["fit_h"] * 1800e3).astype(np.int64)
-
-    def span_ms(self) -> tuple[int, int]:
-        """Earliest and latest instant covered by any record's fit interval [GPS ms]."""
-        return int(self.valid_from_ms.min()), int(self.valid_to_ms.max())
 
 
 _POS_KEYS = ("sqrt_a", "delta_n", "e", "m0", "omega", "cus", "cuc", "crs", "crc", "i0", "cis", "cic",
