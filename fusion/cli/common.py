@@ -52,6 +52,13 @@ def call(target: str, *args, **kwargs):
     return getattr(mod, func)(*args, **kwargs)
 
 
+def learned_work(target: str, args, prog: str) -> int:
+    """A subcommand whose work lives in ``learned`` (train, adapt): its ``--out`` file checked up front,
+    then ``target`` called with the parsed ``args``, a progress bar unless ``--quiet`` or not a terminal."""
+    out_file(args.out)
+    return call(target, args, prog=prog, progress=show_progress(not args.quiet))
+
+
 def show_progress(asked: bool = True) -> bool:
     """Progress bars only when asked and stderr is a terminal: a log file or pipe gets no ``\\r`` bars
     or escape codes."""

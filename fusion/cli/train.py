@@ -63,8 +63,6 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
 
 
 def main(argv: list[str], prog: str = "gnssfuse train") -> int:
-    from fusion.cli.common import call, out_file, show_progress
+    from fusion.cli.common import learned_work
 
-    args = build_parser(prog).parse_args(argv)
-    out_file(args.out)
-    return call(WORK, args, prog=prog, progress=show_progress(not args.quiet))
+    return learned_work(WORK, build_parser(prog).parse_args(argv), prog)
