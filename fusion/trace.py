@@ -320,3 +320,9 @@ def pack_rows(epoch_index: np.ndarray, n_epochs: int, columns: dict[str, np.ndar
     mask[epoch_index, slot] = True
     out["mask"] = mask
     return out
+
+
+def cn0_sigma_factor(cn0_dbhz: np.ndarray, ref_dbhz: float) -> np.ndarray:
+    """(...) factor >= 1 on a tracking loop's noise sigma for C/N0 below ``ref_dbhz``: 10^((ref - C/N0) / 20),
+    the amplitude-noise scaling of code and carrier tracking; 1 at or above it. cn0_dbhz (...) [dB-Hz]."""
+    return 10.0 ** (np.clip(ref_dbhz - np.asarray(cn0_dbhz, float), 0.0, None) / 20.0)

@@ -55,8 +55,8 @@ DEFAULT_SIGMA_M = 3.0 * 10 ** 0.5
 def cn0_sigma(cn0: np.ndarray) -> np.ndarray:
     """Pseudorange sigma [m] from C/N0 [dB-Hz], the raw reader's model (fusion/prepare/raw_trace.py):
     ``3 m * 10^((35 - C/N0) / 20)`` within [3, 100] m."""
-    from fusion.prepare.raw_trace import CN0_REF, SIGMA_PR_M, SIGMA_PR_MAX_M
-    return np.clip(SIGMA_PR_M * 10 ** ((CN0_REF - np.asarray(cn0, float)) / 20), SIGMA_PR_M, SIGMA_PR_MAX_M)
+    from fusion.prepare.raw_trace import pr_sigma_model
+    return pr_sigma_model(np.asarray(cn0, float))
 
 
 def report_sigma(pr_sigma: np.ndarray, reported: np.ndarray, cn0: np.ndarray) -> np.ndarray:

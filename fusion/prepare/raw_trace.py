@@ -34,7 +34,8 @@ from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
 from fusion.nav.precise import precise_states
 from fusion.nav.sat_states import SIGNAL_CLASS, broadcast_states
-from fusion.trace import SIGNALS, Trace, count_skip, flags_since_previous, pack_rows, resolve_signals
+from fusion.trace import (SIGNALS, Trace, cn0_sigma_factor, count_skip, flags_since_previous, pack_rows,
+                          resolve_signals)
 
 #: Pseudorange sigma when the file gives none: SIGMA_PR_M at C/N0 >= CN0_REF, growing as
 #: 10^((CN0_REF - cn0) / 20) below it (amplitude-noise scaling of code tracking), capped.
@@ -43,6 +44,12 @@ SIGMA_PR_M, CN0_REF, SIGMA_PR_MAX_M = 3.0, 35.0, 100.0
 SIGMA_PRR_MPS, SIGMA_ADR_M = 0.1, 0.01
 #: Plausible raw pseudoranges [m] (GNSS orbits: 19,000-26,000 km slant ranges, GEO up to 42,000 km).
 _PR_RANGE_M = (1.0e7, 5.0e7)
+
+
+def pr_sigma_model(cn0: np.ndarray) -> np.ndarray:
+    """(...) pseudorange sigma [m] when the file reports none: :data:`SIGMA_PR_M` at C/N0 >= :data:`CN0_REF`,
+    growing as 10^((CN0_REF - C/N0) / 20) below it, capped at :data:`SIGMA_PR_MAX_M`. cn0 (...) [dB-Hz]."""
+    return np.minimum(SIGMA_PR_M * cn0_sigma_factor(cn0, CN0_REF), SIGMA_PR_MAX_M)
 
 
 def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str | None = None,
@@ -310,8 +317,7 @@ def _columns(rows: pd.DataFrame, st: dict[str, np.ndarray], pr: np.ndarray) -> d
     """Trace per-row columns (N,) / (N, 3) for :func:`fusion.trace.pack_rows`."""
     cn0 = rows["cn0"].to_numpy()
     sigma = rows["pr_sigma_m"].to_numpy()
-    model = np.clip(SIGMA_PR_M * 10 ** ((CN0_REF - np.nan_to_num(cn0, nan=CN0_REF - 10)) / 20),
-                    SIGMA_PR_M, SIGMA_PR_MAX_M)
+    model = pr_sigma_model(np.nan_to_num(cn0, nan=CN0_REF - 10))
     reported = np.isfinite(sigma) & (sigma > 0)
     sigma = np.where(reported, sigma, model * rows["sigma_scale"].to_numpy())
     prr = rows["prr_mps"].to_numpy() + C_LIGHT * st["clock_drift"]

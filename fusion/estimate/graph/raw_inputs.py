@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
-from fusion.trace import Trace, count_skip
+from fusion.trace import Trace, cn0_sigma_factor, count_skip
 
 
 #: Fewest time-differenced carrier measurements an epoch pair needs to get any (4 unknowns + 1 check).
@@ -54,7 +54,7 @@ def cn0_scale(trace: Trace, ref_dbhz: float) -> np.ndarray:
     if trace.cn0 is None or ref_dbhz <= 0:
         return np.ones(trace.mask.shape)
     cn0 = np.asarray(trace.cn0, float)
-    return np.where(cn0 > 0, 10.0 ** (np.clip(ref_dbhz - cn0, 0.0, None) / 20.0), 1.0)
+    return np.where(cn0 > 0, cn0_sigma_factor(cn0, ref_dbhz), 1.0)
 
 
 def doppler_slots(trace: Trace, above: np.ndarray, has_clock: np.ndarray, cfg: GraphConfig,
