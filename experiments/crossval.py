@@ -16,7 +16,8 @@ checkpoint (the shipped one is calibrated this way).
 
 Quicker, on a busy machine: ``--two-fold`` (two folds of six drives), ``--modes wls,dnn,fused-nodnn,fused``,
 ``--epochs 8``; ``--feature-version 2`` trains the previous release's recipe on the same folds, and
-``--weights CKPT`` evaluates one checkpoint on every fold (in-sample if it was trained on them).
+``--weights CKPT`` evaluates one checkpoint on every fold (in-sample if it was trained on them);
+``--reuse --graph-config G.toml`` re-evaluates the fold networks with other graph settings.
 """
 from __future__ import annotations
 
@@ -33,10 +34,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from fusion.estimate.graph.config import GraphConfig, load_graph_config  # noqa: E402
 from fusion.eval.metrics import ned_errors, summarize  # noqa: E402
 from fusion.geometry import ecef2ned_cov  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
+from fusion.options import parse_signals  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.augment import parse_guess_mix  # noqa: E402
 from learned.calibrate import sigma_scale  # noqa: E402
@@ -63,16 +66,16 @@ MODES = {
 CALIBRATED = ("dnn", "fused")
 
 
-def drive_dir(data: Path, drive: str) -> Path:
-    return data / drive / "Pixel4"
+def drive_dir(data: Path, drive: str, phone: str = "Pixel4") -> Path:
+    return data / drive / phone
 
 
-def drive_samples(data: Path, drive: str, cache: Path):
+def drive_samples(data: Path, drive: str, cache: Path, phone: str = "Pixel4", signals=("GPS_L1",)):
     """Training samples of one drive (with graph positions), cached: they cost a graph solve."""
-    f = cache / f"{drive}.pkl"
+    f = cache / f"{drive}_{phone}_{'-'.join(signals)}.pkl"
     if f.is_file():
         return pickle.loads(f.read_bytes())
-    s = samples_from_trace(load_trace(drive_dir(data, drive)), real=True, with_graph=True)
+    s = samples_from_trace(load_trace(drive_dir(data, drive, phone), signals=signals), real=True, with_graph=True)
     f.write_bytes(pickle.dumps(s))
     return s
 
@@ -85,7 +88,9 @@ def train_fold(fold: str, args) -> Path:
     torch.set_num_threads(1)
     table = fold_table(args)
     drives = [d for f, ds in table.items() if f != fold for d in ds]
-    parts = [drive_samples(args.data, d, args.out / "cache") for d in drives]
+    parts = [drive_samples(args.data, d, args.out / "cache", signals=args.signals) for d in drives]
+    parts += [drive_samples(x.parent.parent, x.parent.name, args.out / "cache", x.name, args.signals)
+              for x in args.extra]
     samples = concat_samples([replace(p, trace=np.zeros(len(p), int)) for p in parts])
     # validation: one whole drive of the nine, so the best epoch is the one that generalises
     tr, va = split_traces(samples, 0.1, np.random.default_rng(args.seed))
@@ -106,7 +111,8 @@ def recipe(args, data: dict) -> TrainConfig:
     inputs = args.inputs or default_inputs(args.feature_version)
     return TrainConfig(epochs=args.epochs, batch=args.batch, seed=args.seed, data=data, loss=w,
                        guess_mix=parse_guess_mix(args.guess_mix), output="wls", dropout=parse_dropout(args.dropout),
-                       features=FeatureConfig(version=args.feature_version, inputs=tuple(inputs.split(","))))
+                       features=FeatureConfig(version=args.feature_version, inputs=tuple(inputs.split(","))),
+                       signals=args.signals)
 
 
 def eval_drive(drive: str, ckpt: Path, args) -> dict:
@@ -114,7 +120,7 @@ def eval_drive(drive: str, ckpt: Path, args) -> dict:
     import torch
     torch.set_num_threads(1)
     trace = load_trace(drive_dir(args.data, drive))
-    base = RunOptions(weights=ckpt)
+    base = RunOptions(weights=ckpt, graph=args.graph)
     wls = solve_initial(trace, base)
     out = {}
     for label, (mode, changes) in ((k, MODES[k]) for k in args.modes.split(",")):
@@ -219,7 +225,15 @@ def parse_args(argv=None):
     p.add_argument("--from-results", action="store_true",
                    help="no training or evaluation: reprint the tables of <out>/results.pkl (and store calibration)")
     p.add_argument("--store-calibration", type=Path, default=None, help="write pooled unseen scales into this checkpoint")
-    return p.parse_args(argv)
+    p.add_argument("--extra", type=Path, nargs="*", default=[],
+                   help="<collection>/<phone> trace folders added to every fold's training data (e.g. simulated city traces)")
+    p.add_argument("--graph-config", type=Path, default=None,
+                   help="the fused modes' graph settings (TOML, as gnssfuse run --graph-config)")
+    p.add_argument("--signals", default="GPS_L1", help="signals the training reads (gnssfuse train --signals)")
+    args = p.parse_args(argv)
+    args.signals = parse_signals(args.signals)
+    args.graph = load_graph_config(args.graph_config) if args.graph_config else GraphConfig()
+    return args
 
 
 def main(argv=None) -> int:

@@ -35,13 +35,25 @@ def add_nav_options(p: argparse.ArgumentParser) -> None:
                    help="with --sp3: precise satellite clocks (RINEX clock file)")
 
 
+def add_signals_option(p: argparse.ArgumentParser, default: str) -> None:
+    """``--signals`` (read by :func:`parse_signals`); ``default`` says what its absence means."""
+    p.add_argument("--signals", default=None,
+                   help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
+                        f"too), or all; {default}")
+
+
+def parse_signals(text: str | None) -> tuple[str, ...] | None:
+    """The loader's signal names of a ``--signals`` value (our names, GSDC 2023 spellings or "all"); None
+    for None."""
+    if text is None:
+        return None
+    return tuple(SIGNALS[i] for i in resolve_signals([s.strip() for s in text.split(",") if s.strip()]))
+
+
 def add_run_options(p: argparse.ArgumentParser) -> None:
     """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
     p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (default: shipped weights)")
-    p.add_argument("--signals", default=None,
-                   help=f"comma-separated, from {','.join(SIGNALS)} (2023 spellings such as GPS_L1_CA "
-                        "too), or all; default GPS_L1 for GSDC files, every signal with ephemerides "
-                        "for RINEX / GnssLogger logs")
+    add_signals_option(p, "default GPS_L1 for GSDC files, every signal with ephemerides for RINEX / GnssLogger logs")
     add_nav_options(p)
     p.add_argument("--iono-free", action="store_true",
                    help="RINEX / GnssLogger traces: ionosphere-free combination where a satellite has an L1-class "
@@ -74,11 +86,7 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
 
 def options_from_args(args: argparse.Namespace) -> RunOptions:
     """The :class:`RunOptions` of parsed :func:`add_run_options` arguments."""
-    # The loader's vocabulary: our names, GSDC 2023 spellings (GPS_L1_CA, ...) or "all".
-    signals = None
-    if args.signals is not None:
-        names = [s.strip() for s in args.signals.split(",") if s.strip()]
-        signals = tuple(SIGNALS[i] for i in resolve_signals(names))
+    signals = parse_signals(args.signals)
     if args.dnn_passes < 1:
         raise GnssfuseError("--dnn-passes must be >= 1")
     if args.clk is not None and args.sp3 is None:

@@ -12,6 +12,7 @@ import torch
 
 from fusion.errors import DataError
 from fusion.eval.summary import skip_words
+from fusion.options import parse_signals
 from fusion.prepare.raw_load import RawSources
 from learned import distributed as dist
 from learned.augment import parse_guess_mix
@@ -46,7 +47,8 @@ def parse_loss(text: str) -> LossWeights:
 
 
 def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, seed: int, elev_mask_deg: float,
-                       with_graph: bool = False, raw_sources: RawSources | None = None) -> tuple[Samples, dict]:
+                       with_graph: bool = False, raw_sources: RawSources | None = None,
+                       signals: tuple[str, ...] = ("GPS_L1",)) -> tuple[Samples, dict]:
     """``sim`` / ``toy``: simulated Gaussian traces; ``sim-bias`` / ``toy-bias``: the Gaussian + NLOS-bias
     scenario (seed + 1, other drives); anything else: real trace folders."""
     traces, real, desc = [], [], {"sources": sources}
@@ -58,7 +60,7 @@ def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, 
             desc[src] = {"traces": sim_traces, "epochs_per_trace": sim_epochs, "bias": bias, "seed": sd}
             real += [False] * len(new)
         else:
-            new = load_real_traces([src], raw_sources=raw_sources)
+            new = load_real_traces([src], signals=signals, raw_sources=raw_sources)
             real += [True] * len(new)
         traces += new
     samples = build_samples(traces, elev_mask_deg, real=real, with_graph=with_graph)
@@ -94,7 +96,13 @@ def config_from_args(args, desc: dict) -> TrainConfig:
                        model=args.model, augment=not args.no_augment, warmup_epochs=args.warmup_epochs,
                        val_frac=args.val_frac, device=args.device, features=features, data=desc, guess_mix=mix,
                        wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate,
-                       loss=parse_loss(args.loss), output=args.output, dropout=parse_dropout(args.dropout))
+                       loss=parse_loss(args.loss), output=args.output, dropout=parse_dropout(args.dropout),
+                       signals=signals_of(args))
+
+
+def signals_of(args) -> tuple[str, ...]:
+    """The signals training reads (``--signals``; GPS L1 when not given)."""
+    return parse_signals(args.signals) or ("GPS_L1",)
 
 
 def check_args(args) -> None:
@@ -127,7 +135,7 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse train", progress: bool =
     samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
                                        seed=args.seed, elev_mask_deg=args.elev_mask,
                                        with_graph=cfg.guess_mix.get("graph", 0.0) > 0,
-                                       raw_sources=RawSources(tuple(args.nav), args.sp3, args.clk))
+                                       raw_sources=RawSources(tuple(args.nav), args.sp3, args.clk), signals=cfg.signals)
     split = {"blocks": split_blocks, "random": split_random, "traces": split_traces}[args.val_split]
     train_s, val_s = split(samples, args.val_frac, np.random.default_rng(args.seed))
     desc.update(n_train=len(train_s), n_val=len(val_s), val_split=args.val_split)

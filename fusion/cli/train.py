@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fusion.options import add_nav_options
+from fusion.options import add_nav_options, add_signals_option
 
 #: The library call that does the work once the arguments are parsed.
 WORK = "learned.train_command:run"
@@ -56,6 +56,8 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
     p.add_argument("--warmup-epochs", type=int, default=None, help="epochs before the variance NLL term")
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg], at the truth")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads per process")
+    add_signals_option(p, "default GPS_L1 (the 2021 files' only signal); the network learns every signal "
+                          "it is given, e.g. all for simulated multi-constellation traces")
     add_nav_options(p)
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar (there is none anyway when stderr is not a terminal)")

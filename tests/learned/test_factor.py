@@ -278,4 +278,5 @@ def test_one_prior_rule_for_factor_and_graph():
     w = solve_wls(tr)
     inp = prepare_inputs(tr, w, GraphConfig(), learned=learned_from_providers(tr, provider, None, w.pos))
     assert inp.prior_ok.tolist() == ok.tolist() and inp.dropped["prior_rejected"] == 1
-    np.testing.assert_allclose(inp.prior_cov[0], np.diag([4.0, 9.0, 16.0]) + 4.0 * np.eye(3))
+    np.testing.assert_allclose(inp.prior_cov[0], GraphConfig().prior_cov_scale * np.diag([4.0, 9.0, 16.0])
+                               + GraphConfig().prior_sigma_floor_m ** 2 * np.eye(3))

@@ -336,15 +336,14 @@ def _with_copies_as(tr, signal: str):
                    signal=sig, mask=two(tr.mask))
 
 
-def test_other_constellations_lower_the_trust_of_a_gps_network(shipped_trace_dir):
-    """A GPS-L1 network on a multi-constellation trace: the satellites it cannot read count against its
-    trust (here half of every epoch's: none left), so that a GPS-only correction does not override a
-    guess from every constellation; on the GPS slots alone the trust is what its inputs give."""
+def test_other_constellations_lower_the_trust_of_a_version_2_network():
+    """A GPS-L1 (feature version 2) network on a multi-constellation trace: the satellites it cannot read
+    count against its trust (here half of every epoch's: none left), so that a GPS-only correction does
+    not override a guess from every constellation."""
     from fusion.estimate.wls import solve_wls
-    from fusion.prepare.load import load_trace
 
-    corr = Corrector.load()
-    gps = load_trace(shipped_trace_dir).select(np.arange(200))
+    corr = Corrector(ConstantNet(), _config(version=2))
+    gps = toy_trace(20, seed=4)
     multi = _with_copies_as(gps, "GAL_E1")
     w = solve_wls(gps)
     t_gps = corr.predict(gps, w.pos, w.valid).trust
@@ -353,3 +352,23 @@ def test_other_constellations_lower_the_trust_of_a_gps_network(shipped_trace_dir
     assert ok.mean() > 0.9 and np.median(t_gps[ok]) == 1.0
     np.testing.assert_array_equal(c_multi.trust[ok], 0.0)
     np.testing.assert_allclose(c_multi.corr_ned[ok], 0.0, atol=1e-9)
+    assert c_multi.info["meas_unseen_signal"] == multi.mask[ok].sum() // 2
+
+
+def test_the_shipped_network_reads_other_constellations(shipped_trace_dir):
+    """The shipped (feature version 3) network reads every signal: on the shipped GPS trace with each
+    slot repeated as Galileo E1 (agreeing measurements), no satellite is unseen, the trust stays and the
+    correction stays close to the GPS-only one (the copies add no information)."""
+    from fusion.estimate.wls import solve_wls
+    from fusion.prepare.load import load_trace
+
+    corr = Corrector.load()
+    gps = load_trace(shipped_trace_dir).select(np.arange(200))
+    w = solve_wls(gps)
+    c_gps = corr.predict(gps, w.pos, w.valid)
+    c_multi = corr.predict(_with_copies_as(gps, "GAL_E1"), w.pos, w.valid)
+    ok = np.isfinite(c_gps.trust) & np.isfinite(c_multi.trust)
+    assert corr.features.version == 3 and ok.mean() > 0.9
+    assert c_multi.info["meas_unseen_signal"] == 0 and np.median(c_multi.trust[ok]) > 0.5
+    step = np.linalg.norm(c_multi.corr_ned[ok] - c_gps.corr_ned[ok], axis=1)
+    assert np.median(step) < 3.0
