@@ -191,3 +191,32 @@ def test_forbidden_traces_and_bad_args_rejected(tmp_path):
         main(["--data", "toy", "--epochs", "0", "--out", str(tmp_path / "x.pt")])
     with pytest.raises(DataError, match="does not exist"):
         main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "x.pt"), "--quiet"])
+
+
+def test_train_signals_all_teaches_every_constellation_of_the_data(tmp_path, capsys):
+    """``--signals all`` trains on every signal of a multi-constellation trace (here a simulated city one):
+    its checkpoint records them and its guard then reads none of the trace's signals as unseen; by default
+    training reads GPS L1 only and the other signals stay unknown to the network."""
+    from fusion.cli import main as cli
+    from fusion.prepare.load import load_trace
+    from fusion.estimate.wls import solve_wls
+
+    assert cli(["simulate", "--out", str(tmp_path / "sim"), "--scenario", "urban", "--epochs", "40",
+                "--collection", "c", "--phone", "p", "--seed", "3"]) == 0
+    trace_dir = tmp_path / "sim" / "c" / "p"
+    common = ["--data", str(trace_dir), "--epochs", "1", "--guess-mix", "box=1", "--val-split", "random",
+              "--quiet", "--threads", "1"]
+    assert main([*common, "--signals", "all", "--out", str(tmp_path / "all.pt")]) == 0
+    assert main([*common, "--out", str(tmp_path / "l1.pt")]) == 0
+    tr = load_trace(trace_dir, signals=("GPS_L1", "GLO_G1", "GAL_E1", "BDS_B1I"))
+    w = solve_wls(tr)
+    unseen = {}
+    for name in ("all", "l1"):
+        ckpt = tmp_path / f"{name}.pt"
+        info = Corrector.load(ckpt).predict(tr, w.pos, w.valid).info
+        unseen[name] = info.get("meas_signal_unseen_in_training", 0)
+    assert "GAL_E1" in read_checkpoint(tmp_path / "all.pt")["config"]["signals"]
+    assert read_checkpoint(tmp_path / "l1.pt")["config"]["signals"] == ["GPS_L1"]
+    assert unseen["all"] == 0 < unseen["l1"]
+    assert cli(["train", *common, "--signals", "GPS_X9", "--out", str(tmp_path / "bad.pt")]) == 2
+    assert "unknown signal name" in capsys.readouterr().err
