@@ -9,7 +9,7 @@ import numpy as np
 
 from fusion.estimate.graph.fuse import fuse, learned_guess
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
-from fusion.estimate.neighbour_fde import gross_outliers
+from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
 from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, TRACE_DEFAULTS, WlsResult, solve_wls_arrays
 from fusion.geometry import ecef2ned_cov, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
@@ -21,6 +21,14 @@ from learned.infer import Corrector
 SCREEN_GAP_MS = 5000
 #: Rounds of the fault screen (each repairs the weak epochs next to those repaired before).
 SCREEN_ROUNDS = 3
+#: An epoch is screened when its fix lies farther than this from its neighbours' prediction [m], and counts
+#: as repaired when its re-solved fix lies within it: the neighbour check's gate on a prediction error
+#: (4 x 10 m, :mod:`fusion.estimate.neighbour_fde`).
+PREDICTION_GATE_M = GATE * PRED_SIGMA_M
+#: Largest 3-D position sigma [m] (the WLS's a-posteriori covariance) of an epoch that predicts for the
+#: screen: 1.5 x the prediction's assumed 10 m, for the vertical. Chosen on smartLoc (GPS only: in a canyon
+#: predictions from imprecise neighbours moved good fixes by tens of metres) and the fault injection.
+SETTLED_SIGMA_M = 15.0
 
 
 def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
@@ -52,11 +60,13 @@ def fault_screen(trace: Trace, wls: WlsResult, opts: RunOptions) -> tuple[np.nda
     """The measurements the ``dnn`` mode's network must not see, and its guess.
 
     Those the robust WLS excluded as faults, except on the epochs whose test has little power (flagged,
-    or at most :data:`fusion.estimate.wls.NEIGHBOUR_CHECK_MAX_SATS` satellites) and whose neighbours
-    predict them: there, those deviating grossly (more than the WLS's ``exclude_above_m``) from the
-    prediction (:func:`fusion.estimate.neighbour_fde.gross_outliers`), the epoch re-solved without them
-    (:func:`screened_guess`). Epochs so repaired predict for the next round (:data:`SCREEN_ROUNDS`):
-    runs of weak epochs are repaired from both ends. Returns (drop (E,S) bool, guess (E,3) ECEF).
+    or at most :data:`fusion.estimate.wls.NEIGHBOUR_CHECK_MAX_SATS` satellites) and whose fix lies more
+    than :data:`PREDICTION_GATE_M` from the position precise neighbours (3-D sigma at most
+    :data:`SETTLED_SIGMA_M`) predict: there, those deviating grossly (more than the WLS's
+    ``exclude_above_m``) from the prediction (:func:`fusion.estimate.neighbour_fde.gross_outliers`), provided
+    the epoch re-solved without them (:func:`screened_guess`) is back within :data:`PREDICTION_GATE_M` of
+    it. Epochs so repaired predict for the next round (:data:`SCREEN_ROUNDS`): runs of weak epochs are
+    repaired from both ends. Returns (drop (E,S) bool, guess (E,3) ECEF).
     """
     drop, pos = np.asarray(wls.excluded, bool), np.asarray(wls.pos, float)
     gross = TRACE_DEFAULTS.exclude_above_m
@@ -65,16 +75,23 @@ def fault_screen(trace: Trace, wls: WlsResult, opts: RunOptions) -> tuple[np.nda
         return drop, pos
     above = trace.mask & (np.asarray(wls.elev_deg) >= opts.elev_mask_deg) & valid[:, None]
     weak = valid & (np.asarray(wls.flagged, bool) | (wls.n_used <= NEIGHBOUR_CHECK_MAX_SATS))
-    settled = valid & ~weak & ~np.asarray(wls.clock_predicted, bool)
+    # predictions only from epochs as precise as the prediction is assumed to be (their own covariance,
+    # a-posteriori scaled): in a street canyon the neighbours are tens of metres off themselves
+    sigma = np.sqrt(np.trace(np.nan_to_num(np.asarray(wls.cov)[:, :3, :3], nan=np.inf), axis1=1, axis2=2))
+    settled = valid & ~weak & ~np.asarray(wls.clock_predicted, bool) & (sigma <= SETTLED_SIGMA_M)
     for _ in range(SCREEN_ROUNDS):
-        far, decided = gross_outliers(trace.t_ms, trace.sat_pos, trace.pr, pos, weak, settled, above, gross,
-                                      max_gap_ms=SCREEN_GAP_MS)
-        if not decided.any():
-            break
+        far, decided, pred = gross_outliers(trace.t_ms, trace.sat_pos, trace.pr, pos, weak, settled, above, gross,
+                                            off_m=PREDICTION_GATE_M, max_gap_ms=SCREEN_GAP_MS)
         changed = decided & (far != drop).any(1)
-        drop = np.where(decided[:, None], far, drop)
-        pos = screened_guess(trace, pos, changed, drop, opts)
-        settled, weak = settled | decided, weak & ~decided
+        new = screened_guess(trace, pos, changed, np.where(changed[:, None], far, drop), opts)
+        # kept only where it repairs the epoch: the fix without them is back at its neighbours' prediction
+        # (in a street canyon the neighbours share the multipath, and a re-solve is no better)
+        repaired = changed & (np.linalg.norm(new - pred, axis=1) <= PREDICTION_GATE_M)
+        if not repaired.any():
+            break
+        drop = np.where(repaired[:, None], far, drop)
+        pos = np.where(repaired[:, None], new, pos)
+        settled, weak = settled | repaired, weak & ~repaired
     return drop, pos
 
 

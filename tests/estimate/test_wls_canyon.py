@@ -109,11 +109,16 @@ def test_gross_outliers_from_neighbours_find_an_absorbed_fault():
     assert (wls.n_used <= 6).all()                       # every epoch weak: the test has little power
     settled = np.ones(9, bool)
     settled[[4, 8]] = False                               # 8: no settled epoch after it, no prediction
-    far, decided = gross_outliers(tr.t_ms, tr.sat_pos, tr.pr, wls.pos, ~settled, settled, tr.mask, 80.0)
+    far, decided, pred = gross_outliers(tr.t_ms, tr.sat_pos, tr.pr, wls.pos, ~settled, settled, tr.mask, 80.0,
+                                        off_m=40.0)
     assert np.flatnonzero(decided).tolist() == [4] and far[4].tolist() == [False, False, True, False, False]
-    assert far.sum() == 1
+    assert far.sum() == 1 and np.linalg.norm(pred[4] - rx[4]) < 20.0 and np.isnan(pred[[0, 8]]).all()
+    # an epoch whose fix stays near the prediction is not judged
+    _, decided, _ = gross_outliers(tr.t_ms, tr.sat_pos, tr.pr, wls.pos, ~settled, settled, tr.mask, 80.0,
+                                   off_m=np.linalg.norm(wls.pos[4] - rx[4]) + 10.0)
+    assert not decided.any()
     kw, _ = _drive(n_sats=5)
     clean = Trace(**kw)
     w = solve_wls(clean)
-    far, decided = gross_outliers(clean.t_ms, clean.sat_pos, clean.pr, w.pos, ~settled, settled, clean.mask, 80.0)
+    far, decided, _ = gross_outliers(clean.t_ms, clean.sat_pos, clean.pr, w.pos, ~settled, settled, clean.mask, 80.0)
     assert decided[4] and not far.any()
