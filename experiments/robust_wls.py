@@ -217,17 +217,32 @@ def exclusion_gains(traces: dict[str, Trace]) -> None:
                       f"| {np.sum(b > 5)} | {np.sum(b < -5)} | {R[inside, 3].mean():+.2f} |")
 
 
+def dnn_drive_table(traces: dict[str, Trace], proxies: dict[str, list[Trace]]) -> None:
+    """Per drive (and smartLoc proxy, mean over its traces): the GSDC score of ``wls`` and ``dnn`` (the
+    shipped weights, with the fault screen of :func:`learned.modes.fault_screen`) on the clean trace."""
+    print("| drive | wls | dnn | dnn / wls |")
+    print("|---|---|---|---|")
+    rows = {**{rel: [tr] for rel, tr in traces.items()}, **proxies}
+    for rel, ts in rows.items():
+        s = [scores(t, ["wls", "dnn"], "exclude") for t in ts]
+        w, d = (float(np.mean([x[m] for x in s])) for m in ("wls", "dnn"))
+        name = rel.split('/', 2)[2] if rel.startswith("gsdc") else rel
+        print(f"| {name} | {w:.2f} | {d:.2f} | {d / w:.3f} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--dnn", action="store_true", help="also the dnn mode (shipped weights)")
     ap.add_argument("--traces", nargs="+", default=list(TRACES), help="paths under the shared data folder")
-    ap.add_argument("--drives", action="store_true", help="per-drive plain / robust before / robust now table")
-    ap.add_argument("--tune", action="store_true", help="leave-one-drive-out choice of the exclusion guard")
+    ap.add_argument("--drives", action="store_true", help="per-drive plain / robust last round / robust now table")
+    ap.add_argument("--tune", action="store_true", help="choice of the robust stage on half the drives and smartLoc")
     ap.add_argument("--no-faults", action="store_true", help="skip the fault-injection table")
+    ap.add_argument("--dnn-drives", action="store_true", help="per-drive clean wls / dnn table")
     args = ap.parse_args()
-    if args.drives or args.tune:
-        rels = TRAIN + (TEST + ((PIXEL5,) if (SHARED / PIXEL5_NAV).exists() else ()) if args.drives else ())
+    if args.drives or args.tune or args.dnn_drives:
+        rels = TRAIN + (TEST + ((PIXEL5,) if (SHARED / PIXEL5_NAV).exists() else ())
+                        if args.drives or args.dnn_drives else ())
         traces = {rel: load(rel) for rel in rels}
         proxies = smartloc_proxies(load_trace(SHARED / SMARTLOC, min_sats=1, signals=None))
         if args.tune:
@@ -237,6 +252,9 @@ def main() -> None:
             print()
         if args.drives:
             drive_table(traces, proxies)
+            print()
+        if args.dnn_drives:
+            dnn_drive_table(traces, proxies)
             print()
     if args.no_faults:
         return
