@@ -167,8 +167,8 @@ class Corrector:
         after a dropped one reads as having no previous residual."""
         drop = None if drop is None or not np.any(drop) else np.asarray(drop, bool)
         c = self._ctx_cache
-        if c is None or c[0] is not trace or not (c[1] is drop or (c[1] is not None and drop is not None
-                                                                 and np.array_equal(c[1], drop))):
+        same_drop = c is not None and (c[1] is None if drop is None else c[1] is not None and np.array_equal(c[1], drop))
+        if c is None or c[0] is not trace or not same_drop:
             screened = trace if drop is None else dataclasses.replace(trace, mask=trace.mask & ~drop)
             wls = context_wls(screened, self.features.elev_mask_deg)
             if drop is not None:

@@ -104,8 +104,6 @@ def exclude_by_neighbours(fit: FitState, candidates: np.ndarray, targets: np.nda
                        n_excluded=n_new), repaired
 
 
-
-
 def gross_outliers(t_ms: np.ndarray, sat_pos: np.ndarray, pr: np.ndarray, pos: np.ndarray, targets: np.ndarray,
                    settled: np.ndarray, candidates: np.ndarray, gross_m: float, off_m: float = 0.0,
                    max_gap_ms: float = MAX_GAP_MS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

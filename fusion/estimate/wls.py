@@ -28,9 +28,14 @@ Procedure
    :data:`TRACE_DEFAULTS`) is undone and the epoch flagged and down-weighted the same way: in a street
    canyon multipath spreads tens of metres over many satellites, and a satellite's geometry is worth
    more down-weighted than lost (``experiments/results/robust_wls.md``). With epoch
-   times (``t_ms``), the flagged epochs and those left with at most
-   :data:`NEIGHBOUR_CHECK_MAX_SATS` satellites (a test of little power) are first checked against
-   the position predicted from the settled epochs around them (:mod:`fusion.estimate.neighbour_fde`). ``robust="huber"``: iteratively reweighted least
+   times (``t_ms``), the flagged epochs (with ``neighbour_weak``, also those that passed with at most
+   :data:`NEIGHBOUR_CHECK_MAX_SATS` satellites, a test of little power: off in :data:`TRACE_DEFAULTS`,
+   in a street canyon the neighbours share the multipath) are first checked against the position
+   predicted from the settled epochs around them (:mod:`fusion.estimate.neighbour_fde`). In the Huber
+   stage of the flagged epochs (``irls_reported``) each a-priori sigma is raised by the measurement's
+   reported sigma over the epoch's median (:func:`reported_sigma_factor`: C/N0 says which satellite is
+   reflected where elevation cannot), and the threshold scaled by the test's variance factor
+   (``irls_scale="trace"``). ``robust="huber"``: iteratively reweighted least
    squares with Huber weights ``min(1, huber_k / |z|)`` on the standardised residuals ``z``.
    ``robust=False``: the paper's plain WLS.
 5. Three-satellite epochs (with ``t_ms``): solved for position alone with the receiver clock

@@ -94,8 +94,8 @@ class WlsSettings:
             raise DataError(f"irls_scale must be 'prior' or 'trace' and m_estimator one of {M_ESTIMATORS}, got "
                             f"{self.irls_scale!r}, {self.m_estimator!r}")
         if not self.exclude_above_m > 0 or not self.max_dop_growth >= 1.0 or not self.gross_dop_growth >= 1.0:
-            raise DataError(f"exclude_above_m must be > 0, max_dop_growth and gross_dop_growth >= 1, got {self.exclude_above_m}, "
-                            f"{self.max_dop_growth}")
+            raise DataError(f"exclude_above_m must be > 0, max_dop_growth and gross_dop_growth >= 1, got "
+                            f"{self.exclude_above_m}, {self.max_dop_growth}, {self.gross_dop_growth}")
 
     def replace(self, **options) -> WlsSettings:
         """A copy with ``options`` changed; an unknown option name is a :class:`DataError`."""
