@@ -8,11 +8,11 @@ exclusion can reach: losing 5% of the satellites costs geometry.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python experiments/robust_wls.py --seeds 0 1 2 3 4 --dnn
 
-With ``--drives``: the GSDC score per drive of the plain WLS, the robust WLS as it was before the
-exclusion guard (``exclude_above_m=inf``: every identified fault excluded) and the default robust WLS,
-over the twelve training drives, the two test traces and the Pixel5 RINEX trace (GPS broadcast
-navigation). With ``--tune``: the guard's settings chosen leave-one-drive-out on the twelve training
-drives (the test traces are never used to choose).
+With ``--drives``: the GSDC score per drive of the plain WLS, the robust default of the last round
+(:data:`PREVIOUS`) and the default robust WLS now, over the twelve training drives, the two test traces,
+the Pixel5 RINEX trace (GPS broadcast navigation) and smartLoc's street-canyon proxies (:data:`PROXIES`).
+With ``--tune``: the robust stage's settings (:data:`GRID`) chosen on half the training drives and
+smartLoc and checked on the other half (the test traces are never used to choose).
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python experiments/robust_wls.py --drives --tune --seeds 0 1 2 3 4
 
@@ -33,7 +33,7 @@ from fusion.prepare.load import load_trace
 from fusion.prepare.raw_load import RawSources
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
-from fusion.trace import Trace
+from fusion.trace import SIGNALS, Trace
 
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 #: Training traces only (the test traces 2021-04-28-* are not used to choose anything).
@@ -50,9 +50,19 @@ PIXEL5, PIXEL5_NAV = "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5", "ephemeris/gps
 FAULT_TRACE = TRAIN[0]
 #: The robust WLS before the exclusion guard: every identified fault excluded.
 BEFORE = TRACE_DEFAULTS.replace(exclude_above_m=float("inf"))
-#: The guard's settings searched by ``--tune``: (exclude_above_m, max_dop_growth, huber_k).
-GRID = tuple((h, g, k) for h in (50.0, 80.0, 120.0) for g in (1.0, 1.3) for k in (1.0, 1.5, 2.0))
-
+#: The robust default of the last round (guard, neighbour check of weak epochs, Huber on elevation sigmas).
+PREVIOUS = TRACE_DEFAULTS.replace(neighbour_weak=True, irls_reported=False, irls_scale="prior", huber_k=1.5)
+#: Settings searched by ``--tune`` (the exclusion guard fixed at 80 m / 1.0): (neighbour check of the epochs
+#: that passed with few satellites, IRLS sigmas from the reported sigma, IRLS scale, Huber threshold).
+GRID = tuple((nw, rep, sc, k) for nw in (True, False) for rep in (False, True) for sc in ("prior", "trace")
+             for k in (1.5, 2.0, 3.0))
+#: Tried at the chosen point: undo gross exclusions too where the DOP grows beyond the factor (rejected).
+GROSS_DOP_GROWTH = (float("inf"), 3.0, 2.0, 1.6)
+SMARTLOC = "smartloc/Berlin_Potsdamer_Platz"
+#: smartLoc proxies of a phone in a street canyon: the whole log, GPS only (6-10 satellites, as a GPS-L1
+#: GSDC phone), and both thinned to 1 Hz (the neighbour check then predicts over a second, as on a phone)
+#: in five disjoint subsets.
+PROXIES = ("smartLoc", "smartLoc GPS", "smartLoc 1 Hz (5 subsets)", "smartLoc GPS 1 Hz (5 subsets)")
 
 def with_faults(trace: Trace, seed: int) -> tuple[Trace, np.ndarray]:
     """The trace with +200 m on a random 5% of its real slots; also the (E, S) bool fault mask."""
@@ -97,43 +107,77 @@ def wls_score(trace: Trace, settings) -> float:
     return mode_metrics(trace, estimate_wls(trace, solve_wls(trace, settings), RunOptions()))["gsdc_score"]
 
 
-def drive_table(traces: dict[str, Trace]) -> None:
-    """Per drive: plain, robust before the guard, robust now (the default), and the ratios to plain."""
-    print("| drive | set | plain | robust before | robust now | before / plain | now / plain |")
+def drive_table(traces: dict[str, Trace], proxies: dict[str, list[Trace]]) -> None:
+    """Per drive (and smartLoc proxy, mean over its traces): plain, the robust default of the last round
+    (:data:`PREVIOUS`), robust now (the default), and the ratios to plain."""
+    print("| drive | set | plain | robust, last round | robust now | last round / plain | now / plain |")
     print("|---|---|---|---|---|---|---|")
-    for rel, tr in traces.items():
-        plain = wls_score(tr, TRACE_DEFAULTS.replace(robust=False))
-        before, now = wls_score(tr, BEFORE), wls_score(tr, TRACE_DEFAULTS)
-        kind = "train" if rel in TRAIN else "test"
-        print(f"| {rel.split('/', 2)[2]} | {kind} | {plain:.2f} | {before:.2f} | {now:.2f} | {before / plain:.3f} "
+    rows = {**{rel: ("train" if rel in TRAIN else "test", [tr]) for rel, tr in traces.items()},
+            **{n: ("canyon proxy", ts) for n, ts in proxies.items()}}
+    for rel, (kind, ts) in rows.items():
+        plain, before, now = (np.mean([wls_score(t, s) for t in ts])
+                              for s in (TRACE_DEFAULTS.replace(robust=False), PREVIOUS, TRACE_DEFAULTS))
+        name = rel.split('/', 2)[2] if rel.startswith("gsdc") else rel
+        print(f"| {name} | {kind} | {plain:.2f} | {before:.2f} | {now:.2f} | {before / plain:.3f} "
               f"| {now / plain:.3f} |", flush=True)
 
 
-def _setting(h: float, g: float, k: float):
-    return TRACE_DEFAULTS.replace(exclude_above_m=h, max_dop_growth=g, huber_k=k)
+def _setting(nw: bool, rep: bool, sc: str, k: float):
+    return TRACE_DEFAULTS.replace(neighbour_weak=nw, irls_reported=rep, irls_scale=sc, huber_k=k)
 
 
-def tune(traces: dict[str, Trace], seeds: list[int]) -> None:
-    """Leave one training drive out: on the other eleven, the grid point with the least mean
-    robust / plain ratio among those keeping the fault-injection result (faulty robust within 1 m of
-    clean plain on :data:`FAULT_TRACE`); its ratio on the drive left out."""
-    plain = {rel: wls_score(tr, TRACE_DEFAULTS.replace(robust=False)) for rel, tr in traces.items()}
-    ratio = {p: np.array([wls_score(traces[r], _setting(*p)) / plain[r] for r in TRAIN]) for p in GRID}
+def smartloc_proxies(trace: Trace) -> dict[str, list[Trace]]:
+    """The :data:`PROXIES` of the smartLoc log (5 Hz, GPS + GLONASS): name -> traces."""
+    gps = trace.select_slots(trace.signal == SIGNALS.index("GPS_L1"))
+    thin = [np.flatnonzero(np.arange(trace.n_epochs) % 5 == k) for k in range(5)]
+    return dict(zip(PROXIES, ([trace], [gps], [trace.select(e) for e in thin], [gps.select(e) for e in thin])))
+
+
+def ratios(traces: dict[str, list[Trace]], settings) -> dict[str, float]:
+    """name -> robust / plain GSDC score (mean over the name's traces) under ``settings``."""
+    plain = settings.replace(robust=False)
+    return {n: float(np.mean([wls_score(t, settings) / wls_score(t, plain) for t in ts])) for n, ts in traces.items()}
+
+
+def tune(traces: dict[str, Trace], proxies: dict[str, list[Trace]], seeds: list[int]) -> None:
+    """Each grid point's robust / plain ratios on the twelve training drives and the smartLoc proxies, and
+    the fault-injection result (faulty robust - clean plain on :data:`FAULT_TRACE`). Leave half the drives
+    out: on each half (alternate drives) and the proxies, the point with the least mean ratio among those
+    keeping the fault result within 1 m; its ratios on the other half."""
+    sets = {**{r: [traces[r]] for r in TRAIN}, **proxies}
+    plain = wls_score(traces[FAULT_TRACE], TRACE_DEFAULTS.replace(robust=False))
     faulty = [with_faults(traces[FAULT_TRACE], s)[0] for s in seeds]
-    fault = {p: np.mean([wls_score(f, _setting(*p)) for f in faulty]) - plain[FAULT_TRACE] for p in GRID}
-    print("| exclude_above_m | max_dop_growth | huber_k | mean ratio (12 drives) | worst ratio | fault: faulty - clean plain [m] |")
-    print("|---|---|---|---|---|---|")
+    ratio, fault = {}, {}
+    print("| neighbour check of passed epochs | reported sigma in IRLS | IRLS scale | huber_k | train mean | train worst "
+          "| " + " | ".join(PROXIES) + " | fault: faulty - clean plain [m] |")
+    print("|---|---|---|---|---|---|" + "---|" * len(PROXIES) + "---|")
     for p in GRID:
-        print(f"| {p[0]:.0f} | {p[1]:.1f} | {p[2]:.1f} | {ratio[p].mean():.4f} | {ratio[p].max():.3f} | {fault[p]:+.2f} |")
+        ratio[p] = ratios(sets, _setting(*p))
+        fault[p] = np.mean([wls_score(f, _setting(*p)) for f in faulty]) - plain
+        tr = np.array([ratio[p][r] for r in TRAIN])
+        print(f"| {'yes' if p[0] else 'no'} | {'yes' if p[1] else 'no'} | {p[2]} | {p[3]:.1f} | {tr.mean():.4f} "
+              f"| {tr.max():.3f} | " + " | ".join(f"{ratio[p][n]:.3f}" for n in PROXIES) + f" | {fault[p]:+.2f} |",
+              flush=True)
     allowed = [p for p in GRID if fault[p] <= 1.0]
-    print("\n| drive left out | chosen on the other 11 (exclude_above_m, max_dop_growth, huber_k) | its ratio on the drive left out |")
-    print("|---|---|---|")
-    for i, rel in enumerate(TRAIN):
-        rest = np.arange(len(TRAIN)) != i
-        best = min(allowed, key=lambda p: ratio[p][rest].mean())
-        print(f"| {rel.split('/', 2)[2]} | {best[0]:.0f}, {best[1]:.1f}, {best[2]:.1f} | {ratio[best][i]:.3f} |")
-    best = min(allowed, key=lambda p: ratio[p].mean())
-    print(f"\nChosen on all twelve: exclude_above_m={best[0]:.0f}, max_dop_growth={best[1]:.1f}, huber_k={best[2]:.1f}")
+    print("\n| chosen on | setting (neighbour check, reported sigma, scale, huber_k) | held-out drives: mean ratio | worst |")
+    print("|---|---|---|---|")
+    for h in (0, 1):
+        chosen, held = TRAIN[h::2], TRAIN[1 - h::2]
+        best = min(allowed, key=lambda p: np.mean([ratio[p][n] for n in chosen + PROXIES]))
+        out = np.array([ratio[best][r] for r in held])
+        print(f"| drives {h + 1}, {h + 3}, ... of 12 + smartLoc | {best} | {out.mean():.4f} | {out.max():.3f} |")
+    best = min(allowed, key=lambda p: np.mean([ratio[p][n] for n in TRAIN + PROXIES]))
+    print(f"\nChosen on all twelve and smartLoc: {best}")
+    print("\nAt the chosen point, gross exclusions also undone above a DOP growth (``gross_dop_growth``):\n")
+    print("| gross_dop_growth | train mean | train worst | " + " | ".join(PROXIES) + " | fault [m] |")
+    print("|---|---|---|" + "---|" * len(PROXIES) + "---|")
+    for g in GROSS_DOP_GROWTH:
+        st = _setting(*best).replace(gross_dop_growth=g)
+        r = ratios(sets, st)
+        tr = np.array([r[n] for n in TRAIN])
+        f = np.mean([wls_score(x, st) for x in faulty]) - plain
+        print(f"| {g:g} | {tr.mean():.4f} | {tr.max():.3f} | " + " | ".join(f"{r[n]:.3f}" for n in PROXIES)
+              + f" | {f:+.2f} |", flush=True)
 
 
 def exclusion_gains(traces: dict[str, Trace]) -> None:
@@ -173,25 +217,44 @@ def exclusion_gains(traces: dict[str, Trace]) -> None:
                       f"| {np.sum(b > 5)} | {np.sum(b < -5)} | {R[inside, 3].mean():+.2f} |")
 
 
+def dnn_drive_table(traces: dict[str, Trace], proxies: dict[str, list[Trace]]) -> None:
+    """Per drive (and smartLoc proxy, mean over its traces): the GSDC score of ``wls`` and ``dnn`` (the
+    shipped weights, with the fault screen of :func:`learned.modes.fault_screen`) on the clean trace."""
+    print("| drive | wls | dnn | dnn / wls |")
+    print("|---|---|---|---|")
+    rows = {**{rel: [tr] for rel, tr in traces.items()}, **proxies}
+    for rel, ts in rows.items():
+        s = [scores(t, ["wls", "dnn"], "exclude") for t in ts]
+        w, d = (float(np.mean([x[m] for x in s])) for m in ("wls", "dnn"))
+        name = rel.split('/', 2)[2] if rel.startswith("gsdc") else rel
+        print(f"| {name} | {w:.2f} | {d:.2f} | {d / w:.3f} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
     ap.add_argument("--dnn", action="store_true", help="also the dnn mode (shipped weights)")
     ap.add_argument("--traces", nargs="+", default=list(TRACES), help="paths under the shared data folder")
-    ap.add_argument("--drives", action="store_true", help="per-drive plain / robust before / robust now table")
-    ap.add_argument("--tune", action="store_true", help="leave-one-drive-out choice of the exclusion guard")
+    ap.add_argument("--drives", action="store_true", help="per-drive plain / robust last round / robust now table")
+    ap.add_argument("--tune", action="store_true", help="choice of the robust stage on half the drives and smartLoc")
     ap.add_argument("--no-faults", action="store_true", help="skip the fault-injection table")
+    ap.add_argument("--dnn-drives", action="store_true", help="per-drive clean wls / dnn table")
     args = ap.parse_args()
-    if args.drives or args.tune:
-        rels = TRAIN + (TEST + ((PIXEL5,) if (SHARED / PIXEL5_NAV).exists() else ()) if args.drives else ())
+    if args.drives or args.tune or args.dnn_drives:
+        rels = TRAIN + (TEST + ((PIXEL5,) if (SHARED / PIXEL5_NAV).exists() else ())
+                        if args.drives or args.dnn_drives else ())
         traces = {rel: load(rel) for rel in rels}
+        proxies = smartloc_proxies(load_trace(SHARED / SMARTLOC, min_sats=1, signals=None))
         if args.tune:
             exclusion_gains(traces)
             print()
-            tune(traces, args.seeds)
+            tune(traces, proxies, args.seeds)
             print()
         if args.drives:
-            drive_table(traces)
+            drive_table(traces, proxies)
+            print()
+        if args.dnn_drives:
+            dnn_drive_table(traces, proxies)
             print()
     if args.no_faults:
         return

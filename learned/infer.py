@@ -9,6 +9,7 @@ mode makes: the prior, the per-satellite sigmas and biases and the guard's count
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -133,7 +134,7 @@ class Corrector:
         self.device = device
         self.var_scale = _calibration_scales(config, path, calibrated)
         self.ranges = _input_ranges(config, self.features.n_inputs, path)
-        self._ctx_cache: tuple[Trace, dict] | None = None
+        self._ctx_cache: tuple[Trace, np.ndarray | None, dict] | None = None
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str = "cpu", calibrated: bool = True) -> "Corrector":
@@ -158,25 +159,38 @@ class Corrector:
                                   f"{mcfg.get('hparams')}: {type(exc).__name__}: {str(exc)[:200]}") from exc
         return cls(net, config, device=device, path=path, calibrated=calibrated)
 
-    def _context(self, trace: Trace) -> dict[str, np.ndarray]:
+    def _context(self, trace: Trace, drop: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """The trace's per-slot context (E,S) from its own plain WLS (as in training), cached for the last
-        trace asked (held, so that a new trace can never reuse its identity)."""
-        if self._ctx_cache is None or self._ctx_cache[0] is not trace:
-            wls = context_wls(trace, self.features.elev_mask_deg)
-            self._ctx_cache = (trace, slot_context(trace, wls, self.features.elev_mask_deg).as_dict())
-        return self._ctx_cache[1]
+        trace and ``drop`` asked (held, so that a new trace can never reuse its identity). ``drop`` (E,S)
+        bool: measurements left out of that WLS (faults the robust WLS excluded: a +200 m fault would
+        otherwise move the plain fit and so every residual change of its epoch and the next); the slot
+        after a dropped one reads as having no previous residual."""
+        drop = None if drop is None or not np.any(drop) else np.asarray(drop, bool)
+        c = self._ctx_cache
+        same_drop = c is not None and (c[1] is None if drop is None else c[1] is not None and np.array_equal(c[1], drop))
+        if c is None or c[0] is not trace or not same_drop:
+            screened = trace if drop is None else dataclasses.replace(trace, mask=trace.mask & ~drop)
+            wls = context_wls(screened, self.features.elev_mask_deg)
+            if drop is not None:
+                wls.resid = np.where(drop, np.nan, wls.resid)
+            self._ctx_cache = (trace, drop, slot_context(trace, wls, self.features.elev_mask_deg).as_dict())
+        return self._ctx_cache[2]
 
-    def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-        """Epochs asked (N,), their slot masks (N,S) (valid guess, readable signals, >= 4 above ``elev``),
-        the number of other satellites above ``elev`` (N,) (signals a version-2 network cannot read), and
-        the number of epochs with too few."""
+    def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float,
+               drop: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Epochs asked (N,), their slot masks (N,S) (valid guess, readable signals, not in ``drop`` (E,S),
+        >= 4 above ``elev``), the number of other satellites above ``elev`` (N,) (signals a version-2
+        network cannot read), and the number of epochs with too few."""
         E = trace.n_epochs
         if init_pos.shape != (E, 3) or np.shape(valid) != (E,):
             raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
                                 f"got {init_pos.shape} and {np.shape(valid)}")
         idx = np.flatnonzero(np.asarray(valid, bool) & np.isfinite(init_pos).all(1))
         own = trace.mask[idx]
+        if drop is not None:
+            if np.shape(drop) != (E, trace.n_slots):
+                raise GeometryError(f"{trace.name}: drop must be ({E}, {trace.n_slots}), got {np.shape(drop)}")
+            own = own & ~np.asarray(drop, bool)[idx]
         if self.features.version == 2:
             # a GPS-L1 network fed other constellations' slots would see their inter-system clock offsets as
             # residuals it has never met; version 3 reads every signal (its clock offset removed)
@@ -186,9 +200,11 @@ class Corrector:
         enough = mask.sum(1) >= 4
         return idx[enough], mask[enough], unseen[enough], int((~enough).sum())
 
-    def _forward(self, trace: Trace, idx: np.ndarray, mask: np.ndarray, guess: np.ndarray) -> dict:
-        """Network outputs for epochs ``idx`` (N,) with slot mask (N,S) at ``guess`` (N,3), in trace slots."""
-        ctx = {k: v[idx] for k, v in self._context(trace).items()}
+    def _forward(self, trace: Trace, idx: np.ndarray, mask: np.ndarray, guess: np.ndarray,
+                 drop: np.ndarray | None = None) -> dict:
+        """Network outputs for epochs ``idx`` (N,) with slot mask (N,S) at ``guess`` (N,3), in trace slots
+        (``drop``: (E,S) measurements left out of the context's WLS too, :meth:`_context`)."""
+        ctx = {k: v[idx] for k, v in self._context(trace, drop).items()}
         order = np.argsort(~mask, axis=1, kind="stable")[:, :max(int(mask.sum(1).max(initial=0)), 1)]
 
         def take(a: np.ndarray) -> np.ndarray:
@@ -248,22 +264,25 @@ class Corrector:
                 **{f"corr_{k}": v for k, v in corr_ned.items()}, **{f"cov_{k}": v for k, v in var_ned.items()}}
 
     def predict(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
-                elev_mask_deg: float | None = None, output: str | None = None) -> Correction:
+                elev_mask_deg: float | None = None, output: str | None = None,
+                drop: np.ndarray | None = None) -> Correction:
         """Correct ``init_pos`` (E,3) ECEF at epochs where ``valid`` (E,) and >= 4 satellites of the
-        checkpoint's signals clear the elevation mask (checkpoint's, unless given) seen from the guess."""
+        checkpoint's signals clear the elevation mask (checkpoint's, unless given) seen from the guess.
+        ``drop``: optional (E,S) bool, measurements the network must not see (e.g. those the robust WLS
+        excluded as faults, :attr:`fusion.estimate.wls.WlsResult.excluded`): read as absent slots."""
         E, S = trace.mask.shape
         init_pos = np.asarray(init_pos, float)
         output = output or self.output
         if output not in OUTPUTS:
             raise CheckpointError(f"{self.path}: unknown output {output!r} (known: {', '.join(OUTPUTS)})")
         elev = self.features.elev_mask_deg if elev_mask_deg is None else elev_mask_deg
-        idx, mask, unseen, n_too_few = self._asked(trace, init_pos, valid, elev)
+        idx, mask, unseen, n_too_few = self._asked(trace, init_pos, valid, elev, drop)
         res = Correction(np.full((E, 3), np.nan), np.full((E, 3, 3), np.nan), np.full((E, 3), np.nan),
                          np.full((E, 3, 3), np.nan), np.zeros(E, bool), n_too_few, np.full((E, S), np.nan),
                          np.full((E, S), np.nan), np.full(E, np.nan))
         oor, counts = np.zeros(mask.shape, bool), {}
         if len(idx):
-            out = self._forward(trace, idx, mask, init_pos[idx])
+            out = self._forward(trace, idx, mask, init_pos[idx], drop)
             out["trust"] = trust(out["oor"], mask, unseen)
             self._fill(res, out, idx, init_pos[idx], output)
             oor, counts = out["oor"], out["counts"]

@@ -9,31 +9,104 @@ import numpy as np
 
 from fusion.estimate.graph.fuse import fuse, learned_guess
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
-from fusion.estimate.wls import WlsResult
+from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
+from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, TRACE_DEFAULTS, WlsResult, solve_wls_arrays
 from fusion.geometry import ecef2ned_cov, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 from learned.infer import Corrector
 
+#: Furthest settled neighbour the fault screen predicts from [ms]: runs of weak epochs (five or six
+#: satellites) last seconds; a gross fault (> 80 m) stands out of a five-second interpolation.
+SCREEN_GAP_MS = 5000
+#: Rounds of the fault screen (each repairs the weak epochs next to those repaired before).
+SCREEN_ROUNDS = 3
+#: An epoch is screened when its fix lies farther than this from its neighbours' prediction [m], and counts
+#: as repaired when its re-solved fix lies within it: the neighbour check's gate on a prediction error
+#: (4 x 10 m, :mod:`fusion.estimate.neighbour_fde`).
+PREDICTION_GATE_M = GATE * PRED_SIGMA_M
+#: Largest 3-D position sigma [m] (the WLS's a-posteriori covariance) of an epoch that predicts for the
+#: screen: 1.5 x the prediction's assumed 10 m, for the vertical. Chosen on smartLoc (GPS only: in a canyon
+#: predictions from imprecise neighbours moved good fixes by tens of metres) and the fault injection.
+SETTLED_SIGMA_M = 15.0
+
 
 def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """Pipeline mode ``dnn``: one network pass at the WLS positions (learned-weight least squares or the
     paper's correction, ``opts.dnn_output``). Epochs with invalid WLS or < 4 satellites: not solved.
-    ``opts.dnn_passes`` > 1 re-asks the network at its own output (features recomputed each pass)."""
+    ``opts.dnn_passes`` > 1 re-asks the network at its own output (features recomputed each pass).
+    The measurements the robust WLS excluded as faults do not reach the network (a +200 m fault would
+    otherwise pull its learned-weight solution: ``experiments/robust_wls.py --dnn``)."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     pos, valid = np.asarray(wls.pos, float), np.asarray(wls.valid, bool)
     cov, too_few, c = None, 0, None
+    drop, pos = fault_screen(trace, wls, opts)
     for _ in range(max(1, int(opts.dnn_passes))):
-        c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg, output=opts.dnn_output)
+        c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg, output=opts.dnn_output,
+                              drop=drop)
         too_few += c.n_too_few
         pos, valid, cov = c.mean_ecef, c.valid, c.cov_ecef
     info = {"passes": int(max(1, opts.dnn_passes)), "unsolved": int((~valid).sum()),
             "unsolved_wls": int((~np.asarray(wls.valid, bool)).sum()), "too_few_sats": too_few,
             "output": opts.dnn_output or corrector.output, "weights": str(corrector.path),
             "guard_shrunk": c.info["epochs_guard_shrunk"], "guard_off": c.info["epochs_guard_off"],
+            "meas_fault_screened": int(np.sum(drop)),
             # flat, so that metrics.json (which keeps scalar info) and the report carry them
             **{f"learned_{k}": v for k, v in c.info.items()}}
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
+
+
+def fault_screen(trace: Trace, wls: WlsResult, opts: RunOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The measurements the ``dnn`` mode's network must not see, and its guess.
+
+    Those the robust WLS excluded as faults, except on the epochs whose test has little power (flagged,
+    or at most :data:`fusion.estimate.wls.NEIGHBOUR_CHECK_MAX_SATS` satellites) and whose fix lies more
+    than :data:`PREDICTION_GATE_M` from the position precise neighbours (3-D sigma at most
+    :data:`SETTLED_SIGMA_M`) predict: there, those deviating grossly (more than the WLS's
+    ``exclude_above_m``) from the prediction (:func:`fusion.estimate.neighbour_fde.gross_outliers`), provided
+    the epoch re-solved without them (:func:`screened_guess`) is back within :data:`PREDICTION_GATE_M` of
+    it. Epochs so repaired predict for the next round (:data:`SCREEN_ROUNDS`): runs of weak epochs are
+    repaired from both ends. Returns (drop (E,S) bool, guess (E,3) ECEF).
+    """
+    drop, pos = np.asarray(wls.excluded, bool), np.asarray(wls.pos, float)
+    gross = TRACE_DEFAULTS.exclude_above_m
+    valid = np.asarray(wls.valid, bool)
+    if not np.isfinite(gross) or not valid.any():
+        return drop, pos
+    above = trace.mask & (np.asarray(wls.elev_deg) >= opts.elev_mask_deg) & valid[:, None]
+    weak = valid & (np.asarray(wls.flagged, bool) | (wls.n_used <= NEIGHBOUR_CHECK_MAX_SATS))
+    # predictions only from epochs as precise as the prediction is assumed to be (their own covariance,
+    # a-posteriori scaled): in a street canyon the neighbours are tens of metres off themselves
+    sigma = np.sqrt(np.trace(np.nan_to_num(np.asarray(wls.cov)[:, :3, :3], nan=np.inf), axis1=1, axis2=2))
+    settled = valid & ~weak & ~np.asarray(wls.clock_predicted, bool) & (sigma <= SETTLED_SIGMA_M)
+    for _ in range(SCREEN_ROUNDS):
+        far, decided, pred = gross_outliers(trace.t_ms, trace.sat_pos, trace.pr, pos, weak, settled, above, gross,
+                                            off_m=PREDICTION_GATE_M, max_gap_ms=SCREEN_GAP_MS)
+        changed = decided & (far != drop).any(1)
+        new = screened_guess(trace, pos, changed, np.where(changed[:, None], far, drop), opts)
+        # kept only where it repairs the epoch: the fix without them is back at its neighbours' prediction
+        # (in a street canyon the neighbours share the multipath, and a re-solve is no better)
+        repaired = changed & (np.linalg.norm(new - pred, axis=1) <= PREDICTION_GATE_M)
+        if not repaired.any():
+            break
+        drop = np.where(repaired[:, None], far, drop)
+        pos = np.where(repaired[:, None], new, pos)
+        settled, weak = settled | repaired, weak & ~repaired
+    return drop, pos
+
+
+def screened_guess(trace: Trace, pos: np.ndarray, epochs: np.ndarray, drop: np.ndarray, opts: RunOptions) -> np.ndarray:
+    """(E,3) ``pos`` with the ``epochs`` (E,) re-solved (plain WLS from ``pos``) without the measurements in
+    ``drop`` (E,S): a gross fault the WLS fit absorbed displaces its position, and the network reads its
+    inputs at the guess."""
+    idx = np.flatnonzero(epochs)
+    if idx.size == 0:
+        return pos
+    again = solve_wls_arrays(trace.sat_pos[idx], trace.pr[idx], trace.mask[idx] & ~drop[idx], trace.pr_sigma[idx],
+                             pos[idx], elev_mask_deg=opts.elev_mask_deg, weighting=opts.wls_weighting)
+    pos = pos.copy()
+    pos[idx[again.valid]] = again.pos[again.valid]
+    return pos
 
 
 def iterated(provider: PriorProvider, passes: int) -> PriorProvider:

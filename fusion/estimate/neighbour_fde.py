@@ -102,3 +102,37 @@ def exclude_by_neighbours(fit: FitState, candidates: np.ndarray, targets: np.nda
     count_skip(fit.dropped, "outlier", int((n_new - fit.n_excluded).sum()))
     return fit.replace(x=np.where(repaired[:, None], x2, fit.x), used=used, conv=fit.conv | repaired,
                        n_excluded=n_new), repaired
+
+
+def gross_outliers(t_ms: np.ndarray, sat_pos: np.ndarray, pr: np.ndarray, pos: np.ndarray, targets: np.ndarray,
+                   settled: np.ndarray, candidates: np.ndarray, gross_m: float, off_m: float = 0.0,
+                   max_gap_ms: float = MAX_GAP_MS) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Measurements of the ``targets`` epochs that deviate by more than ``gross_m`` metres from the position
+    the ``settled`` epochs around them predict (clock: the median residual there), on the epochs whose own
+    position is more than ``off_m`` metres off the prediction.
+
+    A gross fault in a five- or six-satellite epoch is absorbed by the fit (small residuals, a position
+    off by the fault), and the snapshot test may even exclude a good satellite instead; only the
+    neighbours show it. The WLS keeps such a measurement (in a street canyon its geometry is worth more
+    than the doubt); a consumer that must not be pulled by it (the learned snapshot, :mod:`learned.modes`)
+    drops it. Where more than three deviate or fewer than four would remain, nothing is decided.
+    t_ms: (E,); sat_pos: (E, S, 3); pr, candidates: (E, S) (the slots to judge, e.g. those above the mask);
+    pos: (E, 3) solutions; targets, settled: (E,) bool. Returns (far (E, S) bool, decided (E,) bool: the
+    epochs judged (elsewhere ``far`` is False), predicted (E, 3) positions of the decided epochs, NaN elsewhere).
+    """
+    far, decided = np.zeros(candidates.shape, bool), np.zeros(targets.shape, bool)
+    predicted = np.full(pos.shape, np.nan)
+    idx = np.flatnonzero(targets)
+    pred, ok = predict_positions(np.asarray(t_ms), np.nan_to_num(pos), settled, idx, max_gap_ms)
+    idx, pred = idx[ok], pred[ok]
+    if idx.size == 0:
+        return far, decided, predicted
+    rng, _ = line_of_sight(sat_pos[idx], pred)
+    cand = candidates[idx]
+    r = np.where(cand, pr[idx] - rng, np.nan)
+    out = cand & (np.abs(r - np.nanmedian(r, axis=1, keepdims=True)) > gross_m)
+    # only an epoch whose own position is off the prediction: a fault the fit absorbed moved it
+    off = np.linalg.norm(pos[idx] - pred, axis=1) > off_m
+    take = off & (out.sum(1) <= 3) & ((cand & ~out).sum(1) >= 4)
+    far[idx[take]], decided[idx[take]], predicted[idx[take]] = out[take], True, pred[take]
+    return far, decided, predicted

@@ -186,19 +186,22 @@ def costly_exclusions(before: FitState, after: FitState, settings: WlsSettings) 
     Such an exclusion is not worth its cost in a street canyon: multipath spreads errors of tens of
     metres over many satellites, the chi-square test cannot single out the one to drop, and the
     satellite's geometry is worth more down-weighted (Huber) than lost. A gross fault (hundreds of
-    metres: a wrong ephemeris, a clock or code error) is still excluded whatever the geometry.
+    metres: a wrong ephemeris, a clock or code error) is still excluded unless its exclusion raises the
+    DOP by more than ``settings.gross_dop_growth``: Huber bounds its pull, a lost satellite in a weak
+    geometry can cost more.
     """
     removed = before.used & ~after.used
     out = np.zeros(removed.shape[0], bool)
     rows = np.flatnonzero(removed.any(1))
-    if rows.size == 0 or not np.isfinite(settings.exclude_above_m):
+    if rows.size == 0 or not (np.isfinite(settings.exclude_above_m) or np.isfinite(settings.gross_dop_growth)):
         return out
     sp, w = before.sat_pos[rows], before.w_prior[rows]
     _, _, r, _ = normal_equations(sp, before.pr[rows], np.where(after.used[rows], w, 0.0), after.x[rows])
     moderate = np.where(removed[rows], np.abs(r), 0.0).max(1) < settings.exclude_above_m
     dop_before = position_dop(sp, before.x[rows], np.where(before.used[rows], w, 0.0))
     dop_after = position_dop(sp, before.x[rows], np.where(after.used[rows], w, 0.0))
-    out[rows] = moderate & ~(dop_after <= settings.max_dop_growth * dop_before)
+    out[rows] = ((moderate & ~(dop_after <= settings.max_dop_growth * dop_before))
+                 | ~(dop_after <= settings.gross_dop_growth * dop_before))
     return out
 
 
@@ -240,20 +243,39 @@ def _undo(before: FitState, after: FitState, rows: np.ndarray) -> FitState:
                          runaway=np.where(rows, before.runaway, after.runaway))
 
 
-def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, rounds: int = 8) -> FitState:
-    """Iteratively reweighted LS with Huber weights (``settings.huber_k``) on standardised residuals,
-    on the ``eligible`` (E,) epochs, starting from the a-priori weights of the used slots.
+def m_weights(z: np.ndarray, k: float, kind: str) -> np.ndarray:
+    """IRLS weight factors in (0, 1] of standardised residuals ``z`` (any shape): Huber ``min(1, k/|z|)``
+    or Cauchy ``1 / (1 + (z/k)^2)`` (redescending: a gross residual loses almost all its weight, a
+    moderate one keeps most of it)."""
+    z = np.abs(z)
+    if kind == "cauchy":
+        return 1.0 / (1.0 + (z / k) ** 2)
+    return np.minimum(1.0, k / np.maximum(z, 1e-12))
+
+
+def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, rounds: int = 8,
+               scale: float = 1.0, sigma_factor: np.ndarray | None = None) -> FitState:
+    """Iteratively reweighted LS with M-estimator weights (``settings.m_estimator``, threshold
+    ``settings.huber_k``) on standardised residuals, on the ``eligible`` (E,) epochs, starting from the
+    a-priori weights of the used slots. ``scale``: variance factor of the a-priori weights the residuals
+    are standardised with (used when ``settings.irls_scale == "trace"``). ``sigma_factor``: (E, S) factor
+    >= 1 on the a-priori sigmas of the eligible epochs (:func:`fusion.estimate.wls.reported_sigma_factor`).
 
     Returns the re-solved fit with ``w_fit`` the final (down-weighted) weights.
     """
-    used, w_prior, k = fit.used, fit.w_prior, settings.huber_k
+    used, w_prior = fit.used, fit.w_prior
+    if sigma_factor is not None:
+        w_prior = np.where(eligible[:, None], w_prior / sigma_factor ** 2, w_prior)
+    # in a street canyon every residual is larger than the a-priori model says; standardised with the
+    # trace's own noise level the estimator down-weights what stands out of it, not every measurement
+    k = settings.huber_k * (np.sqrt(scale) if settings.irls_scale == "trace" else 1.0)
     x, conv, bad, runaway = fit.x.copy(), fit.conv, fit.bad, fit.runaway
-    w = fit.weights
+    w = np.where(used, w_prior, 0.0)
     for _ in range(rounds):
         # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
         # residual would look small next round and the weights would oscillate.
         z = standardised_residuals(fit.sat_pos, fit.pr, np.where(used, w_prior, 0.0), x, used)
-        w_new = np.where(used, w_prior * np.minimum(1.0, k / np.maximum(z, 1e-12)), 0.0)
+        w_new = np.where(used, w_prior * m_weights(z, k, settings.m_estimator), 0.0)
         w_new = np.where(eligible[:, None], w_new, w)
         changed = eligible & (np.abs(w_new - w).max(1) > 1e-3 * w_prior.max(1, initial=0))
         w = w_new

@@ -28,9 +28,14 @@ Procedure
    :data:`TRACE_DEFAULTS`) is undone and the epoch flagged and down-weighted the same way: in a street
    canyon multipath spreads tens of metres over many satellites, and a satellite's geometry is worth
    more down-weighted than lost (``experiments/results/robust_wls.md``). With epoch
-   times (``t_ms``), the flagged epochs and those left with at most
-   :data:`NEIGHBOUR_CHECK_MAX_SATS` satellites (a test of little power) are first checked against
-   the position predicted from the settled epochs around them (:mod:`fusion.estimate.neighbour_fde`). ``robust="huber"``: iteratively reweighted least
+   times (``t_ms``), the flagged epochs (with ``neighbour_weak``, also those that passed with at most
+   :data:`NEIGHBOUR_CHECK_MAX_SATS` satellites, a test of little power: off in :data:`TRACE_DEFAULTS`,
+   in a street canyon the neighbours share the multipath) are first checked against the position
+   predicted from the settled epochs around them (:mod:`fusion.estimate.neighbour_fde`). In the Huber
+   stage of the flagged epochs (``irls_reported``) each a-priori sigma is raised by the measurement's
+   reported sigma over the epoch's median (:func:`reported_sigma_factor`: C/N0 says which satellite is
+   reflected where elevation cannot), and the threshold scaled by the test's variance factor
+   (``irls_scale="trace"``). ``robust="huber"``: iteratively reweighted least
    squares with Huber weights ``min(1, huber_k / |z|)`` on the standardised residuals ``z``.
    ``robust=False``: the paper's plain WLS.
 5. Three-satellite epochs (with ``t_ms``): solved for position alone with the receiver clock
@@ -133,6 +138,7 @@ class WlsResult:
                allowed (too few satellites or the cap reached): the test cannot decide.
     clock_predicted: (E,) bool, three-satellite epochs solved with an interpolated clock.
     n_excluded: (E,) int, measurements excluded by fault detection.
+    excluded:  (E, S) bool, the slots fault detection excluded (above the mask, not used) on valid epochs.
     """
 
     pos: np.ndarray
@@ -151,11 +157,14 @@ class WlsResult:
     flagged: np.ndarray | None = None
     clock_predicted: np.ndarray | None = None
     n_excluded: np.ndarray | None = None
+    excluded: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         E = self.valid.shape[0]
         if self.n_excluded is None:
             self.n_excluded = np.zeros(E, np.int64)
+        if self.excluded is None:
+            self.excluded = np.zeros(self.used.shape, bool)
         if self.flagged is None:
             self.flagged = np.zeros(E, bool)
         if self.clock_predicted is None:
@@ -175,9 +184,13 @@ class WlsResult:
 # ---------------------------------------------------------------------------------------- public API
 #: What :func:`solve_wls` (and so every mode) runs unless told otherwise: fault exclusion, its test
 #: calibrated on the trace, and only residuals over 80 m excluded - smaller ones are down-weighted
-#: (Huber) instead (:func:`fusion.estimate.raim.costly_exclusions`; chosen leave-one-drive-out on the
-#: twelve GSDC training drives, ``experiments/robust_wls.py --tune``).
-TRACE_DEFAULTS = WlsSettings(robust="exclude", test_scale="trace", exclude_above_m=80.0, max_dop_growth=1.0)
+#: (Huber, :func:`fusion.estimate.raim.costly_exclusions`) instead, with each measurement's a-priori sigma
+#: raised by its reported sigma (C/N0) over the epoch's median and the threshold scaled by the trace's
+#: variance factor; the neighbour check reopens only the undecided epochs. Exclusion guard chosen
+#: leave-one-drive-out on the twelve GSDC training drives, the rest on half the drives and smartLoc
+#: (``experiments/robust_wls.py --tune``).
+TRACE_DEFAULTS = WlsSettings(robust="exclude", test_scale="trace", exclude_above_m=80.0, max_dop_growth=1.0,
+                             neighbour_weak=False, irls_reported=True, irls_scale="trace", huber_k=2.0)
 
 
 def solve_wls(trace, settings: WlsSettings | None = None, *, x0: np.ndarray | None = None,
@@ -228,9 +241,10 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
     fit = fit.solve(alive, fit.w_prior, cfg.max_iter, cfg.tol_m, cfg.max_cond)
     eligible = alive & fit.conv & ~fit.bad & ~fit.runaway
     if cfg.robust == "exclude":
-        fit = _exclude(fit, eligible, cfg, t_ms)
+        fit, scale = _exclude(fit, eligible, cfg, t_ms)
         if fit.flagged.any():
-            fit = huber_irls(fit, fit.flagged, cfg)
+            fit = huber_irls(fit, fit.flagged, cfg, scale=scale,
+                             sigma_factor=reported_sigma_factor(sigma, fit.used) if cfg.irls_reported else None)
     elif cfg.robust == "huber":
         fit = huber_irls(fit, eligible, cfg)
     res = _finish(fit, el, status, alive, cfg)
@@ -240,18 +254,20 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
 
 
 # ------------------------------------------------------------------------------------- the stages
-def _exclude(fit: FitState, eligible: np.ndarray, cfg: WlsSettings, t_ms) -> FitState:
+def _exclude(fit: FitState, eligible: np.ndarray, cfg: WlsSettings, t_ms) -> tuple[FitState, float]:
     """Snapshot fault detection and exclusion (:func:`_fde`), then, with epoch times, the epochs it
-    could not decide identified from their neighbours (:mod:`fusion.estimate.neighbour_fde`)."""
+    could not decide identified from their neighbours (:mod:`fusion.estimate.neighbour_fde`).
+    Returns (the fit, the test's variance factor)."""
     above_mask = fit.used
     fit, scale = _fde(fit, eligible, cfg)
     settled = eligible & ~fit.flagged & fit.conv & ~fit.bad & ~fit.runaway
     # the undecided epochs, and those whose test has little power (one or two redundant satellites)
     weak = fit.flagged | (settled & (fit.used.sum(1) <= NEIGHBOUR_CHECK_MAX_SATS))
-    if t_ms is None or not weak.any():
-        return fit
-    fit, repaired = exclude_by_neighbours(fit, above_mask, weak, settled & ~weak, np.asarray(t_ms), cfg, scale)
-    return fit.replace(w_fit=fit.weights, flagged=fit.flagged & ~repaired)
+    targets = weak if cfg.neighbour_weak else fit.flagged
+    if t_ms is None or not targets.any():
+        return fit, scale
+    fit, repaired = exclude_by_neighbours(fit, above_mask, targets, settled & ~weak, np.asarray(t_ms), cfg, scale)
+    return fit.replace(w_fit=fit.weights, flagged=fit.flagged & ~repaired), scale
 
 
 def _fde(fit: FitState, eligible: np.ndarray, cfg: WlsSettings) -> tuple[FitState, float]:
@@ -360,7 +376,8 @@ def _finish(fit: FitState, el: np.ndarray, status: np.ndarray, alive: np.ndarray
         pos=np.where(valid[:, None], x[:, :3], np.nan), clock_m=np.where(valid, x[:, 3], np.nan), cov=cov,
         valid=valid, converged=fit.conv, used=used, n_used=used.sum(1),
         resid=np.where(fit.real & valid[:, None], r, 0.0), elev_deg=el, status=status, n_iter=fit.n_iter,
-        reasons=_reasons(status), dropped=fit.dropped, flagged=fit.flagged & valid, n_excluded=fit.n_excluded)
+        reasons=_reasons(status), dropped=fit.dropped, flagged=fit.flagged & valid, n_excluded=fit.n_excluded,
+        excluded=fit.real & (el >= cfg.elev_mask_deg) & ~used & valid[:, None])
 
 
 def _reasons(status: np.ndarray) -> dict[str, int]:
@@ -405,6 +422,18 @@ def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t
 
 
 # ------------------------------------------------------------------------------------- helpers
+def reported_sigma_factor(sigma: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """(E, S) factor >= 1 on a slot's a-priori sigma: its reported pseudorange sigma (the receiver's own,
+    or the C/N0 model where the file reports none) over the median of the epoch's ``used`` slots.
+    sigma, used: (E, S). A weak signal (low C/N0: reflected, diffracted) counts as the noisier one,
+    which the elevation model alone cannot see in a street canyon."""
+    s = np.where(used & np.isfinite(sigma) & (sigma > 0), sigma, np.nan)
+    has = np.isfinite(s).any(1)
+    med = np.ones(s.shape[0])
+    med[has] = np.nanmedian(s[has], axis=1)
+    return np.where(np.isfinite(s), np.maximum(1.0, s / med[:, None]), 1.0)
+
+
 def _start_state(sat_pos, pr, real, x0):
     """(E, 4) initial [x, y, z, clock]: x0 rows where finite, else the coarse start."""
     cnt = np.maximum(real.sum(1), 1)

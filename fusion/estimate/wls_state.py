@@ -22,6 +22,7 @@ from fusion.estimate.lsq import gauss_newton
 SIGMA0_M = 3.0
 WEIGHTINGS = ("elevation", "uncertainty", "none")
 ROBUST_MODES = ("none", "exclude", "huber")
+M_ESTIMATORS = ("huber", "cauchy")
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,15 @@ class WlsSettings:
                     flagged and down-weighted by Huber IRLS instead
                     (:func:`fusion.estimate.raim.costly_exclusions`). ``inf``: every identified fault
                     is excluded (the behaviour before the guard).
+    gross_dop_growth: any exclusion (a gross residual too) that raises the weighted position DOP by more
+                    than this factor is undone likewise: Huber bounds a gross fault's pull, a lost
+                    satellite in a weak geometry costs more (``inf``: never).
+    neighbour_weak: the neighbour check (:mod:`fusion.estimate.neighbour_fde`) also reconsiders epochs
+                    that passed the test with few satellites; ``False``: only the undecided (flagged) ones.
+    irls_scale:     the scale the M-estimator standardises residuals with: ``"prior"`` (the a-priori
+                    sigmas) or ``"trace"`` (times the square root of the test's variance factor).
+    m_estimator:    weight function of the IRLS: ``"huber"`` (``min(1, k/|z|)``) or ``"cauchy"``
+                    (``1 / (1 + (z/k)^2)``), ``k = huber_k``.
     """
 
     elev_mask_deg: float = 10.0
@@ -64,6 +74,11 @@ class WlsSettings:
     test_scale: float | str = 1.0
     exclude_above_m: float = float("inf")
     max_dop_growth: float = 1.0
+    gross_dop_growth: float = float("inf")
+    neighbour_weak: bool = True
+    irls_scale: str = "prior"
+    m_estimator: str = "huber"
+    irls_reported: bool = False
 
     def __post_init__(self) -> None:
         if self.weighting not in WEIGHTINGS:
@@ -75,9 +90,12 @@ class WlsSettings:
             raise DataError(f"max_iter must be >= 1, got {self.max_iter}")
         if self.max_exclusions < 0:
             raise DataError(f"max_exclusions must be >= 0, got {self.max_exclusions}")
-        if not self.exclude_above_m > 0 or not self.max_dop_growth >= 1.0:
-            raise DataError(f"exclude_above_m must be > 0 and max_dop_growth >= 1, got {self.exclude_above_m}, "
-                            f"{self.max_dop_growth}")
+        if self.irls_scale not in ("prior", "trace") or self.m_estimator not in M_ESTIMATORS:
+            raise DataError(f"irls_scale must be 'prior' or 'trace' and m_estimator one of {M_ESTIMATORS}, got "
+                            f"{self.irls_scale!r}, {self.m_estimator!r}")
+        if not self.exclude_above_m > 0 or not self.max_dop_growth >= 1.0 or not self.gross_dop_growth >= 1.0:
+            raise DataError(f"exclude_above_m must be > 0, max_dop_growth and gross_dop_growth >= 1, got "
+                            f"{self.exclude_above_m}, {self.max_dop_growth}, {self.gross_dop_growth}")
 
     def replace(self, **options) -> WlsSettings:
         """A copy with ``options`` changed; an unknown option name is a :class:`DataError`."""
