@@ -186,17 +186,19 @@ class Corrector:
             raise GeometryError(f"{trace.name}: init_pos must be ({E}, 3) and valid ({E},), "
                                 f"got {init_pos.shape} and {np.shape(valid)}")
         idx = np.flatnonzero(np.asarray(valid, bool) & np.isfinite(init_pos).all(1))
-        own = trace.mask[idx]
+        kept = trace.mask[idx]
         if drop is not None:
             if np.shape(drop) != (E, trace.n_slots):
                 raise GeometryError(f"{trace.name}: drop must be ({E}, {trace.n_slots}), got {np.shape(drop)}")
-            own = own & ~np.asarray(drop, bool)[idx]
+            kept = kept & ~np.asarray(drop, bool)[idx]
+        own = kept
         if self.features.version == 2:
             # a GPS-L1 network fed other constellations' slots would see their inter-system clock offsets as
             # residuals it has never met; version 3 reads every signal (its clock offset removed)
             own = own & np.isin(trace.signal[idx], self._signal_idx)
         mask = elevation_mask(trace.sat_pos[idx], own, init_pos[idx], elev)
-        unseen = elevation_mask(trace.sat_pos[idx], trace.mask[idx] & ~own, init_pos[idx], elev).sum(1)
+        # screened faults are counted by the screen, not as signals the network cannot read
+        unseen = elevation_mask(trace.sat_pos[idx], kept & ~own, init_pos[idx], elev).sum(1)
         enough = mask.sum(1) >= 4
         return idx[enough], mask[enough], unseen[enough], int((~enough).sum())
 

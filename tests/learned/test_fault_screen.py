@@ -30,6 +30,7 @@ def test_dropped_measurements_do_not_reach_the_network():
     np.testing.assert_allclose(c.mean_ecef, tr.truth, atol=1e-3)
     assert np.isnan(c.sigma[2, 0]) and np.isfinite(c.sigma[tr.mask & ~drop]).all()
     assert c.info["meas_asked"] == pulled.info["meas_asked"] - 1
+    assert c.info["meas_unseen_signal"] == 0          # a screened fault is not a signal it cannot read
 
 
 def test_screen_drops_an_absorbed_fault_and_repairs_the_guess_and_context():
