@@ -34,7 +34,7 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
             "guard_shrunk": c.info["epochs_guard_shrunk"], "guard_off": c.info["epochs_guard_off"],
             # flat, so that metrics.json (which keeps scalar info) and the report carry them
             **{f"learned_{k}": v for k, v in c.info.items()}}
-    return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts)
+    return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls)
 
 
 def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
@@ -78,4 +78,4 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
         ned = ecef2ned_cov(res.cov[ok], res.pos[ok]) * np.outer(v, v)
         res.cov = res.cov.copy()
         res.cov[ok] = ned2ecef_cov(ned, res.pos[ok])
-    return calibrate_graph(res, trace, "fused", opts)
+    return calibrate_graph(res, trace, "fused", opts, wls)

@@ -13,11 +13,19 @@ whose reported uncertainty is optimistic). Here it is computed without truth for
 - summed over a centred window of ``window_s`` seconds: ``F_k = sum chi2 / sum dof``, so the factor
   follows a drive from open sky into a street canyon.
 
-:func:`calibrate_cov` then reports ``a * F^b * C + diag(floor^2)`` per NED axis, with ``a`` (a level),
-``b`` (how strongly the covariance follows the variance factor: a graph averages many epochs of
-time-correlated errors, so its marginals need more than the snapshot factor) and a floor (unmodelled
-multipath) tuned per mode on the training drives only (:data:`DEFAULTS`; the tuning:
-``experiments/sigma_calibration.py``). Positions never change: only covariances.
+The track is the mode's own solution with its own pseudorange noise (``factor_from="own"``) or the shared
+WLS solution with the physical sigma model (``"wls"``: the textbook WLS variance factor, one measure of the
+environment for every mode); which one serves a mode best was chosen with the rest of the settings.
+
+:func:`calibrate_cov` then reports ``a * F^b * (C + snapshot * S) + diag(floor^2)`` per NED axis, where
+``C`` is the mode's own covariance and ``S`` the one-epoch least-squares covariance at its positions
+(:func:`snapshot_var`): a smoother's marginals shrink as if every epoch's errors were independent, but
+multipath is correlated over many seconds, so a share of the one-epoch variance survives the averaging.
+``a`` (a per-axis level), ``b`` (how strongly the covariance follows the factor; the textbook value is 1),
+the window, the snapshot share and the per-axis floors (unmodelled error a residual cannot see) are tuned per
+mode, leave-drives-out, on the twelve GSDC 2021 training drives and smartLoc only (:data:`DEFAULTS`;
+``experiments/sigma_calibration.py``, ``experiments/results/sigma_calibration.md``). Positions never change:
+only covariances. ``RunOptions.sigma_calibration`` (``--raw-sigmas``) switches it off.
 """
 from __future__ import annotations
 
@@ -40,7 +48,9 @@ class SigmaCalibration:
     a (3,) per-axis level, b the exponent on the windowed variance factor F, floor_m (3,) [m] per axis,
     window_s the window's full length [s], min_dof the degrees of freedom a window needs (else F = the
     trace's own factor), snapshot the share of the one-epoch least-squares variance added before scaling
-    (:func:`snapshot_var`: what time-correlated errors leave after a smoother's averaging)."""
+    (:func:`snapshot_var`: what time-correlated errors leave after a smoother's averaging), factor_from
+    whose residuals make F: "own" (the mode's pseudoranges at its own positions, with its own noise) or
+    "wls" (the shared WLS solution's: one measure of the environment for every mode)."""
 
     a: tuple[float, float, float] = (1.0, 1.0, 1.0)
     b: float = 1.0
@@ -48,6 +58,7 @@ class SigmaCalibration:
     window_s: float = 60.0
     min_dof: float = 10.0
     snapshot: float = 0.0
+    factor_from: str = "own"
 
 
 #: Per-mode settings, tuned leave-drives-out on the twelve GSDC 2021 training drives and smartLoc
@@ -55,8 +66,10 @@ class SigmaCalibration:
 #: (pooled, unseen-drive) calibration.
 DEFAULTS: dict[str, SigmaCalibration] = {
     "wls": SigmaCalibration(a=(1.0743, 1.0695, 1.1948), b=1.5, window_s=15.0, snapshot=0.3),
-    "dnn": SigmaCalibration(a=(1.5898, 1.5853, 1.8227), b=1.5, floor_m=(1.0, 1.0, 2.0), window_s=15.0, snapshot=0.3),
-    "fused-nodnn": SigmaCalibration(a=(0.8617, 1.1044, 1.5344), b=1.5, window_s=300.0, snapshot=0.3),
+    "dnn": SigmaCalibration(a=(1.1662, 1.1681, 1.6196), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=15.0,
+                            snapshot=0.3, factor_from="wls"),
+    "fused-nodnn": SigmaCalibration(a=(1.0759, 1.3756, 1.6996), b=1.5, floor_m=(0.0, 0.0, 1.0), window_s=60.0,
+                                    snapshot=0.3, factor_from="wls"),
     "fused": SigmaCalibration(a=(1.198, 1.3895, 1.2604), b=1.5, window_s=300.0, snapshot=0.3),
 }
 
@@ -166,37 +179,55 @@ def calibrate_cov(cov_ecef: np.ndarray, pos: np.ndarray, factor: np.ndarray, cal
     return cov
 
 
+def wls_track(trace: Trace, wls, elev_mask_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shared WLS solution as (pos (E,3), slots (E,S), sigmas (E,S)) for :func:`track_factor`: its
+    positions (NaN where not solved), the slots it kept and the physical sigma model."""
+    pos = np.where(np.asarray(wls.valid, bool)[:, None], wls.pos, np.nan)
+    sel, sigma = sigma_model(trace, pos, elev_mask_deg)
+    return pos, sel & np.asarray(wls.used, bool), sigma
+
+
 def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np.ndarray,
-                     bias: np.ndarray | None = None, cal: SigmaCalibration | None = None):
+                     bias: np.ndarray | None = None, cal: SigmaCalibration | None = None,
+                     wls: tuple | None = None):
     """A mode's :class:`~fusion.run_types.ModeResult` with its covariance calibrated in place (positions
-    untouched) and the factor's median in ``info["variance_factor_p50"]``; ``cal``: :data:`DEFAULTS`
-    of ``mode`` unless given. A result without a covariance is returned as it is."""
+    untouched) and the factor's median in ``info["variance_factor_p50"]``.
+
+    sel, sigma, bias (E,S): the mode's own pseudorange slots, sigmas and biases (its snapshot covariance,
+    and its factor where ``cal.factor_from == "own"``); wls: :func:`wls_track` (the factor where
+    ``cal.factor_from == "wls"``); cal: :data:`DEFAULTS` of ``mode`` unless given. A result without a
+    covariance is returned as it is."""
     if result.cov is None or not np.asarray(result.valid).any():
         return result
     cal = cal or DEFAULTS[mode]
     pos = np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan)
-    f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof)
+    if cal.factor_from == "wls" and wls is not None:
+        f = track_factor(trace, wls[0], wls[1], wls[2], None, cal.window_s, cal.min_dof)
+    else:
+        f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof)
     snap = snapshot_var(trace, pos, sel, sigma) if cal.snapshot > 0 else None
     result.cov = calibrate_cov(result.cov, pos, f, cal, snap)
     result.info["variance_factor_p50"] = float(np.median(f[np.asarray(result.valid, bool)]))
     return result
 
 
-def calibrate_snapshot(result, trace: Trace, mode: str, opts, used: np.ndarray | None = None):
+def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndarray | None = None):
     """``wls`` / ``dnn``: :func:`calibrate_result` with the physical sigma model at the mode's own positions
-    (``used`` (E,S): the slots the solver kept, e.g. WLS after fault exclusion), when
-    ``opts.sigma_calibration``."""
+    (``used`` (E,S): the slots the solver kept, e.g. WLS after fault exclusion) and the shared WLS
+    solution ``wls``, when ``opts.sigma_calibration``."""
     if not getattr(opts, "sigma_calibration", False) or result.cov is None:
         return result
     sel, sigma = sigma_model(trace, np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan),
                              opts.elev_mask_deg)
-    return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma)
+    return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma,
+                            wls=wls_track(trace, wls, opts.elev_mask_deg))
 
 
-def calibrate_graph(result, trace: Trace, mode: str, opts):
+def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     """Graph modes: :func:`calibrate_result` with the graph's own pseudorange noise (``info["pr_noise"]``:
-    slots, sigmas, biases, each (E,S), left there by the solve), when ``opts.sigma_calibration``."""
+    slots, sigmas, biases, each (E,S), left there by the solve) and the shared WLS solution ``wls``, when
+    ``opts.sigma_calibration``."""
     noise = result.info.get("pr_noise")
     if not getattr(opts, "sigma_calibration", False) or noise is None:
         return result
-    return calibrate_result(result, trace, mode, *noise)
+    return calibrate_result(result, trace, mode, *noise, wls=wls_track(trace, wls, opts.elev_mask_deg))

@@ -478,7 +478,7 @@ def estimate_wls(trace, wls: WlsResult, opts) -> ModeResult:
                            # fused modes can carry them; WLS solves only 3-satellite ones, below)
                            "lt4_sats": int((trace.n_sats < 4).sum()),
                            **wls_counts(wls)})
-    return calibrate_snapshot(res, trace, "wls", opts, used=wls.used)
+    return calibrate_snapshot(res, trace, "wls", opts, wls, used=wls.used)
 
 
 def wls_counts(wls: WlsResult) -> dict[str, int]:

@@ -107,4 +107,4 @@ def learned_guess(trace: Trace, wls: WlsResult, opts: RunOptions) -> np.ndarray:
 
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused-nodnn`` mode: the graph without anything learned."""
-    return calibrate_graph(fuse(trace, wls, opts), trace, "fused-nodnn", opts)
+    return calibrate_graph(fuse(trace, wls, opts), trace, "fused-nodnn", opts, wls)
