@@ -120,7 +120,9 @@ def eval_drive(drive: str, ckpt: Path, args) -> dict:
     import torch
     torch.set_num_threads(1)
     trace = load_trace(drive_dir(args.data, drive))
-    base = RunOptions(weights=ckpt, graph=args.graph)
+    # the pooled unseen-drive scales (--store-calibration) are fitted on the covariances before the variance
+    # factor (fusion.estimate.variance_factor), which is tuned on top of them (experiments/sigma_calibration.py)
+    base = RunOptions(weights=ckpt, graph=args.graph, sigma_calibration=False)
     wls = solve_initial(trace, base)
     out = {}
     for label, (mode, changes) in ((k, MODES[k]) for k in args.modes.split(",")):

@@ -80,6 +80,9 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
                    help="fused: without the per-satellite head's pseudorange sigmas and biases")
     p.add_argument("--dnn-output", choices=("wls", "correction"), default=None,
                    help="dnn: learned-weight least squares or the paper's correction head (default: the checkpoint's)")
+    p.add_argument("--raw-sigmas", action="store_true",
+                   help="report each mode's covariance as it comes, without the windowed variance-factor "
+                        "calibration (fusion/estimate/variance_factor.py); positions are the same either way")
     p.add_argument("--no-truth-height-fix", action="store_true",
                    help="keep GSDC 2021 truth heights as published (~63 m too high)")
 
@@ -95,7 +98,7 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
                       dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
-                      nav=tuple(args.nav), sp3=args.sp3, clk=args.clk, iono_free=args.iono_free,
+                      sigma_calibration=not args.raw_sigmas, nav=tuple(args.nav), sp3=args.sp3, clk=args.clk, iono_free=args.iono_free,
                       graph=graph_config(args))
 
 

@@ -33,6 +33,9 @@ class RunOptions:
     learned_prior: bool = True           # the network's position prior per epoch
     learned_sigmas: bool = True          # the per-satellite head's pseudorange sigma and bias
     dnn_output: str | None = None        # "wls" | "correction"; None: the checkpoint's
+    # reported covariances follow each mode's windowed a-posteriori variance factor
+    # (fusion.estimate.variance_factor); positions are the same either way
+    sigma_calibration: bool = True
     # the fused graph's settings, Doppler / carrier / incremental switches included
     graph: GraphConfig = field(default_factory=GraphConfig)
 

@@ -193,7 +193,9 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     t0 = time.perf_counter()
     if cfg.teacher not in TEACHERS:
         raise DataError(f"teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
-    taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights),
+    # the teacher's trust threshold (max_teacher_sigma_m) was set on the graph's raw marginals
+    taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights,
+                                                       sigma_calibration=False),
                       cfg.max_epochs, cfg.teacher, jobs, progress)
     samples, counts = adaptation_samples(taught, tcfg.signals, cfg)
     t_teacher = time.perf_counter() - t0

@@ -10,6 +10,7 @@ import numpy as np
 from fusion.estimate.graph.fuse import fuse, learned_guess
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
+from fusion.estimate.variance_factor import calibrate_graph, calibrate_snapshot
 from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, TRACE_DEFAULTS, WlsResult, solve_wls_arrays
 from fusion.geometry import ecef2ned_cov, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
@@ -53,7 +54,7 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
             "meas_fault_screened": int(np.sum(drop)),
             # flat, so that metrics.json (which keeps scalar info) and the report carry them
             **{f"learned_{k}": v for k, v in c.info.items()}}
-    return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
+    return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls)
 
 
 def fault_screen(trace: Trace, wls: WlsResult, opts: RunOptions) -> tuple[np.ndarray, np.ndarray]:
@@ -150,4 +151,4 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
         ned = ecef2ned_cov(res.cov[ok], res.pos[ok]) * np.outer(v, v)
         res.cov = res.cov.copy()
         res.cov[ok] = ned2ecef_cov(ned, res.pos[ok])
-    return res
+    return calibrate_graph(res, trace, "fused", opts, wls)

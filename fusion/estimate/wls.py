@@ -92,6 +92,7 @@ from fusion.estimate.clock_bridge import interpolate_clock, solve_fixed_clock
 from fusion.estimate.lsq import ill_conditioned, normal_equations
 from fusion.estimate.neighbour_fde import exclude_by_neighbours
 from fusion.estimate.raim import exclude_faults, huber_irls, variance_factor
+from fusion.estimate.variance_factor import calibrate_snapshot
 from fusion.estimate.wls_state import SIGMA0_M, FitState, WlsSettings  # noqa: F401 (SIGMA0_M: public here too)
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.run_types import ModeResult
@@ -500,12 +501,13 @@ def _check_inputs(sat_pos, pr, mask, sigma, x0, weighting):
 def estimate_wls(trace, wls: WlsResult, opts) -> ModeResult:
     """The WLS baseline as a mode (WLS is already solved by :func:`fusion.modes.run_modes`)."""
     # Copies: every mode receives the same WlsResult, so no mode's output may alias it.
-    return ModeResult(pos=wls.pos.copy(), valid=wls.valid.copy(), cov=wls.cov[:, :3, :3].copy(),
-                      info={"unsolved": int((~wls.valid).sum()),
-                            # epochs loaded with < 4 measurements (CLI loads with min_sats=1 so the
-                            # fused modes can carry them; WLS solves only 3-satellite ones, below)
-                            "lt4_sats": int((trace.n_sats < 4).sum()),
-                            **wls_counts(wls)})
+    res = ModeResult(pos=wls.pos.copy(), valid=wls.valid.copy(), cov=wls.cov[:, :3, :3].copy(),
+                     info={"unsolved": int((~wls.valid).sum()),
+                           # epochs loaded with < 4 measurements (CLI loads with min_sats=1 so the
+                           # fused modes can carry them; WLS solves only 3-satellite ones, below)
+                           "lt4_sats": int((trace.n_sats < 4).sum()),
+                           **wls_counts(wls)})
+    return calibrate_snapshot(res, trace, "wls", opts, wls, used=wls.used)
 
 
 def wls_counts(wls: WlsResult) -> dict[str, int]:

@@ -18,6 +18,7 @@ from fusion.estimate.graph.inputs import EpochInputs, initial_positions, prepare
 from fusion.estimate.graph.priors import (LearnedGraphInputs, PriorProvider, SlotNoiseProvider,
                                           learned_from_providers)
 from fusion.estimate.graph.solve_errors import check_determined
+from fusion.estimate.variance_factor import calibrate_graph
 from fusion.estimate.wls import WlsResult
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
@@ -49,6 +50,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     info["priors_used"] = int((inp.prior_ok & inp.keep).sum())
     info["unsolved"] = int((~valid).sum())
     info.update(bridged_epochs(trace, inp, valid))
+    info["pr_noise"] = (inp.sel, inp.sigma, inp.pr_bias)     # for fusion.estimate.variance_factor
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
@@ -105,4 +107,4 @@ def learned_guess(trace: Trace, wls: WlsResult, opts: RunOptions) -> np.ndarray:
 
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused-nodnn`` mode: the graph without anything learned."""
-    return fuse(trace, wls, opts)
+    return calibrate_graph(fuse(trace, wls, opts), trace, "fused-nodnn", opts, wls)

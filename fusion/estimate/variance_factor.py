@@ -1,0 +1,233 @@
+"""Reported sigmas that follow the environment: the a-posteriori variance factor of a solution's
+pseudoranges in a sliding window of epochs, applied to a mode's position covariance.
+
+A least-squares covariance ``(H^T W H)^-1`` is only as right as the a-priori sigmas in ``W``. The
+textbook check is the variance factor ``sigma0^2 = sum(w r^2) / dof`` of the residuals ``r`` at the
+solution: ~1 when the model holds, above 1 where the sigmas are too small (multipath, NLOS, a phone
+whose reported uncertainty is optimistic). Here it is computed without truth for any position track:
+
+- per epoch, the residuals of the pseudoranges at the track's position, the receiver clock (and one
+  offset per signal, as the inter-system biases do) fitted by weighted mean; ``dof = n - offsets``;
+- whitened squared residuals clipped at :data:`CLIP_SIGMAS` sigmas, so a lone gross outlier (which the
+  robust solvers already down-weight) does not set the scale of a whole window;
+- summed over a centred window of ``window_s`` seconds: ``F_k = sum chi2 / sum dof``, so the factor
+  follows a drive from open sky into a street canyon.
+
+The track is the mode's own solution with its own pseudorange noise (``factor_from="own"``) or the shared
+WLS solution with the physical sigma model (``"wls"``: the textbook WLS variance factor, one measure of the
+environment for every mode); which one serves a mode best was chosen with the rest of the settings.
+
+:func:`calibrate_cov` then reports ``a * F^b * (C + snapshot * S) + diag(floor^2)`` per NED axis, where
+``C`` is the mode's own covariance and ``S`` the one-epoch least-squares covariance at its positions
+(:func:`snapshot_var`): a smoother's marginals shrink as if every epoch's errors were independent, but
+multipath is correlated over many seconds, so a share of the one-epoch variance survives the averaging.
+``a`` (a per-axis level), ``b`` (how strongly the covariance follows the factor; the textbook value is 1),
+the window, the snapshot share and the per-axis floors (unmodelled error a residual cannot see) are tuned per
+mode, leave-drives-out, on the twelve GSDC 2021 training drives and smartLoc only (:data:`DEFAULTS`;
+``experiments/sigma_calibration.py``, ``experiments/results/sigma_calibration.md``). Positions never change:
+only covariances. ``RunOptions.sigma_calibration`` (``--raw-sigmas``) switches it off.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fusion.geometry import ecef2ned_cov, elevation_azimuth, line_of_sight, ned2ecef_cov
+from fusion.trace import Trace
+
+#: whitened residuals beyond this many sigmas count as this many (a gross outlier is the robust
+#: solvers' business; it must not set the scale of a window)
+CLIP_SIGMAS = 10.0
+
+
+@dataclass(frozen=True)
+class SigmaCalibration:
+    """How one mode's covariance follows the variance factor: ``a * F^b * C + diag(floor_m^2)`` in NED.
+
+    a (3,) per-axis level, b the exponent on the windowed variance factor F, floor_m (3,) [m] per axis,
+    window_s the window's full length [s], min_dof the degrees of freedom a window needs (else F = the
+    trace's own factor), snapshot the share of the one-epoch least-squares variance added before scaling
+    (:func:`snapshot_var`: what time-correlated errors leave after a smoother's averaging), factor_from
+    whose residuals make F: "own" (the mode's pseudoranges at its own positions, with its own noise) or
+    "wls" (the shared WLS solution's: one measure of the environment for every mode)."""
+
+    a: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    b: float = 1.0
+    floor_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    window_s: float = 60.0
+    min_dof: float = 10.0
+    snapshot: float = 0.0
+    factor_from: str = "own"
+
+
+#: Per-mode settings, tuned leave-drives-out on the twelve GSDC 2021 training drives and smartLoc
+#: (``experiments/results/sigma_calibration.md``). ``dnn`` / ``fused`` act on top of the checkpoint's own
+#: (pooled, unseen-drive) calibration.
+DEFAULTS: dict[str, SigmaCalibration] = {
+    "wls": SigmaCalibration(a=(1.0743, 1.0695, 1.1948), b=1.5, window_s=15.0, snapshot=0.3),
+    "dnn": SigmaCalibration(a=(1.1662, 1.1681, 1.6196), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=15.0,
+                            snapshot=0.3, factor_from="wls"),
+    "fused-nodnn": SigmaCalibration(a=(1.0759, 1.3756, 1.6996), b=1.5, floor_m=(0.0, 0.0, 1.0), window_s=60.0,
+                                    snapshot=0.3, factor_from="wls"),
+    "fused": SigmaCalibration(a=(1.198, 1.3895, 1.2604), b=1.5, window_s=300.0, snapshot=0.3),
+}
+
+
+def sigma_model(trace: Trace, pos: np.ndarray, elev_mask_deg: float, zenith_m: float = 1.0
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The physical pseudorange model at ``pos`` (E,3) ECEF: slots above the mask (E,S) bool and their
+    sigmas sqrt(pr_sigma^2 + (zenith_m / sin el)^2) (E,S) [m] (the graph's default model)."""
+    at = np.where(np.isfinite(pos).all(axis=1)[:, None], pos, 0.0)
+    _, los = line_of_sight(trace.sat_pos, at)
+    el, _ = elevation_azimuth(los, at)
+    sel = trace.mask & (el >= elev_mask_deg) & np.isfinite(pos).all(axis=1)[:, None]
+    sin_el = np.sin(np.radians(np.clip(el, 5.0, 90.0)))
+    return sel, np.sqrt(np.nan_to_num(trace.pr_sigma, nan=0.0) ** 2 + (zenith_m / sin_el) ** 2)
+
+
+def whitened_residuals(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np.ndarray,
+                       bias: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened pseudorange residuals at ``pos`` (E,3) with each epoch's clock and per-signal offsets
+    fitted (weighted mean), and each epoch's degrees of freedom.
+
+    sel (E,S) slots used; sigma (E,S) [m]; bias (E,S) [m] subtracted from pr (or None). Returns z (E,S)
+    (NaN off ``sel``) and dof (E,) = used slots - signals present (0 where that is negative)."""
+    ok = sel & np.isfinite(pos).all(axis=1)[:, None] & (sigma > 0) & np.isfinite(trace.pr)
+    rng, _ = line_of_sight(trace.sat_pos, np.where(np.isfinite(pos), pos, 0.0))
+    r = trace.pr - (0.0 if bias is None else np.nan_to_num(bias)) - rng
+    w = np.where(ok, 1.0 / np.where(sigma > 0, sigma, 1.0) ** 2, 0.0)
+    r = np.where(ok, r, 0.0)
+    groups = np.unique(trace.signal[ok]) if ok.any() else np.zeros(0, trace.signal.dtype)
+    onehot = trace.signal[..., None] == groups                  # (E,S,G)
+    sw = np.einsum("es,esg->eg", w, onehot)
+    offset = np.einsum("es,esg->eg", w * r, onehot) / np.where(sw > 0, sw, 1.0)
+    r = r - np.einsum("eg,esg->es", offset, onehot)
+    z = np.where(ok, r * np.sqrt(w), np.nan)
+    dof = np.maximum(ok.sum(axis=1) - (sw > 0).sum(axis=1), 0)
+    return z, dof
+
+
+def snapshot_var(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """(E,3) NED variances [m^2] of a one-epoch least-squares position at ``pos`` (E,3) from the slots
+    ``sel`` (E,S) with sigmas ``sigma`` (E,S), a clock offset per signal estimated alongside: what an epoch's
+    own geometry allows, before any averaging over time (NaN where the epoch cannot be solved)."""
+    ok = sel & np.isfinite(pos).all(axis=1)[:, None] & (sigma > 0)
+    at = np.where(np.isfinite(pos), pos, 0.0)
+    _, los = line_of_sight(trace.sat_pos, at)
+    groups = np.unique(trace.signal[ok]) if ok.any() else np.zeros(1, trace.signal.dtype)
+    H = np.concatenate([-los, (trace.signal[..., None] == groups).astype(float)], axis=2)   # (E,S,3+G)
+    w = np.where(ok, 1.0 / np.where(sigma > 0, sigma, 1.0) ** 2, 0.0)
+    N = np.einsum("esi,es,esj->eij", H, w, H)
+    absent = np.einsum("esg,es->eg", H[..., 3:], ok.astype(float)) == 0
+    N[:, 3:, 3:] += np.einsum("eg,gh->egh", absent.astype(float), np.eye(len(groups)))  # decouple absent groups
+    solvable = ok.sum(axis=1) >= 3 + (~absent).sum(axis=1)
+    out = np.full((trace.n_epochs, 3), np.nan)
+    if solvable.any():
+        good = solvable.copy()
+        good[solvable] = np.linalg.cond(N[solvable]) < 1e12
+        cov = np.linalg.inv(N[good])[:, :3, :3]
+        out[good] = np.diagonal(ecef2ned_cov(cov, at[good]), axis1=1, axis2=2)
+    return out
+
+
+def epoch_chi2(z: np.ndarray, clip: float = CLIP_SIGMAS) -> np.ndarray:
+    """(E,) sum over each epoch's slots of min(z^2, clip^2) from whitened residuals z (E,S) (NaN: unused)."""
+    return np.nansum(np.minimum(z ** 2, clip ** 2), axis=1)
+
+
+def windowed_factor(t_s: np.ndarray, chi2: np.ndarray, dof: np.ndarray, window_s: float,
+                    min_dof: float = 10.0) -> np.ndarray:
+    """(E,) variance factor per epoch: sum of chi2 / sum of dof over epochs within +-window_s/2 of it.
+
+    t_s (E,) ascending times [s]; chi2, dof (E,). A window with fewer than ``min_dof`` degrees of
+    freedom takes the whole trace's factor; a trace without any takes 1."""
+    chi2 = np.where(dof > 0, chi2, 0.0)
+    c = np.r_[0.0, np.cumsum(chi2)]
+    d = np.r_[0.0, np.cumsum(dof, dtype=float)]
+    lo = np.searchsorted(t_s, t_s - window_s / 2, side="left")
+    hi = np.searchsorted(t_s, t_s + window_s / 2, side="right")
+    wc, wd = c[hi] - c[lo], d[hi] - d[lo]
+    whole = c[-1] / d[-1] if d[-1] >= min_dof else 1.0
+    return np.where(wd >= min_dof, wc / np.maximum(wd, 1e-12), whole)
+
+
+def track_factor(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np.ndarray,
+                 bias: np.ndarray | None, window_s: float, min_dof: float = 10.0) -> np.ndarray:
+    """(E,) windowed variance factor of a position track ``pos`` (E,3) (NaN rows: not solved)."""
+    z, dof = whitened_residuals(trace, pos, sel, sigma, bias)
+    return windowed_factor(trace.t_ms.astype(float) / 1000.0, epoch_chi2(z), dof, window_s, min_dof)
+
+
+def calibrate_cov(cov_ecef: np.ndarray, pos: np.ndarray, factor: np.ndarray, cal: SigmaCalibration,
+                  snap_var: np.ndarray | None = None) -> np.ndarray:
+    """``a * F^b * (C + snapshot * diag(snap_var)) + diag(floor^2)`` per NED axis at ``pos`` (E,3):
+    cov_ecef (E,3,3) [m^2], factor (E,), snap_var (E,3) NED [m^2] (:func:`snapshot_var`; NaN or None: 0).
+    Rows with a NaN position or covariance are returned as they were."""
+    cov = np.array(cov_ecef, float, copy=True)
+    ok = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(pos).all(axis=1) & np.isfinite(factor)
+    if not ok.any():
+        return cov
+    ned = ecef2ned_cov(cov[ok], pos[ok])
+    if snap_var is not None and cal.snapshot > 0:
+        # errors that are correlated over time (multipath) do not average out in a smoother: a share of
+        # the one-epoch variance stays, whatever the marginal says
+        ned = ned + cal.snapshot * np.nan_to_num(snap_var[ok])[:, :, None] * np.eye(3)
+    s = np.sqrt(np.asarray(cal.a, float)[None, :] * np.maximum(factor[ok], 1e-6)[:, None] ** cal.b)   # (N,3)
+    ned = ned * s[:, :, None] * s[:, None, :] + np.eye(3) * np.asarray(cal.floor_m, float) ** 2
+    cov[ok] = ned2ecef_cov(ned, pos[ok])
+    return cov
+
+
+def wls_track(trace: Trace, wls, elev_mask_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The shared WLS solution as (pos (E,3), slots (E,S), sigmas (E,S)) for :func:`track_factor`: its
+    positions (NaN where not solved), the slots it kept and the physical sigma model."""
+    pos = np.where(np.asarray(wls.valid, bool)[:, None], wls.pos, np.nan)
+    sel, sigma = sigma_model(trace, pos, elev_mask_deg)
+    return pos, sel & np.asarray(wls.used, bool), sigma
+
+
+def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np.ndarray,
+                     bias: np.ndarray | None = None, cal: SigmaCalibration | None = None,
+                     wls: tuple | None = None):
+    """A mode's :class:`~fusion.run_types.ModeResult` with its covariance calibrated in place (positions
+    untouched) and the factor's median in ``info["variance_factor_p50"]``.
+
+    sel, sigma, bias (E,S): the mode's own pseudorange slots, sigmas and biases (its snapshot covariance,
+    and its factor where ``cal.factor_from == "own"``); wls: :func:`wls_track` (the factor where
+    ``cal.factor_from == "wls"``); cal: :data:`DEFAULTS` of ``mode`` unless given. A result without a
+    covariance is returned as it is."""
+    if result.cov is None or not np.asarray(result.valid).any():
+        return result
+    cal = cal or DEFAULTS[mode]
+    pos = np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan)
+    if cal.factor_from == "wls" and wls is not None:
+        f = track_factor(trace, wls[0], wls[1], wls[2], None, cal.window_s, cal.min_dof)
+    else:
+        f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof)
+    snap = snapshot_var(trace, pos, sel, sigma) if cal.snapshot > 0 else None
+    result.cov = calibrate_cov(result.cov, pos, f, cal, snap)
+    result.info["variance_factor_p50"] = float(np.median(f[np.asarray(result.valid, bool)]))
+    return result
+
+
+def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndarray | None = None):
+    """``wls`` / ``dnn``: :func:`calibrate_result` with the physical sigma model at the mode's own positions
+    (``used`` (E,S): the slots the solver kept, e.g. WLS after fault exclusion) and the shared WLS
+    solution ``wls``, when ``opts.sigma_calibration``."""
+    if not getattr(opts, "sigma_calibration", False) or result.cov is None:
+        return result
+    sel, sigma = sigma_model(trace, np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan),
+                             opts.elev_mask_deg)
+    return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma,
+                            wls=wls_track(trace, wls, opts.elev_mask_deg))
+
+
+def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
+    """Graph modes: :func:`calibrate_result` with the graph's own pseudorange noise (``info["pr_noise"]``:
+    slots, sigmas, biases, each (E,S), left there by the solve) and the shared WLS solution ``wls``, when
+    ``opts.sigma_calibration``."""
+    noise = result.info.get("pr_noise")
+    if not getattr(opts, "sigma_calibration", False) or noise is None:
+        return result
+    return calibrate_result(result, trace, mode, *noise, wls=wls_track(trace, wls, opts.elev_mask_deg))

@@ -1,0 +1,148 @@
+"""The windowed a-posteriori variance factor and the covariance calibration built on it
+(fusion.estimate.variance_factor): it recovers a known noise scale, follows a change of environment,
+leaves every position untouched, and metrics.json reports the calibrated sigmas."""
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from fusion.estimate.variance_factor import (DEFAULTS, SigmaCalibration, calibrate_cov, epoch_chi2, snapshot_var,
+                                             whitened_residuals, windowed_factor)
+from fusion.geometry import ecef2ned_cov, geodetic2ecef, line_of_sight, ned2ecef_cov
+from fusion.trace import Trace
+
+
+def linear_factor(noise_scale: float, rng: np.random.Generator, E: int = 400, n: int = 9, p: int = 4) -> np.ndarray:
+    """Per-epoch chi2 and dof of E independent linear least-squares problems y = A x + e with the model
+    sigma 1 and the true noise ``noise_scale``; returns the windowed factor (E,)."""
+    A = rng.normal(size=(E, n, p))
+    y = np.einsum("enp,ep->en", A, rng.normal(size=(E, p))) + noise_scale * rng.normal(size=(E, n))
+    x = np.linalg.solve(np.einsum("enp,enq->epq", A, A), np.einsum("enp,en->ep", A, y)[..., None])[..., 0]
+    r = y - np.einsum("enp,ep->en", A, x)
+    return windowed_factor(np.arange(E, dtype=float), epoch_chi2(r), np.full(E, n - p), window_s=1e6)
+
+
+def test_variance_factor_recovers_a_known_noise_scale_on_a_linear_problem():
+    rng = np.random.default_rng(0)
+    assert linear_factor(1.0, rng)[0] == pytest.approx(1.0, rel=0.1)
+    assert linear_factor(2.0, rng)[0] == pytest.approx(4.0, rel=0.1)      # sigma 2x the model: 4x in variance
+
+
+def test_window_follows_a_change_of_environment():
+    rng = np.random.default_rng(1)
+    E, n = 600, 8
+    scale = np.where(np.arange(E) < E // 2, 1.0, 3.0)            # open sky, then a street canyon
+    z = scale[:, None] * rng.normal(size=(E, n))
+    F = windowed_factor(np.arange(E, dtype=float), epoch_chi2(z), np.full(E, n), window_s=60.0)
+    assert np.median(F[:200]) == pytest.approx(1.0, rel=0.2)
+    assert np.median(F[400:]) == pytest.approx(9.0, rel=0.2)
+
+
+def test_window_without_enough_dof_takes_the_trace_factor():
+    F = windowed_factor(np.array([0.0, 100.0, 200.0]), np.array([8.0, 8.0, 8.0]), np.array([2, 2, 2]),
+                        window_s=10.0, min_dof=5.0)
+    assert np.allclose(F, 4.0)
+
+
+def pseudorange_trace(noise_m: float, sigma_m: float, rng: np.random.Generator, E: int = 300, S: int = 10):
+    """A static receiver seen by S satellites scattered over the sky, pseudoranges with a clock and
+    Gaussian noise ``noise_m`` while the reported sigma says ``sigma_m``; returns (trace, receiver (E,3))."""
+    rx = geodetic2ecef(np.array([[37.4, -122.1, 10.0]]))[0]
+    up = rx / np.linalg.norm(rx)
+    dirs = rng.normal(size=(E, S, 3)) + 2.0 * up
+    dirs /= np.linalg.norm(dirs, axis=2, keepdims=True)
+    sat = rx + 2.0e7 * dirs
+    pos = np.tile(rx, (E, 1))
+    rng_m, _ = line_of_sight(sat, pos)
+    pr = rng_m + 1000.0 + noise_m * rng.normal(size=(E, S))
+    trace = Trace(t_ms=np.arange(E, dtype=np.int64) * 1000, sat_pos=sat, sat_vel=np.zeros_like(sat), pr=pr,
+                  pr_sigma=np.full((E, S), sigma_m), sat_id=np.tile(np.arange(S, dtype=np.int32) + 1001, (E, 1)),
+                  signal=np.zeros((E, S), np.int8), mask=np.ones((E, S), bool), clock_reset=np.zeros(E, bool))
+    return trace, pos
+
+
+def test_pseudorange_residuals_at_the_truth_give_the_noise_ratio_squared():
+    trace, pos = pseudorange_trace(noise_m=4.0, sigma_m=2.0, rng=np.random.default_rng(2))
+    sel = trace.mask.copy()
+    z, dof = whitened_residuals(trace, pos, sel, trace.pr_sigma)
+    assert (dof == trace.n_slots - 1).all()                      # one clock per epoch
+    F = windowed_factor(trace.t_ms / 1000.0, epoch_chi2(z), dof, window_s=1e6)
+    assert F[0] == pytest.approx(4.0, rel=0.1)
+
+
+def test_snapshot_variance_matches_the_least_squares_covariance():
+    trace, pos = pseudorange_trace(noise_m=1.0, sigma_m=1.0, rng=np.random.default_rng(3), E=3)
+    var = snapshot_var(trace, pos, trace.mask, trace.pr_sigma)
+    _, los = line_of_sight(trace.sat_pos[0], pos[0])
+    H = np.c_[-los, np.ones(trace.n_slots)]
+    want = np.diagonal(ecef2ned_cov(np.linalg.inv(H.T @ H)[:3, :3], pos[0]))
+    assert np.allclose(var[0], want)
+
+
+def test_calibrate_cov_scales_per_axis_and_adds_the_floor():
+    pos = geodetic2ecef(np.array([[37.4, -122.1, 10.0]]))
+    cov = ned2ecef_cov(np.diag([1.0, 4.0, 9.0])[None], pos)
+    cal = SigmaCalibration(a=(1.0, 2.0, 3.0), b=1.0, floor_m=(0.0, 0.0, 1.0))
+    out = np.diagonal(ecef2ned_cov(calibrate_cov(cov, pos, np.array([2.0]), cal), pos), axis1=1, axis2=2)
+    assert np.allclose(out[0], [2.0, 16.0, 55.0])
+
+
+@pytest.fixture(scope="module")
+def short_trace(shipped_trace_dir):
+    from fusion.prepare.load import load_trace
+    trace = load_trace(shipped_trace_dir, min_sats=1)
+    return trace.select(np.arange(300))
+
+
+def test_calibration_changes_sigmas_only(short_trace):
+    from fusion.modes import run_modes
+    from fusion.run_types import RunOptions
+    modes = ["wls", "dnn", "fused-nodnn", "fused"]
+    on = run_modes(short_trace, modes, RunOptions())
+    off = run_modes(short_trace, modes, RunOptions(sigma_calibration=False))
+    for m in modes:
+        assert on[m].pos.tobytes() == off[m].pos.tobytes(), m
+        assert on[m].valid.tobytes() == off[m].valid.tobytes(), m
+        ok = on[m].valid
+        assert not np.allclose(on[m].cov[ok], off[m].cov[ok]), m
+        assert np.isfinite(on[m].cov[ok]).all(), m
+        assert on[m].info["variance_factor_p50"] > 0, m
+    assert set(DEFAULTS) == set(modes)
+
+
+def test_metrics_json_reports_the_calibrated_sigmas(short_trace, tmp_path):
+    from fusion.eval.metrics import mode_metrics, trace_errors, within_sigma
+    from fusion.io.estimates import write_outputs
+    from fusion.modes import run_modes
+    from fusion.run_types import RunOptions
+    on = run_modes(short_trace, ["fused-nodnn"], RunOptions())["fused-nodnn"]
+    off = run_modes(short_trace, ["fused-nodnn"], RunOptions(sigma_calibration=False))["fused-nodnn"]
+    write_outputs(tmp_path / "fused-nodnn", short_trace, "fused-nodnn", on, mode_metrics(short_trace, on))
+    text = (tmp_path / "fused-nodnn" / "metrics.json").read_text()
+    err = trace_errors(short_trace, on)
+    want = within_sigma(err, np.where(on.valid[:, None], on.pos, np.nan), on.cov)
+    raw = within_sigma(err, np.where(off.valid[:, None], off.pos, np.nan), off.cov)
+    got = json.loads(text)
+    for k in ("within1sigma_n", "within1sigma_e", "within1sigma_d", "within2sigma_d"):
+        assert got["metrics"][k] == pytest.approx(want[k]), k
+    assert want["within1sigma_d"] != raw["within1sigma_d"]      # the calibration moved what is reported
+    assert got["info"]["variance_factor_p50"] == pytest.approx(on.info["variance_factor_p50"])
+
+
+def test_a_setting_can_be_switched_off_per_run():
+    from fusion.run_types import RunOptions
+    assert RunOptions().sigma_calibration is True
+    assert replace(RunOptions(), sigma_calibration=False).sigma_calibration is False
+
+
+def test_raw_sigmas_flag_switches_the_calibration_off():
+    import argparse
+
+    from fusion.options import add_run_options, options_from_args
+    p = argparse.ArgumentParser()
+    add_run_options(p)
+    assert options_from_args(p.parse_args([])).sigma_calibration is True
+    assert options_from_args(p.parse_args(["--raw-sigmas"])).sigma_calibration is False
