@@ -11,19 +11,9 @@ from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_estimates
 from fusion.estimate.graph.keys import pos_key, vel_key
+from fusion.estimate.graph.marginals import marginal_positions
 from fusion.estimate.graph.solve_errors import geometry_error
 from fusion.trace import Trace
-
-
-def marginal_positions(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, epochs: np.ndarray,
-                       E: int) -> np.ndarray:
-    """(E,3,3) ECEF position marginal covariances at the solution (NaN for epochs not in ``epochs``).
-    Marginals also expose a graph singular at the solution, which LM's damping hides."""
-    marg = gtsam.Marginals(graph, result)
-    cov = np.full((E, 3, 3), np.nan)
-    for k in epochs:
-        cov[k] = marg.marginalCovariance(pos_key(int(k)))
-    return cov
 
 
 def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndarray | None:
@@ -70,7 +60,7 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
         else:
             opt_iterations = opt.iterations()
         t2 = time.perf_counter()
-        cov = marginal_positions(graph, result, epochs, E) if want_cov else None
+        cov = marginal_positions(graph, result, epochs, E, pieces.dense) if want_cov else None
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
     t3 = time.perf_counter()

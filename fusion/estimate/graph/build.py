@@ -54,6 +54,9 @@ class GraphPieces:
     doubles: list = field(default_factory=list)
     value_sets: list = field(default_factory=list)
     carrier: slice | None = None       # where add_carriers put its measurement factors in ``factors``
+    #: positions in ``factors`` of factors linearised as rank-deficient HessianFactors (the four-key drift
+    #: walk), which the marginals add as information (:mod:`fusion.estimate.graph.marginals`)
+    dense: list = field(default_factory=list)
 
     def add(self, epochs, factors) -> None:
         """Factors (a list) introduced at ``epochs`` (one epoch each, or one int for all)."""
@@ -165,7 +168,9 @@ def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: 
     root = np.sqrt(np.maximum(inp.clock_span_s[ks], 1e-3))
     p.add(ks, [clock_drift_factor_ccd(int(j), int(k), float(inp.clock_span_s[k]), cfg.drift_clock_rw_m * r, lin)
                for j, k, r in zip(js, ks, root)])
+    first = len(p.factors)
     p.add(ks, [drift_walk_factor_cdcd(int(j), int(k), cfg.drift_rw_mps * r, lin) for j, k, r in zip(js, ks, root)])
+    p.dense += range(first, len(p.factors))
 
 
 def add_dopplers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
