@@ -40,13 +40,25 @@ def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np
     return opt, result, pos
 
 
-def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
-    """Levenberg-Marquardt over the whole trace. Returns pos (E,3), valid (E,), cov (E,3,3)|None, info."""
+def warm_values(values: gtsam.Values, start: gtsam.Values | None) -> gtsam.Values:
+    """``values`` with those of ``start`` where it has them, or ``values`` as they are if ``start`` is None
+    or holds a variable ``values`` lacks (then it is another graph's solution)."""
+    if start is None:
+        return values
+    warm = gtsam.Values(values)
+    warm.insert_or_assign(start)
+    return warm if warm.size() == values.size() else values
+
+
+def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True,
+                start: gtsam.Values | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
+    """Levenberg-Marquardt over the whole trace, from the WLS-derived values or from ``start`` (see
+    :func:`warm_values`). Returns pos (E,3), valid (E,), cov (E,3,3)|None, info (with the solution as
+    ``graph_values``)."""
     E = trace.n_epochs
     t0 = time.perf_counter()
     pieces = graph_pieces(trace, inp, cfg)
-    graph, values, epochs = pieces.graph(), pieces.values(), np.flatnonzero(inp.keep)
+    graph, values, epochs = pieces.graph(), warm_values(pieces.values(), start), np.flatnonzero(inp.keep)
     t1 = time.perf_counter()
     try:
         opt, result, pos = optimise(graph, values, epochs, E, cfg)
@@ -68,5 +80,6 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
             "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
-            "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
+            "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E),
+            "graph_values": result}
     return pos, valid, cov, info
