@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, fields, is_dataclass
 
 import gtsam
 import numpy as np
@@ -40,6 +41,38 @@ def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np
     return opt, result, pos
 
 
+@dataclass
+class BatchSolution:
+    """A solved batch graph kept for a second solve of the same trace (the ``fused`` mode): the graph and
+    its dense factor positions (for :func:`marginal_positions`), the solution, the inputs it was built
+    from, and what :func:`solve_batch` returned (pos (E,3), valid (E,), info)."""
+
+    graph: gtsam.NonlinearFactorGraph
+    dense: list
+    values: gtsam.Values
+    inp: EpochInputs
+    pos: np.ndarray
+    valid: np.ndarray
+    info: dict
+
+
+def same_inputs(a, b) -> bool:
+    """Whether two :class:`EpochInputs` (or their parts) build the same graph: every array equal (NaN
+    equal to NaN), every nested dataclass likewise, other objects identical; counts (dicts) ignored."""
+    if a is b:
+        return True
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, np.ndarray):
+        return a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+    if is_dataclass(a):
+        return all(same_inputs(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)
+                   if not isinstance(getattr(a, f.name), dict))
+    if isinstance(a, (tuple, list)):
+        return len(a) == len(b) and all(same_inputs(x, y) for x, y in zip(a, b))
+    return isinstance(a, (bool, int, float, str, np.generic)) and a == b
+
+
 def warm_values(values: gtsam.Values, start: gtsam.Values | None) -> gtsam.Values:
     """``values`` with those of ``start`` where it has them, or ``values`` as they are if ``start`` is None
     or holds a variable ``values`` lacks (then it is another graph's solution)."""
@@ -51,14 +84,19 @@ def warm_values(values: gtsam.Values, start: gtsam.Values | None) -> gtsam.Value
 
 
 def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True,
-                start: gtsam.Values | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
-    """Levenberg-Marquardt over the whole trace, from the WLS-derived values or from ``start`` (see
-    :func:`warm_values`). Returns pos (E,3), valid (E,), cov (E,3,3)|None, info (with the solution as
-    ``graph_values``)."""
+                start: BatchSolution | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
+    """Levenberg-Marquardt over the whole trace, from the WLS-derived values, or from ``start``, a previous
+    solution of the trace: where ``inp`` builds the same graph as ``start.inp`` (a learned model whose
+    every output its guard turned off) that solution is the answer and only the marginals are computed;
+    otherwise the solver starts from its values (see :func:`warm_values`). Returns pos (E,3), valid (E,),
+    cov (E,3,3)|None, info (with the :class:`BatchSolution` as ``batch_solution``)."""
+    if start is not None and same_inputs(start.inp, inp):
+        return _reuse(trace, start, want_cov)
     E = trace.n_epochs
     t0 = time.perf_counter()
     pieces = graph_pieces(trace, inp, cfg)
-    graph, values, epochs = pieces.graph(), warm_values(pieces.values(), start), np.flatnonzero(inp.keep)
+    graph, epochs = pieces.graph(), np.flatnonzero(inp.keep)
+    values = warm_values(pieces.values(), None if start is None else start.values)
     t1 = time.perf_counter()
     try:
         opt, result, pos = optimise(graph, values, epochs, E, cfg)
@@ -80,6 +118,19 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
             "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
-            "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E),
-            "graph_values": result}
+            "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
+    info["batch_solution"] = BatchSolution(graph, pieces.dense, result, inp, pos, valid, dict(info))
     return pos, valid, cov, info
+
+
+def _reuse(trace: Trace, start: BatchSolution, want_cov: bool):
+    """:func:`solve_batch`'s answer from the identical graph solved before: its solution, and its marginals."""
+    t0 = time.perf_counter()
+    epochs = np.flatnonzero(start.inp.keep)
+    try:
+        cov = marginal_positions(start.graph, start.values, epochs, trace.n_epochs, start.dense) if want_cov else None
+    except RuntimeError as exc:
+        raise geometry_error(trace, exc) from None
+    info = {**start.info, "build_s": 0.0, "solve_s": 0.0, "cov_s": time.perf_counter() - t0, "iterations": 0,
+            "reused_solution": 1, "batch_solution": start}
+    return start.pos.copy(), start.valid.copy(), cov, info

@@ -30,10 +30,9 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
 
     on_undetermined: "drop" (epochs nothing can determine are left unsolved and counted in
     ``info["epochs_undetermined"]``) or "raise" (:class:`GeometryError` naming the first one).
-    start: a ``gtsam.Values`` to start the batch solver from where it has the graph's variables (the
-    solution of the same graph without the learned inputs: see :func:`learned_guess_and_start`); the
-    batch solution (``info["graph_values"]``, kept with ``keep_values``) of a previous solve. None: the
-    WLS-derived values.
+    start: a previous batch solve of the trace (``info["batch_solution"]``, kept with ``keep_values``;
+    see :func:`learned_guess_and_start`), which the batch solver reuses where the graph is the same and
+    starts from otherwise (:func:`~fusion.estimate.graph.batch.solve_batch`). None: the WLS-derived values.
     """
     if on_undetermined not in ("drop", "raise"):
         raise GnssfuseError(f"on_undetermined must be 'drop' or 'raise', got {on_undetermined!r}")
@@ -49,7 +48,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
         pos, valid, cov, info = solve_batch(trace, inp, cfg, want_cov, start)
     info.update(inp.dropped)
     if not keep_values:
-        info.pop("graph_values", None)     # GTSAM objects stay out of results that travel between processes
+        info.pop("batch_solution", None)   # GTSAM objects stay out of results that travel between processes
     if learned is not None and learned.info:
         info.update(learned.info)
     info["priors_used"] = int((inp.prior_ok & inp.keep).sum())
@@ -104,10 +103,11 @@ def learned_guess(trace: Trace, wls: WlsResult, opts: RunOptions) -> np.ndarray:
 
 
 def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions):
-    """:func:`learned_guess`'s positions (E,3), and the solution of the graph without anything learned
-    (a ``gtsam.Values``; None with ``prior_at="wls"`` or in incremental mode) as the ``start`` of the
-    solve with the learned inputs: the learned inputs move the optimum by metres at most, so the
-    batch solver starts next to it (on the Pixel5 trace: 5 iterations instead of 15)."""
+    """:func:`learned_guess`'s positions (E,3), and the solve of the graph without anything learned
+    (a :class:`~fusion.estimate.graph.batch.BatchSolution`; None with ``prior_at="wls"`` or in
+    incremental mode) as the ``start`` of the solve with the learned inputs: that solve starts next to
+    its optimum (the learned inputs move it by metres at most), and is skipped where the model's guard
+    turned every output off (the same graph)."""
     at, _ = initial_positions(trace, wls, trace.t_ms.astype(float) / 1000.0)
     if opts.graph.prior_at == "wls":
         return at, None
@@ -115,7 +115,7 @@ def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions):
         raise GnssfuseError(f"GraphConfig.prior_at must be 'graph' or 'wls', got {opts.graph.prior_at!r}")
     first = solve_graph(trace, wls, opts, opts.graph, None, want_cov=False, keep_values=True)
     pos = first.info.get("online_pos", first.pos) if opts.graph.incremental else first.pos
-    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at), first.info.get("graph_values")
+    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at), first.info.get("batch_solution")
 
 
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
