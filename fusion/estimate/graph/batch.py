@@ -13,6 +13,7 @@ from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_estimates
 from fusion.estimate.graph.keys import pos_key, vel_key
 from fusion.estimate.graph.marginals import marginal_positions
+from fusion.estimate.graph.optimiser import optimise_values
 from fusion.estimate.graph.solve_errors import geometry_error
 from fusion.trace import Trace
 
@@ -29,16 +30,13 @@ def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndar
 
 
 def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np.ndarray, E: int, cfg: GraphConfig):
-    """Levenberg-Marquardt from ``values``: (the optimiser, the solution, positions (E,3), NaN off ``epochs``)."""
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.lm_max_iter)
-    params.setRelativeErrorTol(cfg.lm_rel_tol)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = opt.optimize()
+    """:func:`~fusion.estimate.graph.optimiser.optimise_values` from ``values``: (what it returned, the
+    solution, positions (E,3), NaN off ``epochs``)."""
+    opt = optimise_values(graph, values, cfg)
     pos = np.full((E, 3), np.nan)
     for k in epochs:
-        pos[k] = result.atPoint3(pos_key(int(k)))
-    return opt, result, pos
+        pos[k] = opt.values.atPoint3(pos_key(int(k)))
+    return opt, opt.values, pos
 
 
 @dataclass
@@ -104,11 +102,11 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
             # the carrier factors keep their linearisation point: move it from the WLS track to the
             # solution and polish (a few warm iterations; see GraphConfig.tdcp_relinearise)
             relinearise_carriers(graph, pieces, trace, inp, cfg, pos)
-            first = opt.iterations()
+            first = opt.iterations
             opt, result, pos = optimise(graph, result, epochs, E, cfg)
-            opt_iterations = first + opt.iterations()
+            opt_iterations = first + opt.iterations
         else:
-            opt_iterations = opt.iterations()
+            opt_iterations = opt.iterations
         t2 = time.perf_counter()
         cov = marginal_positions(graph, result, epochs, E, pieces.dense) if want_cov else None
     except RuntimeError as exc:
@@ -117,7 +115,7 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
-            "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
+            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
     info["batch_solution"] = BatchSolution(graph, pieces.dense, result, inp, pos, valid, dict(info))
     return pos, valid, cov, info

@@ -60,6 +60,10 @@ class GraphConfig:
     # (17.69 vs 17.16 m: the heading state converges slowly), so 1e-4 stays.
     lm_rel_tol: float = 1e-4
     lm_max_iter: int = 50
+    # Batch solver (both stop by lm_rel_tol / lm_max_iter): "gauss-newton" (Levenberg-Marquardt takes over
+    # where a step raises the cost or meets a singular system; fusion.estimate.graph.optimiser) or
+    # "levenberg-marquardt". Gauss-Newton skips LM's damped copy of the linear system every iteration.
+    batch_solver: str = "gauss-newton"
     # Incremental (ISAM2): relinearisation threshold and extra update() calls after the last epoch.
     isam_relin_threshold: float = 0.05
     isam_settle: int = 2
