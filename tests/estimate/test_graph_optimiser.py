@@ -83,3 +83,17 @@ def test_unknown_solver_is_an_error():
     graph, values, cfg = _graph()
     with pytest.raises(GnssfuseError, match="batch_solver"):
         optimiser.optimise_values(graph, values, replace(cfg, batch_solver="dogleg"))
+
+
+@pytest.mark.parametrize("partial", [True, False])
+def test_isam2_partial_relinearisation_check_is_a_setting(partial):
+    from fusion.estimate.graph.incremental import isam2
+
+    cfg = replace(GraphConfig(), isam_partial_relin_check=partial)
+    assert isam2(cfg).params().enablePartialRelinearizationCheck is partial
+    trace = synth_trace(E=80)
+    wls = solve_wls(trace)
+    inc = fuse(trace, wls, RunOptions(graph=replace(cfg, incremental=True)))
+    batch = fuse(trace, wls, RunOptions(graph=cfg), want_cov=False)
+    gap = np.linalg.norm(inc.pos - batch.pos, axis=1)
+    assert np.nanmedian(gap) < 0.05
