@@ -141,23 +141,19 @@ def chain_marginals(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, epo
         return None
     p0 = new_start[np.searchsorted(keys, np.array([pos_key(int(k)) for k in epochs], dtype=np.uint64))]
     nb = -(-n_local // band)
-    D = np.zeros((nb, band, band))
-    L = np.zeros((nb, band, band))                   # L[i] = H[block i, block i-1]
     rl, cl, hl = r[both], c[both], h[both]
     bi, bj = rl // band, cl // band
     same = bi == bj
-    np.add.at(D, (bi[same], rl[same] % band, cl[same] % band), hl[same])
-    np.add.at(L, (bi[~same], rl[~same] % band, cl[~same] % band), hl[~same])
+    D = _accumulate((bi[same], rl[same] % band, cl[same] % band), hl[same], (nb, band, band))
+    L = _accumulate((bi[~same], rl[~same] % band, cl[~same] % band), hl[~same], (nb, band, band))  # H[i, i-1]
     D = D + np.swapaxes(D, 1, 2) * (1 - np.eye(band))   # only the lower triangle was summed
     pad = np.arange(n_local, nb * band) - (nb - 1) * band
     D[-1, pad, pad] = 1.0                            # padding: decoupled unit variables
-    Hlg = np.zeros((nb * band, n_global))
-    Hgg = np.zeros((n_global, n_global))
     gg = c >= n_local
-    np.add.at(Hgg, (r[gg] - n_local, c[gg] - n_local), h[gg])
+    Hgg = _accumulate((r[gg] - n_local, c[gg] - n_local), h[gg], (n_global, n_global))
     Hgg = Hgg + Hgg.T - np.diag(np.diag(Hgg))
     mixed = ~both & ~gg
-    np.add.at(Hlg, (c[mixed], r[mixed] - n_local), h[mixed])
+    Hlg = _accumulate((c[mixed], r[mixed] - n_local), h[mixed], (nb * band, n_global))
     Gd, Gs, Y = _block_tridiagonal_inverse(D, L, Hlg.reshape(nb, band, n_global))
     cov = _gather(Gd, Gs, p0, band)
     if n_global:
@@ -166,6 +162,12 @@ def chain_marginals(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, epo
         cov = cov + Yp @ _spd_inverse(Sg) @ np.swapaxes(Yp, 1, 2)
     sp = s[p0[:, None] + np.arange(3)]
     return cov * sp[:, :, None] * sp[:, None, :]
+
+
+def _accumulate(index: tuple, values: np.ndarray, shape: tuple) -> np.ndarray:
+    """A zero array of ``shape`` with ``values`` summed in at ``index`` (np.add.at, ~5x faster)."""
+    flat = np.ravel_multi_index(index, shape) if len(values) else np.zeros(0, int)
+    return np.bincount(flat, weights=values, minlength=int(np.prod(shape))).astype(float, copy=False).reshape(shape)
 
 
 def _spd_inverse(M: np.ndarray) -> np.ndarray:
