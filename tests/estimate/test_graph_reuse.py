@@ -2,6 +2,8 @@
 the first one's solution, and reuses it outright where the inputs build the same graph."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from fusion.estimate.graph.batch import BatchSolution, same_inputs
@@ -56,3 +58,11 @@ def test_warm_start_converges_to_the_cold_solution():
     # LM stops at a relative cost change of lm_rel_tol (1e-4): two starts end centimetres apart
     gap = np.linalg.norm(warm.pos - cold.pos, axis=1)
     assert np.nanmedian(gap) < 0.01 and np.nanmax(gap) < 0.05
+
+
+def test_other_settings_are_solved_again():
+    trace, wls, opts = _setup()
+    _, start = learned_guess_and_start(trace, wls, opts)
+    other = RunOptions(graph=replace(opts.graph, robust_k=4.0))
+    again = fuse(trace, wls, other, start=start)
+    assert "reused_solution" not in again.info and again.info["iterations"] > 0

@@ -42,13 +42,14 @@ def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np
 @dataclass
 class BatchSolution:
     """A solved batch graph kept for a second solve of the same trace (the ``fused`` mode): the graph and
-    its dense factor positions (for :func:`marginal_positions`), the solution, the inputs it was built
-    from, and what :func:`solve_batch` returned (pos (E,3), valid (E,), info)."""
+    its dense factor positions (for :func:`marginal_positions`), the solution, the inputs and settings it
+    was built from, and what :func:`solve_batch` returned (pos (E,3), valid (E,), info)."""
 
     graph: gtsam.NonlinearFactorGraph
     dense: list
     values: gtsam.Values
     inp: EpochInputs
+    cfg: GraphConfig
     pos: np.ndarray
     valid: np.ndarray
     info: dict
@@ -85,10 +86,10 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
                 start: BatchSolution | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     """Levenberg-Marquardt over the whole trace, from the WLS-derived values, or from ``start``, a previous
     solution of the trace: where ``inp`` builds the same graph as ``start.inp`` (a learned model whose
-    every output its guard turned off) that solution is the answer and only the marginals are computed;
+    every output its guard turned off) under the same settings, that solution is the answer and only the marginals are computed;
     otherwise the solver starts from its values (see :func:`warm_values`). Returns pos (E,3), valid (E,),
     cov (E,3,3)|None, info (with the :class:`BatchSolution` as ``batch_solution``)."""
-    if start is not None and same_inputs(start.inp, inp):
+    if start is not None and start.cfg == cfg and same_inputs(start.inp, inp):
         return _reuse(trace, start, want_cov)
     E = trace.n_epochs
     t0 = time.perf_counter()
@@ -117,7 +118,7 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
             "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
-    info["batch_solution"] = BatchSolution(graph, pieces.dense, result, inp, pos, valid, dict(info))
+    info["batch_solution"] = BatchSolution(graph, pieces.dense, result, inp, cfg, pos, valid, dict(info))
     return pos, valid, cov, info
 
 
