@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.estimate.graph.fuse import fuse, learned_guess
+from fusion.estimate.graph.fuse import fuse, learned_guess, learned_guess_and_start
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
 from fusion.estimate.variance_factor import calibrate_graph, calibrate_snapshot
@@ -125,11 +125,13 @@ def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
     return run
 
 
-def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOptions) -> LearnedGraphInputs:
+def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOptions,
+                 at: np.ndarray | None = None) -> LearnedGraphInputs:
     """The network's one pass at :func:`learned_guess` under the run's elevation mask: the position prior
     and the per-measurement sigmas and biases the graph uses (``opts.learned_prior`` /
-    ``opts.learned_sigmas`` switch each off), and what the guard did (info keys ``learned_*``)."""
-    at = learned_guess(trace, wls, opts)
+    ``opts.learned_sigmas`` switch each off), and what the guard did (info keys ``learned_*``).
+    at: (E,3) that guess if already made."""
+    at = learned_guess(trace, wls, opts) if at is None else at
     out = corrector.graph_inputs(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg)
     out.info = {f"learned_{k}": v for k, v in (out.info or {}).items()}
     if not opts.learned_prior:
@@ -143,7 +145,9 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
     + motion, from one network pass; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
-    res = fuse(trace, wls, opts, learned=graph_inputs(corrector, trace, wls, opts))
+    at, start = learned_guess_and_start(trace, wls, opts)
+    # the solve with the learned inputs starts from the first solve's solution (one network pass)
+    res = fuse(trace, wls, opts, learned=graph_inputs(corrector, trace, wls, opts, at), start=start)
     if res.cov is not None and res.valid.any():
         # the graph's marginals, scaled per NED axis as measured on unseen drives (ones if not calibrated)
         ok = res.valid

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, fields, is_dataclass
 
 import gtsam
 import numpy as np
@@ -11,19 +12,10 @@ from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_estimates
 from fusion.estimate.graph.keys import pos_key, vel_key
+from fusion.estimate.graph.marginals import marginal_positions
+from fusion.estimate.graph.optimiser import optimise_values
 from fusion.estimate.graph.solve_errors import geometry_error
 from fusion.trace import Trace
-
-
-def marginal_positions(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, epochs: np.ndarray,
-                       E: int) -> np.ndarray:
-    """(E,3,3) ECEF position marginal covariances at the solution (NaN for epochs not in ``epochs``).
-    Marginals also expose a graph singular at the solution, which LM's damping hides."""
-    marg = gtsam.Marginals(graph, result)
-    cov = np.full((E, 3, 3), np.nan)
-    for k in epochs:
-        cov[k] = marg.marginalCovariance(pos_key(int(k)))
-    return cov
 
 
 def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndarray | None:
@@ -38,25 +30,72 @@ def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndar
 
 
 def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np.ndarray, E: int, cfg: GraphConfig):
-    """Levenberg-Marquardt from ``values``: (the optimiser, the solution, positions (E,3), NaN off ``epochs``)."""
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(cfg.lm_max_iter)
-    params.setRelativeErrorTol(cfg.lm_rel_tol)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-    result = opt.optimize()
+    """:func:`~fusion.estimate.graph.optimiser.optimise_values` from ``values``: (what it returned, the
+    solution, positions (E,3), NaN off ``epochs``)."""
+    opt = optimise_values(graph, values, cfg)
     pos = np.full((E, 3), np.nan)
     for k in epochs:
-        pos[k] = result.atPoint3(pos_key(int(k)))
-    return opt, result, pos
+        pos[k] = opt.values.atPoint3(pos_key(int(k)))
+    return opt, opt.values, pos
 
 
-def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
-    """Levenberg-Marquardt over the whole trace. Returns pos (E,3), valid (E,), cov (E,3,3)|None, info."""
+@dataclass
+class BatchSolution:
+    """A solved batch graph kept for a second solve of the same trace (the ``fused`` mode): the graph and
+    its dense factor positions (for :func:`marginal_positions`), the solution, the inputs and settings it
+    was built from, and what :func:`solve_batch` returned (pos (E,3), valid (E,), info)."""
+
+    graph: gtsam.NonlinearFactorGraph
+    dense: list
+    values: gtsam.Values
+    inp: EpochInputs
+    cfg: GraphConfig
+    pos: np.ndarray
+    valid: np.ndarray
+    info: dict
+
+
+def same_inputs(a, b) -> bool:
+    """Whether two :class:`EpochInputs` (or their parts) build the same graph: every array equal (NaN
+    equal to NaN), every nested dataclass likewise, other objects identical; counts (dicts) ignored."""
+    if a is b:
+        return True
+    if type(a) is not type(b):
+        return False
+    if isinstance(a, np.ndarray):
+        return a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+    if is_dataclass(a):
+        return all(same_inputs(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)
+                   if not isinstance(getattr(a, f.name), dict))
+    if isinstance(a, (tuple, list)):
+        return len(a) == len(b) and all(same_inputs(x, y) for x, y in zip(a, b))
+    return isinstance(a, (bool, int, float, str, np.generic)) and a == b
+
+
+def warm_values(values: gtsam.Values, start: gtsam.Values | None) -> gtsam.Values:
+    """``values`` with those of ``start`` where it has them, or ``values`` as they are if ``start`` is None
+    or holds a variable ``values`` lacks (then it is another graph's solution)."""
+    if start is None:
+        return values
+    warm = gtsam.Values(values)
+    warm.insert_or_assign(start)
+    return warm if warm.size() == values.size() else values
+
+
+def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True,
+                start: BatchSolution | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
+    """Levenberg-Marquardt over the whole trace, from the WLS-derived values, or from ``start``, a previous
+    solution of the trace: where ``inp`` builds the same graph as ``start.inp`` (a learned model whose
+    every output its guard turned off) under the same settings, that solution is the answer and only the marginals are computed;
+    otherwise the solver starts from its values (see :func:`warm_values`). Returns pos (E,3), valid (E,),
+    cov (E,3,3)|None, info (with the :class:`BatchSolution` as ``batch_solution``)."""
+    if start is not None and start.cfg == cfg and same_inputs(start.inp, inp):
+        return _reuse(trace, start, want_cov)
     E = trace.n_epochs
     t0 = time.perf_counter()
     pieces = graph_pieces(trace, inp, cfg)
-    graph, values, epochs = pieces.graph(), pieces.values(), np.flatnonzero(inp.keep)
+    graph, epochs = pieces.graph(), np.flatnonzero(inp.keep)
+    values = warm_values(pieces.values(), None if start is None else start.values)
     t1 = time.perf_counter()
     try:
         opt, result, pos = optimise(graph, values, epochs, E, cfg)
@@ -64,19 +103,33 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
             # the carrier factors keep their linearisation point: move it from the WLS track to the
             # solution and polish (a few warm iterations; see GraphConfig.tdcp_relinearise)
             relinearise_carriers(graph, pieces, trace, inp, cfg, pos)
-            first = opt.iterations()
+            first = opt.iterations
             opt, result, pos = optimise(graph, result, epochs, E, cfg)
-            opt_iterations = first + opt.iterations()
+            opt_iterations = first + opt.iterations
         else:
-            opt_iterations = opt.iterations()
+            opt_iterations = opt.iterations
         t2 = time.perf_counter()
-        cov = marginal_positions(graph, result, epochs, E) if want_cov else None
+        cov = marginal_positions(graph, result, epochs, E, pieces.dense) if want_cov else None
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
     t3 = time.perf_counter()
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
-            "final_error": float(opt.error()), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
+            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
+    info["batch_solution"] = BatchSolution(graph, pieces.dense, result, inp, cfg, pos, valid, dict(info))
     return pos, valid, cov, info
+
+
+def _reuse(trace: Trace, start: BatchSolution, want_cov: bool):
+    """:func:`solve_batch`'s answer from the identical graph solved before: its solution, and its marginals."""
+    t0 = time.perf_counter()
+    epochs = np.flatnonzero(start.inp.keep)
+    try:
+        cov = marginal_positions(start.graph, start.values, epochs, trace.n_epochs, start.dense) if want_cov else None
+    except RuntimeError as exc:
+        raise geometry_error(trace, exc) from None
+    info = {**start.info, "build_s": 0.0, "solve_s": 0.0, "cov_s": time.perf_counter() - t0, "iterations": 0,
+            "reused_solution": 1, "batch_solution": start}
+    return start.pos.copy(), start.valid.copy(), cov, info

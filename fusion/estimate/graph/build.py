@@ -25,8 +25,8 @@ from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_cc, displacement_factor_xxu,
                                            doppler_factor_vcd, drift_prior_factor_cd, drift_walk_factor_cdcd,
                                            isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
-                                           pseudorange_factor_xc, pseudorange_factor_xci, robust_model,
-                                           tdcp_factor_uqq, zero_point)
+                                           pseudorange_factor_xc, pseudorange_factor_xci, scalar_robust_models,
+                                           tdcp_factor_linearised, tdcp_measured, zero_point)
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
                                         isb_key, pos_key, vel_key)
@@ -54,6 +54,9 @@ class GraphPieces:
     doubles: list = field(default_factory=list)
     value_sets: list = field(default_factory=list)
     carrier: slice | None = None       # where add_carriers put its measurement factors in ``factors``
+    #: positions in ``factors`` of factors linearised as rank-deficient HessianFactors (the four-key drift
+    #: walk), which the marginals add as information (:mod:`fusion.estimate.graph.marginals`)
+    dense: list = field(default_factory=list)
 
     def add(self, epochs, factors) -> None:
         """Factors (a list) introduced at ``epochs`` (one epoch each, or one int for all)."""
@@ -139,12 +142,10 @@ def add_pseudoranges(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphC
     pr = trace.pr[ks, ss] - inp.pr_bias[ks, ss]
     sigma, grp, comp = inp.sigma[ks, ss], inp.isb.group[ks, ss], inp.comp[ks]
     sat = trace.sat_pos[ks, ss]
-    base = gtsam.noiseModel.Isotropic.Sigma
-    p.add(ks, [pseudorange_factor_xc(int(k), float(r), sat[i], robust_model(cfg.robust, cfg.robust_k, base(1, float(sg))))
-               if grp[i] < 0 else
-               pseudorange_factor_xci(int(k), int(comp[i]), int(grp[i]), float(r), sat[i],
-                                      robust_model(cfg.robust, cfg.robust_k, base(1, float(sg))))
-               for i, (k, r, sg) in enumerate(zip(ks, pr, sigma))])
+    models = scalar_robust_models(cfg.robust, cfg.robust_k, sigma)
+    p.add(ks, [pseudorange_factor_xc(k, r, sat[i], models[i]) if g < 0 else
+               pseudorange_factor_xci(k, c, g, r, sat[i], models[i])
+               for i, (k, r, g, c) in enumerate(zip(ks.tolist(), pr.tolist(), grp.tolist(), comp.tolist()))])
 
 
 def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin: gtsam.Values) -> None:
@@ -165,7 +166,9 @@ def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: 
     root = np.sqrt(np.maximum(inp.clock_span_s[ks], 1e-3))
     p.add(ks, [clock_drift_factor_ccd(int(j), int(k), float(inp.clock_span_s[k]), cfg.drift_clock_rw_m * r, lin)
                for j, k, r in zip(js, ks, root)])
+    first = len(p.factors)
     p.add(ks, [drift_walk_factor_cdcd(int(j), int(k), cfg.drift_rw_mps * r, lin) for j, k, r in zip(js, ks, root)])
+    p.dense += range(first, len(p.factors))
 
 
 def add_dopplers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
@@ -173,11 +176,11 @@ def add_dopplers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfi
     keep = np.zeros(trace.n_epochs, bool)
     keep[epochs] = True
     ks, ss = np.nonzero(inp.raw.doppler & keep[:, None])
-    base = gtsam.noiseModel.Isotropic.Sigma
     prr = trace.prr[ks, ss] - inp.raw.prr_bias[ks, ss]
-    p.add(ks, [doppler_factor_vcd(int(k), float(r), trace.sat_pos[k, s], trace.sat_vel[k, s], inp.init_pos[k],
-                                  robust_model(cfg.robust, cfg.robust_k, base(1, float(inp.raw.prr_sigma[k, s]))))
-               for k, s, r in zip(ks, ss, prr)])
+    models = scalar_robust_models(cfg.robust, cfg.robust_k, inp.raw.prr_sigma[ks, ss])
+    sat_pos, sat_vel, rx = trace.sat_pos[ks, ss], trace.sat_vel[ks, ss], inp.init_pos[ks]
+    p.add(ks, [doppler_factor_vcd(k, r, sat_pos[i], sat_vel[i], rx[i], models[i])
+               for i, (k, r) in enumerate(zip(ks.tolist(), prr.tolist()))])
 
 
 def add_carriers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray,
@@ -210,12 +213,14 @@ def carrier_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     (E,3), and the epoch of each."""
     raw = inp.raw
     kk, ss = np.nonzero((raw.tdcp_prev >= 0) & epochs[:, None])
-    base = gtsam.noiseModel.Isotropic.Sigma
     prev = raw.tdcp_prev[kk, ss]
-    return kk, [tdcp_factor_uqq(int(k), trace.adr[k, s] - trace.adr[k - 1, j], trace.sat_pos[k - 1, j],
-                                trace.sat_pos[k, s], lin_pos[k - 1], lin_pos[k],
-                                robust_model(cfg.robust, cfg.robust_k, base(1, float(raw.tdcp_sigma[k, s]))))
-                for k, s, j in zip(kk, ss, prev)]
+    sat_k = trace.sat_pos[kk, ss]
+    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
+                             lin_pos[kk - 1], lin_pos[kk])
+    models = scalar_robust_models(cfg.robust, cfg.robust_k, raw.tdcp_sigma[kk, ss])
+    guess_k = lin_pos[kk]
+    return kk, [tdcp_factor_linearised(k, m, sat_k[i], guess_k[i], models[i])
+                for i, (k, m) in enumerate(zip(kk.tolist(), measured.tolist()))]
 
 
 def add_priors(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:

@@ -38,6 +38,26 @@ def robust_model(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.nois
     return gtsam.noiseModel.Robust.Create(est, base)
 
 
+def scalar_robust_models(kind: str, k: float, sigmas: np.ndarray) -> list:
+    """One 1-D :func:`robust_model` per sigma (N,) [measurement units], as a builder adding a whole
+    trace's factors of one kind needs them: one M-estimator shared by all (GTSAM holds it by shared
+    pointer and never changes it) and one model per distinct sigma (a phone reports few distinct
+    sigmas), so a trace costs a few hundred GTSAM calls instead of three per factor."""
+    if kind not in ("none", "huber", "cauchy"):
+        return [robust_model(kind, k, gtsam.noiseModel.Isotropic.Sigma(1, 1.0))]     # raises
+    est = None if kind == "none" else (gtsam.noiseModel.mEstimator.Huber.Create(k) if kind == "huber"
+                                       else gtsam.noiseModel.mEstimator.Cauchy.Create(k))
+    made: dict[float, gtsam.noiseModel.Base] = {}
+    out = []
+    for sg in np.asarray(sigmas, float).tolist():
+        model = made.get(sg)
+        if model is None:
+            base = gtsam.noiseModel.Isotropic.Sigma(1, sg)
+            model = made[sg] = base if est is None else gtsam.noiseModel.Robust.Create(est, base)
+        out.append(model)
+    return out
+
+
 def prior_noise_model(cov: np.ndarray, robust: str = "none", robust_k: float = 1.0) -> gtsam.noiseModel.Base:
     """Noise model of one position prior: Gaussian with ``cov`` (3,3) (already cleaned by
     :func:`fusion.estimate.graph.priors.clean_priors`), wrapped in ``robust`` ("huber", "cauchy",
@@ -117,22 +137,39 @@ def tdcp_factor_uqq(k: int, delta_adr_m: float, sat_j: np.ndarray, sat_k: np.nda
     so clocks in metres enter as they are), so the factor runs in C++ with its
     own robust loss (a Python ``CustomFactor`` costs ~6-70x more, benchmarks/doppler_carrier_speed.py).
     sat_j, sat_k (3,) ECEF at transmit time; model 1-D [m]."""
-    sat_j, sat_k = np.asarray(sat_j, float), np.asarray(sat_k, float)
-    guess_j, guess_k = np.asarray(guess_j, float), np.asarray(guess_k, float)
+    measured = tdcp_measured(np.array([delta_adr_m], float), np.asarray(sat_j, float)[None],
+                             np.asarray(sat_k, float)[None], np.asarray(guess_j, float)[None],
+                             np.asarray(guess_k, float)[None])[0]
+    return tdcp_factor_linearised(k, float(measured), sat_k, guess_k, model)
+
+
+def tdcp_measured(delta_adr_m: np.ndarray, sat_j: np.ndarray, sat_k: np.ndarray, guess_j: np.ndarray,
+                  guess_k: np.ndarray) -> np.ndarray:
+    """(N,) the linearised carrier measurement of :func:`tdcp_factor_uqq` for N factors at once:
+    ``delta_adr - R_k(guess_k) + R_{k-1}(guess_j) + g_k . (guess_k - guess_j)``.
+    delta_adr_m (N,); sat_j, sat_k, guess_j, guess_k (N,3)."""
     geom_j, _ = _range_and_gradient(sat_j, guess_j)
     geom_k, grad_k = _range_and_gradient(sat_k, guess_k)
-    measured = float(delta_adr_m) - geom_k + geom_j + grad_k @ (guess_k - guess_j)
-    return gtsam.DopplerFactor(disp_key(k), carrier_clock_key(k - 1), carrier_clock_key(k), -measured, 1.0, sat_k,
-                               np.zeros(3), guess_k, C_LIGHT, 0.0, model)
+    return delta_adr_m - geom_k + geom_j + np.einsum("ij,ij->i", grad_k, guess_k - guess_j)
 
 
-def _range_and_gradient(sat: np.ndarray, x: np.ndarray) -> tuple[float, np.ndarray]:
-    """GTSAM's pseudorange geometry |sat - x| + OMEGA_E / c (x_sat y - y_sat x) and its (3,) gradient
-    in x; sat (3,) transmit-time ECEF, x (3,) receiver ECEF."""
+def tdcp_factor_linearised(k: int, measured: float, sat_k: np.ndarray, guess_k: np.ndarray,
+                           model: gtsam.noiseModel.Base) -> gtsam.DopplerFactor:
+    """:func:`tdcp_factor_uqq` from its linearised measurement (:func:`tdcp_measured`)."""
+    return gtsam.DopplerFactor(disp_key(k), carrier_clock_key(k - 1), carrier_clock_key(k), -measured, 1.0,
+                               sat_k, _ZERO3, guess_k, C_LIGHT, 0.0, model)
+
+
+_ZERO3 = np.zeros(3)
+
+
+def _range_and_gradient(sat: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """GTSAM's pseudorange geometry |sat - x| + OMEGA_E / c (x_sat y - y_sat x) (N,) and its (N,3)
+    gradient in x; sat (N,3) transmit-time ECEF, x (N,3) receiver ECEF."""
     d = sat - x
-    r = float(np.sqrt(d @ d))
-    m = OMEGA_E / C_LIGHT * np.array([-sat[1], sat[0], 0.0])
-    return r + float(m @ x), m - d / r
+    r = np.sqrt(np.einsum("ij,ij->i", d, d))
+    m = OMEGA_E / C_LIGHT * np.stack([-sat[:, 1], sat[:, 0], np.zeros(len(sat))], axis=1)
+    return r + np.einsum("ij,ij->i", m, x), m - d / r[:, None]
 
 
 def zero_point(keys, kind: str = "point3") -> gtsam.Values:

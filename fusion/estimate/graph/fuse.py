@@ -26,11 +26,14 @@ from fusion.trace import Trace
 
 def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig,
                 learned: LearnedGraphInputs | None = None, on_undetermined: str = "drop",
-                want_cov: bool = True) -> ModeResult:
+                want_cov: bool = True, start=None, keep_values: bool = False) -> ModeResult:
     """One build and one solve of the graph.
 
     on_undetermined: "drop" (epochs nothing can determine are left unsolved and counted in
     ``info["epochs_undetermined"]``) or "raise" (:class:`GeometryError` naming the first one).
+    start: a previous batch solve of the trace (``info["batch_solution"]``, kept with ``keep_values``;
+    see :func:`learned_guess_and_start`), which the batch solver reuses where the graph is the same and
+    starts from otherwise (:func:`~fusion.estimate.graph.batch.solve_batch`). None: the WLS-derived values.
     """
     if on_undetermined not in ("drop", "raise"):
         raise GnssfuseError(f"on_undetermined must be 'drop' or 'raise', got {on_undetermined!r}")
@@ -43,8 +46,10 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     elif cfg.incremental:
         pos, valid, cov, info = solve_incremental(trace, inp, cfg)
     else:
-        pos, valid, cov, info = solve_batch(trace, inp, cfg, want_cov)
+        pos, valid, cov, info = solve_batch(trace, inp, cfg, want_cov, start)
     info.update(inp.dropped)
+    if not keep_values:
+        info.pop("batch_solution", None)   # GTSAM objects stay out of results that travel between processes
     if learned is not None and learned.info:
         info.update(learned.info)
     info["priors_used"] = int((inp.prior_ok & inp.keep).sum())
@@ -70,14 +75,15 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
 
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,
          cfg: GraphConfig | None = None, on_undetermined: str = "drop", want_cov: bool = True,
-         slot_noise: SlotNoiseProvider | None = None, learned: LearnedGraphInputs | None = None) -> ModeResult:
+         slot_noise: SlotNoiseProvider | None = None, learned: LearnedGraphInputs | None = None,
+         start=None) -> ModeResult:
     """Smooth a whole trace in a factor graph.
 
     trace: the measurements; wls: the shared ``WlsResult`` (initial positions, clocks, used slots).
     learned: a learned model's priors and per-measurement noise for the trace (one pass), or None.
     provider / slot_noise: the same from callables (a position-prior provider and a per-slot pseudorange
     sigma/bias provider), each asked once at the WLS positions; not with ``learned``.
-    cfg: the graph's settings (None: ``opts.graph``). on_undetermined: see :func:`solve_graph`.
+    cfg: the graph's settings (None: ``opts.graph``). on_undetermined, start: see :func:`solve_graph`.
     Returns a ModeResult with pos (E,3) ECEF, valid (E,), cov (E,3,3) ECEF marginals (batch only;
     None in incremental mode) and info counts.
     """
@@ -88,21 +94,30 @@ def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider:
     if learned is None:
         at, _ = initial_positions(trace, wls, trace.t_ms.astype(float) / 1000.0)
         learned = learned_from_providers(trace, provider, slot_noise, at)
-    return solve_graph(trace, wls, opts, cfg, learned, on_undetermined, want_cov)
+    return solve_graph(trace, wls, opts, cfg, learned, on_undetermined, want_cov, start)
 
 
 def learned_guess(trace: Trace, wls: WlsResult, opts: RunOptions) -> np.ndarray:
     """(E,3) positions at which a learned model is asked (``opts.graph.prior_at``): the graph without
     anything learned ("graph"; its online estimates in incremental mode, so it stays causal), or the
     WLS track ("wls"); the WLS track (interpolated where it failed) wherever the first has a gap."""
+    return learned_guess_and_start(trace, wls, opts)[0]
+
+
+def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions):
+    """:func:`learned_guess`'s positions (E,3), and the solve of the graph without anything learned
+    (a :class:`~fusion.estimate.graph.batch.BatchSolution`; None with ``prior_at="wls"`` or in
+    incremental mode) as the ``start`` of the solve with the learned inputs: that solve starts next to
+    its optimum (the learned inputs move it by metres at most), and is skipped where the model's guard
+    turned every output off (the same graph)."""
     at, _ = initial_positions(trace, wls, trace.t_ms.astype(float) / 1000.0)
     if opts.graph.prior_at == "wls":
-        return at
+        return at, None
     if opts.graph.prior_at != "graph":
         raise GnssfuseError(f"GraphConfig.prior_at must be 'graph' or 'wls', got {opts.graph.prior_at!r}")
-    first = fuse(trace, wls, opts, want_cov=False)
+    first = solve_graph(trace, wls, opts, opts.graph, None, want_cov=False, keep_values=True)
     pos = first.info.get("online_pos", first.pos) if opts.graph.incremental else first.pos
-    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at)
+    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at), first.info.get("batch_solution")
 
 
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:

@@ -29,6 +29,7 @@ def isam2(cfg: GraphConfig) -> gtsam.ISAM2:
     params.setRelinearizeThreshold(thr)
     params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(cfg.isam_wildfire_m))
     params.relinearizeSkip = cfg.isam_relin_skip
+    params.enablePartialRelinearizationCheck = cfg.isam_partial_relin_check
     return gtsam.ISAM2(params)
 
 

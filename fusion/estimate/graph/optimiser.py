@@ -1,0 +1,77 @@
+"""The batch graph's nonlinear solver: Gauss-Newton with Levenberg-Marquardt as its safety net.
+
+The fused graph is linear but for its robust losses and the pseudorange geometry, so a Gauss-Newton
+step is what a Levenberg-Marquardt step with GTSAM's tiny starting damping (1e-5) is anyway; Gauss-Newton
+skips the damped copy of the linear system LM builds every iteration: with a METIS ordering an
+iteration costs 130 against 168 ms of CPU on the Pixel5 trace (16 iterations against LM's 15). Where a Gauss-Newton step raises the cost or meets a singular system, Levenberg-Marquardt
+carries on from the best values so far, so a hard trace converges as it did before.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gtsam
+
+from fusion.errors import GnssfuseError
+from fusion.estimate.graph.config import GraphConfig
+
+#: GTSAM's default absolute cost decrease below which its optimisers stop
+ABS_ERROR_TOL = 1e-5
+SOLVERS = ("gauss-newton", "levenberg-marquardt")
+
+
+@dataclass
+class Optimised:
+    """The solution, the iterations taken (Gauss-Newton + Levenberg-Marquardt), the final cost, and whether
+    Levenberg-Marquardt had to take over."""
+
+    values: gtsam.Values
+    iterations: int
+    error: float
+    fell_back: bool = False
+
+
+def converged(before: float, after: float, rel_tol: float) -> bool:
+    """GTSAM's stopping rule: the cost fell by less than ``rel_tol`` of itself (or by < 1e-5)."""
+    return before - after <= max(rel_tol * before, ABS_ERROR_TOL)
+
+
+def optimise_values(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig) -> Optimised:
+    """Minimise ``graph``'s cost from ``values`` with ``cfg.batch_solver``, stopping at ``cfg.lm_rel_tol``
+    (relative cost decrease) or after ``cfg.lm_max_iter`` iterations."""
+    if cfg.batch_solver == "levenberg-marquardt":
+        return _levenberg_marquardt(graph, values, cfg, 0)
+    if cfg.batch_solver != "gauss-newton":
+        raise GnssfuseError(f"GraphConfig.batch_solver must be one of {', '.join(SOLVERS)}, got {cfg.batch_solver!r}")
+    params = gtsam.GaussNewtonParams()
+    # METIS: the chain's elimination ~18 % cheaper than with COLAMD (81 vs 99 ms on the Pixel5 graph);
+    # with LM's damped system it gained nothing
+    params.setOrderingType("METIS")
+    opt = gtsam.GaussNewtonOptimizer(graph, values, params)
+    best, err, n = values, opt.error(), 0
+    while n < cfg.lm_max_iter:
+        try:
+            opt.iterate()
+        except RuntimeError:              # a singular step: LM's damping copes (and the marginals tell)
+            return _levenberg_marquardt(graph, best, cfg, n)
+        n += 1
+        new = opt.error()
+        if not math.isfinite(new) or new > err:
+            return _levenberg_marquardt(graph, best, cfg, n)
+        best = gtsam.Values(opt.values())
+        if converged(err, new, cfg.lm_rel_tol):
+            return Optimised(best, n, new)
+        err = new
+    return Optimised(best, n, err)
+
+
+def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig,
+                         done: int) -> Optimised:
+    """Levenberg-Marquardt from ``values``, after ``done`` Gauss-Newton iterations."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max(cfg.lm_max_iter - done, 1))
+    params.setRelativeErrorTol(cfg.lm_rel_tol)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = opt.optimize()
+    return Optimised(result, done + opt.iterations(), opt.error(), fell_back=done > 0 or cfg.batch_solver != "levenberg-marquardt")

@@ -1,0 +1,68 @@
+"""A second batch solve of the same trace (the fused mode's solve with the learned inputs) starts from
+the first one's solution, and reuses it outright where the inputs build the same graph."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from fusion.estimate.graph.batch import BatchSolution, same_inputs
+from fusion.estimate.graph.fuse import fuse, learned_guess_and_start
+from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.estimate.graph.priors import learned_from_providers
+from fusion.estimate.wls import solve_wls
+from fusion.run_types import RunOptions
+from tests.estimate.test_graph import synth_trace, truth_prior
+
+
+def _setup():
+    trace = synth_trace(E=80)
+    return trace, solve_wls(trace), RunOptions()
+
+
+def test_same_inputs_tells_graphs_apart():
+    trace, wls, opts = _setup()
+    a = prepare_inputs(trace, wls, opts.graph, opts.elev_mask_deg, None)
+    b = prepare_inputs(trace, wls, opts.graph, opts.elev_mask_deg, None)
+    assert a is not b and same_inputs(a, b)
+    at, _ = learned_guess_and_start(trace, wls, RunOptions(graph=opts.graph))
+    learned = learned_from_providers(trace, truth_prior(2.0), None, at)
+    c = prepare_inputs(trace, wls, opts.graph, opts.elev_mask_deg, learned)
+    assert not same_inputs(a, c)
+    b.sigma = b.sigma.copy()
+    b.sigma[3, 0] *= 1.5
+    assert not same_inputs(a, b)
+
+
+def test_identical_graph_is_not_solved_twice():
+    trace, wls, opts = _setup()
+    at, start = learned_guess_and_start(trace, wls, opts)
+    assert isinstance(start, BatchSolution)
+    cold = fuse(trace, wls, opts)
+    again = fuse(trace, wls, opts, start=start)
+    assert again.info["reused_solution"] == 1 and again.info["iterations"] == 0
+    np.testing.assert_array_equal(again.pos, start.pos)
+    np.testing.assert_allclose(again.pos, cold.pos, atol=1e-6)
+    np.testing.assert_allclose(again.cov[again.valid], cold.cov[cold.valid], rtol=1e-6, atol=1e-12)
+    assert "batch_solution" not in again.info       # GTSAM objects stay out of the result
+
+
+def test_warm_start_converges_to_the_cold_solution():
+    trace, wls, opts = _setup()
+    at, start = learned_guess_and_start(trace, wls, opts)
+    learned = learned_from_providers(trace, truth_prior(2.0), None, at)
+    cold = fuse(trace, wls, opts, learned=learned)
+    warm = fuse(trace, wls, opts, learned=learned, start=start)
+    assert "reused_solution" not in warm.info
+    assert warm.info["iterations"] <= cold.info["iterations"]
+    # LM stops at a relative cost change of lm_rel_tol (1e-4): two starts end centimetres apart
+    gap = np.linalg.norm(warm.pos - cold.pos, axis=1)
+    assert np.nanmedian(gap) < 0.01 and np.nanmax(gap) < 0.05
+
+
+def test_other_settings_are_solved_again():
+    trace, wls, opts = _setup()
+    _, start = learned_guess_and_start(trace, wls, opts)
+    other = RunOptions(graph=replace(opts.graph, robust_k=4.0))
+    again = fuse(trace, wls, other, start=start)
+    assert "reused_solution" not in again.info and again.info["iterations"] > 0
