@@ -1,15 +1,18 @@
 """Adaptation without ground truth (``gnssfuse adapt``), measured: for each log, adapt the shipped
 weights on that log alone (the adaptation never reads truth), then score ``fused`` with the shipped and
 the adapted weights, and ``fused-nodnn``, against the truth (read here, for scoring only). Prints a
-Markdown table: GSDC score (mean of horizontal p50 and p95) and the ratio adapted / shipped, the epochs
-the teacher trusted and the network's learned sigmas / guard counts in the adapted run, and the times.
+Markdown table: GSDC score (mean of horizontal p50 and p95) and the ratio adapted / shipped, the
+self-check's decision and held-out criterion by epoch, the epochs the teacher trusted, the pseudoranges the
+adapted network gave a sigma for, the guard's shrunk / off epochs, and the times.
 
-    python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] \
-        [--teacher fused|fused-nodnn] [LOG ...]
+    python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] [--agree W] \
+        [--part sat|all] [--margin F] [--block N] [--every K] [--no-widen] [--teacher fused|fused-nodnn] [LOG ...]
 
-Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
+LOG: a GSDC 2021 training-folder name (``2020-05-29-US-MTV-1/Pixel4``) or any trace folder (the smartLoc
+one). Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
 drives (2021-04-28 MTV-1 Pixel4 and SJC-1 Pixel4: out of the shipped network's training), and one of its
-training drives (2020-05-14-US-MTV-1: in-sample for the base network).
+training drives (2020-05-14-US-MTV-1: in-sample). Settings are chosen on the others (:data:`LOGS`).
+``ADAPT_EVAL_CRITERIA=1`` also prints every held-out figure by epoch (stderr).
 """
 from __future__ import annotations
 
@@ -41,6 +44,8 @@ LOGS = {"2021-04-28-US-MTV-1/Pixel5": (NAV, False), "2021-04-28-US-MTV-1/Pixel4"
         # drive, a training drive, and smartLoc (a u-blox in a Berlin canyon, not trained on)
         "2020-05-29-US-MTV-1/Pixel4": ((), False), "2020-06-11-US-MTV-1/Pixel4": ((), True),
         str(SMARTLOC): ((), False)}
+#: GSDC training-folder drives the shipped network was NOT trained on (the others it was).
+NOT_TRAINED = ("2021-04-28-", "2020-05-29-US-MTV-1")
 #: The logs the script runs when given none: the test logs and one training drive.
 DEFAULT_LOGS = list(LOGS)[:4]
 
@@ -89,6 +94,7 @@ def main() -> int:
     p.add_argument("--loo", type=float, default=AdaptConfig.loo)
     p.add_argument("--teacher", default=AdaptConfig.teacher)
     p.add_argument("--no-widen", dest="widen", action="store_false")
+    p.add_argument("--anchor", type=float, default=AdaptConfig.anchor)
     p.add_argument("--part", default=AdaptConfig.part)
     p.add_argument("--agree", type=float, default=AdaptConfig.agree)
     p.add_argument("--margin", type=float, default=AdaptConfig.margin)
@@ -96,9 +102,9 @@ def main() -> int:
     p.add_argument("--every", type=int, default=AdaptConfig.every)
     a = p.parse_args()
     cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo,
-                      teacher=a.teacher, widen=a.widen, part=a.part, agree=a.agree, margin=a.margin, block=a.block, every=a.every)
+                      teacher=a.teacher, anchor=a.anchor, widen=a.widen, part=a.part, agree=a.agree, margin=a.margin, block=a.block, every=a.every)
     print(f"adapt: teacher {cfg.teacher}, epochs {cfg.epochs}, lr {cfg.lr}, max teacher sigma {cfg.max_teacher_sigma_m} m, "
-          f"leave-one-out weight {cfg.loo}, teacher-agreement weight {cfg.agree}, fine-tuned: {cfg.part}, guard ranges widened: {cfg.widen}, held out every {cfg.every}th block of {cfg.block}, "
+          f"leave-one-out weight {cfg.loo}, teacher-agreement weight {cfg.agree}, fine-tuned: {cfg.part}, scale/bias anchor {cfg.anchor}, guard ranges widened: {cfg.widen}, held out every {cfg.every}th block of {cfg.block}, "
           f"margin {cfg.margin}, seed {cfg.seed}\n")
     print("| log | base trained on it | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped "
           "| self-check | held-out NLL by epoch | teacher-trusted epochs | learned sigmas (adapted) "
@@ -106,7 +112,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios = []
     for name in a.logs:
-        nav, insample = LOGS.get(name, ((), False))
+        nav, insample = LOGS.get(name, ((), (TRAIN / name).is_dir() and not name.startswith(NOT_TRAINED)))
         with tempfile.TemporaryDirectory() as tmp:
             r = one(name, nav, cfg, Path(tmp))
         ratios.append(r["adapted"] / r["fused"])

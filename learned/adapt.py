@@ -10,8 +10,11 @@ By default only the per-satellite head (sigma and bias of each pseudorange) is f
 the leave-one-satellite-out consistency loss (:mod:`learned.consistency`), for which the teacher is the
 linearisation point: the position prior stays the base's byte for byte, and the student gains nothing
 from copying the teacher (in a street canyon the teacher can be tens of metres off while claiming a
-metre). ``part="all"`` / ``agree > 0`` bring back the whole network and the ordinary training losses
-against the teacher (:mod:`learned.train`), at guesses drawn as in training (the teacher plus jitter
+metre). What that loss cannot check is held to the base (``anchor``, :func:`scale_anchor`): each epoch's
+common sigma scale (the residuals of the others fix only the ratios; left free, the sigmas shrink to the
+residuals of carrier-smoothed pseudoranges, whose time-correlated errors the graph then over-trusts:
+8-17 % worse ``fused`` on three training drives) and the biases. ``part="all"`` / ``agree > 0`` bring
+back the whole network and the ordinary training losses against the teacher (:mod:`learned.train`), at guesses drawn as in training (the teacher plus jitter
 standing in for the ``graph`` source, the point where ``fused`` asks the network).
 
 Every adaptation is self-validated on the log itself (:mod:`learned.selfcheck`): interleaved blocks of
@@ -70,9 +73,10 @@ class AdaptConfig:
     """How to adapt. ``max_teacher_sigma_m``: teacher epochs used only where its horizontal 1-sigma
     (the graph's marginal) is at most this [m]; ``max_epochs``: use only each log's first N epochs.
 
-    Defaults (chosen on smartLoc and two GSDC training-set drives, ``experiments/results/adapt.md``): the
-    per-satellite head alone, from the leave-one-satellite-out consistency alone (the teacher only anchors
-    it and picks the epochs), 5 epochs at 3e-4, kept only if the held-out check accepts it."""
+    Defaults (chosen on smartLoc and six GSDC training-folder drives, ``experiments/results/adapt.md``):
+    the per-satellite head alone, from the leave-one-satellite-out consistency alone (the teacher only
+    linearises it and picks the epochs) with its scale and biases anchored to the base's, 5 epochs at
+    3e-4, kept only if the held-out check accepts it."""
 
     epochs: int = 5
     lr: float = 3e-4
@@ -88,6 +92,7 @@ class AdaptConfig:
     block: int = BLOCK        # self-validation: blocks of this many teacher-trusted epochs ...
     every: int = EVERY        # ... every this many-th of which is held out of the fine-tuning
     margin: float = MARGIN    # relative held-out gain needed to accept the adaptation
+    anchor: float = 10.0      # weight of the pull of each epoch's mean log-sigma and the biases to the base's
     widen: bool = True        # widen the guard's input ranges by the adapted-on inputs (when accepted)
 
 
@@ -228,7 +233,8 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     train_s, held_s = split(samples, cfg.block, cfg.every)
     history, ranges, check = fine_tune(model, train_s, tcfg, cfg, held_s, progress)
     record = {"from": weights.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
-              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "part": cfg.part, "widen": cfg.widen, "agree": cfg.agree,
+              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "anchor": cfg.anchor,
+              "part": cfg.part, "widen": cfg.widen, "agree": cfg.agree,
               "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
               "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
               "train_s": round(sum(h["time_s"] for h in history), 1), **check}
@@ -256,10 +262,21 @@ def trainable(model: torch.nn.Module, part: str) -> list[torch.nn.Parameter]:
     return keep
 
 
-def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, cfg: AdaptConfig, order: torch.Tensor) -> float:
+def scale_anchor(out: dict, ref: dict, mask: torch.Tensor) -> torch.Tensor:
+    """Departure from the base's per-satellite answer ``ref`` in what the log cannot check: each epoch's
+    mean log-sigma (the leave-one-out residuals fix only the sigmas' ratios, not their common scale
+    against the graph's other factors) and the biases in units of the base sigma. Scalar; (B,S) inputs."""
+    n = mask.sum(1).clamp_min(1)
+    dlog = (torch.log(out["sigma"] / ref["sigma"]) * mask).sum(1) / n
+    dbias = (((out["bias"] - ref["bias"]) / ref["sigma"]) ** 2 * mask).sum(1) / n
+    return (dlog ** 2 + dbias).mean()
+
+
+def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, cfg: AdaptConfig, order: torch.Tensor,
+                base=None) -> float:
     """One pass over the rows ``order``: ``cfg.agree`` x the training losses against the teacher plus
-    ``cfg.loo`` x the leave-one-satellite-out consistency at the teacher (:func:`learned.consistency.loo_nll`);
-    the mean loss."""
+    ``cfg.loo`` x the leave-one-satellite-out consistency at the teacher (:func:`learned.consistency.loo_nll`)
+    plus ``cfg.anchor`` x :func:`scale_anchor` against the frozen ``base`` model; the mean loss."""
     model.train()
     total = 0.0
     for a in range(0, order.numel(), tcfg.batch):
@@ -268,6 +285,10 @@ def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, cfg: AdaptConfig, orde
         loss = cfg.agree * batch_loss(out, b, tcfg.loss, True) if cfg.agree else 0.0
         if cfg.loo:
             loss = loss + cfg.loo * loo_nll(b["sat_pos"], b["pr"], b["mask"], b["truth"], out["sigma"], out["bias"])
+        if cfg.anchor:
+            with torch.no_grad():
+                ref = outputs(base, b, tcfg.features)
+            loss = loss + cfg.anchor * scale_anchor(out, ref, b["mask"])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -289,6 +310,7 @@ def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, cfg: AdaptConf
     va = heldout_inputs(sample_tensors(held, tcfg.features, torch.device("cpu")), tcfg.features) \
         if held is not None and len(held) else None
     start = copy.deepcopy(model.state_dict())
+    base = copy.deepcopy(model).eval() if cfg.anchor else None
     allc = [criteria(model, va, tcfg.features) if va is not None else None]
     scores = [allc[0][CRITERION] if va is not None else float("nan")]
     states, history = [start], []
@@ -297,7 +319,7 @@ def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, cfg: AdaptConf
         t0 = time.perf_counter()
         inp = make_inputs(tr, guesses_for(tr, tcfg, epoch_generator(tcfg.seed, epoch)), tcfg.features)
         order = torch.randperm(len(samples), generator=epoch_generator(tcfg.seed, epoch + 1_000))
-        loss = adapt_epoch(model, opt, inp, tcfg, cfg, order)
+        loss = adapt_epoch(model, opt, inp, tcfg, cfg, order, base)
         if not math.isfinite(loss):
             raise DataError(f"adaptation diverged at epoch {epoch + 1} (loss {loss}); try a smaller --lr")
         allc.append(criteria(model, va, tcfg.features) if va is not None else None)

@@ -21,6 +21,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need --lr > 0 and --max-teacher-sigma > 0")
     if not args.loo >= 0 or not args.agree >= 0 or not args.loo + args.agree > 0:
         raise DataError("need --loo >= 0 and --agree >= 0, not both 0")
+    if not args.anchor >= 0:
+        raise DataError("need --anchor >= 0")
     if not 0 <= args.margin < 1:
         raise DataError("need 0 <= --margin < 1")
     if args.block < 1 or args.every < 2:
@@ -64,7 +66,7 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
         torch.set_num_threads(args.threads)
     cfg = AdaptConfig(epochs=args.epochs, lr=args.lr, batch=args.batch, seed=args.seed,
                       max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
-                      teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree,
+                      teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree, anchor=args.anchor,
                       margin=args.margin, block=args.block, every=args.every)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr))

@@ -41,6 +41,9 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("--agree", type=float, default=0.0, metavar="W",
                    help="weight of the training losses against the teacher's trajectory (default 0: "
                         "consistency alone)")
+    p.add_argument("--anchor", type=float, default=10.0, metavar="W",
+                   help="weight of the pull of each epoch's mean sigma and of the biases to the base's "
+                        "(default 10; what the log's own consistency cannot check)")
     p.add_argument("--margin", type=float, default=0.005, metavar="F",
                    help="relative gain on the held-out blocks' leave-one-satellite-out error needed to keep "
                         "the adaptation (default 0.005); below it the base weights are written unchanged")

@@ -137,6 +137,7 @@ def test_widened_ranges():
     (["--loo", "0"], "not both 0"),
     (["--margin", "1"], "0 <= --margin < 1"),
     (["--every", "1"], "--every >= 2"),
+    (["--anchor", "-1"], "--anchor >= 0"),
     (["--clk", "x.clk"], "--clk needs --sp3"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "no epoch of 2021-04-28-US-MTV-1/Pixel4 has a teacher"),
 ])
@@ -227,6 +228,20 @@ def test_accepted_adaptation_keeps_the_best_epoch_and_moves_only_the_chosen_part
     assert len(_differing(SHIPPED_WEIGHTS, tmp_path / "all.pt")) > 10
     with pytest.raises(GnssfuseError, match="part must be one of"):
         adapt([shipped_trace_dir], tmp_path / "x.pt", cfg=AdaptConfig(epochs=1, max_epochs=FEW, part="trunk"))
+
+
+def test_scale_anchor_ignores_what_the_consistency_checks_and_pulls_what_it_cannot():
+    from learned.adapt import scale_anchor
+    mask = torch.tensor([[True, True, True, False]])
+    f64 = dict(dtype=torch.float64)
+    ref = {"sigma": torch.tensor([[2.0, 4.0, 8.0, 1.0]], **f64), "bias": torch.zeros(1, 4, **f64)}
+    # ratios moved, the epoch's mean log-sigma kept, no bias: nothing to pull
+    same_scale = dict(ref, sigma=ref["sigma"] * torch.tensor([[2.0, 0.5, 1.0, 9.0]], dtype=torch.float64))
+    assert float(scale_anchor(same_scale, ref, mask)) == pytest.approx(0.0, abs=1e-12)
+    # every sigma halved: (log 2)^2; a bias of one base sigma on one of three slots: 1/3
+    assert float(scale_anchor(dict(ref, sigma=ref["sigma"] / 2), ref, mask)) == pytest.approx(np.log(2) ** 2)
+    biased = dict(ref, bias=torch.tensor([[2.0, 0.0, 0.0, 50.0]], dtype=torch.float64))
+    assert float(scale_anchor(biased, ref, mask)) == pytest.approx(1 / 3)
 
 
 def _samples(n_per_trace=(130, 70), seed=0) -> Samples:
