@@ -107,7 +107,7 @@ def main() -> int:
           f"leave-one-out weight {cfg.loo}, teacher-agreement weight {cfg.agree}, fine-tuned: {cfg.part}, scale/bias anchor {cfg.anchor}, guard ranges widened: {cfg.widen}, held out every {cfg.every}th block of {cfg.block}, "
           f"margin {cfg.margin}, seed {cfg.seed}\n")
     print("| log | base trained on it | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped "
-          "| self-check | held-out NLL by epoch | teacher-trusted epochs | learned sigmas (adapted) "
+          "| self-check | held-out criterion [m] by epoch | teacher-trusted epochs | learned sigmas (adapted) "
           "| guard shrunk / off: shipped, adapted | adapt [s] |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios = []
