@@ -1,15 +1,18 @@
 """Adaptation without ground truth (``gnssfuse adapt``), measured: for each log, adapt the shipped
 weights on that log alone (the adaptation never reads truth), then score ``fused`` with the shipped and
 the adapted weights, and ``fused-nodnn``, against the truth (read here, for scoring only). Prints a
-Markdown table: GSDC score (mean of horizontal p50 and p95) and the ratio adapted / shipped, the epochs
-the teacher trusted and the network's learned sigmas / guard counts in the adapted run, and the times.
+Markdown table: GSDC score (mean of horizontal p50 and p95) and the ratio adapted / shipped, the
+self-check's decision and held-out criterion by epoch, the epochs the teacher trusted, the pseudoranges the
+adapted network gave a sigma for, the guard's shrunk / off epochs, and the times.
 
-    python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] \
-        [--teacher fused|fused-nodnn] [LOG ...]
+    python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] [--agree W] \
+        [--part sat|all] [--margin F] [--block N] [--every K] [--no-widen] [--teacher fused|fused-nodnn] [LOG ...]
 
-Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
+LOG: a GSDC 2021 training-folder name (``2020-05-29-US-MTV-1/Pixel4``) or any trace folder (the smartLoc
+one). Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
 drives (2021-04-28 MTV-1 Pixel4 and SJC-1 Pixel4: out of the shipped network's training), and one of its
-training drives (2020-05-14-US-MTV-1: in-sample for the base network).
+training drives (2020-05-14-US-MTV-1: in-sample). Settings are chosen on the others (:data:`LOGS`).
+``ADAPT_EVAL_CRITERIA=1`` also prints every held-out figure by epoch (stderr).
 """
 from __future__ import annotations
 
@@ -32,53 +35,89 @@ from learned.adapt import AdaptConfig, adapt  # noqa: E402
 
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
 TRAIN = SHARED / "gsdc2021/train"
+SMARTLOC = SHARED / "smartloc/Berlin_Potsdamer_Platz"
 NAV = (SHARED / "ephemeris/gps_nav/hour1180.21n",)
 #: log -> (navigation for raw logs, whether the shipped network was trained on it)
 LOGS = {"2021-04-28-US-MTV-1/Pixel5": (NAV, False), "2021-04-28-US-MTV-1/Pixel4": ((), False),
-        "2021-04-28-US-SJC-1/Pixel4": ((), False), "2020-05-14-US-MTV-1/Pixel4": ((), True)}
+        "2021-04-28-US-SJC-1/Pixel4": ((), False), "2020-05-14-US-MTV-1/Pixel4": ((), True),
+        # settings are chosen on these (never on the test logs above): the shipped weights' validation
+        # drive, a training drive, and smartLoc (a u-blox in a Berlin canyon, not trained on)
+        "2020-05-29-US-MTV-1/Pixel4": ((), False), "2020-06-11-US-MTV-1/Pixel4": ((), True),
+        str(SMARTLOC): ((), False)}
+#: GSDC training-folder drives the shipped network was NOT trained on (the others it was).
+NOT_TRAINED = ("2021-04-28-", "2020-05-29-US-MTV-1")
+#: The logs the script runs when given none: the test logs and one training drive.
+DEFAULT_LOGS = list(LOGS)[:4]
 
 
 def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path) -> dict:
     opts = RunOptions(signals=None, nav=tuple(nav))
     t0 = time.perf_counter()
-    rec = adapt([TRAIN / name], folder / "w.pt", cfg=cfg, opts=opts)
+    path = log_path(name)
+    rec = adapt([path], folder / "w.pt", cfg=cfg, opts=opts)
     t_adapt = time.perf_counter() - t0
-    trace = load_trace(TRAIN / name, signals=None, min_sats=1, raw_sources=RawSources(tuple(nav)))
+    trace = load_trace(path, signals=None, min_sats=1, raw_sources=RawSources(tuple(nav)))
     shipped = run_modes(trace, ["fused-nodnn", "fused"], opts)
     adapted = run_modes(trace, ["fused"], RunOptions(signals=None, nav=tuple(nav), weights=folder / "w.pt"))["fused"]
     score = {k: mode_metrics(trace, r)["gsdc_score"] for k, r in shipped.items()}
     score["adapted"] = mode_metrics(trace, adapted)["gsdc_score"]
     c = next(iter(rec["traces"].values()))
-    return dict(score, trusted=f"{c['teacher_trusted']}/{c['epochs']}", sigmas=adapted.info.get("learned_sigmas"),
-                guard=f"{adapted.info.get('guard_shrunk')}/{adapted.info.get('guard_off')}",
-                shipped_guard=f"{shipped['fused'].info.get('guard_shrunk')}/{shipped['fused'].info.get('guard_off')}",
-                t_adapt=t_adapt)
+    if os.environ.get("ADAPT_EVAL_CRITERIA"):       # every held-out figure, to choose the criterion
+        for k in ("nll", "mae", "huber", "mae_nb", "nll_nb", "huber_nb"):
+            print(f"    {name} {k}: " + " ".join(f"{c[k]:.4f}" for c in rec["heldout_all"] if c), file=sys.stderr)
+    return dict(score, trusted=f"{c['teacher_trusted']}/{c['epochs']}", sigmas=learned_sigmas(adapted.info),
+                guard=guard(adapted.info), shipped_guard=guard(shipped["fused"].info), t_adapt=t_adapt,
+                decision=f"{rec['decision']} (epoch {rec['best_epoch']})",
+                heldout=" -> ".join("-" if v is None else f"{v:.3f}" for v in rec["heldout"]))
+
+
+def log_path(name: str) -> Path:
+    """A GSDC training-folder name (collection/phone) or a folder (e.g. the smartLoc one) as given."""
+    return TRAIN / name if (TRAIN / name).is_dir() else Path(name)
+
+
+def learned_sigmas(info: dict) -> int:
+    """Pseudoranges the network gave a sigma for (asked minus those its guard gave the physical model)."""
+    return int(info.get("learned_meas_asked", 0)) - int(info.get("learned_meas_out_of_range", 0))
+
+
+def guard(info: dict) -> str:
+    return f"{info.get('learned_epochs_guard_shrunk')}/{info.get('learned_epochs_guard_off')}"
 
 
 def main() -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("logs", nargs="*", default=list(LOGS))
+    p.add_argument("logs", nargs="*", default=DEFAULT_LOGS)
     p.add_argument("--epochs", type=int, default=AdaptConfig.epochs)
     p.add_argument("--lr", type=float, default=AdaptConfig.lr)
     p.add_argument("--max-teacher-sigma", type=float, default=AdaptConfig.max_teacher_sigma_m)
     p.add_argument("--loo", type=float, default=AdaptConfig.loo)
     p.add_argument("--teacher", default=AdaptConfig.teacher)
+    p.add_argument("--no-widen", dest="widen", action="store_false")
+    p.add_argument("--anchor", type=float, default=AdaptConfig.anchor)
+    p.add_argument("--part", default=AdaptConfig.part)
+    p.add_argument("--agree", type=float, default=AdaptConfig.agree)
+    p.add_argument("--margin", type=float, default=AdaptConfig.margin)
+    p.add_argument("--block", type=int, default=AdaptConfig.block)
+    p.add_argument("--every", type=int, default=AdaptConfig.every)
     a = p.parse_args()
     cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo,
-                      teacher=a.teacher)
+                      teacher=a.teacher, anchor=a.anchor, widen=a.widen, part=a.part, agree=a.agree, margin=a.margin, block=a.block, every=a.every)
     print(f"adapt: teacher {cfg.teacher}, epochs {cfg.epochs}, lr {cfg.lr}, max teacher sigma {cfg.max_teacher_sigma_m} m, "
-          f"leave-one-out weight {cfg.loo}, seed {cfg.seed}\n")
+          f"leave-one-out weight {cfg.loo}, teacher-agreement weight {cfg.agree}, fine-tuned: {cfg.part}, scale/bias anchor {cfg.anchor}, guard ranges widened: {cfg.widen}, held out every {cfg.every}th block of {cfg.block}, "
+          f"margin {cfg.margin}, seed {cfg.seed}\n")
     print("| log | base trained on it | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped "
-          "| teacher-trusted epochs | learned sigmas (adapted) | guard shrunk / off: shipped, adapted | adapt [s] |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "| self-check | held-out criterion [m] by epoch | teacher-trusted epochs | learned sigmas (adapted) "
+          "| guard shrunk / off: shipped, adapted | adapt [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios = []
     for name in a.logs:
-        nav, insample = LOGS.get(name, ((), False))
+        nav, insample = LOGS.get(name, ((), (TRAIN / name).is_dir() and not name.startswith(NOT_TRAINED)))
         with tempfile.TemporaryDirectory() as tmp:
             r = one(name, nav, cfg, Path(tmp))
         ratios.append(r["adapted"] / r["fused"])
         print(f"| {name} | {'yes' if insample else 'no'} | {r['fused-nodnn']:.2f} | {r['fused']:.2f} | "
-              f"{r['adapted']:.2f} | {ratios[-1]:.3f} | {r['trusted']} | {r['sigmas']} | "
+              f"{r['adapted']:.2f} | {ratios[-1]:.3f} | {r['decision']} | {r['heldout']} | {r['trusted']} | {r['sigmas']} | "
               f"{r['shipped_guard']}, {r['guard']} | {r['t_adapt']:.0f} |", flush=True)
     print(f"\nmean adapted / shipped: {sum(ratios) / len(ratios):.3f}; worst {max(ratios):.3f}")
     return 0

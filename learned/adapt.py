@@ -3,17 +3,30 @@
 The teacher is the factor graph (pseudoranges + Doppler + time-differenced carrier where the log has
 them + motion + clock), with the base network (``fused``, default) or without anything learned
 (``fused-nodnn``); its trajectory is precise in shape where Doppler and carrier tie the epochs
-together. Its positions stand in for the truth, but only at epochs where the graph's own marginal horizontal sigma is at most ``max_teacher_sigma_m`` (the
-stretches the measurements constrain); the rest of the log teaches nothing. The network is then
-fine-tuned from a base checkpoint with the ordinary training losses (:mod:`learned.train`) for a few
-epochs at a small learning rate, at guesses drawn as in training (the teacher plus jitter standing in for
-the ``graph`` source, the point where the ``fused`` mode asks the network), plus a leave-one-satellite-out
-consistency loss on the per-satellite head (:mod:`learned.consistency`), which needs no teacher at all.
+together. Its positions stand in for the truth only at epochs where the graph's own marginal horizontal sigma is
+at most ``max_teacher_sigma_m`` (the stretches the measurements constrain); the rest teaches nothing.
+
+By default only the per-satellite head (sigma and bias of each pseudorange) is fine-tuned, and only from
+the leave-one-satellite-out consistency loss (:mod:`learned.consistency`), for which the teacher is the
+linearisation point: the position prior stays the base's byte for byte, and the student gains nothing
+from copying the teacher (in a street canyon the teacher can be tens of metres off while claiming a
+metre). What that loss cannot check is held to the base (``anchor``, :func:`scale_anchor`): each epoch's
+common sigma scale (the residuals of the others fix only the ratios; left free, the sigmas shrink to the
+residuals of carrier-smoothed pseudoranges, whose time-correlated errors the graph then over-trusts:
+8-17 % worse ``fused`` on three training drives) and the biases. ``part="all"`` / ``agree > 0`` bring
+back the whole network and the ordinary training losses against the teacher (:mod:`learned.train`), at guesses drawn as in training (the teacher plus jitter
+standing in for the ``graph`` source, the point where ``fused`` asks the network).
+
+Every adaptation is self-validated on the log itself (:mod:`learned.selfcheck`): interleaved blocks of
+the teacher-trusted epochs are held out, the held-out criterion is measured before and after each epoch,
+the best epoch is kept, and if none beats the base by the margin the adaptation is declined: the output
+checkpoint then holds the base's weights and input ranges unchanged, with the decision and its reason in
+``config["adapted"]``.
 
 Ground truth is never read: every trace is loaded with ``truth="none"`` and a trace that still carries
 truth is refused. The adapted checkpoint keeps the base's calibration (nothing here can measure a new
-one) and widens the guard's input ranges by the inputs it was adapted on; its config records how it was
-adapted (traces by name, teacher, epochs), never a truth figure.
+one) and, when accepted, widens the guard's input ranges by the inputs it was adapted on; its config
+records how it was adapted (traces by name, teacher, epochs, the held-out check), never a truth figure.
 
 Entry points into the training machinery, for whoever re-points them: :func:`learned.data.build_samples`,
 :func:`learned.train.sample_tensors`, :func:`learned.train.guesses_for`, :func:`learned.train.make_inputs`,
@@ -47,6 +60,7 @@ from learned.features import FeatureConfig
 from learned.forward import outputs, take
 from learned.guard import input_ranges
 from learned.infer import SHIPPED_WEIGHTS
+from learned.selfcheck import BLOCK, CRITERION, EVERY, MARGIN, criteria, decide, heldout_inputs, split
 from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
 
 #: The teachers: the graph with the base network (``fused``: the best answer the base gives, so the
@@ -57,10 +71,15 @@ TEACHERS = ("fused", "fused-nodnn")
 @dataclass
 class AdaptConfig:
     """How to adapt. ``max_teacher_sigma_m``: teacher epochs used only where its horizontal 1-sigma
-    (the graph's marginal) is at most this [m]; ``max_epochs``: use only each log's first N epochs."""
+    (the graph's marginal) is at most this [m]; ``max_epochs``: use only each log's first N epochs.
 
-    epochs: int = 3
-    lr: float = 1e-4
+    Defaults (chosen on smartLoc and six GSDC training-folder drives, ``experiments/results/adapt.md``):
+    the per-satellite head alone, from the leave-one-satellite-out consistency alone (the teacher only
+    linearises it and picks the epochs) with its scale and biases anchored to the base's, 5 epochs at
+    3e-4, kept only if the held-out check accepts it."""
+
+    epochs: int = 5
+    lr: float = 3e-4
     batch: int = 64
     seed: int = 0
     max_teacher_sigma_m: float = 3.0
@@ -68,6 +87,13 @@ class AdaptConfig:
     elev_mask_deg: float = 10.0
     teacher: str = "fused"
     loo: float = 1.0          # weight of the leave-one-satellite-out consistency loss (0: off)
+    part: str = "sat"         # what is fine-tuned: "all" weights, or the per-satellite head alone ("sat")
+    agree: float = 0.0        # weight of the training losses against the teacher (0: consistency only)
+    block: int = BLOCK        # self-validation: blocks of this many teacher-trusted epochs ...
+    every: int = EVERY        # ... every this many-th of which is held out of the fine-tuning
+    margin: float = MARGIN    # relative held-out gain needed to accept the adaptation
+    anchor: float = 10.0      # weight of the pull of each epoch's mean log-sigma and the biases to the base's
+    widen: bool = True        # widen the guard's input ranges by the adapted-on inputs (when accepted)
 
 
 @dataclass
@@ -184,7 +210,9 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
           cfg: AdaptConfig | None = None, opts: RunOptions | None = None, jobs: int = 1,
           progress: bool = False, log=None) -> dict:
     """Fine-tune ``weights`` (None: the shipped ones) on the logs ``paths`` without truth and write the
-    checkpoint ``out``. Returns the adaptation record stored in its config (``config["adapted"]``)."""
+    checkpoint ``out``: the best epoch on the held-out blocks (:mod:`learned.selfcheck`), or the base
+    weights unchanged when no epoch beats them by the margin (``record["decision"] == "declined"``).
+    Returns the adaptation record stored in its config (``config["adapted"]``)."""
     cfg, opts = cfg or AdaptConfig(), opts or RunOptions()
     weights = Path(weights) if weights is not None else SHIPPED_WEIGHTS
     model, blob = load_model(weights)             # a bad checkpoint fails before any log is solved
@@ -193,6 +221,8 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     t0 = time.perf_counter()
     if cfg.teacher not in TEACHERS:
         raise DataError(f"teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
+    if not (cfg.loo >= 0 and cfg.agree >= 0 and cfg.loo + cfg.agree > 0):
+        raise DataError(f"need loo >= 0 and agree >= 0, not both 0 (got {cfg.loo}, {cfg.agree})")
     # the teacher's trust threshold (max_teacher_sigma_m) was set on the graph's raw marginals
     taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights,
                                                        sigma_calibration=False),
@@ -202,30 +232,65 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     if log:
         log(f"teacher ({cfg.teacher}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
             f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
-    history, ranges = fine_tune(model, samples, tcfg, cfg.loo, progress)
+    train_s, held_s = split(samples, cfg.block, cfg.every)
+    history, ranges, check = fine_tune(model, train_s, tcfg, cfg, held_s, progress)
     record = {"from": weights.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
-              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo,
+              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "anchor": cfg.anchor,
+              "part": cfg.part, "widen": cfg.widen, "agree": cfg.agree,
               "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
               "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
-              "train_s": round(sum(h["time_s"] for h in history), 1)}
+              "train_s": round(sum(h["time_s"] for h in history), 1), **check}
     config = copy.deepcopy(base)
     config["adapted"] = list(base.get("adapted") or []) + [record]      # adapting an adapted one keeps both
-    config["input_ranges"] = widened_ranges(base.get("input_ranges"), ranges)
-    save_checkpoint(out, model, config, epoch=cfg.epochs, history=history)
+    if check["decision"] == "accepted" and cfg.widen:
+        config["input_ranges"] = widened_ranges(base.get("input_ranges"), ranges)
+    save_checkpoint(out, model, config, epoch=check["best_epoch"], history=history)
     return record
 
 
-def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, loo: float, order: torch.Tensor) -> float:
-    """One pass over the rows ``order``: the training losses against the teacher plus ``loo`` x the
-    leave-one-satellite-out consistency at the teacher (:func:`learned.consistency.loo_nll`); the mean loss."""
+#: What ``AdaptConfig.part`` may name, and the parameter-name prefixes each fine-tunes (None: all).
+PARTS = {"all": None, "sat": ("sat_head.",)}
+
+
+def trainable(model: torch.nn.Module, part: str) -> list[torch.nn.Parameter]:
+    """The parameters ``part`` fine-tunes (:data:`PARTS`); the others are frozen (``requires_grad`` off)."""
+    if part not in PARTS:
+        raise DataError(f"part must be one of {', '.join(PARTS)}, got {part!r}")
+    keep = []
+    for n, p in model.named_parameters():
+        p.requires_grad_(PARTS[part] is None or n.startswith(PARTS[part]))
+        if p.requires_grad:
+            keep.append(p)
+    return keep
+
+
+def scale_anchor(out: dict, ref: dict, mask: torch.Tensor) -> torch.Tensor:
+    """Departure from the base's per-satellite answer ``ref`` in what the log cannot check: each epoch's
+    mean log-sigma (the leave-one-out residuals fix only the sigmas' ratios, not their common scale
+    against the graph's other factors) and the biases in units of the base sigma. Scalar; (B,S) inputs."""
+    n = mask.sum(1).clamp_min(1)
+    dlog = (torch.log(out["sigma"] / ref["sigma"]) * mask).sum(1) / n
+    dbias = (((out["bias"] - ref["bias"]) / ref["sigma"]) ** 2 * mask).sum(1) / n
+    return (dlog ** 2 + dbias).mean()
+
+
+def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, cfg: AdaptConfig, order: torch.Tensor,
+                base=None) -> float:
+    """One pass over the rows ``order``: ``cfg.agree`` x the training losses against the teacher plus
+    ``cfg.loo`` x the leave-one-satellite-out consistency at the teacher (:func:`learned.consistency.loo_nll`)
+    plus ``cfg.anchor`` x :func:`scale_anchor` against the frozen ``base`` model; the mean loss."""
     model.train()
     total = 0.0
     for a in range(0, order.numel(), tcfg.batch):
         b = take(inp, order[a:a + tcfg.batch])
         out = outputs(model, b, tcfg.features)
-        loss = batch_loss(out, b, tcfg.loss, True)
-        if loo:
-            loss = loss + loo * loo_nll(b["sat_pos"], b["pr"], b["mask"], b["truth"], out["sigma"], out["bias"])
+        loss = cfg.agree * batch_loss(out, b, tcfg.loss, True) if cfg.agree else 0.0
+        if cfg.loo:
+            loss = loss + cfg.loo * loo_nll(b["sat_pos"], b["pr"], b["mask"], b["truth"], out["sigma"], out["bias"])
+        if cfg.anchor:
+            with torch.no_grad():
+                ref = outputs(base, b, tcfg.features)
+            loss = loss + cfg.anchor * scale_anchor(out, ref, b["mask"])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -233,36 +298,67 @@ def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, loo: float, order: tor
     return total / max(order.numel(), 1)
 
 
-def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, loo: float = 0.0, progress: bool = False
-              ) -> tuple[list[dict], dict | None]:
-    """``tcfg.epochs`` passes of :func:`adapt_epoch` over ``samples`` from the model's current weights.
-    Returns the per-epoch history and the input ranges at the samples' WLS solutions (for the guard)."""
+def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, cfg: AdaptConfig, held=None,
+              progress: bool = False) -> tuple[list[dict], dict | None, dict]:
+    """``tcfg.epochs`` passes of :func:`adapt_epoch` over ``samples`` from the model's current weights,
+    scoring the held-out samples ``held`` (:func:`learned.selfcheck.criterion`) before and after each.
+    Leaves the model at the best epoch, or at its starting weights when that is declined. Returns the
+    per-epoch history, the input ranges at the samples' WLS solutions (for the guard) and the decision
+    (``decision``, ``reason``, ``best_epoch``, ``heldout``: the criterion per epoch from 0, ``heldout_all``:
+    every held-out figure, ``heldout_samples``)."""
     torch.manual_seed(tcfg.seed)
-    device = torch.device("cpu")
-    opt = torch.optim.Adam(model.parameters(), lr=tcfg.lr, betas=tcfg.betas)
-    tr = sample_tensors(samples, tcfg.features, device, tcfg.wls_max_err)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=tcfg.epochs, desc="adapt", unit="epoch", file=sys.stderr, dynamic_ncols=True)
-    history = []
+    opt = torch.optim.Adam(trainable(model, cfg.part), lr=tcfg.lr, betas=tcfg.betas)
+    tr = sample_tensors(samples, tcfg.features, torch.device("cpu"), tcfg.wls_max_err)
+    va = heldout_inputs(sample_tensors(held, tcfg.features, torch.device("cpu")), tcfg.features) \
+        if held is not None and len(held) else None
+    start = copy.deepcopy(model.state_dict())
+    base = copy.deepcopy(model).eval() if cfg.anchor else None
+    allc = [criteria(model, va, tcfg.features) if va is not None else None]
+    scores = [allc[0][CRITERION] if va is not None else float("nan")]
+    states, history = [start], []
+    bar = _bar(tcfg.epochs) if progress else None
     for epoch in range(tcfg.epochs):
         t0 = time.perf_counter()
         inp = make_inputs(tr, guesses_for(tr, tcfg, epoch_generator(tcfg.seed, epoch)), tcfg.features)
         order = torch.randperm(len(samples), generator=epoch_generator(tcfg.seed, epoch + 1_000))
-        loss = adapt_epoch(model, opt, inp, tcfg, loo, order)
+        loss = adapt_epoch(model, opt, inp, tcfg, cfg, order, base)
         if not math.isfinite(loss):
             raise DataError(f"adaptation diverged at epoch {epoch + 1} (loss {loss}); try a smaller --lr")
-        history.append({"epoch": epoch + 1, "train_loss": loss, "samples": len(samples),
-                        "time_s": time.perf_counter() - t0})
+        allc.append(criteria(model, va, tcfg.features) if va is not None else None)
+        scores.append(allc[-1][CRITERION] if va is not None else float("nan"))
+        states.append(copy.deepcopy(model.state_dict()))
+        history.append({"epoch": epoch + 1, "train_loss": loss, "heldout": _rounded(scores[-1]),
+                        "samples": len(samples), "time_s": time.perf_counter() - t0})
         if bar is not None:
             bar.update(1)
-            bar.set_postfix(loss=f"{loss:.3f}")
+            bar.set_postfix(loss=f"{loss:.3f}", heldout=f"{scores[-1]:.3f}")
     if bar is not None:
         bar.close()
+    best, reason = decide(scores, cfg.margin)
+    model.load_state_dict(states[best])
     model.eval()
+    check = {"decision": "accepted" if best else "declined", "reason": reason, "best_epoch": best,
+             "heldout": [_rounded(v) for v in scores],
+             "heldout_all": [c and {k: _rounded(v) for k, v in c.items()} for c in allc],
+             "heldout_samples": 0 if held is None else len(held), "margin": cfg.margin, "block": cfg.block,
+             "every": cfg.every}
+    return history, _ranges(tr, tcfg), check
+
+
+def _rounded(v: float) -> float | None:
+    """``v`` to 5 decimals, None when not finite (so that two records compare equal)."""
+    return round(v, 5) if math.isfinite(v) else None
+
+
+def _bar(total: int):
+    from tqdm import tqdm
+    return tqdm(total=total, desc="adapt", unit="epoch", file=sys.stderr, dynamic_ncols=True)
+
+
+def _ranges(tr: dict, tcfg: TrainConfig) -> dict | None:
+    """The guard's input ranges at the samples' WLS solutions, or None when WLS solved none."""
     rows = torch.nonzero(tr["wls_ok"]).flatten()
     if not rows.numel():
-        return history, None
+        return None
     at_wls = make_inputs(take(tr, rows), tr["wls"][rows], tcfg.features)
-    return history, input_ranges(at_wls["x"], at_wls["mask"])
+    return input_ranges(at_wls["x"], at_wls["mask"])

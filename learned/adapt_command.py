@@ -19,8 +19,14 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need --epochs >= 1 and --batch >= 1")
     if not args.lr > 0 or not args.max_teacher_sigma > 0:
         raise DataError("need --lr > 0 and --max-teacher-sigma > 0")
-    if not args.loo >= 0:
-        raise DataError("need --loo >= 0")
+    if not args.loo >= 0 or not args.agree >= 0 or not args.loo + args.agree > 0:
+        raise DataError("need --loo >= 0 and --agree >= 0, not both 0")
+    if not args.anchor >= 0:
+        raise DataError("need --anchor >= 0")
+    if not 0 <= args.margin < 1:
+        raise DataError("need 0 <= --margin < 1")
+    if args.block < 1 or args.every < 2:
+        raise DataError("need --block >= 1 and --every >= 2")
     if args.max_epochs is not None and args.max_epochs < 1:
         raise DataError("need --max-epochs >= 1")
     if args.jobs < 1:
@@ -60,10 +66,21 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
         torch.set_num_threads(args.threads)
     cfg = AdaptConfig(epochs=args.epochs, lr=args.lr, batch=args.batch, seed=args.seed,
                       max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
-                      teacher=args.teacher, elev_mask_deg=args.elev_mask)
+                      teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree, anchor=args.anchor,
+                      margin=args.margin, block=args.block, every=args.every)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr))
-    print(f"adapted {record['from']} on {len(record['traces'])} log(s) without ground truth, "
-          f"{record['epochs']} epoch(s), {record['samples']} samples (teacher {record['teacher_s']:.0f} s, "
-          f"training {record['train_s']:.0f} s) -> {args.out}\n{describe(record)}")
+    print(f"{verdict(record, args.out)}\n{describe(record)}")
     return 0
+
+
+def verdict(record: dict, out) -> str:
+    """The one line saying whether the adaptation was kept, from what, and why."""
+    head = (f"{len(record['traces'])} log(s) without ground truth, {record['samples']} samples "
+            f"({record['heldout_samples']} held out; teacher {record['teacher_s']:.0f} s, training "
+            f"{record['train_s']:.0f} s)")
+    if record["decision"] == "declined":
+        return (f"adaptation DECLINED: {out} holds the base weights {record['from']} unchanged ({head}; "
+                f"{record['reason']})")
+    return (f"adapted {record['from']} on {head}: kept epoch {record['best_epoch']} of {record['epochs']} "
+            f"({record['reason']}) -> {out}")

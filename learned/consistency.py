@@ -23,6 +23,15 @@ def loo_nll(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, anchor:
 
     sat_pos (B,S,3), pr (B,S), anchor (B,3) float64; mask (B,S) bool; sigma, bias (B,S) [m].
     """
+    e, var, use = loo_residuals(sat_pos, pr, mask, anchor, sigma, bias)
+    per_slot = 0.5 * torch.log(var) + 0.5 * e ** 2 / var
+    return (per_slot * use).sum() / use.sum().clamp_min(1)
+
+
+def loo_residuals(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, anchor: torch.Tensor,
+                  sigma: torch.Tensor, bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each slot's residual at the solution of the others ``e`` (B,S) [m], its predicted variance ``var``
+    (B,S) [m^2] and ``use`` (B,S) bool: real slots of epochs with >= 5 satellites. Inputs as :func:`loo_nll`."""
     real = mask.bool()
     sat_pos = sat_pos.masked_fill(~real[..., None], 0.0)
     sigma = sigma.double().masked_fill(~real, 1.0)
@@ -42,5 +51,4 @@ def loo_nll(sat_pos: torch.Tensor, pr: torch.Tensor, mask: torch.Tensor, anchor:
     e = dz - (H * delta).sum(-1)
     var = sigma ** 2 + (H[..., None, :] @ P @ H[..., :, None])[..., 0, 0]
     use = real & (real.sum(1, keepdim=True) >= 5)
-    per_slot = 0.5 * torch.log(var) + 0.5 * e ** 2 / var
-    return (per_slot * use).sum() / use.sum().clamp_min(1)
+    return e, var, use

@@ -21,8 +21,9 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR", help=TRACE_DIR_HELP)
     p.add_argument("--out", type=Path, required=True, help="adapted checkpoint path")
     p.add_argument("--weights", type=Path, default=None, help="base checkpoint (default: shipped weights)")
-    p.add_argument("--epochs", type=int, default=3, help="passes over the logs (default 3)")
-    p.add_argument("--lr", type=float, default=1e-4, help="learning rate (default 1e-4)")
+    p.add_argument("--epochs", type=int, default=5, help="passes over the logs (default 5); the best on the "
+                   "held-out blocks is kept")
+    p.add_argument("--lr", type=float, default=3e-4, help="learning rate (default 3e-4)")
     p.add_argument("--batch", type=int, default=64, help="batch size (default 64)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the guesses and the batch order")
     p.add_argument("--max-teacher-sigma", type=float, default=3.0, metavar="M",
@@ -34,6 +35,22 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("--loo", type=float, default=1.0, metavar="W",
                    help="weight of the leave-one-satellite-out consistency loss on the per-satellite head "
                         "(default 1; 0: off)")
+    p.add_argument("--part", default="sat", choices=("sat", "all"),
+                   help="what is fine-tuned: the per-satellite head alone (default; the position prior stays "
+                        "the base's) or the whole network")
+    p.add_argument("--agree", type=float, default=0.0, metavar="W",
+                   help="weight of the training losses against the teacher's trajectory (default 0: "
+                        "consistency alone)")
+    p.add_argument("--anchor", type=float, default=10.0, metavar="W",
+                   help="weight of the pull of each epoch's mean sigma and of the biases to the base's "
+                        "(default 10; what the log's own consistency cannot check)")
+    p.add_argument("--margin", type=float, default=0.005, metavar="F",
+                   help="relative gain on the held-out blocks' leave-one-satellite-out error needed to keep "
+                        "the adaptation (default 0.005); below it the base weights are written unchanged")
+    p.add_argument("--block", type=int, default=60, metavar="N",
+                   help="self-check: blocks of N teacher-trusted epochs (default 60) ...")
+    p.add_argument("--every", type=int, default=4, metavar="K",
+                   help="... every K-th of which is held out of the fine-tuning (default 4)")
     p.add_argument("--max-epochs", type=int, default=None, metavar="N", help="use only each log's first N epochs")
     p.add_argument("--signals", default=None,
                    help="signals the teacher uses (default: GPS_L1 for GSDC files, every signal with "

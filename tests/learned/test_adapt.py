@@ -15,7 +15,9 @@ from fusion.errors import GnssfuseError
 from fusion.prepare.load import load_trace
 from learned.adapt import AdaptConfig, adapt, widened_ranges
 from learned.checkpoint import read_checkpoint
+from learned.data import Samples
 from learned.infer import SHIPPED_WEIGHTS, Corrector
+from learned.selfcheck import decide, holdout_mask, split
 
 #: A few hundred epochs of the shipped trace keep every adaptation here to seconds.
 FEW = 150
@@ -26,6 +28,13 @@ def _copy_trace(src, root):
     dst = root / src.parent.name / src.name
     shutil.copytree(src, dst)
     return dst
+
+
+def _differing(a, b) -> set[str]:
+    """Names of the tensors that differ between two checkpoints' weights."""
+    sa, sb = read_checkpoint(a)["model_state"], read_checkpoint(b)["model_state"]
+    assert sa.keys() == sb.keys()
+    return {k for k in sa if sa[k].dtype != sb[k].dtype or not torch.equal(sa[k], sb[k])}
 
 
 def _same_checkpoint(a, b) -> bool:
@@ -66,8 +75,9 @@ def test_never_reads_ground_truth(shipped_trace_dir, tmp_path, monkeypatch):
 
 def test_seeded_and_reproducible(shipped_trace_dir, tmp_path):
     runs = {}
-    for tag, seed in (("a", 3), ("b", 3), ("c", 4)):
-        adapt([shipped_trace_dir], tmp_path / f"{tag}.pt", cfg=AdaptConfig(epochs=1, max_epochs=FEW, seed=seed))
+    for tag, seed in (("a", 3), ("b", 3), ("c", 4)):      # margin -1: keep the epoch whatever the self-check says
+        adapt([shipped_trace_dir], tmp_path / f"{tag}.pt",
+              cfg=AdaptConfig(epochs=1, max_epochs=FEW, seed=seed, margin=-1.0, part="all", agree=1.0))
         runs[tag] = tmp_path / f"{tag}.pt"
     assert _same_checkpoint(runs["a"], runs["b"])
     assert not _same_checkpoint(runs["a"], runs["c"])
@@ -82,12 +92,14 @@ def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, cap
     base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
     rec = new["config"]["adapted"][-1]
     assert rec["teacher"] == "fused" and rec["loo"] == 1.0 and rec["epochs"] == 1 and rec["from"] == SHIPPED_WEIGHTS.name
+    assert rec["part"] == "sat" and rec["agree"] == 0.0 and rec["decision"] in ("accepted", "declined")
+    # the first line says what became of it; by default only the per-satellite head may move
+    assert said.splitlines()[0].startswith("adaptation DECLINED" if rec["decision"] == "declined" else "adapted")
+    assert _differing(SHIPPED_WEIGHTS, out) <= {"sat_head.weight", "sat_head.bias"}
     c = rec["traces"]["2021-04-28-US-MTV-1/Pixel4"]
     assert c["epochs"] == 300 and 0 < c["teacher_trusted"] <= c["teacher_solved"] <= 300
     assert not c["doppler"] and not c["carrier"]          # GSDC 2021 derived files carry neither
     assert "truth" not in repr(new["config"]["adapted"]).lower()
-    # the weights moved, the base's calibration and recipe are kept, the guard's ranges only widen
-    assert any(not torch.equal(base["model_state"][k], new["model_state"][k]) for k in base["model_state"])
     assert new["config"]["calibration"] == base["config"]["calibration"]
     lo_b, hi_b = base["config"]["input_ranges"]["lo"], base["config"]["input_ranges"]["hi"]
     lo_n, hi_n = new["config"]["input_ranges"]["lo"], new["config"]["input_ranges"]["hi"]
@@ -102,7 +114,7 @@ def test_adapting_an_adapted_checkpoint_keeps_both_records(shipped_trace_dir, tm
     cfg = AdaptConfig(epochs=1, max_epochs=FEW)
     adapt([shipped_trace_dir], tmp_path / "one.pt", cfg=cfg)
     adapt([shipped_trace_dir], tmp_path / "two.pt", weights=tmp_path / "one.pt",
-          cfg=AdaptConfig(epochs=1, max_epochs=FEW, teacher="fused-nodnn", loo=0.0))
+          cfg=AdaptConfig(epochs=1, max_epochs=FEW, teacher="fused-nodnn", loo=0.0, agree=1.0, part="all"))
     recs = read_checkpoint(tmp_path / "two.pt")["config"]["adapted"]
     assert [(r["from"], r["teacher"], r["loo"]) for r in recs] == [(SHIPPED_WEIGHTS.name, "fused", 1.0),
                                                                    ("one.pt", "fused-nodnn", 0.0)]
@@ -122,6 +134,10 @@ def test_widened_ranges():
     (["--max-teacher-sigma", "0"], "--max-teacher-sigma > 0"),
     (["--max-epochs", "0"], "--max-epochs >= 1"),
     (["--loo", "-1"], "--loo >= 0"),
+    (["--loo", "0"], "not both 0"),
+    (["--margin", "1"], "0 <= --margin < 1"),
+    (["--every", "1"], "--every >= 2"),
+    (["--anchor", "-1"], "--anchor >= 0"),
     (["--clk", "x.clk"], "--clk needs --sp3"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "no epoch of 2021-04-28-US-MTV-1/Pixel4 has a teacher"),
 ])
@@ -185,3 +201,74 @@ def test_teachers_in_worker_processes_match_in_process(shipped_trace_dir, tmp_pa
     assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-MTV-1/Pixel4 #2"]
     assert sum(c["samples"] for c in rec["traces"].values()) == rec["samples"]
     assert _same_checkpoint(tmp_path / "j1.pt", tmp_path / "j2.pt")
+
+
+def test_declined_adaptation_writes_the_base_weights_and_says_why(shipped_trace_dir, tmp_path, capsys):
+    out = tmp_path / "w.pt"            # no epoch can lower the held-out error by 99 %: declined
+    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--epochs", "2", "--margin", "0.99",
+                "--part", "all", "--agree", "1", "--out", str(out), "--threads", "1"]) == 0
+    said = capsys.readouterr().out.splitlines()
+    assert said[0].startswith("adaptation DECLINED") and "base weights" in said[0] and "margin 99.00%" in said[0]
+    assert _differing(SHIPPED_WEIGHTS, out) == set()          # every tensor, dtype and value
+    base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
+    assert new["config"]["input_ranges"] == base["config"]["input_ranges"]   # the guard is not loosened
+    rec = new["config"]["adapted"][-1]
+    assert rec["decision"] == "declined" and rec["best_epoch"] == 0 and "gain" in rec["reason"]
+    assert len(rec["heldout"]) == 3 and all(v is not None for v in rec["heldout"]) and rec["heldout_samples"] > 0
+    assert {k for k in new["config"] if k != "adapted"} == {k for k in base["config"] if k != "adapted"}
+
+
+def test_accepted_adaptation_keeps_the_best_epoch_and_moves_only_the_chosen_part(shipped_trace_dir, tmp_path):
+    rec = adapt([shipped_trace_dir], tmp_path / "sat.pt", cfg=AdaptConfig(epochs=2, max_epochs=FEW, margin=-1.0,
+                                                                          lr=1e-2))
+    assert rec["decision"] == "accepted" and rec["best_epoch"] == 1 + int(np.argmin(rec["heldout"][1:]))
+    assert _differing(SHIPPED_WEIGHTS, tmp_path / "sat.pt") == {"sat_head.weight", "sat_head.bias"}
+    rec = adapt([shipped_trace_dir], tmp_path / "all.pt",
+                cfg=AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0, part="all", agree=1.0))
+    assert len(_differing(SHIPPED_WEIGHTS, tmp_path / "all.pt")) > 10
+    with pytest.raises(GnssfuseError, match="part must be one of"):
+        adapt([shipped_trace_dir], tmp_path / "x.pt", cfg=AdaptConfig(epochs=1, max_epochs=FEW, part="trunk"))
+
+
+def test_scale_anchor_ignores_what_the_consistency_checks_and_pulls_what_it_cannot():
+    from learned.adapt import scale_anchor
+    mask = torch.tensor([[True, True, True, False]])
+    f64 = dict(dtype=torch.float64)
+    ref = {"sigma": torch.tensor([[2.0, 4.0, 8.0, 1.0]], **f64), "bias": torch.zeros(1, 4, **f64)}
+    # ratios moved, the epoch's mean log-sigma kept, no bias: nothing to pull
+    same_scale = dict(ref, sigma=ref["sigma"] * torch.tensor([[2.0, 0.5, 1.0, 9.0]], dtype=torch.float64))
+    assert float(scale_anchor(same_scale, ref, mask)) == pytest.approx(0.0, abs=1e-12)
+    # every sigma halved: (log 2)^2; a bias of one base sigma on one of three slots: 1/3
+    assert float(scale_anchor(dict(ref, sigma=ref["sigma"] / 2), ref, mask)) == pytest.approx(np.log(2) ** 2)
+    biased = dict(ref, bias=torch.tensor([[2.0, 0.0, 0.0, 50.0]], dtype=torch.float64))
+    assert float(scale_anchor(biased, ref, mask)) == pytest.approx(1 / 3)
+
+
+def _samples(n_per_trace=(130, 70), seed=0) -> Samples:
+    rng = np.random.default_rng(seed)
+    n = sum(n_per_trace)
+    return Samples(rng.normal(size=(n, 6, 3)), rng.normal(size=(n, 6)), np.ones((n, 6), bool),
+                   rng.normal(size=(n, 3)), np.repeat(np.arange(len(n_per_trace)), n_per_trace), ["a", "b"])
+
+
+def test_held_out_split_is_interleaved_blocks_and_never_looks_at_the_teacher_or_truth():
+    s = _samples()
+    held = holdout_mask(s, block=20, every=4)
+    # trace a: samples 20-39 and 100-119 held; trace b (restarts at 0): its samples 20-39
+    assert np.flatnonzero(held).tolist() == [*range(20, 40), *range(100, 120), *range(150, 170)]
+    other = _samples(seed=1)                       # other measurements and another "truth" (the teacher slot)
+    other.truth[:] = np.nan
+    assert np.array_equal(holdout_mask(other, 20, 4), held)
+    fit, val = split(s, 20, 4)
+    assert len(fit) + len(val) == len(s) and np.array_equal(val.pr, s.pr[held]) and np.array_equal(fit.pr, s.pr[~held])
+    # a log shorter than one group still holds a block out (the second)
+    assert holdout_mask(_samples((90,)), 60, 4).sum() == 30
+
+
+def test_decide():
+    assert decide([1.0, 0.999, 1.2], 0.005)[0] == 0                 # 0.1 % < 0.5 %
+    best, why = decide([1.0, 0.9, 0.95], 0.005)
+    assert best == 1 and "epoch 1" in why
+    assert decide([1.0, 1.1], 0.0)[0] == 0                          # worse is never kept
+    assert decide([float("nan"), 0.5], 0.005) == (0, "no held-out epoch with >= 5 satellites to validate on")
+    assert decide([1.0, float("nan"), 0.9], 0.005)[0] == 2
