@@ -9,7 +9,7 @@ import torch
 
 from fusion.errors import DataError
 from fusion.run_types import RunOptions
-from fusion.trace import SIGNALS, resolve_signals
+from fusion.options import parse_signals
 from learned.adapt import AdaptConfig, adapt
 
 
@@ -40,11 +40,7 @@ def check_args(args: argparse.Namespace) -> None:
 
 def run_options(args: argparse.Namespace) -> RunOptions:
     """The run options of the teacher (as ``gnssfuse run`` builds them from the same flags)."""
-    signals = None
-    if args.signals is not None:
-        names = [s.strip() for s in args.signals.split(",") if s.strip()]
-        signals = tuple(SIGNALS[i] for i in resolve_signals(names))
-    return RunOptions(elev_mask_deg=args.elev_mask, signals=signals, nav=tuple(args.nav), sp3=args.sp3,
+    return RunOptions(elev_mask_deg=args.elev_mask, signals=parse_signals(args.signals), nav=tuple(args.nav), sp3=args.sp3,
                       clk=args.clk)
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fusion.options import TRACE_DIR_HELP, add_nav_options
+from fusion.options import TRACE_DIR_HELP, add_nav_options, add_signals_option
 
 #: The library call that does the work once the arguments are parsed.
 WORK = "learned.adapt_command:run"
@@ -52,9 +52,8 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("--every", type=int, default=4, metavar="K",
                    help="... every K-th of which is held out of the fine-tuning (default 4)")
     p.add_argument("--max-epochs", type=int, default=None, metavar="N", help="use only each log's first N epochs")
-    p.add_argument("--signals", default=None,
-                   help="signals the teacher uses (default: GPS_L1 for GSDC files, every signal with "
-                        "ephemerides for RINEX / GnssLogger logs); the network reads its own")
+    add_signals_option(p, "the signals the teacher uses (default: GPS_L1 for GSDC files, every signal with "
+                          "ephemerides for RINEX / GnssLogger logs); the network reads its own")
     add_nav_options(p)
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--jobs", type=int, default=1, help="solve the teachers of N logs at a time (processes)")
