@@ -64,6 +64,14 @@ def rinex_kind(path: str | Path) -> RinexKind | None:
     return RinexKind("other", sys_col.strip(), version)
 
 
+def is_gnss_logger(path: str | Path) -> bool:
+    """Whether ``path`` (plain or gzip) is an Android GnssLogger log, by its content: the app's header
+    names a ``Version:`` and a ``Raw,`` record layout (or the file has Raw records at once), whatever the
+    file is called (the app's own names match ``gnss_log*.txt``, shared logs often do not)."""
+    head = head_text(path, 8192)
+    return ("# Version:" in head and "Raw," in head) or head.startswith("Raw,")
+
+
 def _candidates(folder: Path) -> list[Path]:
     out = []
     for d in (folder, folder / "supplemental"):

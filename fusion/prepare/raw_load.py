@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import DataError
-from fusion.io.discover import SYSTEM_NAMES, files_of_kind, rinex_kind
+from fusion.io.discover import SYSTEM_NAMES, files_of_kind, is_gnss_logger, rinex_kind
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, check_overlap, interp_gapped, llh_ecef,
                              read_truth_csv, warn_outside_bay_area)
 from fusion.trace import Trace
@@ -55,16 +55,18 @@ def _files(folder: Path, pattern: re.Pattern) -> list[Path]:
 
 
 def raw_log_files(folder: Path) -> list[Path]:
-    """RINEX observation files (by header, Hatanaka too) and GnssLogger logs (by name) in
-    ``folder`` or its ``supplemental/``."""
+    """RINEX observation files (by header, Hatanaka too) and GnssLogger logs (by name, or by content
+    for ``.txt`` files named otherwise) in ``folder`` or its ``supplemental/``."""
+    txt = re.compile(r"\.txt(\.gz)?$", re.IGNORECASE)
     logs = _files(folder, _LOG)
-    return [p for p in files_of_kind(folder, "obs") if p not in logs] + logs
+    logs += [p for p in _files(folder, txt) if p not in logs and is_gnss_logger(p)]
+    return [p for p in files_of_kind(folder, "obs") if p not in logs] + sorted(logs)
 
 
 def read_raw(path: Path, glonass_channels: dict[int, int] | None = None):
     """A RINEX observation file or a GnssLogger log -> :class:`~fusion.io.raw.RawObs`.
     glonass_channels: slot -> channel for RINEX headers that lack some (e.g. from navigation)."""
-    if _LOG.search(path.name):
+    if _LOG.search(path.name) or is_gnss_logger(path):
         from fusion.io.gnss_log import read_gnss_log
         return read_gnss_log(path)
     from fusion.io.rinex_obs import read_rinex_obs

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from fusion.errors import DataError
-from fusion.io.discover import files_of_kind, rinex_kind
+from fusion.io.discover import files_of_kind, is_gnss_logger, rinex_kind
 from fusion.prepare.load import load_trace
 from fusion.prepare.raw_load import navigation_files, raw_log_files
 from fusion.io.rinex_nav import default_nav_path, read_nav
@@ -52,6 +52,22 @@ def test_kinds_by_content(tmp_path):
     assert rinex_kind(P5_HEAD).kind == "obs"
     (tmp_path / "notes.txt").write_text("hello\n")
     assert rinex_kind(tmp_path / "notes.txt") is None and rinex_kind(tmp_path / "absent") is None
+
+
+def test_gnss_logger_logs_found_by_content(tmp_path):
+    """A GnssLogger log renamed by whoever shared it (gnss_lib_py ships one as ``pixel6.txt``), plain or
+    gzipped, is a raw log of the folder; a derived CSV or a note named .txt is not. Read as a GnssLogger
+    log, not as the GSDC 2021 derived file its .txt name would otherwise suggest."""
+    log = DATA / "pixel4_gnss_log.txt"
+    (tmp_path / "supplemental").mkdir()
+    shutil.copy(log, tmp_path / "pixel6.txt")
+    (tmp_path / "supplemental" / "drive.txt.gz").write_bytes(gzip.compress(log.read_bytes()))
+    (tmp_path / "notes.txt").write_text("Raw data of the drive, see the app\n")
+    assert is_gnss_logger(tmp_path / "pixel6.txt") and is_gnss_logger(tmp_path / "supplemental" / "drive.txt.gz")
+    assert not is_gnss_logger(tmp_path / "notes.txt") and not is_gnss_logger(tmp_path / "absent.txt")
+    assert sorted(p.name for p in raw_log_files(tmp_path)) == ["drive.txt.gz", "pixel6.txt"]
+    from fusion.prepare.raw_load import read_raw
+    assert len(read_raw(tmp_path / "pixel6.txt").frame) > 0
 
 
 def test_folder_navigation_of_every_name(tmp_path, capsys):
