@@ -270,7 +270,8 @@ def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, round
     # trace's own noise level the estimator down-weights what stands out of it, not every measurement
     k = settings.huber_k * (np.sqrt(scale) if settings.irls_scale == "trace" else 1.0)
     x, conv, bad, runaway = fit.x.copy(), fit.conv, fit.bad, fit.runaway
-    w = np.where(used, w_prior, 0.0)
+    # the weights ``x`` was solved with: a reported-sigma factor alone already changes them (re-solved)
+    w = np.where(used, fit.w_prior, 0.0)
     for _ in range(rounds):
         # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
         # residual would look small next round and the weights would oscillate.

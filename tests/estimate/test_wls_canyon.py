@@ -76,6 +76,19 @@ def test_reported_sigma_directs_the_down_weighting():
     assert err["rep"] < 0.7 * err["elev"]
 
 
+def test_reported_sigma_moves_the_fix_even_where_no_residual_is_down_weighted():
+    """The reported sigma weights a flagged epoch's re-solve even when the M-estimator leaves every weight
+    at 1 (threshold out of reach): the position moves with the weights its covariance reports."""
+    sat, pr, mask, rx = _epochs(DELAYS[None])
+    sigma = np.full(pr.shape, 4.0)
+    sigma[0, 6] = 16.0                                     # the low east satellite reported weak
+    s = TRACE_DEFAULTS.replace(test_scale=1.0, neighbour_weak=False, huber_k=1e9)
+    with_rep = solve_wls_arrays(sat, pr, mask, sigma, settings=s)
+    without = solve_wls_arrays(sat, pr, mask, sigma, settings=s.replace(irls_reported=False))
+    assert with_rep.flagged[0] and without.flagged[0]
+    assert np.linalg.norm(with_rep.pos[0] - without.pos[0]) > 0.5
+
+
 def test_m_estimator_weights_and_settings_checked():
     z = np.array([0.0, 1.0, 2.0, 4.0, 40.0])
     np.testing.assert_allclose(m_weights(z, 2.0, "huber"), [1.0, 1.0, 1.0, 0.5, 0.05])
