@@ -223,6 +223,8 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
         raise DataError(f"teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
     if not (cfg.loo >= 0 and cfg.agree >= 0 and cfg.loo + cfg.agree > 0):
         raise DataError(f"need loo >= 0 and agree >= 0, not both 0 (got {cfg.loo}, {cfg.agree})")
+    if cfg.block < 1 or cfg.every < 2:
+        raise DataError(f"the self-check needs block >= 1 and every >= 2 (got {cfg.block}, {cfg.every})")
     # the teacher's trust threshold (max_teacher_sigma_m) was set on the graph's raw marginals
     taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights,
                                                        sigma_calibration=False),
@@ -301,7 +303,7 @@ def adapt_epoch(model, opt, inp: dict, tcfg: TrainConfig, cfg: AdaptConfig, orde
 def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, cfg: AdaptConfig, held=None,
               progress: bool = False) -> tuple[list[dict], dict | None, dict]:
     """``tcfg.epochs`` passes of :func:`adapt_epoch` over ``samples`` from the model's current weights,
-    scoring the held-out samples ``held`` (:func:`learned.selfcheck.criterion`) before and after each.
+    scoring the held-out samples ``held`` (:func:`learned.selfcheck.criteria`, ``CRITERION``) before and after each.
     Leaves the model at the best epoch, or at its starting weights when that is declined. Returns the
     per-epoch history, the input ranges at the samples' WLS solutions (for the guard) and the decision
     (``decision``, ``reason``, ``best_epoch``, ``heldout``: the criterion per epoch from 0, ``heldout_all``:

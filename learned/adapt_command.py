@@ -23,8 +23,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need --loo >= 0 and --agree >= 0, not both 0")
     if not args.anchor >= 0:
         raise DataError("need --anchor >= 0")
-    if not 0 <= args.margin < 1:
-        raise DataError("need 0 <= --margin < 1")
+    if not -1 <= args.margin < 1:
+        raise DataError("need -1 <= --margin < 1")
     if args.block < 1 or args.every < 2:
         raise DataError("need --block >= 1 and --every >= 2")
     if args.max_epochs is not None and args.max_epochs < 1:

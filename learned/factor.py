@@ -192,7 +192,7 @@ def learned_prior_factor(corrector: PriorProvider, sat_pos: np.ndarray, pr: np.n
         used is ``cov_scale * cov + sigma_floor_m**2 * I``, wrapped in a robust loss ("huber", "cauchy" or
         "none") on the Mahalanobis distance (``robust_k`` in sigmas). The defaults use the network's
         covariance as is; our own graph uses ``fusion.estimate.graph.config.GraphConfig``'s prior_cov_scale,
-        prior_sigma_floor_m, prior_robust, prior_robust_k (1, 2 m, "cauchy", 1; tuning table in its
+        prior_sigma_floor_m, prior_robust, prior_robust_k (4, 2 m, "cauchy", 1; tuning table in its
         docstring), which keep a confidently wrong output from dragging the solution.
 
     Returns ``(factor, mean_ecef (3,), cov_ecef (3,3))``, ``cov_ecef`` being the covariance in the

@@ -165,7 +165,7 @@ class Corrector:
         bool: measurements left out of that WLS (faults the robust WLS excluded: a +200 m fault would
         otherwise move the plain fit and so every residual change of its epoch and the next); the slot
         after a dropped one reads as having no previous residual."""
-        drop = None if drop is None or not np.any(drop) else np.asarray(drop, bool)
+        drop = None if drop is None or not np.any(drop) else np.array(drop, bool)   # a copy: the cache keeps it
         c = self._ctx_cache
         same_drop = c is not None and (c[1] is None if drop is None else c[1] is not None and np.array_equal(c[1], drop))
         if c is None or c[0] is not trace or not same_drop:

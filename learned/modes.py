@@ -72,7 +72,8 @@ def fault_screen(trace: Trace, wls: WlsResult, opts: RunOptions) -> tuple[np.nda
     drop, pos = np.asarray(wls.excluded, bool), np.asarray(wls.pos, float)
     gross = TRACE_DEFAULTS.exclude_above_m
     valid = np.asarray(wls.valid, bool)
-    if not np.isfinite(gross) or not valid.any():
+    # --wls-plain: the paper's baseline keeps every measurement, and so does its learned snapshot
+    if not opts.wls_robust or not np.isfinite(gross) or not valid.any():
         return drop, pos
     above = trace.mask & (np.asarray(wls.elev_deg) >= opts.elev_mask_deg) & valid[:, None]
     weak = valid & (np.asarray(wls.flagged, bool) | (wls.n_used <= NEIGHBOUR_CHECK_MAX_SATS))

@@ -26,9 +26,9 @@ from learned.features import FeatureConfig
 from learned.forward import outputs, take
 from learned.train import make_inputs
 
-#: Defaults of the split and of the acceptance margin [nats per held-out pseudorange].
+#: Defaults of the split and of the acceptance margin (relative gain of the held-out criterion).
 BLOCK, EVERY, MARGIN = 60, 4, 0.005
-#: The held-out figure :func:`criterion` returns (of :func:`criteria`) and its residual cap [m].
+#: The held-out figure of :func:`criteria` the decision reads, and its residual cap [m].
 CRITERION, CAP = "huber_nb", 10.0
 
 
@@ -49,12 +49,6 @@ def split(samples: Samples, block: int = BLOCK, every: int = EVERY) -> tuple[Sam
 def heldout_inputs(tensors: dict, fcfg: FeatureConfig) -> dict:
     """Network inputs of the held-out sample tensors at the teacher (the ``graph`` guess source)."""
     return make_inputs(tensors, tensors["graph"], fcfg)
-
-
-@torch.no_grad()
-def criterion(model, inp: dict, fcfg: FeatureConfig, batch: int = 1024) -> float:
-    """The held-out criterion (``criteria(...)[CRITERION]``) [m]; lower is better."""
-    return criteria(model, inp, fcfg, batch)[CRITERION]
 
 
 @torch.no_grad()
@@ -87,6 +81,8 @@ def decide(scores: list[float], margin: float) -> tuple[int, str]:
     """Best epoch (0: the base) and the reason, from the held-out criterion ``scores`` (base first)."""
     if len(scores) < 2 or not np.isfinite(scores[0]):
         return 0, "no held-out epoch with >= 5 satellites to validate on"
+    if scores[0] <= 0:
+        return 0, "the base already predicts every held-out pseudorange exactly: nothing to gain"
     finite = [s if np.isfinite(s) else np.inf for s in scores]
     best = int(np.argmin(finite[1:])) + 1
     gain = 1.0 - finite[best] / scores[0]

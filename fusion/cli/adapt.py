@@ -46,7 +46,8 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
                         "(default 10; what the log's own consistency cannot check)")
     p.add_argument("--margin", type=float, default=0.005, metavar="F",
                    help="relative gain on the held-out blocks' leave-one-satellite-out error needed to keep "
-                        "the adaptation (default 0.005); below it the base weights are written unchanged")
+                        "the adaptation (default 0.005); below it the base weights are written unchanged (negative: keep "
+                        "the best epoch even where it is worse)")
     p.add_argument("--block", type=int, default=60, metavar="N",
                    help="self-check: blocks of N teacher-trusted epochs (default 60) ...")
     p.add_argument("--every", type=int, default=4, metavar="K",

@@ -255,7 +255,7 @@ def m_weights(z: np.ndarray, k: float, kind: str) -> np.ndarray:
 
 def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, rounds: int = 8,
                scale: float = 1.0, sigma_factor: np.ndarray | None = None) -> FitState:
-    """Iteratively reweighted LS with M-estimator weights (``settings.m_estimator``, threshold
+    """Iteratively reweighted LS with M-estimator weights (``settings.m_estimator``: Huber or Cauchy, threshold
     ``settings.huber_k``) on standardised residuals, on the ``eligible`` (E,) epochs, starting from the
     a-priori weights of the used slots. ``scale``: variance factor of the a-priori weights the residuals
     are standardised with (used when ``settings.irls_scale == "trace"``). ``sigma_factor``: (E, S) factor

@@ -55,7 +55,7 @@ def test_warm_start_converges_to_the_cold_solution():
     warm = fuse(trace, wls, opts, learned=learned, start=start)
     assert "reused_solution" not in warm.info
     assert warm.info["iterations"] <= cold.info["iterations"]
-    # LM stops at a relative cost change of lm_rel_tol (1e-4): two starts end centimetres apart
+    # the batch solver stops at a relative cost change of lm_rel_tol (1e-4): two starts end centimetres apart
     gap = np.linalg.norm(warm.pos - cold.pos, axis=1)
     assert np.nanmedian(gap) < 0.01 and np.nanmax(gap) < 0.05
 

@@ -4,7 +4,6 @@ leaves every position untouched, and metrics.json reports the calibrated sigmas.
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -130,12 +129,6 @@ def test_metrics_json_reports_the_calibrated_sigmas(short_trace, tmp_path):
         assert got["metrics"][k] == pytest.approx(want[k]), k
     assert want["within1sigma_d"] != raw["within1sigma_d"]      # the calibration moved what is reported
     assert got["info"]["variance_factor_p50"] == pytest.approx(on.info["variance_factor_p50"])
-
-
-def test_a_setting_can_be_switched_off_per_run():
-    from fusion.run_types import RunOptions
-    assert RunOptions().sigma_calibration is True
-    assert replace(RunOptions(), sigma_calibration=False).sigma_calibration is False
 
 
 def test_raw_sigmas_flag_switches_the_calibration_off():

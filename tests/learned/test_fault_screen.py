@@ -45,6 +45,8 @@ def test_screen_drops_an_absorbed_fault_and_repairs_the_guess_and_context():
     assert not wls.excluded.any() and np.linalg.norm(wls.pos[4] - rx[4]) > 50.0
     drop, guess = fault_screen(tr, wls, RunOptions())
     assert np.argwhere(drop).tolist() == [[4, 2]]
+    # --wls-plain: the paper's baseline screens nothing
+    assert not fault_screen(tr, wls, RunOptions(wls_robust=False))[0].any()
     assert np.linalg.norm(guess[4] - rx[4]) < 5.0
     np.testing.assert_array_equal(np.delete(guess, 4, 0), np.delete(wls.pos, 4, 0))
     corr = Corrector(ConstantNet(), _config(output="wls"))

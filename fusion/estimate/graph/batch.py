@@ -1,4 +1,5 @@
-"""The whole trace at once: Levenberg-Marquardt over the fused graph, with marginal covariances."""
+"""The whole trace at once: the batch solver (``GraphConfig.batch_solver``: Gauss-Newton, Levenberg-Marquardt
+where a step fails) over the fused graph, with marginal covariances."""
 from __future__ import annotations
 
 import time
@@ -84,7 +85,7 @@ def warm_values(values: gtsam.Values, start: gtsam.Values | None) -> gtsam.Value
 
 def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True,
                 start: BatchSolution | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
-    """Levenberg-Marquardt over the whole trace, from the WLS-derived values, or from ``start``, a previous
+    """The batch solver (``GraphConfig.batch_solver``) over the whole trace, from the WLS-derived values, or from ``start``, a previous
     solution of the trace: where ``inp`` builds the same graph as ``start.inp`` (a learned model whose
     every output its guard turned off) under the same settings, that solution is the answer and only the marginals are computed;
     otherwise the solver starts from its values (see :func:`warm_values`). Returns pos (E,3), valid (E,),

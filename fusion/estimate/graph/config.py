@@ -121,7 +121,7 @@ class GraphConfig:
     # Measurements used where the trace has them, and the solver.
     use_doppler: bool = True
     use_carrier: bool = True
-    incremental: bool = False          # ISAM2 epoch by epoch instead of batch Levenberg-Marquardt
+    incremental: bool = False          # ISAM2 epoch by epoch instead of the batch solver
     use_odometry: bool = False         # the trace's vehicle odometry (smartLoc), off in comparisons with phones
     # Vehicle odometry (use_odometry above; fusion.estimate.graph.odometry), chosen a priori, not
     # tuned: speed sigma floor [m/s] under the file's variance (wheel speed quantisation, slip); heading

@@ -3,7 +3,7 @@ and carrier where the trace has them) + motion + clock, and optionally what a le
 graph (:class:`~fusion.estimate.graph.priors.LearnedGraphInputs`); the ``fused-nodnn`` mode.
 
 The ``fused`` mode (the network's one pass as the learned inputs) lives in :mod:`learned.modes`:
-``fusion`` never imports ``learned``. The graph is solved in batch with Levenberg-Marquardt, or, with
+``fusion`` never imports ``learned``. The graph is solved in batch (Gauss-Newton, Levenberg-Marquardt where a step fails), or, with
 ``GraphConfig.incremental``, epoch by epoch with ISAM2 on the same factors.
 """
 from __future__ import annotations
