@@ -5,7 +5,7 @@ smartLoc, reported on the test traces.
 Two stages. ``collect`` runs wls, dnn, fused-nodnn and fused on each trace with the calibration OFF and
 keeps, per mode, the NED errors, the raw NED variances and the whitened pseudorange residuals at the mode's
 own solution (what the variance factor is made of). The training drives' learned modes use the two-fold
-cross-validation networks (feature version 2, the shipped recipe; ``--fold-weights``: fold_AB.pt never saw
+cross-validation networks of the shipped recipe (``--fold-weights``: fold_AB.pt never saw
 the AB drives), so every figure on a training drive is on a drive its network did not see; smartLoc and the
 test traces use the shipped weights (trained on neither). ``tune`` then chooses, per mode, the window, the
 exponent ``b``, the snapshot share and the per-axis floors by leave-drives-out (four folds of three drives by date, smartLoc its own fold:
@@ -13,9 +13,10 @@ exponent ``b``, the snapshot share and the per-axis floors by leave-drives-out (
 of them and prints the tables (before = the pipeline as it was: raw marginals, and for dnn / fused the
 checkpoint's pooled unseen-drive scale, cross-fitted across the two folds on the training drives).
 
-    # the two-fold networks (feature version 2, the shipped recipe at 8 epochs; experiments/results/crossval_v3.md)
-    python experiments/crossval.py --two-fold --feature-version 2 --out /tmp/cv2b --epochs 8 --jobs 2 --modes wls,dnn,fused
-    mkdir -p /tmp/sigcal/weights && cp /tmp/cv2b/fold_*.pt /tmp/cv2b/fold_*.npz /tmp/sigcal/weights/
+    # the two-fold networks of the shipped recipe (experiments/results/crossval_v3.md; SIM: experiments/sim_city_traces.py)
+    python experiments/crossval.py --two-fold --out /tmp/cvall --epochs 8 --jobs 2 --dropout pr_sigma=0.25 \
+        --modes dnn,fused-nodnn,fused --extra $SIM/*/SimPhone --signals all
+    mkdir -p /tmp/sigcal/weights && cp /tmp/cvall/fold_*.pt /tmp/cvall/fold_*.npz /tmp/sigcal/weights/
     python experiments/sigma_calibration.py collect --out /tmp/sigcal --jobs 2 --fold-weights /tmp/sigcal/weights
     python experiments/sigma_calibration.py tune --out /tmp/sigcal --jobs 2 > experiments/results/sigma_calibration.md
 """

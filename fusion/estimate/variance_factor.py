@@ -65,12 +65,12 @@ class SigmaCalibration:
 #: (``experiments/results/sigma_calibration.md``). ``dnn`` / ``fused`` act on top of the checkpoint's own
 #: (pooled, unseen-drive) calibration.
 DEFAULTS: dict[str, SigmaCalibration] = {
-    "wls": SigmaCalibration(a=(1.0743, 1.0695, 1.1948), b=1.5, window_s=15.0, snapshot=0.3),
-    "dnn": SigmaCalibration(a=(1.1662, 1.1681, 1.6196), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=15.0,
-                            snapshot=0.3, factor_from="wls"),
-    "fused-nodnn": SigmaCalibration(a=(1.0759, 1.3756, 1.6996), b=1.5, floor_m=(0.0, 0.0, 1.0), window_s=60.0,
+    "wls": SigmaCalibration(a=(1.0631, 1.0673, 1.1816), b=1.5, window_s=15.0, snapshot=0.3),
+    "dnn": SigmaCalibration(a=(1.4514, 1.365, 1.8363), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+                            snapshot=0.3),
+    "fused-nodnn": SigmaCalibration(a=(1.1824, 1.4629, 1.3158), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(1.198, 1.3895, 1.2604), b=1.5, window_s=300.0, snapshot=0.3),
+    "fused": SigmaCalibration(a=(0.9071, 1.0542, 0.8314), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
 }
 
 
