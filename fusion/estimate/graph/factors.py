@@ -155,7 +155,8 @@ def tdcp_measured(delta_adr_m: np.ndarray, sat_j: np.ndarray, sat_k: np.ndarray,
 
 def tdcp_factor_linearised(k: int, measured: float, sat_k: np.ndarray, guess_k: np.ndarray,
                            model: gtsam.noiseModel.Base) -> gtsam.DopplerFactor:
-    """:func:`tdcp_factor_uqq` from its linearised measurement (:func:`tdcp_measured`)."""
+    """:func:`tdcp_factor_uqq` from its linearised measurement (:func:`tdcp_measured`) [m]: ``sat_k`` (3,)
+    the satellite's ECEF position at epoch ``k`` and ``guess_k`` (3,) the receiver's guess there [m]."""
     return gtsam.DopplerFactor(disp_key(k), carrier_clock_key(k - 1), carrier_clock_key(k), -measured, 1.0,
                                sat_k, _ZERO3, guess_k, C_LIGHT, 0.0, model)
 

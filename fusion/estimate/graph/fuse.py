@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.errors import GnssfuseError
-from fusion.estimate.graph.batch import solve_batch
+from fusion.estimate.graph.batch import BatchSolution, solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.incremental import solve_incremental
 from fusion.estimate.graph.inputs import EpochInputs, initial_positions, prepare_inputs
@@ -26,7 +26,7 @@ from fusion.trace import Trace
 
 def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig,
                 learned: LearnedGraphInputs | None = None, on_undetermined: str = "drop",
-                want_cov: bool = True, start=None, keep_values: bool = False) -> ModeResult:
+                want_cov: bool = True, start: BatchSolution | None = None, keep_values: bool = False) -> ModeResult:
     """One build and one solve of the graph.
 
     on_undetermined: "drop" (epochs nothing can determine are left unsolved and counted in
@@ -76,7 +76,7 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,
          cfg: GraphConfig | None = None, on_undetermined: str = "drop", want_cov: bool = True,
          slot_noise: SlotNoiseProvider | None = None, learned: LearnedGraphInputs | None = None,
-         start=None) -> ModeResult:
+         start: BatchSolution | None = None) -> ModeResult:
     """Smooth a whole trace in a factor graph.
 
     trace: the measurements; wls: the shared ``WlsResult`` (initial positions, clocks, used slots).
@@ -104,7 +104,8 @@ def learned_guess(trace: Trace, wls: WlsResult, opts: RunOptions) -> np.ndarray:
     return learned_guess_and_start(trace, wls, opts)[0]
 
 
-def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions):
+def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions
+                            ) -> tuple[np.ndarray, BatchSolution | None]:
     """:func:`learned_guess`'s positions (E,3), and the solve of the graph without anything learned
     (a :class:`~fusion.estimate.graph.batch.BatchSolution`; None with ``prior_at="wls"`` or in
     incremental mode) as the ``start`` of the solve with the learned inputs: that solve starts next to

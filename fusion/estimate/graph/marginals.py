@@ -97,7 +97,8 @@ def _jacobian_pairs(gfg: gtsam.GaussianFactorGraph, col: np.ndarray):
 
 
 def _dense_pairs(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, dense, key_start: dict):
-    """The same entries from the information matrices of the factors at positions ``dense``."""
+    """The same entries from the information matrices of the factors at positions ``dense``: rows (P,),
+    cols (P,), values (P,)."""
     dims = result.dims()
     by_size: dict[int, tuple[list, list]] = {}
     for i in dense:                                  # one per clock link: a few thousand
