@@ -98,8 +98,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
                       dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
                       learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
-                      sigma_calibration=not args.raw_sigmas, nav=tuple(args.nav), sp3=args.sp3, clk=args.clk, iono_free=args.iono_free,
-                      graph=graph_config(args))
+                      sigma_calibration=not args.raw_sigmas, nav=tuple(args.nav), sp3=args.sp3, clk=args.clk,
+                      iono_free=args.iono_free, graph=graph_config(args))
 
 
 def graph_config(args: argparse.Namespace) -> GraphConfig:
