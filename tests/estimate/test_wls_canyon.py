@@ -89,6 +89,20 @@ def test_reported_sigma_moves_the_fix_even_where_no_residual_is_down_weighted():
     assert np.linalg.norm(with_rep.pos[0] - without.pos[0]) > 0.5
 
 
+def test_gross_dop_growth_keeps_a_gross_fault_whose_exclusion_costs_the_geometry():
+    """``gross_dop_growth`` (off by default): a +200 m fault on the low east satellite (most of the east
+    geometry) is excluded by default; with a DOP growth limit its exclusion is undone, the satellite kept
+    (Huber-weighted) and the epoch flagged, at a cost here (the fault is real)."""
+    sat, pr, mask, rx = _epochs(np.random.default_rng(4).normal(0, 1.0, (1, len(CANYON))))
+    pr[0, 6] += 200.0
+    s = TRACE_DEFAULTS.replace(test_scale=1.0)
+    default, limited = (solve_wls_arrays(sat, pr, mask, None, settings=s.replace(gross_dop_growth=g))
+                        for g in (float("inf"), 1.01))
+    assert not default.used[0, 6] and default.n_excluded[0] == 1 and not default.flagged[0]
+    assert limited.used[0, 6] and limited.n_excluded[0] == 0 and limited.flagged[0]
+    assert np.linalg.norm(default.pos[0] - rx) < 2.0 < np.linalg.norm(limited.pos[0] - rx)
+
+
 def test_m_estimator_weights_and_settings_checked():
     z = np.array([0.0, 1.0, 2.0, 4.0, 40.0])
     np.testing.assert_allclose(m_weights(z, 2.0, "huber"), [1.0, 1.0, 1.0, 0.5, 0.05])
