@@ -104,7 +104,8 @@ def test_public_api():
 def test_io_only_parses():
     """fusion/io reads and writes files: it imports nothing that computes (estimators, the layer that
     turns records into a Trace, satellite states, the simulator, evaluation, the application layer), only
-    the shared vocabulary (trace, navdata, run types, geometry, time, errors)."""
+    the shared vocabulary (trace, run types, geometry, time, errors); the navigation records it fills
+    (fusion.io.nav_records) are its own contract, which fusion.nav reads."""
     above = ("fusion.prepare", "fusion.estimate", "fusion.sim", "fusion.eval", "fusion.modes", "fusion.cli",
              "fusion.evaluate", "fusion.parallel", "fusion.nav.")
     offenders = [f"{p.relative_to(ROOT)}: {m}" for p in _modules("fusion/io")

@@ -3,8 +3,8 @@ BeiDou ``.21f``, ...), RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too (file
 their header, :mod:`fusion.io.discover`).
 
 :func:`read_nav` keeps every system we model: Keplerian records of GPS, QZSS, Galileo and BeiDou
-in one :class:`~fusion.navdata.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
-:class:`~fusion.navdata.GloNav`, plus the header's GPS Klobuchar coefficients and leap
+in one :class:`~fusion.io.nav_records.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
+:class:`~fusion.io.nav_records.GloNav`, plus the header's GPS Klobuchar coefficients and leap
 seconds. SBAS and IRNSS records are skipped and counted. :func:`read_rinex_nav` is the GPS-only
 view the simulator uses.
 
@@ -25,7 +25,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.gpstime import WEEK_S, gps_ms_from_calendar, leap_seconds_at_unix_ms, GPS_EPOCH_UNIX_MS
-from fusion.navdata import GLONASS_VALID_MS as GLO_VALID_MS, GloNav, GpsNav
+from fusion.io.nav_records import GLONASS_VALID_MS as GLO_VALID_MS, GloNav, GpsNav
 from fusion.io.text_open import read_lines
 from fusion.trace import count_skip
 

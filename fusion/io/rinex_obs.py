@@ -31,7 +31,7 @@ from fusion.io.fixed_width import (char_matrix, gather_fields, line_bounds, pars
                                    parse_float_columns, parse_int)
 from fusion.io.rinex2_obs import satellite_fields, walk_records
 from fusion.io.text_open import read_bytes
-from fusion.navdata import SLOT_CHANNEL
+from fusion.io.nav_records import SLOT_CHANNEL
 from fusion.io.raw import GLO_G1_STEP_HZ, GLO_K_UNKNOWN, SIGNAL_CARRIER_HZ, RawObs, empty_raw, finish_raw
 from fusion.trace import count_skip
 
@@ -75,7 +75,7 @@ def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = N
 
     glonass_channels: slot -> frequency channel k, for slots the header's ``GLONASS SLOT / FRQ #``
     lacks (e.g. from navigation records); ``slot_table``: then the known channel of each slot
-    (:data:`fusion.navdata.SLOT_CHANNEL`). Rows so filled are counted
+    (:data:`fusion.io.nav_records.SLOT_CHANNEL`). Rows so filled are counted
     (``glonass_rows_channel_from_navigation`` / ``_from_slot_table``); without k a GLONASS row
     keeps its pseudorange but not its Doppler and phase (counted in ``skipped``).
 

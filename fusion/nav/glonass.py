@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.errors import DataError
-from fusion.navdata import GLONASS_VALID_MS as VALID_MS, GloNav
+from fusion.io.nav_records import GLONASS_VALID_MS as VALID_MS, GloNav
 
 #: PZ-90 constants (GLONASS ICD 2008, 3.1.3).
 MU_GLO = 3.9860044e14

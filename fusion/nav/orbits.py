@@ -13,7 +13,7 @@ import numpy as np
 
 from fusion.errors import DataError
 from fusion.geometry import C_LIGHT, OMEGA_E, line_of_sight
-from fusion.navdata import GpsNav
+from fusion.io.nav_records import GpsNav
 
 #: WGS-84 gravitational constant used by GPS [m^3/s^2] (IS-GPS-200).
 MU_GPS = 3.986005e14

@@ -7,7 +7,7 @@ RINEX observation and navigation files are found by their header, not their name
 (:mod:`fusion.io.discover`): ``hksc137c.21f`` (BeiDou), ``*_EN.rnx`` (Galileo), ``.crx.gz``
 (Hatanaka) are all read. The navigation files used, and the constellations each covers, are
 printed on stderr; a GLONASS channel the observation header lacks comes from the navigation
-records, else from the slot table (:data:`fusion.navdata.SLOT_CHANNEL`).
+records, else from the slot table (:data:`fusion.io.nav_records.SLOT_CHANNEL`).
 """
 from __future__ import annotations
 

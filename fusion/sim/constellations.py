@@ -21,7 +21,7 @@ follow the Walker delta pattern, its clock is a fixed offset and drift drawn onc
 system-specific seed (the same sky in every run). BeiDou's GEO and IGSO satellites, QZSS and SBAS
 are not synthesised. Records are valid forever, so any date works.
 
-The records are stored in :class:`fusion.navdata.GpsNav` layout with ``sat_id`` =
+The records are stored in :class:`fusion.io.nav_records.GpsNav` layout with ``sat_id`` =
 ``1000 * constellationType + svid`` (GLONASS type 3 takes GPS's constants, which is fine for a
 synthetic orbit), so :func:`fusion.nav.orbits.sat_state` computes their states like real ones.
 """

@@ -153,7 +153,7 @@ def test_sp3_gz_is_read(tmp_path):
 def test_glonass_channels_from_navigation_records():
     """The loader hands these to the observation reader for slots its header lacks; they agree
     with the slot table here."""
-    from fusion.navdata import SLOT_CHANNEL
+    from fusion.io.nav_records import SLOT_CHANNEL
     ch = read_nav(MIXED).glonass_channels()
     assert ch == {1: SLOT_CHANNEL[1], 2: SLOT_CHANNEL[2]}
 

@@ -1,6 +1,6 @@
-"""Navigation records as a reader fills them and the orbit code reads them: the shared vocabulary of
-:mod:`fusion.io` (which parses navigation files) and :mod:`fusion.nav` (which computes satellite states),
-as :mod:`fusion.trace` is for measurements.
+"""Navigation records as the readers of :mod:`fusion.io` fill them: the parsing layer's contract for
+navigation files (as :mod:`fusion.io.raw` is for observations), which :mod:`fusion.nav` reads to compute
+satellite states.
 
 - :class:`GpsNav`: Keplerian broadcast ephemerides (GPS, QZSS, Galileo, BeiDou);
 - :class:`GloNav`: GLONASS broadcast state vectors, with :data:`GLONASS_VALID_MS` and the slot -> frequency
