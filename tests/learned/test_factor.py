@@ -163,26 +163,25 @@ def test_pose_translation_prior_is_in_world_frame():
     assert f.error(v) == pytest.approx(0.5 * 100.0 / 100.0, rel=1e-9)
 
 
-def test_example_04_runs(tiny_ckpt, shipped_trace_dir):
-    if not shipped_trace_dir.is_dir():
+def _run_example(script: str, ckpt, epochs: int, trace_dir) -> subprocess.CompletedProcess:
+    """Run ``examples/<script>`` with ``ckpt`` on its first ``epochs`` epochs; skip without the shipped trace."""
+    if not trace_dir.is_dir():
         pytest.skip("shipped trace not present")
-    out = subprocess.run([sys.executable, str(REPO / "examples" / "04_learned_factor_in_your_graph.py"),
-                          "--weights", str(tiny_ckpt), "--epochs", "40"],
-                         capture_output=True, text=True, timeout=120, env={"OMP_NUM_THREADS": "2",
-                                                                             "PATH": "/usr/bin:/bin"})
+    out = subprocess.run([sys.executable, str(REPO / "examples" / script), "--weights", str(ckpt),
+                          "--epochs", str(epochs)], capture_output=True, text=True, timeout=120,
+                         env={"OMP_NUM_THREADS": "2", "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr[-2000:]
+    return out
+
+
+def test_example_04_runs(tiny_ckpt, shipped_trace_dir):
+    out = _run_example("04_learned_factor_in_your_graph.py", tiny_ckpt, 40, shipped_trace_dir)
     assert "pose graph  horizontal error p50" in out.stdout
     assert "40 epochs" in out.stdout
 
 
 def test_example_05_runs(tiny_ckpt, shipped_trace_dir):
-    if not shipped_trace_dir.is_dir():
-        pytest.skip("shipped trace not present")
-    out = subprocess.run([sys.executable, str(REPO / "examples" / "05_learned_pseudorange_factors.py"),
-                          "--weights", str(tiny_ckpt), "--epochs", "30"],
-                         capture_output=True, text=True, timeout=120, env={"OMP_NUM_THREADS": "2",
-                                                                             "PATH": "/usr/bin:/bin"})
-    assert out.returncode == 0, out.stderr[-2000:]
+    out = _run_example("05_learned_pseudorange_factors.py", tiny_ckpt, 30, shipped_trace_dir)
     rows = {m.group(1): float(m.group(2)) for m in re.finditer(r"^(fixed 5 m sigma|learned sigmas)\s+horizontal "
                                                                r"error p50 ([\d.]+) m", out.stdout, re.M)}
     assert set(rows) == {"fixed 5 m sigma", "learned sigmas"} and all(0 < v < 100 for v in rows.values()), out.stdout
