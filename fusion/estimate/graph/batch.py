@@ -31,13 +31,13 @@ def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndar
 
 
 def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np.ndarray, E: int, cfg: GraphConfig):
-    """:func:`~fusion.estimate.graph.optimiser.optimise_values` from ``values``: (what it returned, the
-    solution, positions (E,3), NaN off ``epochs``)."""
+    """:func:`~fusion.estimate.graph.optimiser.optimise_values` from ``values``: (what it returned, its
+    solution ``.values`` included; positions (E,3), NaN off ``epochs``)."""
     opt = optimise_values(graph, values, cfg)
     pos = np.full((E, 3), np.nan)
     for k in epochs:
         pos[k] = opt.values.atPoint3(pos_key(int(k)))
-    return opt, opt.values, pos
+    return opt, pos
 
 
 @dataclass
@@ -99,17 +99,17 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     values = warm_values(pieces.values(), None if start is None else start.values)
     t1 = time.perf_counter()
     try:
-        opt, result, pos = optimise(graph, values, epochs, E, cfg)
+        opt, pos = optimise(graph, values, epochs, E, cfg)
         if pieces.carrier is not None and cfg.tdcp_relinearise:
             # the carrier factors keep their linearisation point: move it from the WLS track to the
             # solution and polish (a few warm iterations; see GraphConfig.tdcp_relinearise)
             relinearise_carriers(graph, pieces, trace, inp, cfg, pos)
             first = opt.iterations
-            opt, result, pos = optimise(graph, result, epochs, E, cfg)
+            opt, pos = optimise(graph, opt.values, epochs, E, cfg)
             opt_iterations = first + opt.iterations
         else:
             opt_iterations = opt.iterations
-        t2 = time.perf_counter()
+        t2, result = time.perf_counter(), opt.values
         cov = marginal_positions(graph, result, epochs, E, pieces.dense) if want_cov else None
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
@@ -117,7 +117,8 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
-            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back), "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2,
+            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back), "build_s": t1 - t0,
+            "solve_s": t2 - t1, "cov_s": t3 - t2,
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
     info["batch_solution"] = BatchSolution(graph, pieces.dense, result, inp, cfg, pos, valid, dict(info))
     return pos, valid, cov, info
