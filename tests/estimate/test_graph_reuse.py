@@ -66,3 +66,45 @@ def test_other_settings_are_solved_again():
     other = RunOptions(graph=replace(opts.graph, robust_k=4.0))
     again = fuse(trace, wls, other, start=start)
     assert "reused_solution" not in again.info and again.info["iterations"] > 0
+
+
+def _slot_noise(trace, at, valid):
+    """A slot-noise provider: sigmas growing with the slot index, a 1 m bias on slot 0."""
+    sigma = np.broadcast_to(2.0 + 0.5 * np.arange(trace.n_slots), trace.pr.shape).copy()
+    bias = np.zeros(trace.pr.shape)
+    bias[:, 0] = 1.0
+    return sigma, bias
+
+
+def test_learned_inputs_patch_the_first_graph():
+    """The second solve takes the first graph with new pseudorange noise and appended priors: the same
+    cost as a graph built from scratch, at any values, and the same solution."""
+    from fusion.estimate.graph.batch import patchable, patched_graph
+    from fusion.estimate.graph.build import graph_pieces
+
+    trace, wls, opts = _setup()
+    at, start = learned_guess_and_start(trace, wls, opts)
+    learned = learned_from_providers(trace, truth_prior(2.0), _slot_noise, at)
+    inp = prepare_inputs(trace, wls, opts.graph, opts.elev_mask_deg, learned)
+    assert patchable(start, inp, opts.graph)
+    patched, built = patched_graph(start, trace, inp, opts.graph), graph_pieces(trace, inp, opts.graph)
+    assert patched.size() == built.graph().size()
+    for values in (start.values, built.values()):
+        assert np.isclose(patched.error(values), built.graph().error(values), rtol=1e-12)
+    patched_solve = fuse(trace, wls, opts, learned=learned, start=start)
+    built_solve = fuse(trace, wls, opts, learned=learned, start=replace(start, pseudorange=None))  # not patchable
+    assert patched_solve.info["graph_patched"] == 1 and built_solve.info["graph_patched"] == 0
+    np.testing.assert_allclose(patched_solve.pos, built_solve.pos, atol=1e-6)
+    np.testing.assert_allclose(patched_solve.cov, built_solve.cov, rtol=1e-6, atol=1e-12)
+
+
+def test_other_inputs_are_built_again():
+    trace, wls, opts = _setup()
+    from fusion.estimate.graph.batch import patchable
+
+    _, start = learned_guess_and_start(trace, wls, opts)
+    inp = prepare_inputs(trace, wls, opts.graph, opts.elev_mask_deg, None)
+    inp.sel = inp.sel.copy()
+    inp.sel[5, np.flatnonzero(inp.sel[5])[0]] = False        # one measurement fewer: other factors
+    assert not patchable(start, inp, opts.graph)
+    assert not patchable(start, inp, replace(opts.graph, robust_k=4.0))

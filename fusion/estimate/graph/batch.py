@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields, is_dataclass
 import gtsam
 import numpy as np
 
-from fusion.estimate.graph.build import graph_pieces, relinearise_carriers
+from fusion.estimate.graph.build import graph_pieces, prior_factors, pseudorange_factors, relinearise_carriers
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_estimates
@@ -30,10 +30,11 @@ def read_velocities(values: gtsam.Values, epochs: np.ndarray, E: int) -> np.ndar
     return vel
 
 
-def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np.ndarray, E: int, cfg: GraphConfig):
-    """:func:`~fusion.estimate.graph.optimiser.optimise_values` from ``values``: (what it returned, its
-    solution ``.values`` included; positions (E,3), NaN off ``epochs``)."""
-    opt = optimise_values(graph, values, cfg)
+def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np.ndarray, E: int, cfg: GraphConfig,
+             ordering: gtsam.Ordering | None = None):
+    """:func:`~fusion.estimate.graph.optimiser.optimise_values` from ``values`` (with ``ordering``, if
+    given): (what it returned, its solution ``.values`` included; positions (E,3), NaN off ``epochs``)."""
+    opt = optimise_values(graph, values, cfg, ordering)
     pos = np.full((E, 3), np.nan)
     for k in epochs:
         pos[k] = opt.values.atPoint3(pos_key(int(k)))
@@ -42,9 +43,10 @@ def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np
 
 @dataclass
 class BatchSolution:
-    """A solved batch graph kept for a second solve of the same trace (the ``fused`` mode): the graph and
-    its dense factor positions (for :func:`marginal_positions`), the solution, the inputs and settings it
-    was built from, and what :func:`solve_batch` returned (pos (E,3), valid (E,), info)."""
+    """A solved batch graph kept for a second solve of the same trace (the ``fused`` mode): the graph, its
+    dense factor positions (for :func:`marginal_positions`), the solution, the inputs and settings it was
+    built from, what :func:`solve_batch` returned (pos (E,3), valid (E,), info), where its pseudorange
+    factors are and its elimination ordering (for :func:`patched_graph`)."""
 
     graph: gtsam.NonlinearFactorGraph
     dense: list
@@ -54,6 +56,8 @@ class BatchSolution:
     pos: np.ndarray
     valid: np.ndarray
     info: dict
+    pseudorange: slice | None = None
+    ordering: gtsam.Ordering | None = None
 
 
 def same_inputs(a, b) -> bool:
@@ -83,34 +87,69 @@ def warm_values(values: gtsam.Values, start: gtsam.Values | None) -> gtsam.Value
     return warm if warm.size() == values.size() else values
 
 
+#: the inputs a learned model changes that a solved graph takes in place: pseudorange noise and priors
+PATCHABLE = frozenset({"sigma", "pr_bias", "prior_mean", "prior_cov", "prior_ok"})
+
+
+def patchable(start: BatchSolution | None, inp: EpochInputs, cfg: GraphConfig) -> bool:
+    """Whether ``inp`` builds ``start``'s graph but for the pseudorange noise and added position priors
+    (the ``fused`` mode's second solve): same settings, every other input equal, no prior in ``start``."""
+    if start is None or start.cfg != cfg or start.pseudorange is None or cfg.tdcp_relinearise:
+        return False
+    if (start.inp.prior_ok & start.inp.keep).any():
+        return False
+    return all(same_inputs(getattr(start.inp, f.name), getattr(inp, f.name)) for f in fields(inp)
+               if f.name not in PATCHABLE and not isinstance(getattr(inp, f.name), dict))   # dicts: counts
+
+
+def patched_graph(start: BatchSolution, trace: Trace, inp: EpochInputs, cfg: GraphConfig
+                  ) -> gtsam.NonlinearFactorGraph:
+    """``start``'s graph with its pseudorange factors rebuilt from ``inp`` (new sigmas and biases) and the
+    position priors of ``inp`` appended: the rest of the graph (clocks, Doppler, carrier, motion) is built
+    once per run (see :func:`patchable`)."""
+    graph = start.graph.clone()
+    _, factors = pseudorange_factors(trace, inp, cfg, np.flatnonzero(inp.keep))
+    for i, f in zip(range(start.pseudorange.start, start.pseudorange.stop), factors, strict=True):
+        graph.replace(i, f)
+    for f in prior_factors(inp, cfg, np.flatnonzero(inp.keep))[1]:
+        graph.add(f)
+    return graph
+
+
 def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True,
                 start: BatchSolution | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
-    """The batch solver (``GraphConfig.batch_solver``) over the whole trace, from the WLS-derived values, or from ``start``, a previous
-    solution of the trace: where ``inp`` builds the same graph as ``start.inp`` (a learned model whose
-    every output its guard turned off) under the same settings, that solution is the answer and only the marginals are computed;
-    otherwise the solver starts from its values (see :func:`warm_values`). Returns pos (E,3), valid (E,),
-    cov (E,3,3)|None, info (with the :class:`BatchSolution` as ``batch_solution``)."""
+    """The batch solver (``GraphConfig.batch_solver``) over the whole trace, from the WLS-derived values, or
+    from ``start``, a previous solution of the trace: where ``inp`` builds the same graph as ``start.inp`` (a
+    learned model whose every output its guard turned off) under the same settings, that solution is the
+    answer and only the marginals are computed; where it differs only in what :func:`patchable` allows,
+    ``start``'s graph is patched rather than built again; otherwise the solver starts from its values (see
+    :func:`warm_values`). Returns pos (E,3), valid (E,), cov (E,3,3)|None, info (with the
+    :class:`BatchSolution` as ``batch_solution``)."""
     if start is not None and start.cfg == cfg and same_inputs(start.inp, inp):
         return _reuse(trace, start, want_cov)
     E = trace.n_epochs
     t0 = time.perf_counter()
-    pieces = graph_pieces(trace, inp, cfg)
-    graph, epochs = pieces.graph(), np.flatnonzero(inp.keep)
-    values = warm_values(pieces.values(), None if start is None else start.values)
+    if patchable(start, inp, cfg):
+        pieces, graph, values = None, patched_graph(start, trace, inp, cfg), start.values
+        dense, pr_slice, ordering = start.dense, start.pseudorange, start.ordering
+    else:
+        pieces = graph_pieces(trace, inp, cfg)
+        graph, dense, pr_slice = pieces.graph(), pieces.dense, pieces.pseudorange
+        values = warm_values(pieces.values(), None if start is None else start.values)
+        ordering = None
+    epochs = np.flatnonzero(inp.keep)
     t1 = time.perf_counter()
     try:
-        opt, pos = optimise(graph, values, epochs, E, cfg)
-        if pieces.carrier is not None and cfg.tdcp_relinearise:
+        opt, pos = optimise(graph, values, epochs, E, cfg, ordering)
+        opt_iterations = opt.iterations
+        if pieces is not None and pieces.carrier is not None and cfg.tdcp_relinearise:
             # the carrier factors keep their linearisation point: move it from the WLS track to the
             # solution and polish (a few warm iterations; see GraphConfig.tdcp_relinearise)
             relinearise_carriers(graph, pieces, trace, inp, cfg, pos)
-            first = opt.iterations
-            opt, pos = optimise(graph, opt.values, epochs, E, cfg)
-            opt_iterations = first + opt.iterations
-        else:
-            opt_iterations = opt.iterations
+            opt, pos = optimise(graph, opt.values, epochs, E, cfg, opt.ordering)
+            opt_iterations += opt.iterations
         t2, result = time.perf_counter(), opt.values
-        cov = marginal_positions(graph, result, epochs, E, pieces.dense) if want_cov else None
+        cov = marginal_positions(graph, result, epochs, E, dense) if want_cov else None
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
     t3 = time.perf_counter()
@@ -118,9 +157,10 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
             "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back), "build_s": t1 - t0,
-            "solve_s": t2 - t1, "cov_s": t3 - t2,
+            "solve_s": t2 - t1, "cov_s": t3 - t2, "graph_patched": int(pieces is None),
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
-    info["batch_solution"] = BatchSolution(graph, pieces.dense, result, inp, cfg, pos, valid, dict(info))
+    info["batch_solution"] = BatchSolution(graph, dense, result, inp, cfg, pos, valid, dict(info), pr_slice,
+                                           opt.ordering)
     return pos, valid, cov, info
 
 

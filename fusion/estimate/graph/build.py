@@ -54,6 +54,7 @@ class GraphPieces:
     doubles: list = field(default_factory=list)
     value_sets: list = field(default_factory=list)
     carrier: slice | None = None       # where add_carriers put its measurement factors in ``factors``
+    pseudorange: slice | None = None   # where add_pseudoranges put its factors
     #: positions in ``factors`` of factors linearised as rank-deficient HessianFactors (the four-key drift
     #: walk), which the marginals add as information (:mod:`fusion.estimate.graph.marginals`)
     dense: list = field(default_factory=list)
@@ -136,6 +137,15 @@ def add_clocks(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.nd
 
 def add_pseudoranges(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
     """A robust pseudorange factor per selected slot of the kept epochs."""
+    first = len(p.factors)
+    p.add(*pseudorange_factors(trace, inp, cfg, epochs))
+    p.pseudorange = slice(first, len(p.factors))
+
+
+def pseudorange_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray
+                        ) -> tuple[np.ndarray, list]:
+    """The robust pseudorange factors of the selected slots of ``epochs`` (K,), in (epoch, slot) order,
+    and the epoch of each."""
     keep = np.zeros(trace.n_epochs, bool)
     keep[epochs] = True
     ks, ss = np.nonzero(inp.sel & keep[:, None])
@@ -143,9 +153,9 @@ def add_pseudoranges(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphC
     sigma, grp, comp = inp.sigma[ks, ss], inp.isb.group[ks, ss], inp.comp[ks]
     sat = trace.sat_pos[ks, ss]
     models = scalar_robust_models(cfg.robust, cfg.robust_k, sigma)
-    p.add(ks, [pseudorange_factor_xc(k, r, sat[i], models[i]) if g < 0 else
-               pseudorange_factor_xci(k, c, g, r, sat[i], models[i])
-               for i, (k, r, g, c) in enumerate(zip(ks.tolist(), pr.tolist(), grp.tolist(), comp.tolist()))])
+    return ks, [pseudorange_factor_xc(k, r, sat[i], models[i]) if g < 0 else
+                pseudorange_factor_xci(k, c, g, r, sat[i], models[i])
+                for i, (k, r, g, c) in enumerate(zip(ks.tolist(), pr.tolist(), grp.tolist(), comp.tolist()))]
 
 
 def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin: gtsam.Values) -> None:
@@ -225,10 +235,15 @@ def carrier_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
 
 def add_priors(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
     """The position prior where there is one."""
+    p.add(*prior_factors(inp, cfg, epochs))
+
+
+def prior_factors(inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> tuple[np.ndarray, list]:
+    """The position prior factors of ``epochs`` (K,) that have one, and the epoch of each."""
     ks = epochs[inp.prior_ok[epochs]]
-    p.add(ks, [position_prior_factor_x(int(k), inp.prior_mean[k],
-                                       prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k))
-               for k in ks])
+    return ks, [position_prior_factor_x(int(k), inp.prior_mean[k],
+                                        prior_noise_model(inp.prior_cov[k], cfg.prior_robust, cfg.prior_robust_k))
+                for k in ks]
 
 
 def add_motion(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin: gtsam.Values) -> None:
