@@ -4,7 +4,9 @@ Times are UTC (GPS time minus the leap seconds), with milliseconds. GGA's altitu
 height above mean sea level and its separation field the geoid height N (ellipsoidal = altitude + N);
 with no geoid model we write the WGS84 ellipsoidal height as the altitude and N = 0, which keeps
 ``altitude + N`` equal to the ellipsoidal height for readers that add them (as :mod:`fusion.io.nmea`
-does). Fix quality 1 (autonomous GPS) for every mode; HDOP, speed and course are left empty.
+does). Fix quality 1 (autonomous GPS) for every mode; HDOP is left empty. RMC's speed over ground
+[knots] and course [degrees true] come from the track itself (:func:`ground_velocity`), empty where an epoch
+has no neighbour within :data:`MAX_SPEED_GAP_S` (course also below :data:`MIN_COURSE_MPS`, where it is noise).
 """
 from __future__ import annotations
 
@@ -13,9 +15,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from fusion.geometry import ecef2ned_vec, geodetic2ecef
 from fusion.gpstime import gps_ms_to_unix_ms
 
 TALKER = "GN"    # any constellation
+KNOTS_PER_MPS = 3600.0 / 1852.0
+#: neighbours further apart than this [s] give no speed (a gap in the track, not motion across it)
+MAX_SPEED_GAP_S = 5.0
+#: below this ground speed [m/s] the course is the direction of the position noise: left empty
+MIN_COURSE_MPS = 0.5
 
 
 def sentences(bodies: list[str]) -> list[str]:
@@ -44,6 +52,31 @@ def _angle(deg: np.ndarray, width: int, hemis: str) -> tuple[list[str], np.ndarr
     return text, np.where(deg < 0, hemis[1], hemis[0])
 
 
+def ground_velocity(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Speed over ground [m/s] and course [deg true, 0..360) per row (N,), from the central difference of
+    the track (gps_millis, lat_deg, lon_deg, height_m) over the neighbours within MAX_SPEED_GAP_S (one-sided
+    at an end or a gap); NaN where a row has neither, and course NaN below MIN_COURSE_MPS."""
+    n = len(frame)
+    if n == 0:
+        return np.zeros(0), np.zeros(0)
+    t = frame["gps_millis"].to_numpy(np.int64) / 1000.0
+    xyz = geodetic2ecef(frame[["lat_deg", "lon_deg", "height_m"]].to_numpy(float))
+    i = np.arange(n)
+    gap = np.diff(t) > MAX_SPEED_GAP_S
+    a = np.where((i > 0) & ~np.r_[True, gap], i - 1, i)
+    b = np.where((i < n - 1) & ~np.r_[gap, True], i + 1, i)
+    dt = np.where(b > a, t[b] - t[a], np.nan)
+    ned = ecef2ned_vec((xyz[b] - xyz[a]) / dt[:, None], xyz)
+    speed = np.hypot(ned[:, 0], ned[:, 1])
+    course = np.degrees(np.arctan2(ned[:, 1], ned[:, 0])) % 360.0
+    return speed, np.where(speed >= MIN_COURSE_MPS, course, np.nan)
+
+
+def _fields_or_empty(values: np.ndarray, fmt: str) -> list[str]:
+    """Each value formatted with ``fmt``, or "" where it is NaN."""
+    return ["" if not np.isfinite(v) else format(v, fmt) for v in values.tolist()]
+
+
 def nmea_lines(frame: pd.DataFrame) -> list[str]:
     """Two sentences (GGA, RMC) per row of ``frame`` (gps_millis, lat_deg, lon_deg, height_m[, n_sats])."""
     iso = np.datetime_as_string(gps_ms_to_unix_ms(frame["gps_millis"].to_numpy()).astype("datetime64[ms]"),
@@ -51,11 +84,15 @@ def nmea_lines(frame: pd.DataFrame) -> list[str]:
     lat, ns = _angle(frame["lat_deg"].to_numpy(float), 2, "NS")
     lon, ew = _angle(frame["lon_deg"].to_numpy(float), 3, "EW")
     n_sats = (frame["n_sats"] if "n_sats" in frame else pd.Series(0, index=frame.index)).astype(int).tolist()
+    speed, course = ground_velocity(frame)
+    sog, cog = _fields_or_empty(speed * KNOTS_PER_MPS, ".3f"), _fields_or_empty(course, ".2f")
     bodies = []
-    for t, la, n, lo, e, h, k in zip(iso, lat, ns.tolist(), lon, ew.tolist(), frame["height_m"].tolist(), n_sats):
+    for t, la, n, lo, e, h, k, v, c in zip(iso, lat, ns.tolist(), lon, ew.tolist(), frame["height_m"].tolist(),
+                                           n_sats, sog, cog):
         hms, dmy = t[11:13] + t[14:16] + t[17:23], t[8:10] + t[5:7] + t[2:4]
         pos = f"{la},{n},{lo},{e}"
-        bodies += [f"{TALKER}GGA,{hms},{pos},1,{k:02d},,{h:.3f},M,0.000,M,,", f"{TALKER}RMC,{hms},A,{pos},,,{dmy},,,A"]
+        bodies += [f"{TALKER}GGA,{hms},{pos},1,{k:02d},,{h:.3f},M,0.000,M,,",
+                   f"{TALKER}RMC,{hms},A,{pos},{v},{c},{dmy},,,A"]
     return sentences(bodies)
 
 

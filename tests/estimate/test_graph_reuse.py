@@ -36,6 +36,7 @@ def test_same_inputs_tells_graphs_apart():
 
 def test_identical_graph_is_not_solved_twice():
     trace, wls, opts = _setup()
+    opts = RunOptions(graph=replace(opts.graph, guess_rel_tol=opts.graph.lm_rel_tol))
     at, start = learned_guess_and_start(trace, wls, opts)
     assert isinstance(start, BatchSolution)
     cold = fuse(trace, wls, opts)
@@ -45,6 +46,19 @@ def test_identical_graph_is_not_solved_twice():
     np.testing.assert_allclose(again.pos, cold.pos, atol=1e-6)
     np.testing.assert_allclose(again.cov[again.valid], cold.cov[cold.valid], rtol=1e-6, atol=1e-12)
     assert "batch_solution" not in again.info       # GTSAM objects stay out of the result
+
+
+def test_loose_first_solve_is_carried_on():
+    """The first solve stops at guess_rel_tol; the same graph solved again continues from it to the
+    cold solution rather than taking it as the answer."""
+    trace, wls, opts = _setup()
+    assert opts.graph.guess_rel_tol > opts.graph.lm_rel_tol
+    _, start = learned_guess_and_start(trace, wls, opts)
+    again = fuse(trace, wls, opts, start=start)
+    cold = fuse(trace, wls, opts)
+    assert "reused_solution" not in again.info and again.info["graph_patched"] == 1
+    gap = np.linalg.norm(again.pos - cold.pos, axis=1)
+    assert np.nanmedian(gap) < 0.01 and np.nanmax(gap) < 0.05
 
 
 def test_warm_start_converges_to_the_cold_solution():

@@ -184,3 +184,30 @@ def test_run_export_unknown_format_is_one_line(shipped_trace_dir, tmp_path, caps
     assert main(["run", str(shipped_trace_dir), "--out", str(tmp_path / "o"), "--export", "shp"]) == 2
     err = capsys.readouterr().err
     assert "--export" in err and err.strip().count("\n") == 0
+
+
+def test_nmea_rmc_speed_and_course(exported):
+    """RMC's speed [knots] and course [deg true] match the synthetic track's motion: 1e-5 deg of latitude
+    and -2e-5 deg of longitude per second (north-west); the epoch after the unsolved one differences
+    across the 2 s gap, and every field is filled (the track moves faster than MIN_COURSE_MPS)."""
+    frame, paths, _ = exported
+    rmc = [ln.split("*")[0].split(",") for ln in paths["nmea"].read_text().splitlines() if ln[3:6] == "RMC"]
+    lat0 = np.radians(frame.lat_deg.iloc[0])
+    north = np.radians(1e-5) * 6_371_000.0                      # m/s, a sphere: 0.5 % is enough
+    east = -np.radians(2e-5) * 6_371_000.0 * np.cos(lat0)
+    speed_kn = np.array([float(f[7]) for f in rmc])
+    course = np.array([float(f[8]) for f in rmc])
+    np.testing.assert_allclose(speed_kn, np.hypot(north, east) * 3600 / 1852, rtol=5e-3)
+    expect = np.degrees(np.arctan2(east, north)) % 360
+    assert np.all(np.abs((course - expect + 180) % 360 - 180) < 0.5)
+
+
+def test_nmea_rmc_leaves_speed_empty_across_a_gap(tmp_path):
+    from fusion.io.nmea_write import MAX_SPEED_GAP_S, nmea_lines
+
+    frame = pd.DataFrame({"gps_millis": [0, 1000, 1000 + int(1000 * (MAX_SPEED_GAP_S + 5))],
+                          "lat_deg": [37.4, 37.40001, 37.5], "lon_deg": [-122.1] * 3, "height_m": [10.0] * 3})
+    rmc = [ln.split("*")[0].split(",") for ln in nmea_lines(frame) if ln[3:6] == "RMC"]
+    assert rmc[0][7] and rmc[1][7] and rmc[2][7] == "" and rmc[2][8] == ""    # the lone last fix: no speed
+    still = frame.assign(lat_deg=37.4)
+    assert [f.split("*")[0].split(",")[8] for f in nmea_lines(still) if f[3:6] == "RMC"] == ["", "", ""]

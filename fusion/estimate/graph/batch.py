@@ -3,7 +3,7 @@ where a step fails) over the fused graph, with marginal covariances."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, fields, is_dataclass
+from dataclasses import dataclass, fields, is_dataclass, replace
 
 import gtsam
 import numpy as np
@@ -94,7 +94,7 @@ PATCHABLE = frozenset({"sigma", "pr_bias", "prior_mean", "prior_cov", "prior_ok"
 def patchable(start: BatchSolution | None, inp: EpochInputs, cfg: GraphConfig) -> bool:
     """Whether ``inp`` builds ``start``'s graph but for the pseudorange noise and added position priors
     (the ``fused`` mode's second solve): same settings, every other input equal, no prior in ``start``."""
-    if start is None or start.cfg != cfg or start.pseudorange is None or cfg.tdcp_relinearise:
+    if start is None or replace(start.cfg, lm_rel_tol=cfg.lm_rel_tol) != cfg or start.pseudorange is None or cfg.tdcp_relinearise:
         return False
     if (start.inp.prior_ok & start.inp.keep).any():
         return False

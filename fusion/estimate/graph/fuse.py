@@ -8,6 +8,8 @@ The ``fused`` mode (the network's one pass as the learned inputs) lives in :mod:
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from fusion.errors import GnssfuseError
@@ -109,14 +111,16 @@ def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions
     """:func:`learned_guess`'s positions (E,3), and the solve of the graph without anything learned
     (a :class:`~fusion.estimate.graph.batch.BatchSolution`; None with ``prior_at="wls"`` or in
     incremental mode) as the ``start`` of the solve with the learned inputs: that solve starts next to
-    its optimum (the learned inputs move it by metres at most), and is skipped where the model's guard
-    turned every output off (the same graph)."""
+    its optimum (the learned inputs move it by metres at most) and patches its graph. The first solve stops
+    at ``GraphConfig.guess_rel_tol``: the guess needs decimetres, and the second solve carries on to
+    ``lm_rel_tol`` from where it stopped."""
     at, _ = initial_positions(trace, wls, trace.t_ms.astype(float) / 1000.0)
     if opts.graph.prior_at == "wls":
         return at, None
     if opts.graph.prior_at != "graph":
         raise GnssfuseError(f"GraphConfig.prior_at must be 'graph' or 'wls', got {opts.graph.prior_at!r}")
-    first = solve_graph(trace, wls, opts, opts.graph, None, want_cov=False, keep_values=True)
+    loose = replace(opts.graph, lm_rel_tol=opts.graph.guess_rel_tol)
+    first = solve_graph(trace, wls, opts, loose, None, want_cov=False, keep_values=True)
     pos = first.info.get("online_pos", first.pos) if opts.graph.incremental else first.pos
     return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at), first.info.get("batch_solution")
 
