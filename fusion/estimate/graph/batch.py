@@ -94,9 +94,10 @@ PATCHABLE = frozenset({"sigma", "pr_bias", "prior_mean", "prior_cov", "prior_ok"
 def patchable(start: BatchSolution | None, inp: EpochInputs, cfg: GraphConfig) -> bool:
     """Whether ``inp`` builds ``start``'s graph but for the pseudorange noise and added position priors
     (the ``fused`` mode's second solve): same settings, every other input equal, no prior in ``start``."""
-    if start is None or replace(start.cfg, lm_rel_tol=cfg.lm_rel_tol) != cfg or start.pseudorange is None or cfg.tdcp_relinearise:
+    if start is None or start.pseudorange is None or cfg.tdcp_relinearise:
         return False
-    if (start.inp.prior_ok & start.inp.keep).any():
+    # the first solve may have stopped at a looser tolerance (GraphConfig.guess_rel_tol): same graph
+    if replace(start.cfg, lm_rel_tol=cfg.lm_rel_tol) != cfg or (start.inp.prior_ok & start.inp.keep).any():
         return False
     return all(same_inputs(getattr(start.inp, f.name), getattr(inp, f.name)) for f in fields(inp)
                if f.name not in PATCHABLE and not isinstance(getattr(inp, f.name), dict))   # dicts: counts
