@@ -138,13 +138,17 @@ def teach(path: str | Path, opts: RunOptions, max_epochs: int | None = None, mod
 
 
 def teachers(paths: list[str | Path], opts: RunOptions, max_epochs: int | None, mode: str = "fused",
-             jobs: int = 1, progress: bool = False) -> list[Teacher]:
+             jobs: int = 1, progress: bool = False, scheduler: str | None = None) -> list[Teacher]:
     """:func:`teach` for every log: in ``jobs`` worker processes (:func:`fusion.parallel.map_traces`) when
-    more than one, else here; a log that fails is a :class:`DataError` naming it."""
+    more than one, on the Dask cluster at ``scheduler`` when given, else here; a log that fails is a
+    :class:`DataError` naming it."""
+    if scheduler is not None:       # a cluster's workers have working directories of their own
+        paths = [str(Path(p).absolute()) for p in paths]
+        opts = replace(opts, weights=None if opts.weights is None else Path(opts.weights).absolute())
     args = [(p, opts, max_epochs, mode) for p in paths]
-    if jobs > 1 and len(paths) > 1:
+    if scheduler is not None or (jobs > 1 and len(paths) > 1):
         from fusion.parallel import map_traces
-        out = map_traces(teach, args, jobs, progress=progress)
+        out = map_traces(teach, args, jobs, progress=progress, scheduler=scheduler)
     else:
         out = [teach(*a) for a in args]
     for p, r in zip(paths, out):
@@ -208,10 +212,12 @@ def widened_ranges(base: dict | None, new: dict | None) -> dict | None:
 
 def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | None = None,
           cfg: AdaptConfig | None = None, opts: RunOptions | None = None, jobs: int = 1,
-          progress: bool = False, log=None) -> dict:
+          progress: bool = False, log=None, scheduler: str | None = None) -> dict:
     """Fine-tune ``weights`` (None: the shipped ones) on the logs ``paths`` without truth and write the
     checkpoint ``out``: the best epoch on the held-out blocks (:mod:`learned.selfcheck`), or the base
     weights unchanged when no epoch beats them by the margin (``record["decision"] == "declined"``).
+    The teachers are solved in ``jobs`` processes or on the Dask cluster at ``scheduler``
+    (:func:`teachers`); the fine-tuning runs here.
     Returns the adaptation record stored in its config (``config["adapted"]``)."""
     cfg, opts = cfg or AdaptConfig(), opts or RunOptions()
     weights = Path(weights) if weights is not None else SHIPPED_WEIGHTS
@@ -228,7 +234,7 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     # the teacher's trust threshold (max_teacher_sigma_m) was set on the graph's raw marginals
     taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights,
                                                        sigma_calibration=False),
-                      cfg.max_epochs, cfg.teacher, jobs, progress)
+                      cfg.max_epochs, cfg.teacher, jobs, progress, scheduler)
     samples, counts = adaptation_samples(taught, tcfg.signals, cfg)
     t_teacher = time.perf_counter() - t0
     if log:

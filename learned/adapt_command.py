@@ -31,6 +31,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need --max-epochs >= 1")
     if args.jobs < 1:
         raise DataError("need --jobs >= 1")
+    if args.scheduler is not None and args.jobs > 1:
+        raise DataError("--jobs and --scheduler exclude each other (the cluster's workers set the pace)")
     if args.clk is not None and args.sp3 is None:
         raise DataError("--clk needs --sp3")
     for p in args.trace_dirs:
@@ -65,7 +67,7 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
                       teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree, anchor=args.anchor,
                       margin=args.margin, block=args.block, every=args.every)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
-                   progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr))
+                   progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr), scheduler=args.scheduler)
     print(f"{verdict(record, args.out)}\n{describe(record)}")
     return 0
 

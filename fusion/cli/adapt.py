@@ -58,6 +58,10 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     add_nav_options(p)
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--jobs", type=int, default=1, help="solve the teachers of N logs at a time (processes)")
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="solve the teachers on the Dask cluster whose scheduler is at ADDRESS (e.g. "
+                        "tcp://host:8786; needs gnssfuse[cluster]; the workers must see the logs and the "
+                        "weights under the same paths); the fine-tuning itself runs here")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar (there is none anyway when stderr is not a terminal)")

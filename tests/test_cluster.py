@@ -1,4 +1,5 @@
-"""``gnssfuse evaluate --scheduler ADDRESS``: traces on a Dask cluster, same tables as one process."""
+"""``--scheduler ADDRESS``: ``gnssfuse evaluate``'s traces and ``gnssfuse adapt``'s teachers on a Dask cluster,
+with the same results as one process."""
 from __future__ import annotations
 
 import os
@@ -146,4 +147,20 @@ def test_scheduler_without_dask_is_a_one_line_error(tmp_path, shipped_trace_dir,
 def test_jobs_and_scheduler_exclude_each_other(tmp_path, shipped_trace_dir, capsys):
     assert main(["evaluate", str(shipped_trace_dir), "--out", str(tmp_path / "r"), "--jobs", "2",
                  "--scheduler", "tcp://127.0.0.1:8786"]) == 2
+    assert "--jobs and --scheduler exclude each other" in capsys.readouterr().err
+
+
+def test_adapt_teachers_on_a_cluster_give_the_checkpoint_of_one_process(tmp_path, shipped_trace_dir, cluster,
+                                                                         capsys, monkeypatch):
+    from tests.learned.test_adapt import FEW, _copy_trace, _same_checkpoint
+
+    two = [_copy_trace(shipped_trace_dir, tmp_path / "a"), _copy_trace(shipped_trace_dir, tmp_path / "b")]
+    monkeypatch.chdir(tmp_path)                 # relative paths, which the workers cannot resolve as given
+    rel = [str(p.relative_to(tmp_path)) for p in two]
+    common = ["adapt", *rel, "--max-epochs", str(FEW), "--epochs", "1", "--quiet"]
+    assert main([*common, "--out", "one.pt"]) == 0
+    assert main([*common, "--out", "dask.pt", "--scheduler", cluster]) == 0
+    assert _same_checkpoint(tmp_path / "one.pt", tmp_path / "dask.pt")
+    capsys.readouterr()
+    assert main([*common, "--out", "x.pt", "--scheduler", cluster, "--jobs", "2"]) == 2
     assert "--jobs and --scheduler exclude each other" in capsys.readouterr().err
