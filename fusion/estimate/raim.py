@@ -275,9 +275,12 @@ def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, round
     for _ in range(rounds):
         # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
         # residual would look small next round and the weights would oscillate.
-        z = standardised_residuals(fit.sat_pos, fit.pr, np.where(used, w_prior, 0.0), x, used)
-        w_new = np.where(used, w_prior * m_weights(z, k, settings.m_estimator), 0.0)
-        w_new = np.where(eligible[:, None], w_new, w)
+        # Only the eligible epochs' weights change and each epoch's residuals are its own: compute
+        # them for those alone (a trace's few undecided epochs, not all of it, every round).
+        e = np.flatnonzero(eligible)
+        z = standardised_residuals(fit.sat_pos[e], fit.pr[e], np.where(used[e], w_prior[e], 0.0), x[e], used[e])
+        w_new = w.copy()
+        w_new[e] = np.where(used[e], w_prior[e] * m_weights(z, k, settings.m_estimator), 0.0)
         changed = eligible & (np.abs(w_new - w).max(1) > 1e-3 * w_prior.max(1, initial=0))
         w = w_new
         if not changed.any():
