@@ -10,6 +10,7 @@ wrong (it used ``altitude - N``: about 2 |N| = 63.1 m too high in the Bay Area).
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -32,13 +33,13 @@ MAX_SENTENCE = 200
 
 
 def _read_lines(path: Path) -> list[str]:
-    """The file's non-blank lines, stripped."""
-    return [ln for ln in map(str.strip, read_lines(path, "NMEA")) if ln]
+    """The file's lines, stripped."""
+    return list(map(str.strip, read_lines(path, "NMEA")))
 
 
-def _sentences(lines: list[str], kind: str) -> list[str]:
-    """The lines that are sentences of ``kind`` ("GGA", "RMC") from any talker ("$GPGGA", "$GNGGA")."""
-    return [ln for ln in lines if ln[:1] == "$" and ln[3:6] == kind]
+def _sentences(lines: list[str], kind: str) -> Iterator[str]:
+    """The lines that are sentences of ``kind`` ("GGA", "RMC") from any talker ("$GPGGA", "$GNGGA"), lazily."""
+    return (ln for ln in lines if ln[3:6] == kind and ln[:1] == "$")
 
 
 def _tod_ms(v: np.ndarray) -> np.ndarray:
@@ -73,10 +74,11 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     path = Path(path)
     skipped = {} if skipped is None else skipped
     lines = _read_lines(path)
-    fix = _gga_fixes(_sentences(lines, "GGA"), path, skipped)
+    fix = _gga_fixes(list(_sentences(lines, "GGA")), path, skipped)
     # Day roll-over: time of day only ever wraps forward (23:59:59 -> 00:00:00).
     tod = fix.pop("tod")
     day = np.concatenate([[0], np.cumsum(np.diff(tod) < -DAY_MS / 2)])
+    # the first valid RMC dates the file: the others are never looked at
     unix_day0 = _first_day_unix_ms(_sentences(lines, "RMC"), tod[0], ref_gps_ms, path)
     t_ms = unix_ms_to_gps_ms((unix_day0 + day * DAY_MS + tod).astype(np.int64))
     df = pd.DataFrame({
@@ -125,7 +127,7 @@ def _unique_forward(df: pd.DataFrame, path: Path, skipped: dict[str, int]) -> pd
     return df.reset_index(drop=True)
 
 
-def _first_rmc_date(rmc_lines: list[str]) -> tuple[int, float, str] | None:
+def _first_rmc_date(rmc_lines: Iterable[str]) -> tuple[int, float, str] | None:
     """(unix ms of 00:00 UTC of the date, ms of day, the date field) of the first RMC sentence
     with status A and a readable ``ddmmyy`` date; None when there is none."""
     for ln in rmc_lines:
@@ -140,7 +142,7 @@ def _first_rmc_date(rmc_lines: list[str]) -> tuple[int, float, str] | None:
     return None
 
 
-def _first_day_unix_ms(rmc_lines: list[str], first_tod: float, ref_gps_ms: int | None,
+def _first_day_unix_ms(rmc_lines: Iterable[str], first_tod: float, ref_gps_ms: int | None,
                        path: Path) -> float:
     """Unix ms of 00:00 UTC on the day of the first GGA fix."""
     rmc = _first_rmc_date(rmc_lines)
