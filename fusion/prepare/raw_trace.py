@@ -288,8 +288,8 @@ def _inter_signal_bias(rows: pd.DataFrame, sat_pos: np.ndarray, pr: np.ndarray, 
     d = pr - rng[:, 0]
     clock = pd.Series(np.where(ref & np.isfinite(clock_m), d, np.nan)).groupby(epoch).transform("median").to_numpy()
     resid = d - clock
-    key = pd.Series(rows["signal"].to_numpy(object)) + "/" + rows["glo_k"].astype(str).to_numpy(object)
-    bias = pd.Series(np.where(ref, np.nan, resid)).groupby(key.to_numpy()).transform("median").to_numpy()
+    groups = [rows["signal"].to_numpy(object), rows["glo_k"].to_numpy()]       # per signal and GLONASS channel
+    bias = pd.Series(np.where(ref, np.nan, resid)).groupby(groups).transform("median").to_numpy()
     return np.where(ref | ~np.isfinite(bias), 0.0, bias)
 
 
