@@ -151,19 +151,23 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, 
     ambiguous = np.zeros(E, bool)
     decided = ~fails
     n = used.sum(1)
-    _, _, r, H = normal_equations(sat_pos, pr, w, x)
+    # only the failing epochs are searched (each epoch's residuals are its own): f holds them, and
+    # H, r, w, used_o, order below are rows of f
+    f = np.flatnonzero(fails)
+    _, _, r, H = normal_equations(sat_pos[f], pr[f], w[f], x[f])
     # slots reordered per epoch, suspects first: the k-sets come from the first MAX_SUSPECTS
-    order = np.tile(np.arange(S), (E, 1))
-    cand = np.flatnonzero(fails & (n >= 6))
+    order = np.tile(np.arange(S), (f.size, 1))
+    cand = np.flatnonzero(n[f] >= 6)
     if cand.size:
-        order[cand] = _suspects_first(H[cand], r[cand], w[cand], used[cand])
+        order[cand] = _suspects_first(H[cand], r[cand], w[f][cand], used[f][cand])
     H, r, w, used_o = (np.take_along_axis(a, order[..., None] if a.ndim == 3 else order, axis=1)
-                       for a in (H, r, w, used))
+                       for a in (H, r, w[f], used[f]))
     for k in range(1, max_exclusions + 1):
-        idx = np.flatnonzero(~decided & (n - k >= 5))
-        if idx.size == 0:
+        loc = np.flatnonzero(~decided[f] & (n[f] - k >= 5))
+        if loc.size == 0:
             break
-        sse, sets = _chunked_subset_sse(H[idx], r[idx], w[idx], used_o[idx], k, MAX_SUSPECTS if k > 1 else S)
+        idx = f[loc]
+        sse, sets = _chunked_subset_sse(H[loc], r[loc], w[loc], used_o[loc], k, MAX_SUSPECTS if k > 1 else S)
         best = np.argmin(sse, axis=1)
         best_sse = sse[np.arange(idx.size), best]
         runner_up = np.partition(sse, 1, axis=1)[:, 1] if sse.shape[1] > 1 else np.full(idx.size, np.inf)
@@ -171,8 +175,8 @@ def _best_exclusion(sat_pos, pr, w, x, used, fails, max_exclusions, separation, 
         # identified only when no other set explains the data nearly as well
         clear = runner_up >= separation * np.maximum(best_sse, 1e-9)
         ok = passes & clear
-        rows = idx[ok]
-        remove[rows[:, None], order[rows[:, None], sets[best[ok]]]] = True
+        rows = loc[ok]
+        remove[f[rows][:, None], order[rows[:, None], sets[best[ok]]]] = True
         decided[idx[passes]] = True
         ambiguous[idx[passes & ~clear]] = True
     return remove, decided & ~ambiguous
@@ -275,9 +279,12 @@ def huber_irls(fit: FitState, eligible: np.ndarray, settings: WlsSettings, round
     for _ in range(rounds):
         # Standardise with the a-priori weights: with the current (reduced) ones a down-weighted
         # residual would look small next round and the weights would oscillate.
-        z = standardised_residuals(fit.sat_pos, fit.pr, np.where(used, w_prior, 0.0), x, used)
-        w_new = np.where(used, w_prior * m_weights(z, k, settings.m_estimator), 0.0)
-        w_new = np.where(eligible[:, None], w_new, w)
+        # Only the eligible epochs' weights change and each epoch's residuals are its own: compute
+        # them for those alone (a trace's few undecided epochs, not all of it, every round).
+        e = np.flatnonzero(eligible)
+        z = standardised_residuals(fit.sat_pos[e], fit.pr[e], np.where(used[e], w_prior[e], 0.0), x[e], used[e])
+        w_new = w.copy()
+        w_new[e] = np.where(used[e], w_prior[e] * m_weights(z, k, settings.m_estimator), 0.0)
         changed = eligible & (np.abs(w_new - w).max(1) > 1e-3 * w_prior.max(1, initial=0))
         w = w_new
         if not changed.any():

@@ -219,8 +219,9 @@ def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndar
         return result
     sel, sigma = sigma_model(trace, np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan),
                              opts.elev_mask_deg)
-    return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma,
-                            wls=wls_track(trace, wls, opts.elev_mask_deg))
+    cal = DEFAULTS[mode]
+    track = wls_track(trace, wls, opts.elev_mask_deg) if cal.factor_from == "wls" else None   # else unused
+    return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma, cal=cal, wls=track)
 
 
 def calibrate_graph(result, trace: Trace, mode: str, opts, wls):

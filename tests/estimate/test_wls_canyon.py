@@ -149,3 +149,20 @@ def test_gross_outliers_from_neighbours_find_an_absorbed_fault():
     w = solve_wls(clean)
     far, decided, _ = gross_outliers(clean.t_ms, clean.sat_pos, clean.pr, w.pos, ~settled, settled, clean.mask, 80.0)
     assert decided[4] and not far.any()
+
+
+def test_an_epochs_robust_fix_does_not_depend_on_the_other_epochs():
+    """Snapshot stages work per epoch (the IRLS re-solves only the epochs it down-weights): with the test's
+    variance fixed, each epoch of a batch gets the fix it gets alone, to the bit."""
+    rng = np.random.default_rng(8)
+    E = 12
+    sat, pr, mask, rx = _epochs(rng.normal(0, 1.0, (E, len(CANYON))), E=E)
+    pr[::2] += DELAYS * rng.uniform(0.5, 1.5, (E // 2, 1))      # every other epoch in the canyon
+    pr[1::4, 2] += 300.0                                            # and a gross fault now and then
+    s = TRACE_DEFAULTS.replace(test_scale=1.0)
+    batch = solve_wls_arrays(sat, pr, mask, None, settings=s)
+    assert batch.flagged.sum() >= 3 and batch.n_excluded.sum() >= 3    # both robust stages at work
+    for e in range(E):
+        alone = solve_wls_arrays(sat[e:e + 1], pr[e:e + 1], mask[e:e + 1], None, settings=s)
+        np.testing.assert_array_equal(alone.pos[0], batch.pos[e])
+        np.testing.assert_array_equal(alone.used[0], batch.used[e])
