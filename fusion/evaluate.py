@@ -112,6 +112,7 @@ def run_all(trace_dirs: list[Path], modes: list[str], opts: RunOptions, max_epoc
     here = jobs == 1 and scheduler is None          # only then can a trace's own mode bars be shown
     # a cluster's workers have working directories of their own: absolute paths
     place = Path if scheduler is None else (lambda p: Path(p).absolute())
+    opts = opts if scheduler is None else opts.with_absolute_paths()
     args = [(place(d), _slug(trace_name(d), taken), modes, opts, max_epochs, fix_truth_height, place(out_dir),
              progress and here) for d in trace_dirs]
     return map_traces(load_and_run, args, jobs, progress, costs=[_input_bytes(Path(d)) for d in trace_dirs],

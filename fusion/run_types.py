@@ -5,7 +5,7 @@ registry in :mod:`fusion.modes`, the CLI), so no estimator depends on the code t
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +54,13 @@ class RunOptions:
     @property
     def use_odometry(self) -> bool:
         return self.graph.use_odometry
+
+    def with_absolute_paths(self) -> "RunOptions":
+        """These options with every file they name (weights, navigation, SP3, clock) made absolute: a
+        cluster's workers have working directories of their own."""
+        absolute = lambda p: None if p is None else Path(p).absolute()  # noqa: E731
+        return replace(self, weights=absolute(self.weights), nav=tuple(absolute(p) for p in self.nav),
+                       sp3=absolute(self.sp3), clk=absolute(self.clk))
 
 
 @dataclass

@@ -143,8 +143,7 @@ def teachers(paths: list[str | Path], opts: RunOptions, max_epochs: int | None, 
     more than one, on the Dask cluster at ``scheduler`` when given, else here; a log that fails is a
     :class:`DataError` naming it."""
     if scheduler is not None:       # a cluster's workers have working directories of their own
-        paths = [str(Path(p).absolute()) for p in paths]
-        opts = replace(opts, weights=None if opts.weights is None else Path(opts.weights).absolute())
+        paths, opts = [str(Path(p).absolute()) for p in paths], opts.with_absolute_paths()
     args = [(p, opts, max_epochs, mode) for p in paths]
     if scheduler is not None or (jobs > 1 and len(paths) > 1):
         from fusion.parallel import map_traces

@@ -164,3 +164,16 @@ def test_adapt_teachers_on_a_cluster_give_the_checkpoint_of_one_process(tmp_path
     capsys.readouterr()
     assert main([*common, "--out", "x.pt", "--scheduler", cluster, "--jobs", "2"]) == 2
     assert "--jobs and --scheduler exclude each other" in capsys.readouterr().err
+
+
+def test_options_name_absolute_files_for_the_workers(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    from fusion.run_types import RunOptions
+
+    monkeypatch.chdir(tmp_path)
+    opts = RunOptions(weights=Path("w.pt"), nav=(Path("a.21n"), Path("b.21g")), sp3=Path("o.sp3"), clk=None)
+    got = opts.with_absolute_paths()
+    assert got.weights == tmp_path / "w.pt" and got.nav == (tmp_path / "a.21n", tmp_path / "b.21g")
+    assert got.sp3 == tmp_path / "o.sp3" and got.clk is None and got.graph == opts.graph
+    assert RunOptions().with_absolute_paths() == RunOptions()
