@@ -24,7 +24,7 @@ from fusion.eval.report import (TraceEval, markdown_table, metrics_table, write_
 from fusion.io.estimates import write_outputs
 from fusion.prepare.load import load_trace, trace_name
 from fusion.modes import get_mode, run_modes, solve_initial
-from fusion.parallel import map_traces
+from fusion.parallel import check_pace, map_traces
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
 
@@ -145,10 +145,7 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
         raise DataError(f"trace folder(s) not found: {', '.join(missing)}")
     if max_epochs is not None and max_epochs < 1:
         raise GnssfuseError("--max-epochs must be >= 1")
-    if jobs < 1:
-        raise GnssfuseError("--jobs must be >= 1")
-    if scheduler is not None and jobs > 1:
-        raise GnssfuseError("--jobs and --scheduler exclude each other (the cluster's workers set the pace)")
+    check_pace(jobs, scheduler)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     outcomes = run_all(trace_dirs, modes, opts, max_epochs, fix_truth_height, progress, jobs, out_dir, scheduler)

@@ -42,6 +42,14 @@ def add_signals_option(p: argparse.ArgumentParser, default: str) -> None:
                         f"too), or all; {default}")
 
 
+def add_scheduler_option(p: argparse.ArgumentParser, what: str) -> None:
+    """``--scheduler ADDRESS`` (a Dask scheduler); ``what`` says what runs on the cluster's workers."""
+    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help=f"run {what} on the Dask cluster whose scheduler is at ADDRESS (e.g. tcp://host:8786; "
+                        "needs gnssfuse[cluster]; the workers must see every input and output path as given "
+                        "here, relative ones resolved from this directory)")
+
+
 def parse_signals(text: str | None) -> tuple[str, ...] | None:
     """The loader's signal names of a ``--signals`` value (our names, GSDC 2023 spellings or "all"); None
     for None."""

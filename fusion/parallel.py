@@ -42,6 +42,15 @@ def _one_thread() -> None:
         sys.modules["torch"].set_num_threads(1)
 
 
+def check_pace(jobs: int, scheduler: str | None) -> None:
+    """One-line errors for ``--jobs`` / ``--scheduler`` values no run can use (every command that takes
+    them checks here, before any work)."""
+    if jobs < 1:
+        raise GnssfuseError("--jobs must be >= 1")
+    if scheduler is not None and jobs > 1:
+        raise GnssfuseError("--jobs and --scheduler exclude each other (the cluster's workers set the pace)")
+
+
 def map_traces(func: Callable, args: Sequence[tuple], jobs: int = 1, progress: bool = False,
                costs: Sequence[float] | None = None, scheduler: str | None = None) -> list:
     """``[func(*a) for a in args]``, results in the order of ``args``: in this process when ``jobs``
@@ -54,8 +63,7 @@ def map_traces(func: Callable, args: Sequence[tuple], jobs: int = 1, progress: b
     run time; the costliest calls start first, so that a long one does not start last and leave the
     other workers idle (longest-processing-time-first scheduling).
     """
-    if jobs < 1:
-        raise GnssfuseError("--jobs must be >= 1")
+    check_pace(jobs, scheduler)
     if scheduler is None and jobs == 1:         # one at a time: the order of args, whatever the costs
         return [guarded(func, *a) for a in tqdm(args, desc="traces", disable=not progress)]
     order = list(range(len(args)))

@@ -10,6 +10,7 @@ import torch
 from fusion.errors import DataError
 from fusion.run_types import RunOptions
 from fusion.options import parse_signals
+from fusion.parallel import check_pace
 from learned.adapt import AdaptConfig, adapt
 
 
@@ -29,10 +30,7 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need --block >= 1 and --every >= 2")
     if args.max_epochs is not None and args.max_epochs < 1:
         raise DataError("need --max-epochs >= 1")
-    if args.jobs < 1:
-        raise DataError("need --jobs >= 1")
-    if args.scheduler is not None and args.jobs > 1:
-        raise DataError("--jobs and --scheduler exclude each other (the cluster's workers set the pace)")
+    check_pace(args.jobs, args.scheduler)
     if args.clk is not None and args.sp3 is None:
         raise DataError("--clk needs --sp3")
     for p in args.trace_dirs:
@@ -42,8 +40,8 @@ def check_args(args: argparse.Namespace) -> None:
 
 def run_options(args: argparse.Namespace) -> RunOptions:
     """The run options of the teacher (as ``gnssfuse run`` builds them from the same flags)."""
-    return RunOptions(elev_mask_deg=args.elev_mask, signals=parse_signals(args.signals), nav=tuple(args.nav), sp3=args.sp3,
-                      clk=args.clk)
+    return RunOptions(elev_mask_deg=args.elev_mask, signals=parse_signals(args.signals), nav=tuple(args.nav),
+                      sp3=args.sp3, clk=args.clk)
 
 
 def describe(record: dict) -> str:
@@ -64,8 +62,8 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
         torch.set_num_threads(args.threads)
     cfg = AdaptConfig(epochs=args.epochs, lr=args.lr, batch=args.batch, seed=args.seed,
                       max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
-                      teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree, anchor=args.anchor,
-                      margin=args.margin, block=args.block, every=args.every)
+                      teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree,
+                      anchor=args.anchor, margin=args.margin, block=args.block, every=args.every)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr), scheduler=args.scheduler)
     print(f"{verdict(record, args.out)}\n{describe(record)}")

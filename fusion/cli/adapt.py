@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from fusion.options import TRACE_DIR_HELP, add_nav_options, add_signals_option
+from fusion.options import TRACE_DIR_HELP, add_nav_options, add_scheduler_option, add_signals_option
 
 #: The library call that does the work once the arguments are parsed.
 WORK = "learned.adapt_command:run"
@@ -46,8 +46,8 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
                         "(default 10; what the log's own consistency cannot check)")
     p.add_argument("--margin", type=float, default=0.005, metavar="F",
                    help="relative gain on the held-out blocks' leave-one-satellite-out error needed to keep "
-                        "the adaptation (default 0.005); below it the base weights are written unchanged (negative: keep "
-                        "the best epoch even where it is worse)")
+                        "the adaptation (default 0.005); below it the base weights are written unchanged "
+                        "(negative: keep the best epoch even where it is worse)")
     p.add_argument("--block", type=int, default=60, metavar="N",
                    help="self-check: blocks of N teacher-trusted epochs (default 60) ...")
     p.add_argument("--every", type=int, default=4, metavar="K",
@@ -58,10 +58,7 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     add_nav_options(p)
     p.add_argument("--elev-mask", type=float, default=10.0, help="elevation mask [deg]")
     p.add_argument("--jobs", type=int, default=1, help="solve the teachers of N logs at a time (processes)")
-    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                   help="solve the teachers on the Dask cluster whose scheduler is at ADDRESS (e.g. "
-                        "tcp://host:8786; needs gnssfuse[cluster]; the workers must see the logs and the "
-                        "weights under the same paths); the fine-tuning itself runs here")
+    add_scheduler_option(p, "the teachers (the fine-tuning itself runs here)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar (there is none anyway when stderr is not a terminal)")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from fusion.cli.common import out_folder, show_progress
 from fusion.errors import GnssfuseError
-from fusion.options import TRACE_DIR_HELP, add_run_options, options_from_args
+from fusion.options import TRACE_DIR_HELP, add_run_options, add_scheduler_option, options_from_args
 
 
 def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
@@ -25,10 +25,7 @@ def build_parser(prog: str = "gnssfuse evaluate") -> argparse.ArgumentParser:
                    help="no progress bars (there are none anyway when stderr is not a terminal)")
     p.add_argument("--jobs", type=int, default=1,
                    help="traces in this many parallel processes (one thread each; default 1)")
-    p.add_argument("--scheduler", metavar="ADDRESS", default=None,
-                   help="run the traces on the Dask cluster whose scheduler is at ADDRESS (e.g. "
-                        "tcp://host:8786; needs gnssfuse[cluster]; the workers must see the trace and --out "
-                        "folders under the same paths)")
+    add_scheduler_option(p, "the traces")
     return p
 
 
