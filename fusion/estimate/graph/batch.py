@@ -8,6 +8,7 @@ from dataclasses import dataclass, fields, is_dataclass, replace
 import gtsam
 import numpy as np
 
+from fusion.estimate.graph.banded_gn import gauss_newton
 from fusion.estimate.graph.build import graph_pieces, prior_factors, pseudorange_factors, relinearise_carriers
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
@@ -16,6 +17,8 @@ from fusion.estimate.graph.keys import pos_key, vel_key
 from fusion.estimate.graph.marginals import marginal_positions
 from fusion.estimate.graph.optimiser import optimise_values
 from fusion.estimate.graph.solve_errors import geometry_error
+from fusion.estimate.graph.vector_graph import (VectorGraph, banded_marginals, same_layout, to_values, vector_graph,
+                                                vector_isb_estimates, vector_velocities)
 from fusion.trace import Trace
 
 
@@ -43,10 +46,11 @@ def optimise(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, epochs: np
 
 @dataclass
 class BatchSolution:
-    """A solved batch graph kept for a second solve of the same trace (the ``fused`` mode): the graph, its
+    """A solved batch graph kept for a second solve of the same trace (the ``fused`` mode): GTSAM's graph, its
     dense factor positions (for :func:`marginal_positions`), the solution, the inputs and settings it was
     built from, what :func:`solve_batch` returned (pos (E,3), valid (E,), info), where its pseudorange
-    factors are and its elimination ordering (for :func:`patched_graph`)."""
+    factors are and its elimination ordering (for :func:`patched_graph`); or, solved by the banded solver,
+    no GTSAM graph or values but the vectorised graph and its solution x (N,)."""
 
     graph: gtsam.NonlinearFactorGraph
     dense: list
@@ -58,6 +62,8 @@ class BatchSolution:
     info: dict
     pseudorange: slice | None = None
     ordering: gtsam.Ordering | None = None
+    vector: VectorGraph | None = None
+    x: np.ndarray | None = None
 
 
 def same_inputs(a, b) -> bool:
@@ -122,12 +128,64 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     """The batch solver (``GraphConfig.batch_solver``) over the whole trace, from the WLS-derived values, or
     from ``start``, a previous solution of the trace: where ``inp`` builds the same graph as ``start.inp`` (a
     learned model whose every output its guard turned off) under the same settings, that solution is the
-    answer and only the marginals are computed; where it differs only in what :func:`patchable` allows,
-    ``start``'s graph is patched rather than built again; otherwise the solver starts from its values (see
-    :func:`warm_values`). Returns pos (E,3), valid (E,), cov (E,3,3)|None, info (with the
-    :class:`BatchSolution` as ``batch_solution``)."""
+    answer and only the marginals are computed; otherwise the solver starts from its values where the
+    variables are the same. "banded" solves the graph's vectorised copy (:mod:`~fusion.estimate.graph.vector_graph`)
+    where it has one, GTSAM's graph otherwise. Returns pos (E,3), valid (E,), cov (E,3,3)|None, info (with
+    the :class:`BatchSolution` as ``batch_solution``)."""
     if start is not None and start.cfg == cfg and same_inputs(start.inp, inp):
         return _reuse(trace, start, want_cov)
+    if cfg.batch_solver == "banded":
+        t0 = time.perf_counter()
+        vec = vector_graph(trace, inp, cfg)
+        if vec is not None:
+            return _solve_banded(trace, inp, cfg, vec, want_cov, start, t0)
+    return _solve_gtsam(trace, inp, cfg, want_cov, start)
+
+
+def _solve_banded(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorGraph, want_cov: bool,
+                  start: BatchSolution | None, t0: float):
+    """:func:`solve_batch` by :func:`~fusion.estimate.graph.banded_gn.gauss_newton` on ``vec`` (built from
+    ``t0``); where a step fails, GTSAM's Levenberg-Marquardt carries on from the best values so far."""
+    warm = start is not None and start.vector is not None and same_layout(start.vector.layout, vec.layout)
+    x0 = start.x if warm else vec.x0
+    t1 = time.perf_counter()
+    sol = gauss_newton(vec.system, x0, cfg.lm_rel_tol, cfg.lm_max_iter)
+    if not sol.ok:
+        return _solve_gtsam(trace, inp, replace(cfg, batch_solver="levenberg-marquardt"), want_cov, None,
+                            initial=to_values(vec.layout, sol.x), handed_over=sol.iterations)
+    E, epochs = trace.n_epochs, np.flatnonzero(inp.keep)
+    pos = np.full((E, 3), np.nan)
+    pos[epochs] = sol.x[vec.layout.start["pos"][epochs, None] + np.arange(3)]
+    t2 = time.perf_counter()
+    try:
+        cov = _banded_cov(trace, inp, cfg, vec, sol.x) if want_cov else None
+    except RuntimeError as exc:
+        raise geometry_error(trace, exc) from None
+    valid = np.zeros(E, bool)
+    valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
+    info = {"factors": vec.n_factors, "iterations": sol.iterations, "final_error": sol.error, "solver_fell_back": 0,
+            "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": time.perf_counter() - t2, "graph_patched": 0,
+            "isb_m": vector_isb_estimates(vec.layout, sol.x, inp), "vel": vector_velocities(vec.layout, sol.x, epochs, E)}
+    info["batch_solution"] = BatchSolution(None, [], None, inp, cfg, pos, valid, dict(info), vector=vec, x=sol.x)
+    return pos, valid, cov, info
+
+
+def _banded_cov(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorGraph, x: np.ndarray) -> np.ndarray:
+    """(E,3,3) position marginals of the banded solution x (N,): from its information matrix, or from GTSAM's
+    graph at x where the chain recursion does not pay (a wide band)."""
+    epochs = np.flatnonzero(inp.keep)
+    cov = banded_marginals(vec, x, epochs, trace.n_epochs)
+    if cov is None:
+        pieces = graph_pieces(trace, inp, cfg)
+        cov = marginal_positions(pieces.graph(), to_values(vec.layout, x), epochs, trace.n_epochs, pieces.dense)
+    return cov
+
+
+def _solve_gtsam(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool, start: BatchSolution | None,
+                 initial: gtsam.Values | None = None, handed_over: int | None = None):
+    """:func:`solve_batch` on GTSAM's graph: patched from ``start``'s where :func:`patchable` allows, else built,
+    and solved from ``start``'s values, else ``initial`` (the banded solver's values where a step failed after
+    ``handed_over`` iterations), else the WLS-derived values."""
     E = trace.n_epochs
     t0 = time.perf_counter()
     if patchable(start, inp, cfg):
@@ -136,13 +194,13 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     else:
         pieces = graph_pieces(trace, inp, cfg)
         graph, dense, pr_slice = pieces.graph(), pieces.dense, pieces.pseudorange
-        values = warm_values(pieces.values(), None if start is None else start.values)
+        values = warm_values(pieces.values(), initial if start is None else start.values)
         ordering = None
     epochs = np.flatnonzero(inp.keep)
     t1 = time.perf_counter()
     try:
         opt, pos = optimise(graph, values, epochs, E, cfg, ordering)
-        opt_iterations = opt.iterations
+        opt_iterations = (handed_over or 0) + opt.iterations
         if pieces is not None and pieces.carrier is not None and cfg.tdcp_relinearise:
             # the carrier factors keep their linearisation point: move it from the WLS track to the
             # solution and polish (a few warm iterations; see GraphConfig.tdcp_relinearise)
@@ -157,7 +215,7 @@ def solve_batch(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
-            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back), "build_s": t1 - t0,
+            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back or handed_over is not None), "build_s": t1 - t0,
             "solve_s": t2 - t1, "cov_s": t3 - t2, "graph_patched": int(pieces is None),
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
     info["batch_solution"] = BatchSolution(graph, dense, result, inp, cfg, pos, valid, dict(info), pr_slice,
@@ -170,7 +228,9 @@ def _reuse(trace: Trace, start: BatchSolution, want_cov: bool):
     t0 = time.perf_counter()
     epochs = np.flatnonzero(start.inp.keep)
     try:
-        cov = marginal_positions(start.graph, start.values, epochs, trace.n_epochs, start.dense) if want_cov else None
+        cov = None if not want_cov else (
+            _banded_cov(trace, start.inp, start.cfg, start.vector, start.x) if start.vector is not None
+            else marginal_positions(start.graph, start.values, epochs, trace.n_epochs, start.dense))
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
     info = {**start.info, "build_s": 0.0, "solve_s": 0.0, "cov_s": time.perf_counter() - t0, "iterations": 0,

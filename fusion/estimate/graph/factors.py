@@ -148,8 +148,8 @@ def tdcp_measured(delta_adr_m: np.ndarray, sat_j: np.ndarray, sat_k: np.ndarray,
     """(N,) the linearised carrier measurement of :func:`tdcp_factor_uqq` for N factors at once:
     ``delta_adr - R_k(guess_k) + R_{k-1}(guess_j) + g_k . (guess_k - guess_j)``.
     delta_adr_m (N,); sat_j, sat_k, guess_j, guess_k (N,3)."""
-    geom_j, _ = _range_and_gradient(sat_j, guess_j)
-    geom_k, grad_k = _range_and_gradient(sat_k, guess_k)
+    geom_j, _ = range_and_gradient(sat_j, guess_j)
+    geom_k, grad_k = range_and_gradient(sat_k, guess_k)
     return delta_adr_m - geom_k + geom_j + np.einsum("ij,ij->i", grad_k, guess_k - guess_j)
 
 
@@ -164,7 +164,7 @@ def tdcp_factor_linearised(k: int, measured: float, sat_k: np.ndarray, guess_k: 
 _ZERO3 = np.zeros(3)
 
 
-def _range_and_gradient(sat: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def range_and_gradient(sat: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """GTSAM's pseudorange geometry |sat - x| + OMEGA_E / c (x_sat y - y_sat x) (N,) and its (N,3)
     gradient in x; sat (N,3) transmit-time ECEF, x (N,3) receiver ECEF."""
     d = sat - x

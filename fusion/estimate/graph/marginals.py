@@ -132,15 +132,24 @@ def chain_marginals(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, epo
         start = dict(zip((int(k) for k in keys), new_start))
         r2, c2, h2 = _dense_pairs(graph, result, dense, start)
         r, c, h = np.r_[r, r2], np.r_[c, c2], np.r_[h, h2]
-    diag = np.bincount(r[r == c], weights=h[r == c], minlength=col.size)
+    p0 = new_start[np.searchsorted(keys, np.array([pos_key(int(k)) for k in epochs], dtype=np.uint64))]
+    return information_marginals(r, c, h, col.size, n_local, p0)
+
+
+def information_marginals(r: np.ndarray, c: np.ndarray, h: np.ndarray, n: int, n_local: int,
+                          p0: np.ndarray) -> np.ndarray | None:
+    """(N,3,3) the diagonal 3x3 blocks of H^-1 starting at the scalar indices p0 (N,), H (n,n) given by
+    its lower-triangle entries (rows r (P,) >= cols c (P,), values h (P,), duplicates summed) with the
+    first ``n_local`` variables per epoch in time order and the rest trace-wide; None where the band
+    or the trace-wide part is too wide for the recursion to pay."""
+    diag = np.bincount(r[r == c], weights=h[r == c], minlength=n)
     s = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))     # Jacobi scaling: H' = s H s, unit diagonal
     h = h * s[r] * s[c]
     both = r < n_local                               # c <= r: local-local
     band = int(np.max(r[both] - c[both], initial=0)) + 1
-    n_global = col.size - n_local
+    n_global = n - n_local
     if band > MAX_BAND or n_global > MAX_GLOBAL:
         return None
-    p0 = new_start[np.searchsorted(keys, np.array([pos_key(int(k)) for k in epochs], dtype=np.uint64))]
     nb = -(-n_local // band)
     rl, cl, hl = r[both], c[both], h[both]
     bi, bj = rl // band, cl // band

@@ -18,7 +18,7 @@ from fusion.estimate.graph.config import GraphConfig
 
 #: GTSAM's default absolute cost decrease below which its optimisers stop
 ABS_ERROR_TOL = 1e-5
-SOLVERS = ("gauss-newton", "levenberg-marquardt")
+SOLVERS = ("banded", "gauss-newton", "levenberg-marquardt")
 
 
 @dataclass
@@ -39,15 +39,22 @@ def converged(before: float, after: float, rel_tol: float) -> bool:
     return before - after <= max(rel_tol * before, ABS_ERROR_TOL)
 
 
+def at_optimum(before: float, after: float, rel_tol: float) -> bool:
+    """A step that raised the cost by no more than the stopping tolerance: round-off at the optimum (GTSAM's
+    own optimisers stop there too), not a failed step."""
+    return math.isfinite(after) and after - before <= max(rel_tol * before, ABS_ERROR_TOL)
+
+
 def optimise_values(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig,
                     ordering: gtsam.Ordering | None = None) -> Optimised:
-    """Minimise ``graph``'s cost from ``values`` with ``cfg.batch_solver``, stopping at ``cfg.lm_rel_tol``
+    """Minimise ``graph``'s cost from ``values`` with ``cfg.batch_solver`` (GTSAM's Gauss-Newton for "banded",
+    whose vectorised copy of the graph has no room for this one), stopping at ``cfg.lm_rel_tol``
     (relative cost decrease) or after ``cfg.lm_max_iter`` iterations. ordering: Gauss-Newton's elimination
     ordering from an earlier solve of a graph with the same variables and links (unary factors added or
     changed leave it valid), instead of a new METIS ordering (~60 ms on the Pixel5 graph)."""
     if cfg.batch_solver == "levenberg-marquardt":
-        return _levenberg_marquardt(graph, values, cfg, 0)
-    if cfg.batch_solver != "gauss-newton":
+        return levenberg_marquardt(graph, values, cfg, 0)
+    if cfg.batch_solver not in SOLVERS:
         raise GnssfuseError(f"GraphConfig.batch_solver must be one of {', '.join(SOLVERS)}, got {cfg.batch_solver!r}")
     params = gtsam.GaussNewtonParams()
     # METIS: the chain's elimination ~18 % cheaper than with COLAMD (81 vs 99 ms on the Pixel5 graph);
@@ -60,11 +67,13 @@ def optimise_values(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg
         try:
             opt.iterate()
         except RuntimeError:              # a singular step: LM's damping copes (and the marginals tell)
-            return _levenberg_marquardt(graph, best, cfg, n)
+            return levenberg_marquardt(graph, best, cfg, n)
         n += 1
         new = opt.error()
         if not math.isfinite(new) or new > err:
-            return _levenberg_marquardt(graph, best, cfg, n)
+            if at_optimum(err, new, cfg.lm_rel_tol):
+                return Optimised(best, n, err, ordering=ordering)
+            return levenberg_marquardt(graph, best, cfg, n)
         best = gtsam.Values(opt.values())
         if converged(err, new, cfg.lm_rel_tol):
             return Optimised(best, n, new, ordering=ordering)
@@ -72,7 +81,7 @@ def optimise_values(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg
     return Optimised(best, n, err, ordering=ordering)
 
 
-def _levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig,
+def levenberg_marquardt(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, cfg: GraphConfig,
                          done: int) -> Optimised:
     """Levenberg-Marquardt from ``values``, after ``done`` Gauss-Newton iterations."""
     params = gtsam.LevenbergMarquardtParams()

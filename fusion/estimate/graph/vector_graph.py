@@ -1,0 +1,374 @@
+"""The fused graph of :mod:`fusion.estimate.graph.build` as vectorised factor blocks for
+:mod:`fusion.estimate.graph.banded_gn`: the same factors, noise models and robust losses, one
+:class:`~fusion.estimate.graph.banded_gn.Blocks` per kind for the whole trace.
+
+The state vector holds each epoch's variables together, epochs in time order (position, velocity,
+clock, drift, displacement, carrier clock), then the trace-wide inter-system biases. Clocks and drifts
+are in metres here (GTSAM's keys hold seconds, :mod:`fusion.estimate.graph.keys`): a cost is the same in
+either unit, and metres keep the normal equations at one scale. That both graphs have the same cost at
+any values is tested (``tests/estimate/test_banded_gn.py``), kind by kind.
+
+Odometry (a nonlinear heading state) and relinearised carrier factors have no blocks here:
+:func:`vector_graph` returns None and the batch solver runs GTSAM's.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
+from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, uses_drift
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.factors import range_and_gradient, tdcp_measured
+from fusion.estimate.graph.inputs import EpochInputs
+from fusion.estimate.graph.marginals import information_marginals
+from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
+                                        isb_key, pos_key, vel_key)
+from fusion.estimate.graph.motion import START_VEL_SIGMA_MPS, motion_model
+from fusion.geometry import C_LIGHT, OMEGA_E
+from fusion.trace import SIGNALS, Trace
+
+#: per-epoch variables in their order inside an epoch: name, dimension, GTSAM key, GTSAM unit per metre
+EPOCH_VARS = (("pos", 3, pos_key, 1.0), ("vel", 3, vel_key, 1.0), ("clk", 1, clock_key, 1.0 / C_LIGHT),
+              ("drift", 1, drift_key, 1.0 / C_LIGHT), ("disp", 3, disp_key, 1.0), ("qclk", 1, carrier_clock_key, 1.0))
+_I3 = np.eye(3)
+
+
+@dataclass
+class Layout:
+    """Where each variable sits in the state vector: ``start[name]`` (E,) int, the index of epoch k's
+    variable ``name`` of :data:`EPOCH_VARS` (-1: none); ``isb`` {(component, group): index}; N scalars,
+    the first ``n_local`` per epoch."""
+
+    start: dict
+    isb: dict
+    n: int
+    n_local: int
+
+    def keys(self) -> list[tuple[int, int, int, float]]:
+        """(GTSAM key, index, dimension, GTSAM unit per metre) of every variable."""
+        out = []
+        for name, dim, key, unit in EPOCH_VARS:
+            ks = np.flatnonzero(self.start[name] >= 0)
+            out += [(key(int(k)), int(self.start[name][k]), dim, unit) for k in ks]
+        out += [(isb_key(c, g), i, 1, 1.0) for (c, g), i in self.isb.items()]
+        return out
+
+
+def epoch_variables(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> dict:
+    """(E,) bool per :data:`EPOCH_VARS` name: which epochs have that variable in the graph."""
+    E = trace.n_epochs
+    has = {name: np.zeros(E, bool) for name, *_ in EPOCH_VARS}
+    has["pos"][epochs] = True
+    has["vel"][epochs] = cfg.motion == "cv"
+    ks = clocked_epochs(inp, epochs)
+    has["clk"][ks] = True
+    has["drift"][ks] = uses_drift(inp)
+    if inp.raw is not None:
+        carrier = carrier_epochs(trace, inp)
+        has["disp"] = carrier
+        has["qclk"] = carrier | np.r_[carrier[1:], False]
+    return has
+
+
+def carrier_epochs(trace: Trace, inp: EpochInputs) -> np.ndarray:
+    """(E,) bool kept epochs with a time-differenced carrier factor (as ``build.add_carriers``)."""
+    return (inp.raw.tdcp_prev >= 0).any(axis=1) & inp.keep
+
+
+def make_layout(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> Layout:
+    """The state vector's layout (see :class:`Layout`)."""
+    has = epoch_variables(trace, inp, cfg, epochs)
+    dims = np.array([d for _, d, *_ in EPOCH_VARS])
+    size = np.stack([has[name] for name, *_ in EPOCH_VARS], axis=1) * dims        # (E,V)
+    first = (np.cumsum(size.ravel()) - size.ravel()).reshape(size.shape)
+    start = {name: np.where(size[:, i] > 0, first[:, i], -1) for i, (name, *_) in enumerate(EPOCH_VARS)}
+    n_local = int(size.sum())
+    isb = {}
+    if inp.isb.new is not None:
+        ks = clocked_epochs(inp, epochs)
+        new_k, new_g = np.nonzero(inp.isb.new[ks])
+        for k, g in zip(ks[new_k], new_g):
+            isb.setdefault((int(inp.comp[k]), int(g)), n_local + len(isb))
+    return Layout(start, isb, n_local + len(isb), n_local)
+
+
+def initial_state(trace: Trace, inp: EpochInputs, lay: Layout) -> np.ndarray:
+    """(N,) the initial values ``build`` gives GTSAM, clocks and drifts in metres."""
+    x = np.zeros(lay.n)
+    st = lay.start
+    _put(x, st["pos"], inp.init_pos)
+    _put(x, st["vel"], inp.init_vel)
+    _put(x, st["clk"], inp.init_clock_m[:, None])
+    if (st["drift"] >= 0).any():
+        _put(x, st["drift"], (inp.init_clock_m + inp.clock_drift_mps * DRIFT_HORIZON_S)[:, None])
+    prev = np.r_[inp.init_pos[:1], inp.init_pos[:-1]]
+    _put(x, st["disp"], inp.init_pos - prev)
+    _put(x, st["qclk"], inp.init_clock_m[:, None])
+    for (_, g), i in lay.isb.items():
+        x[i] = -inp.isb.init_m[g]
+    return x
+
+
+def _put(x: np.ndarray, start: np.ndarray, values: np.ndarray) -> None:
+    """x[start[k] + j] = values[k, j] where start[k] >= 0; values (E,d)."""
+    ks = np.flatnonzero(start >= 0)
+    x[start[ks, None] + np.arange(values.shape[1])] = values[ks]
+
+
+def _cols(start: np.ndarray, ks: np.ndarray, dim: int) -> np.ndarray:
+    """(K,dim) state indices of a variable at epochs ``ks``."""
+    return start[ks, None] + np.arange(dim)
+
+
+def scalar_blocks(cols: np.ndarray, coeffs: np.ndarray, rhs: np.ndarray, sigma, robust: str = "none",
+                  k: float = 1.0) -> Blocks:
+    """Linear scalar factors ``(coeffs . x[cols] - rhs) / sigma``: cols, coeffs (M,n), rhs (M,), sigma (M,) or
+    a number."""
+    s = np.broadcast_to(np.asarray(sigma, float), rhs.shape)
+    return Blocks(cols, (coeffs / s[:, None])[:, None, :], (rhs / s)[:, None], robust, k)
+
+
+def whitened_blocks(cols: np.ndarray, A: np.ndarray, b: np.ndarray, cov: np.ndarray | None = None,
+                    robust: str = "none", k: float = 1.0) -> Blocks:
+    """Linear 3-D factors ``A x[cols] - b`` (A (M,3,n), b (M,3)) with covariance ``cov`` (M,3,3) (None:
+    already whitened), whitened by the inverse of its Cholesky factor."""
+    if cov is not None:
+        W = np.linalg.inv(np.linalg.cholesky(cov))
+        A, b = W @ A, np.einsum("mij,mj->mi", W, b)
+    return Blocks(cols, A, b, robust, k)
+
+
+def pseudorange_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:
+    """The robust pseudorange factors: reference-clock slots, then slots with an inter-system bias."""
+    ks, ss = np.nonzero(inp.sel & inp.keep[:, None])
+    pr = trace.pr[ks, ss] - inp.pr_bias[ks, ss]
+    sigma, grp, sat = inp.sigma[ks, ss], inp.isb.group[ks, ss], trace.sat_pos[ks, ss]
+    out = []
+    for isb in (False, True):
+        m = (grp >= 0) == isb
+        cols = np.concatenate([_cols(lay.start["pos"], ks[m], 3), lay.start["clk"][ks[m], None]], axis=1)
+        if isb:
+            gi = np.array([lay.isb[(int(c), int(g))] for c, g in zip(inp.comp[ks[m]], grp[m])], int)
+            cols = np.concatenate([cols, gi.reshape(-1, 1)], axis=1)
+        out.append(Blocks(cols, robust=cfg.robust, k=cfg.robust_k,
+                          model=_pseudorange_model(cols, sat[m], pr[m], sigma[m])))
+    return out
+
+
+def _pseudorange_model(cols: np.ndarray, sat: np.ndarray, pr: np.ndarray, sigma: np.ndarray):
+    """GTSAM's pseudorange model ``range + Sagnac + clock [- bias] - pr`` over ``sigma``, for M factors
+    with variables cols (M,4|5), satellites sat (M,3), pseudoranges pr (M,) and sigmas (M,) [m]."""
+    with_bias = cols.shape[1] == 5
+
+    def model(x: np.ndarray):
+        geom, grad = range_and_gradient(sat, x[cols[:, :3]])
+        r = geom + x[cols[:, 3]] - pr
+        parts = [grad, np.ones((len(pr), 1))]
+        if with_bias:
+            r = r - x[cols[:, 4]]
+            parts.append(-np.ones((len(pr), 1)))
+        return (r / sigma)[:, None], (np.concatenate(parts, axis=1) / sigma[:, None])[:, None, :]
+    return model
+
+
+def clock_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.ndarray) -> list[Blocks]:
+    """The clock chain (and drift states): ``build.add_clock_links`` in metres."""
+    ks = clocked_epochs(inp, epochs)
+    js = inp.clock_link[ks]
+    c, d = lay.start["clk"], lay.start["drift"]
+    linked = js >= 0
+    if not uses_drift(inp):
+        k, j = ks[linked], js[linked]
+        return [scalar_blocks(np.stack([c[j], c[k]], 1), np.tile([-1.0, 1.0], (len(k), 1)), inp.clock_mean_m[k],
+                              inp.clock_sigma_m[k])]
+    H, s = DRIFT_HORIZON_S, ks[~linked]
+    out = [scalar_blocks(np.stack([d[s], c[s]], 1), np.tile([1.0 / H, -1.0 / H], (len(s), 1)),
+                         inp.clock_drift_mps[s], cfg.drift_start_sigma_mps)]
+    k, j = ks[linked], js[linked]
+    root = np.sqrt(np.maximum(inp.clock_span_s[k], 1e-3))
+    a = inp.clock_span_s[k] / H
+    out.append(scalar_blocks(np.stack([c[k], c[j], d[j]], 1), np.stack([np.ones_like(a), a - 1.0, -a], 1),
+                             np.zeros(len(k)), cfg.drift_clock_rw_m * root))
+    out.append(scalar_blocks(np.stack([d[k], c[k], d[j], c[j]], 1), np.tile([1.0, -1.0, -1.0, 1.0], (len(k), 1)),
+                             np.zeros(len(k)), cfg.drift_rw_mps * root * H))
+    return out
+
+
+def isb_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:
+    """The zero-mean prior of each inter-system bias."""
+    idx = np.array(list(lay.isb.values()), int)
+    return [scalar_blocks(idx[:, None], np.ones((len(idx), 1)), np.zeros(len(idx)), cfg.isb_sigma_m)]
+
+
+def doppler_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:
+    """The robust Doppler factors on v(k), c(k), d(k): GTSAM's ``DopplerFactor``, linear in them."""
+    raw = inp.raw
+    ks, ss = np.nonzero(raw.doppler & inp.keep[:, None])
+    prr = trace.prr[ks, ss] - raw.prr_bias[ks, ss]
+    sat, sv, rx = trace.sat_pos[ks, ss], trace.sat_vel[ks, ss], inp.init_pos[ks]
+    _, grad = range_and_gradient(sat, rx)          # d(range rate)/dv: the line of sight and its Sagnac term
+    los = (sat - rx) / np.linalg.norm(sat - rx, axis=1)[:, None]
+    sagnac = OMEGA_E / C_LIGHT * (sv[:, 1] * rx[:, 0] - sv[:, 0] * rx[:, 1])
+    rhs = prr - np.einsum("ij,ij->i", los, sv) + sagnac
+    H = DRIFT_HORIZON_S
+    cols = np.concatenate([_cols(lay.start["vel"], ks, 3), lay.start["clk"][ks, None], lay.start["drift"][ks, None]], 1)
+    coeffs = np.concatenate([grad, np.full((len(ks), 1), -1.0 / H), np.full((len(ks), 1), 1.0 / H)], 1)
+    return [scalar_blocks(cols, coeffs, rhs, raw.prr_sigma[ks, ss], cfg.robust, cfg.robust_k)]
+
+
+def carrier_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:
+    """The displacement definitions, carrier-clock chain priors and robust time-differenced carrier
+    factors (``build.add_carriers``)."""
+    raw, st = inp.raw, lay.start
+    has = carrier_epochs(trace, inp)
+    ks = np.flatnonzero(has)
+    w = 1.0 / DISPLACEMENT_SIGMA_M
+    disp = whitened_blocks(np.concatenate([_cols(st["disp"], ks, 3), _cols(st["pos"], ks, 3), _cols(st["pos"], ks - 1, 3)], 1),
+                           np.tile(np.hstack([w * _I3, -w * _I3, w * _I3]), (len(ks), 1, 1)), np.zeros((len(ks), 3)))
+    starts = ks[~has[ks - 1]]
+    chain = scalar_blocks(st["qclk"][starts - 1, None], np.ones((len(starts), 1)), inp.init_clock_m[starts - 1], 1.0)
+    kk, ss = np.nonzero((raw.tdcp_prev >= 0) & has[:, None])
+    prev = raw.tdcp_prev[kk, ss]
+    lin_pos = inp.init_pos if raw.lin_pos is None else raw.lin_pos
+    sat_k = trace.sat_pos[kk, ss]
+    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
+                             lin_pos[kk - 1], lin_pos[kk])
+    _, grad = range_and_gradient(sat_k, lin_pos[kk])
+    cols = np.concatenate([_cols(st["disp"], kk, 3), st["qclk"][kk - 1, None], st["qclk"][kk, None]], 1)
+    coeffs = np.concatenate([grad, -np.ones((len(kk), 1)), np.ones((len(kk), 1))], 1)
+    tdcp = scalar_blocks(cols, coeffs, measured, raw.tdcp_sigma[kk, ss], cfg.robust, cfg.robust_k)
+    return [disp, chain, tdcp]
+
+
+def prior_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.ndarray) -> list[Blocks]:
+    """The position priors (a learned model's), robust on their Mahalanobis distance."""
+    ks = epochs[inp.prior_ok[epochs]]
+    return [whitened_blocks(_cols(lay.start["pos"], ks, 3), np.tile(_I3, (len(ks), 1, 1)), inp.prior_mean[ks],
+                            inp.prior_cov[ks], cfg.prior_robust, cfg.prior_robust_k)]
+
+
+def motion_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.ndarray) -> list[Blocks]:
+    """The motion model's links from ``k - 1`` and its component starts (:mod:`fusion.estimate.graph.motion`)."""
+    model = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg)
+    link = (epochs > 0) & inp.pos_link[epochs]
+    k = epochs[link]
+    pos = lay.start["pos"]
+    if cfg.motion == "rw":
+        return [whitened_blocks(np.concatenate([_cols(pos, k - 1, 3), _cols(pos, k, 3)], 1),
+                                np.tile(np.hstack([-_I3, _I3]), (len(k), 1, 1)), np.zeros((len(k), 3)), model.cov[k])]
+    vel, s = lay.start["vel"], epochs[~link]
+    w = model.pos_sqrt_info[k][:, None, None]
+    A = np.concatenate([w * _I3, -w * _I3, -w * inp.dt[k][:, None, None] * _I3], axis=2)
+    step = whitened_blocks(np.concatenate([_cols(pos, k, 3), _cols(pos, k - 1, 3), _cols(vel, k - 1, 3)], 1),
+                           A, np.zeros((len(k), 3)))
+    walk = whitened_blocks(np.concatenate([_cols(vel, k - 1, 3), _cols(vel, k, 3)], 1),
+                           np.tile(np.hstack([-_I3, _I3]), (len(k), 1, 1)), np.zeros((len(k), 3)), model.vel_cov[k])
+    start = whitened_blocks(_cols(vel, s, 3), np.tile(_I3 / START_VEL_SIGMA_MPS, (len(s), 1, 1)),
+                            inp.init_vel[s] / START_VEL_SIGMA_MPS)
+    return [step, walk, start]
+
+
+@dataclass
+class VectorGraph:
+    """A trace's fused graph as factor blocks: the system, its layout and initial state (N,)."""
+
+    system: System
+    layout: Layout
+    x0: np.ndarray
+
+    @property
+    def n_factors(self) -> int:
+        return sum(len(b) for b in self.system.blocks)
+
+
+def supported(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> bool:
+    """Whether :func:`vector_graph` can hold this graph (no odometry, no carrier relinearisation, a
+    velocity state wherever Doppler needs one, every carrier step between two kept epochs)."""
+    if cfg.motion not in ("cv", "rw") or cfg.tdcp_relinearise:
+        return False
+    if inp.odometry is not None and len(inp.odometry.factors):
+        return False
+    if inp.raw is not None:
+        if cfg.motion != "cv" and (inp.raw.doppler & inp.keep[:, None]).any():
+            return False
+        ks = np.flatnonzero(carrier_epochs(trace, inp))
+        if len(ks) and (ks.min() == 0 or not inp.keep[ks - 1].all()):
+            return False
+    return True
+
+
+def vector_graph(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> VectorGraph | None:
+    """The graph ``build.graph_pieces`` makes, as factor blocks (None where :func:`supported` says no)."""
+    if not supported(trace, inp, cfg):
+        return None
+    epochs = np.flatnonzero(inp.keep)
+    lay = make_layout(trace, inp, cfg, epochs)
+    blocks = pseudorange_blocks(trace, inp, cfg, lay) + isb_blocks(inp, cfg, lay) + clock_blocks(inp, cfg, lay, epochs)
+    if inp.raw is not None:
+        blocks += doppler_blocks(trace, inp, cfg, lay) + carrier_blocks(trace, inp, cfg, lay)
+    blocks += prior_blocks(inp, cfg, lay, epochs) + motion_blocks(inp, cfg, lay, epochs)
+    blocks = [b for b in blocks if len(b)]
+    return VectorGraph(System(blocks, lay.n, lay.n_local), lay, initial_state(trace, inp, lay))
+
+
+def to_values(lay: Layout, x: np.ndarray) -> gtsam.Values:
+    """The state x (N,) as GTSAM values (clocks and drifts in seconds)."""
+    vals = gtsam.Values()
+    for key, i, dim, unit in lay.keys():
+        if dim == 3:
+            vals.insert(key, x[i:i + 3].copy())
+        else:
+            vals.insert(key, c=float(x[i] * unit))
+    return vals
+
+
+def from_values(lay: Layout, vals: gtsam.Values) -> np.ndarray:
+    """GTSAM values as the state (N,) (clocks and drifts in metres)."""
+    x = np.zeros(lay.n)
+    for key, i, dim, unit in lay.keys():
+        if dim == 3:
+            x[i:i + 3] = vals.atPoint3(key)
+        else:
+            x[i] = vals.atDouble(key) / unit
+    return x
+
+
+def same_layout(a: Layout, b: Layout) -> bool:
+    """Whether two layouts hold the same variables at the same places (a solution of one starts the other)."""
+    return a.n == b.n and a.isb == b.isb and all(np.array_equal(a.start[k], b.start[k]) for k in a.start)
+
+
+def banded_marginals(vec: VectorGraph, x: np.ndarray, epochs: np.ndarray, E: int) -> np.ndarray | None:
+    """(E,3,3) ECEF position marginal covariances at the solution x (N,) (NaN off ``epochs``), from the
+    information matrix there (robust losses reweighted, as ``gtsam.Marginals`` linearises); None where the
+    recursion of :func:`~fusion.estimate.graph.marginals.information_marginals` does not pay. RuntimeError
+    where the graph is singular at the solution."""
+    cov = np.full((E, 3, 3), np.nan)
+    if not len(epochs):
+        return cov
+    r, c, h = information_triplets(vec.system, x)
+    p0 = vec.layout.start["pos"][epochs]
+    got = information_marginals(r, c, h, vec.layout.n, vec.layout.n_local, p0)
+    if got is None:
+        return None
+    cov[epochs] = got
+    return cov
+
+
+def vector_isb_estimates(lay: Layout, x: np.ndarray, inp: EpochInputs) -> dict[str, float]:
+    """Estimated inter-system biases [m], keyed ``"<signal>@<component>"`` as
+    :func:`~fusion.estimate.graph.isb.isb_estimates` keys them."""
+    return {f"{SIGNALS[inp.isb.groups[g]]}@{c}": -float(x[i]) for (c, g), i in lay.isb.items()}
+
+
+def vector_velocities(lay: Layout, x: np.ndarray, epochs: np.ndarray, E: int) -> np.ndarray | None:
+    """(E,3) ECEF velocities [m/s] of the solution (NaN off ``epochs``), None without velocity states."""
+    st = lay.start["vel"]
+    if not len(epochs) or st[epochs[0]] < 0:
+        return None
+    vel = np.full((E, 3), np.nan)
+    vel[epochs] = x[st[epochs, None] + np.arange(3)]
+    return vel
