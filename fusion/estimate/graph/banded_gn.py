@@ -43,6 +43,7 @@ class Blocks:
     k: float = 1.0
     model: Model | None = None
     _pairs: "_Pairs | None" = field(default=None, repr=False)
+    _h: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.cols)
@@ -62,6 +63,7 @@ class System:
     blocks: list[Blocks]
     n: int
     n_local: int
+    _static: tuple | None = field(default=None, repr=False)    # (band, Normal) of the constant factors
 
     @property
     def band(self) -> int:
@@ -141,11 +143,51 @@ def _pair_targets(blk: Blocks, n_local: int, n_global: int) -> _Pairs:
     return blk._pairs
 
 
+def _pair_products(blk: Blocks, Aw: np.ndarray, pr: _Pairs) -> np.ndarray:
+    """(M,P) the products of each factor's Jacobian columns at its pairs (cached on a linear kind as they
+    are: a robust weight only scales them)."""
+    if blk.model is not None:
+        return np.einsum("mdp,mdp->mp", Aw[:, :, pr.ii], Aw[:, :, pr.jj])
+    if blk._h is None:
+        blk._h = np.einsum("mdp,mdp->mp", blk.A[:, :, pr.ii], blk.A[:, :, pr.jj])
+    return blk._h
+
+
+def _add_information(eq: Normal, blk: Blocks, Aw: np.ndarray, w: np.ndarray | None, nl: int, G: int) -> None:
+    """Add the information of ``blk``'s factors with reweighted Jacobians Aw (M,d,n) (robust weights w (M,),
+    None for unit weights) into eq's B, C and D (flat B and C)."""
+    pr = _pair_targets(blk, nl, G)
+    h = _pair_products(blk, Aw, pr)
+    if w is not None and blk.model is None:
+        h = h * w[:, None]
+    eq.B += np.bincount(pr.at_b, weights=h[pr.in_b], minlength=eq.B.size)
+    if G:
+        eq.C += np.bincount(pr.at_c, weights=h[pr.in_c], minlength=eq.C.size)
+        np.add.at(eq.D, (pr.d_row, pr.d_col), h[pr.in_d])
+
+
+def _static_information(system: System, band: int) -> Normal:
+    """The information of the linear factors without a robust loss (constant: computed once per system),
+    flat B and C, lower D; g zero."""
+    if system._static is None or system._static[0] != band:
+        nl, G = system.n_local, system.n - system.n_local
+        eq = Normal(np.zeros((band + 1) * nl), np.zeros(nl * G), np.zeros((G, G)), np.zeros(system.n))
+        for blk in system.blocks:
+            if len(blk) and _static(blk):
+                _add_information(eq, blk, blk.A, None, nl, G)
+        system._static = (band, eq)
+    eq = system._static[1]
+    return Normal(eq.B.copy(), eq.C.copy(), eq.D.copy(), np.zeros(system.n))
+
+
+def _static(blk: Blocks) -> bool:
+    return blk.model is None and blk.robust == "none"
+
+
 def normal_equations(system: System, x: np.ndarray, band: int) -> tuple[Normal, float]:
     """The Gauss-Newton normal equations at ``x`` (N,), robust losses reweighted there, and the cost."""
     nl, G = system.n_local, system.n - system.n_local
-    B, C, D = np.zeros((band + 1) * nl), np.zeros(nl * G), np.zeros((G, G))
-    g = np.zeros(system.n)
+    eq = _static_information(system, band)
     total = 0.0
     for blk in system.blocks:
         if not len(blk):
@@ -155,15 +197,11 @@ def normal_equations(system: System, x: np.ndarray, band: int) -> tuple[Normal, 
         total += float(loss.sum())
         sw = np.sqrt(w)
         Aw, rw = A * sw[:, None, None], r * sw[:, None]
-        g += np.bincount(blk.cols.ravel(), weights=np.einsum("mdn,md->mn", Aw, rw).ravel(), minlength=system.n)
-        pr = _pair_targets(blk, nl, G)
-        h = np.einsum("mdp,mdp->mp", Aw[:, :, pr.ii], Aw[:, :, pr.jj])
-        B += np.bincount(pr.at_b, weights=h[pr.in_b], minlength=B.size)
-        if G:
-            C += np.bincount(pr.at_c, weights=h[pr.in_c], minlength=C.size)
-            np.add.at(D, (pr.d_row, pr.d_col), h[pr.in_d])
-    D = D + np.tril(D, -1).T
-    return Normal(B.reshape(band + 1, nl), C.reshape(nl, G), D, g), total
+        eq.g += np.bincount(blk.cols.ravel(), weights=np.einsum("mdn,md->mn", Aw, rw).ravel(), minlength=system.n)
+        if not _static(blk):
+            _add_information(eq, blk, Aw, w, nl, G)
+    D = eq.D + np.tril(eq.D, -1).T
+    return Normal(eq.B.reshape(band + 1, nl), eq.C.reshape(nl, G), D, eq.g), total
 
 
 def solve_normal(eq: Normal) -> np.ndarray:
