@@ -63,19 +63,29 @@ def _lagrange(t_ms: np.ndarray, t_ref: np.ndarray, values: np.ndarray, col: np.n
     """Interpolate (T, N, k) ``values`` of column ``col`` (Q,) at times ``t_q`` (Q,) [s since
     t_ms[0]] with :data:`N_LAGRANGE` samples; NaN where any sample is missing or outside."""
     T = t_ms.size
+    n = min(N_LAGRANGE, T)
     start = np.clip(np.searchsorted(t_ref, t_q) - N_LAGRANGE // 2, 0, max(T - N_LAGRANGE, 0))
-    win = start[:, None] + np.arange(min(N_LAGRANGE, T))[None, :]           # (Q, n)
-    tw = t_ref[win]                                                          # (Q, n)
+    win = start[:, None] + np.arange(n)[None, :]                             # (Q, n)
     vw = values[win, col[:, None]]                                           # (Q, n, k)
-    diff = t_q[:, None] - tw
-    n = tw.shape[1]
-    w = np.ones_like(tw)
-    for j in range(n):
-        others = np.arange(n) != j
-        w[:, j] = np.prod(diff[:, others] / (tw[:, j:j + 1] - tw[:, others]), axis=1)
-    out = np.einsum("qn,qnk->qk", w, vw)
+    out = np.einsum("qn,qnk->qk", _lagrange_weights(t_ref, start, n, t_q), vw)
     inside = (t_q >= t_ref[0]) & (t_q <= t_ref[-1])
     return np.where(inside[:, None], out, np.nan)
+
+
+def _lagrange_weights(t_ref: np.ndarray, start: np.ndarray, n: int, t_q: np.ndarray) -> np.ndarray:
+    """(Q, n) Lagrange basis weights prod_{m != j} (t_q - t_m) / (t_j - t_m) of the n samples from each
+    ``start`` (Q,). The numerators are prefix times suffix products (exact at a sample time, where a
+    full product over (t_q - t_j) would divide by zero); the denominators depend on the window alone,
+    so they are computed once per distinct window (a day of 5-min SP3 has < 300) instead of per query."""
+    diff = t_q[:, None] - t_ref[start[:, None] + np.arange(n)]               # (Q, n)
+    ones = np.ones((len(t_q), 1))
+    prefix = np.cumprod(np.hstack([ones, diff[:, :-1]]), axis=1)
+    suffix = np.cumprod(np.hstack([ones, diff[:, :0:-1]]), axis=1)[:, ::-1]
+    starts, which = np.unique(start, return_inverse=True)
+    tw = t_ref[starts[:, None] + np.arange(n)]                               # (W, n)
+    gap = tw[:, :, None] - tw[:, None, :]
+    gap[:, np.arange(n), np.arange(n)] = 1.0
+    return prefix * suffix / np.prod(gap, axis=2)[which]
 
 
 def precise_states(prec: PreciseOrbits, sat_id: np.ndarray, signal: np.ndarray, t_ms: np.ndarray,

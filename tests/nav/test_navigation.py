@@ -213,3 +213,22 @@ def test_clk_malformed(tmp_path):
     q.write_text("hello\n")
     with pytest.raises(DataError, match="not a RINEX clock file"):
         read_clk(q)
+
+
+def test_lagrange_interpolation_is_exact_for_its_degree_and_at_the_samples():
+    """Ten samples fit a degree-9 polynomial exactly, on uneven sample times too, and a query at a sample
+    time returns that sample (to rounding: the weights' numerators never divide by a zero time difference)."""
+    from fusion.nav.precise import N_LAGRANGE, _lagrange
+
+    rng = np.random.default_rng(4)
+    t_ref = np.cumsum(rng.uniform(200.0, 400.0, 30))
+    t_ref -= t_ref[0]
+    coeffs = rng.normal(size=(N_LAGRANGE, 2))                 # two satellites' degree-9 polynomials
+    x = t_ref / t_ref[-1]
+    values = np.stack([np.polyval(coeffs[:, i], x) for i in range(2)], axis=1)[:, :, None]   # (T, N, 1)
+    t_q = np.r_[rng.uniform(0.0, t_ref[-1], 200), t_ref[[0, 7, 29]]]
+    col = rng.integers(0, 2, t_q.size)
+    got = _lagrange((t_ref * 1000).astype(np.int64), t_ref, values, col, t_q)[:, 0]
+    want = np.array([np.polyval(coeffs[:, c], t / t_ref[-1]) for c, t in zip(col, t_q)])
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(values).max())
+    np.testing.assert_allclose(got[-3:], values[[0, 7, 29], col[-3:], 0], rtol=1e-14, atol=0)
