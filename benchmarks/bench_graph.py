@@ -16,7 +16,7 @@ loaded with ``min_sats=1`` and one ``fusion.modes.solve_initial`` WLS solve fed 
 ``gnssfuse run`` / ``evaluate`` do, scored with ``fusion.eval.metrics.mode_metrics``. Graph settings (``GraphConfig`` defaults)
 were tuned on the training traces only (``--part tune`` prints them).
 
-Speed: batch build + solve (GraphConfig.batch_solver: Gauss-Newton, Levenberg-Marquardt as its fallback) of a
+Speed: batch build + solve (GraphConfig.batch_solver: the banded Gauss-Newton, Levenberg-Marquardt as its fallback) of a
 ~2,000-epoch trace (with and without the marginal covariances), ISAM2 milliseconds per epoch, and the
 per-factor cost. (Record names keep "LM" for continuity with earlier results.)
 """

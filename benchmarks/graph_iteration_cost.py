@@ -1,8 +1,10 @@
 """Where one batch iteration of the fused graph goes, on the Pixel5 RINEX trace (``fused-nodnn``'s graph):
 GTSAM's linearisation, its elimination under each ordering and linear solver it offers, a whole
 Gauss-Newton iteration, and what handing the linearised system to scipy would cost before any solve
-(the sparse Jacobian and the normal equations' assembly). A diagnostic for the speed issue, not part of
-``run_all``: it says why the batch solver is not faster, and what a replacement must beat.
+(the sparse Jacobian and the normal equations' assembly); then the same iteration by the banded solver
+(``GraphConfig.batch_solver = "banded"``, the default: :mod:`fusion.estimate.graph.banded_gn` on the graph's
+vectorised copy). A diagnostic for the speed issue, not part of ``run_all``: why GTSAM's batch solver is
+not faster, and what its replacement costs.
 
     GNSSFUSE_SHARED_DATA=../shared/data python benchmarks/graph_iteration_cost.py
 """
@@ -19,9 +21,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.bench_pixel5 import NAV, TRACE  # noqa: E402
+from fusion.estimate.graph.banded_gn import cost, normal_equations, solve_normal  # noqa: E402
 from fusion.estimate.graph.build import graph_pieces  # noqa: E402
 from fusion.estimate.graph.inputs import prepare_inputs  # noqa: E402
 from fusion.estimate.graph.marginals import _column_order, _jacobian_pairs  # noqa: E402
+from fusion.estimate.graph.vector_graph import vector_graph  # noqa: E402
 from fusion.modes import solve_initial  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.prepare.raw_load import RawSources  # noqa: E402
@@ -100,6 +104,21 @@ def main() -> None:
     col = _column_order(values)[0]
     print(f"  to scipy: sparse Jacobian (no dense factors) {best_ms(jlin.sparseJacobian_):6.1f} ms, normal "
           f"equations' entries {best_ms(lambda: _jacobian_pairs(jlin, col)):6.1f} ms (both before any solve)")
+    banded(trace, inp, opts)
+
+
+def banded(trace, inp, opts: RunOptions) -> None:
+    """The banded solver's build and one iteration (normal equations, banded Cholesky + Schur, the cost)."""
+    vec = vector_graph(trace, inp, opts.graph)
+    band = vec.system.band
+    print(f"banded solver: {vec.n_factors} factors, {vec.layout.n} scalar unknowns, band {band}")
+    print(f"  build the vectorised graph                             "
+          f"{best_ms(lambda: vector_graph(trace, inp, opts.graph)):7.1f} ms")
+    eq, _ = normal_equations(vec.system, vec.x0, band)
+    print(f"  normal equations (linearise + reweight + assemble)     "
+          f"{best_ms(lambda: normal_equations(vec.system, vec.x0, band)):7.1f} ms")
+    print(f"  banded Cholesky + Schur complement + solve             {best_ms(lambda: solve_normal(eq)):7.1f} ms")
+    print(f"  cost (the stopping test)                               {best_ms(lambda: cost(vec.system, vec.x0)):7.1f} ms")
 
 
 if __name__ == "__main__":
