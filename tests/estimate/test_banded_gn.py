@@ -33,18 +33,28 @@ def raw_sim():
     return tr, solve_initial(tr, RunOptions())
 
 
+@pytest.fixture(scope="module")
+def doppler_sim():
+    """Doppler without carrier phase (a log with no accumulated delta ranges): both graphs used to fail."""
+    tr = simulate(n_epochs=100, nav=read_rinex_nav(default_nav_path()), seed=12,
+                  config=SimConfig(doppler=True, carrier=False)).trace
+    assert tr.has_doppler and not tr.has_carrier
+    return tr, solve_initial(tr, RunOptions())
+
+
 def _two_systems():
     """Two signal groups, two motion components (a bias state each), a learned position prior."""
     tr = _two_system_trace(isb_m=8.0, gap_at=50, E=100)
     return tr, solve_wls(tr)
 
 
-def _cases(raw_sim):
+def _cases(raw_sim, doppler_sim):
     prior = truth_prior(2.0)
     two, two_wls = _two_systems()
     syn = synth_trace(E=60)
     return {
         "doppler+carrier": (raw_sim[0], raw_sim[1], GraphConfig(), None),
+        "doppler only": (doppler_sim[0], doppler_sim[1], GraphConfig(), None),
         "isb+prior cauchy": (two, two_wls, GraphConfig(), prior),
         "isb+prior huber": (two, two_wls, GraphConfig(robust="huber", prior_robust="huber"), prior),
         "random walk": (syn, solve_wls(syn), GraphConfig(motion="rw", robust="none"), None),
@@ -57,9 +67,10 @@ def _inputs(trace, wls, cfg, provider):
     return prepare_inputs(trace, wls, cfg, 10.0, learned)
 
 
-@pytest.mark.parametrize("case", ["doppler+carrier", "isb+prior cauchy", "isb+prior huber", "random walk"])
-def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, case):
-    trace, wls, cfg, provider = _cases(raw_sim)[case]
+@pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
+                                  "random walk"])
+def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
+    trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
     vec = vector_graph(trace, inp, cfg)
     pieces = graph_pieces(trace, inp, cfg)
@@ -72,9 +83,9 @@ def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, case):
         assert banded_gn.cost(vec.system, x) == pytest.approx(graph.error(to_values(vec.layout, x)), rel=1e-9)
 
 
-@pytest.mark.parametrize("case", ["doppler+carrier", "isb+prior cauchy", "random walk"])
-def test_banded_solution_is_gtsams(raw_sim, case):
-    trace, wls, cfg, provider = _cases(raw_sim)[case]
+@pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "random walk"])
+def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
+    trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
     banded = solve_batch(trace, inp, replace(cfg, batch_solver="banded"))
     gtsam_gn = solve_batch(trace, inp, replace(cfg, batch_solver="gauss-newton"))

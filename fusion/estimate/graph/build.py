@@ -285,7 +285,8 @@ def graph_pieces(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> GraphPiece
     add_clock_links(p, inp, cfg, epochs, lin)
     if inp.raw is not None:
         add_dopplers(p, trace, inp, cfg, epochs)
-        add_carriers(p, trace, inp, cfg, epochs, lin)
+        if inp.raw.has_tdcp:               # a trace may have Doppler but no carrier phase at all
+            add_carriers(p, trace, inp, cfg, epochs, lin)
     add_priors(p, inp, cfg, epochs)
     add_motion(p, inp, cfg, epochs, lin)
     add_odometry(p, inp)

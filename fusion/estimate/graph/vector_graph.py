@@ -66,7 +66,7 @@ def epoch_variables(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     ks = clocked_epochs(inp, epochs)
     has["clk"][ks] = True
     has["drift"][ks] = uses_drift(inp)
-    if inp.raw is not None:
+    if inp.raw is not None and inp.raw.has_tdcp:
         carrier = carrier_epochs(trace, inp)
         has["disp"] = carrier
         has["qclk"] = carrier | np.r_[carrier[1:], False]
@@ -294,7 +294,7 @@ def supported(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> bool:
     if inp.raw is not None:
         if cfg.motion != "cv" and (inp.raw.doppler & inp.keep[:, None]).any():
             return False
-        ks = np.flatnonzero(carrier_epochs(trace, inp))
+        ks = np.flatnonzero(carrier_epochs(trace, inp)) if inp.raw.has_tdcp else np.zeros(0, int)
         if len(ks) and (ks.min() == 0 or not inp.keep[ks - 1].all()):
             return False
     return True
@@ -308,7 +308,9 @@ def vector_graph(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> VectorGrap
     lay = make_layout(trace, inp, cfg, epochs)
     blocks = pseudorange_blocks(trace, inp, cfg, lay) + isb_blocks(inp, cfg, lay) + clock_blocks(inp, cfg, lay, epochs)
     if inp.raw is not None:
-        blocks += doppler_blocks(trace, inp, cfg, lay) + carrier_blocks(trace, inp, cfg, lay)
+        blocks += doppler_blocks(trace, inp, cfg, lay)
+        if inp.raw.has_tdcp:
+            blocks += carrier_blocks(trace, inp, cfg, lay)
     blocks += prior_blocks(inp, cfg, lay, epochs) + motion_blocks(inp, cfg, lay, epochs)
     blocks = [b for b in blocks if len(b)]
     return VectorGraph(System(blocks, lay.n, lay.n_local), lay, initial_state(trace, inp, lay))
