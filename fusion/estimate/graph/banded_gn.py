@@ -24,8 +24,9 @@ import scipy.linalg
 from fusion.errors import GnssfuseError
 from fusion.estimate.graph.optimiser import at_optimum, converged
 
-#: a nonlinear kind's model: x (N,) -> (whitened residuals (M,d), whitened Jacobians (M,d,n)) at x
-Model = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+#: a nonlinear kind's model: (x (N,), whether to compute Jacobians) -> (whitened residuals (M,d), whitened
+#: Jacobians (M,d,n) or None) at x
+Model = Callable[[np.ndarray, bool], tuple[np.ndarray, np.ndarray | None]]
 
 
 @dataclass
@@ -34,7 +35,8 @@ class Blocks:
 
     cols (M,n) int: each factor's variables (indices into the state vector); linear kinds give A (M,d,n)
     and b (M,d), the whitened residual being ``A @ x[cols] - b``; nonlinear kinds give ``model`` instead.
-    robust: "none", "huber" or "cauchy" on the norm of each factor's whitened residual, at ``k``."""
+    robust: "none", "huber" or "cauchy" on the norm of each factor's whitened residual, at ``k``. A factor
+    names each of its variables once (the normal equations' pair products assume distinct columns)."""
 
     cols: np.ndarray
     A: np.ndarray | None = None
@@ -45,13 +47,18 @@ class Blocks:
     _pairs: "_Pairs | None" = field(default=None, repr=False)
     _h: np.ndarray | None = field(default=None, repr=False)
 
+    def __post_init__(self):
+        c = np.sort(self.cols, axis=1)
+        if (c[:, :1] < 0).any() or (c[:, 1:] == c[:, :-1]).any():
+            raise ValueError("Blocks: a factor's variables must be distinct state indices >= 0")
+
     def __len__(self) -> int:
         return len(self.cols)
 
     def residual(self, x: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
-        """Whitened residuals (M,d) at ``x`` (N,), and the whitened Jacobians (M,d,n)."""
+        """Whitened residuals (M,d) at ``x`` (N,), and the whitened Jacobians (M,d,n) (None without ``jacobian``)."""
         if self.model is not None:
-            return self.model(x) if jacobian else (self.model(x)[0], None)
+            return self.model(x, jacobian)
         return np.einsum("mdn,mn->md", self.A, x[self.cols]) - self.b, self.A
 
 
@@ -181,6 +188,7 @@ def _static_information(system: System, band: int) -> Normal:
 
 
 def _static(blk: Blocks) -> bool:
+    """Whether ``blk``'s information never changes (linear, no robust loss)."""
     return blk.model is None and blk.robust == "none"
 
 

@@ -17,7 +17,8 @@ from fusion.estimate.graph.keys import pos_key, vel_key
 from fusion.estimate.graph.marginals import marginal_positions
 from fusion.estimate.graph.optimiser import optimise_values
 from fusion.estimate.graph.solve_errors import geometry_error
-from fusion.estimate.graph.vector_graph import (VectorGraph, banded_marginals, same_layout, to_values, vector_graph,
+from fusion.estimate.graph.vector_graph import (VectorGraph, banded_marginals, from_values, same_layout, to_values,
+                                                vector_graph,
                                                 vector_isb_estimates, vector_velocities)
 from fusion.trace import Trace
 
@@ -50,7 +51,9 @@ class BatchSolution:
     dense factor positions (for :func:`marginal_positions`), the solution, the inputs and settings it was
     built from, what :func:`solve_batch` returned (pos (E,3), valid (E,), info), where its pseudorange
     factors are and its elimination ordering (for :func:`patched_graph`); or, solved by the banded solver,
-    no GTSAM graph or values but the vectorised graph and its solution x (N,)."""
+    no GTSAM graph or values but the vectorised graph and its solution x (N,). Neither travels between
+    processes (GTSAM objects; the vectorised graph's closures): :func:`~fusion.estimate.graph.fuse.solve_graph`
+    drops it from results unless asked to keep it."""
 
     graph: gtsam.NonlinearFactorGraph
     dense: list
@@ -146,8 +149,11 @@ def _solve_banded(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorG
                   start: BatchSolution | None, t0: float):
     """:func:`solve_batch` by :func:`~fusion.estimate.graph.banded_gn.gauss_newton` on ``vec`` (built from
     ``t0``); where a step fails, GTSAM's Levenberg-Marquardt carries on from the best values so far."""
-    warm = start is not None and start.vector is not None and same_layout(start.vector.layout, vec.layout)
-    x0 = start.x if warm else vec.x0
+    x0 = vec.x0
+    if start is not None and start.vector is not None and same_layout(start.vector.layout, vec.layout):
+        x0 = start.x
+    elif start is not None and start.values is not None:    # GTSAM's solution (a graph it had to solve)
+        x0 = from_values(vec.layout, warm_values(to_values(vec.layout, x0), start.values))
     t1 = time.perf_counter()
     sol = gauss_newton(vec.system, x0, cfg.lm_rel_tol, cfg.lm_max_iter)
     if not sol.ok:

@@ -123,7 +123,7 @@ def _cols(start: np.ndarray, ks: np.ndarray, dim: int) -> np.ndarray:
     return start[ks, None] + np.arange(dim)
 
 
-def scalar_blocks(cols: np.ndarray, coeffs: np.ndarray, rhs: np.ndarray, sigma, robust: str = "none",
+def scalar_blocks(cols: np.ndarray, coeffs: np.ndarray, rhs: np.ndarray, sigma: np.ndarray | float, robust: str = "none",
                   k: float = 1.0) -> Blocks:
     """Linear scalar factors ``(coeffs . x[cols] - rhs) / sigma``: cols, coeffs (M,n), rhs (M,), sigma (M,) or
     a number."""
@@ -163,13 +163,14 @@ def _pseudorange_model(cols: np.ndarray, sat: np.ndarray, pr: np.ndarray, sigma:
     with variables cols (M,4|5), satellites sat (M,3), pseudoranges pr (M,) and sigmas (M,) [m]."""
     with_bias = cols.shape[1] == 5
 
-    def model(x: np.ndarray):
+    def model(x: np.ndarray, jacobian: bool = True):
         geom, grad = range_and_gradient(sat, x[cols[:, :3]])
         r = geom + x[cols[:, 3]] - pr
-        parts = [grad, np.ones((len(pr), 1))]
         if with_bias:
             r = r - x[cols[:, 4]]
-            parts.append(-np.ones((len(pr), 1)))
+        if not jacobian:
+            return (r / sigma)[:, None], None
+        parts = [grad, np.ones((len(pr), 1))] + ([-np.ones((len(pr), 1))] if with_bias else [])
         return (r / sigma)[:, None], (np.concatenate(parts, axis=1) / sigma[:, None])[:, None, :]
     return model
 
@@ -281,6 +282,7 @@ class VectorGraph:
 
     @property
     def n_factors(self) -> int:
+        """How many factors (GTSAM's graph holds as many)."""
         return sum(len(b) for b in self.system.blocks)
 
 
@@ -363,7 +365,7 @@ def banded_marginals(vec: VectorGraph, x: np.ndarray, epochs: np.ndarray, E: int
 def vector_isb_estimates(lay: Layout, x: np.ndarray, inp: EpochInputs) -> dict[str, float]:
     """Estimated inter-system biases [m], keyed ``"<signal>@<component>"`` as
     :func:`~fusion.estimate.graph.isb.isb_estimates` keys them."""
-    return {f"{SIGNALS[inp.isb.groups[g]]}@{c}": -float(x[i]) for (c, g), i in lay.isb.items()}
+    return {f"{SIGNALS[inp.isb.groups[g]]}@{c}": -float(x[lay.isb[(c, g)]]) for g, c in sorted((g, c) for c, g in lay.isb)}
 
 
 def vector_velocities(lay: Layout, x: np.ndarray, epochs: np.ndarray, E: int) -> np.ndarray | None:
