@@ -70,6 +70,13 @@ def ned2ecef_cov(cov_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
     return np.swapaxes(R, -1, -2) @ cov_ned @ R
 
 
+def norm3(v: np.ndarray) -> np.ndarray:
+    """(...) Euclidean norms of vectors (..., 3): the very operations of ``np.linalg.norm(v, axis=-1)``
+    on a float array (so the same bits) without its argument handling and the copy its ``conj()``
+    makes, which cost more than the arithmetic on the (E, S, 3) arrays of every WLS iteration."""
+    return np.sqrt(np.add.reduce(v * v, axis=-1))
+
+
 def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
     """Rotate transmit-time satellite ECEF positions into the ECEF frame at receive time.
 
@@ -80,11 +87,14 @@ def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
     sat_pos: (..., S, 3) ECEF at transmit time. rx_pos: (..., 3) receiver ECEF guess.
     Returns (..., S, 3).
     """
-    rng = np.linalg.norm(sat_pos - rx_pos[..., None, :], axis=-1)
-    theta = OMEGA_E * rng / C_LIGHT
+    theta = OMEGA_E * norm3(sat_pos - rx_pos[..., None, :]) / C_LIGHT
     c, s = np.cos(theta), np.sin(theta)
     x, y = sat_pos[..., 0], sat_pos[..., 1]
-    return np.stack([c * x + s * y, -s * x + c * y, sat_pos[..., 2]], axis=-1)
+    out = np.empty(c.shape + (3,), np.result_type(c, sat_pos))   # what np.stack of the three made
+    out[..., 0] = c * x + s * y
+    out[..., 1] = -s * x + c * y
+    out[..., 2] = sat_pos[..., 2]
+    return out
 
 
 def line_of_sight(sat_pos: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,7 +105,7 @@ def line_of_sight(sat_pos: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, 
     """
     rot = sagnac_rotate(sat_pos, rx_pos)
     d = rot - rx_pos[..., None, :]
-    rng = np.linalg.norm(d, axis=-1)
+    rng = norm3(d)
     return rng, d / np.maximum(rng, 1.0)[..., None]
 
 

@@ -9,6 +9,7 @@ in :data:`COMMANDS`.
 """
 from __future__ import annotations
 
+import gc
 import importlib
 import sys
 import warnings
@@ -42,6 +43,23 @@ def _usage() -> str:
     return "\n".join(lines)
 
 
+def _import_quietly(module: str):
+    """Import a subcommand's module with the cyclic garbage collector paused, then move everything
+    imported so far out of its reach (``gc.freeze``). Imports allocate hundreds of thousands of
+    long-lived objects (pandas, numpy, the library): without this the collector walks them again
+    and again while they load, and once more at interpreter exit, about 70 ms of a ~0.6 s
+    ``gnssfuse run --mode wls`` (``benchmarks/bench_pixel5.py``). Objects made later are collected
+    as usual."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return importlib.import_module(module)
+    finally:
+        gc.freeze()
+        if enabled:
+            gc.enable()
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
@@ -62,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
         from fusion.parallel import jobs_asked, start_early
         if jobs_asked(rest) > 1:
             start_early()        # the workers' imports then overlap this process's
-    entry = getattr(importlib.import_module(module), func)
+    entry = getattr(_import_quietly(module), func)
     try:
         return int(entry(rest, prog=f"gnssfuse {cmd}") or 0)
     except (GnssfuseError, OSError) as exc:

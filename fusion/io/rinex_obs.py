@@ -334,9 +334,8 @@ def observation_frame(system: np.ndarray, prn: np.ndarray, prn_bad: np.ndarray, 
     system: (M,) uint8 letters.  prn, prn_bad: (M,) satellite numbers and their parse failures.
     fields: (16, M, n_obs) uint8, column-major F14.3 + LLI + SSI of each observation type.
     """
-    n_obs = fields.shape[2]
-    values, bad = parse_float_columns(fields[:14].reshape(14, -1), dot_col=10)
-    values, bad = values.reshape(-1, n_obs), bad.reshape(-1, n_obs).any(axis=1) | prn_bad
+    values, bad = _parse_values(fields)
+    bad |= prn_bad
     values[values == 0.0] = np.nan
     lli = fields[14]
     if bad.any():
@@ -361,6 +360,23 @@ def observation_frame(system: np.ndarray, prn: np.ndarray, prn_bad: np.ndarray, 
         return empty_raw()
     cols = {k: np.concatenate([b[k] for b in blocks]) for k in blocks[0]}
     return finish_raw(cols, skipped)
+
+
+#: Satellite lines parsed at a time: each block's temporaries (a dozen (14, lines x types) arrays)
+#: stay small and in cache instead of tens of MB of fresh memory.
+PARSE_BLOCK_LINES = 4096
+
+
+def _parse_values(fields: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(16, M, n_obs) uint8 F14.3 + LLI + SSI fields -> (M, n_obs) values (NaN blank or bad) and
+    (M,) bool lines with an unreadable number, :data:`PARSE_BLOCK_LINES` lines at a time."""
+    _, n_lines, n_obs = fields.shape
+    values, bad = np.empty((n_lines, n_obs)), np.empty(n_lines, bool)
+    for a in range(0, n_lines, PARSE_BLOCK_LINES):
+        block = fields[:14, a:a + PARSE_BLOCK_LINES]
+        v, b = parse_float_columns(block.reshape(14, -1), dot_col=10)
+        values[a:a + PARSE_BLOCK_LINES], bad[a:a + PARSE_BLOCK_LINES] = v.reshape(-1, n_obs), b.reshape(-1, n_obs).any(axis=1)
+    return values, bad
 
 
 def _system_blocks(sys_letter: str, types: list[str], rows: np.ndarray, values: np.ndarray,
