@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import gc
 import importlib
+import os
 import sys
+import threading
 import warnings
 
 from fusion.errors import GnssfuseError
@@ -88,3 +90,27 @@ def main(argv: list[str] | None = None) -> int:
         # (OSError: a missing input, an unwritable output).
         print(f"gnssfuse {cmd}: error: {exc}", file=sys.stderr)
         return 2
+
+
+def entry() -> None:
+    """The ``gnssfuse`` script and ``python -m fusion.cli``: :func:`main`, then exit with its code.
+
+    After ``run`` the interpreter's teardown (freeing every module and object one by one, ~20 ms of a
+    ~0.6 s ``run --mode wls``) is skipped: its files are closed and written, so once stdout and stderr
+    are flushed ``os._exit`` ends the process at once. Other subcommands (worker pools, Dask clients,
+    torch) and a ``run`` that left threads or child processes behind exit normally, with their exit
+    handlers.
+    """
+    argv = sys.argv[1:]
+    code = main(argv)
+    if argv[:1] == ["run"] and threading.active_count() == 1 and not _children():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
+def _children() -> bool:
+    """Whether this process started child processes through :mod:`multiprocessing` that still run."""
+    mp = sys.modules.get("multiprocessing")
+    return mp is not None and bool(mp.active_children())
