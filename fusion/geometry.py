@@ -71,10 +71,18 @@ def ned2ecef_cov(cov_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
 
 
 def norm3(v: np.ndarray) -> np.ndarray:
-    """(...) Euclidean norms of vectors (..., 3): the very operations of ``np.linalg.norm(v, axis=-1)``
-    on a float array (so the same bits) without its argument handling and the copy its ``conj()``
-    makes, which cost more than the arithmetic on the (E, S, 3) arrays of every WLS iteration."""
-    return np.sqrt(np.add.reduce(v * v, axis=-1))
+    """(...) Euclidean norms of float64 vectors (..., 3), bit for bit ``np.linalg.norm(v, axis=-1)``.
+
+    numpy's norm squares and reduces along the last axis, in order: ``(x^2 + y^2) + z^2``. Written out
+    on the three columns this is the same arithmetic, about six times faster on the (E, S, 3) arrays of
+    every Gauss-Newton step (a reduction over a length-3 axis pays its loop overhead per vector);
+    ``tests/test_geometry.py`` holds it to numpy's bits. Other dtypes go to numpy.
+    """
+    v = np.asarray(v)
+    if v.dtype != np.float64 or v.shape[-1:] != (3,):
+        return np.linalg.norm(v, axis=-1)
+    sq = v * v
+    return np.sqrt(sq[..., 0] + sq[..., 1] + sq[..., 2])
 
 
 def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
