@@ -19,7 +19,10 @@ def line_bounds(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     buf: (B,) uint8, the text.  Returns two (L,) int64 arrays; a final line without a newline
     counts, an empty tail after the last newline does not.
     """
-    nl = np.flatnonzero(buf == 10)
+    # in blocks: one (B,) bool mask of a 4 MB file is 4 MB of fresh memory to touch
+    block = 1 << 19
+    nl = np.concatenate([np.flatnonzero(buf[a:a + block] == 10) + a for a in range(0, buf.size, block)]
+                        or [np.zeros(0, np.int64)])
     starts = np.concatenate(([0], nl + 1))
     ends = np.concatenate((nl, [buf.size]))
     if starts[-1] >= buf.size:
@@ -34,12 +37,16 @@ def char_matrix(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, width: in
     lines are cut at ``width``, shorter ones padded with spaces (RINEX writers strip trailing
     blanks, which mean "missing").
     """
-    # Positions past a line's end point at one appended space; int32 halves the index traffic.
+    if buf.size == 0:
+        return np.full((starts.size, width), SPACE, np.uint8)
+    # Positions past a line's end read the buffer's last byte, then become spaces (no padded copy of
+    # the whole buffer); int32 halves the index traffic.
     pos_t = np.int32 if buf.size < 2**31 - 1 else np.int64
-    padded = np.append(buf, np.uint8(SPACE))
     idx = starts.astype(pos_t)[:, None] + np.arange(width, dtype=pos_t)[None, :]
-    idx = np.where(idx < ends.astype(pos_t)[:, None], idx, pos_t(buf.size))
-    return np.take(padded, idx)
+    past = idx >= ends.astype(pos_t)[:, None]
+    out = np.take(buf, np.minimum(idx, pos_t(buf.size - 1)))
+    out[past] = SPACE
+    return out
 
 
 def parse_decimal(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -164,4 +164,5 @@ def finish_raw(columns: dict[str, np.ndarray], skipped: dict[str, int] | None = 
         count_skip(skipped, "duplicate_observations", dup)
     order = order[~dup]
     dtypes = {"i": np.int64, "f": np.float64, "b": bool, "O": object}
-    return pd.DataFrame({c: np.asarray(cols[c], dtype=dtypes[k])[order] for c, k in RAW_COLUMNS.items()})
+    # copy=False: the columns are fresh (indexed by ``order``), a second copy of each is only memory
+    return pd.DataFrame({c: np.asarray(cols[c], dtype=dtypes[k])[order] for c, k in RAW_COLUMNS.items()}, copy=False)
