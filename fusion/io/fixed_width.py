@@ -183,8 +183,12 @@ def line_matrix(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, width: in
     :func:`char_matrix` costs three (N, width) integer arrays, twice the time on a phone's RINEX body
     (4 MB, 33,000 satellite lines of 131 characters).
     """
-    raw = buf.tobytes()
-    padded = [raw[a:b].ljust(width) for a, b in zip(starts.tolist(), ends.tolist())]
+    if starts.size == 0:
+        return np.zeros((0, width), np.uint8)
+    ends = np.maximum(ends, starts)                    # an empty line, never a backward slice
+    lo = int(starts.min())
+    raw = buf[lo:int(ends.max())].tobytes()           # the lines' span only: readers call this per block
+    padded = [raw[a:b].ljust(width) for a, b in zip((starts - lo).tolist(), (ends - lo).tolist())]
     return np.array(padded, dtype=f"S{width}").view(np.uint8).reshape(len(padded), width)
 
 
