@@ -209,6 +209,8 @@ def test_entry_exits_at_once_after_run_only(shipped_trace_dir, tmp_path, monkeyp
         raise Exited(code)
 
     monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    monkeypatch.setattr(cli, "_children", lambda: False)
+    monkeypatch.setattr(cli.threading, "active_count", lambda: 1)     # the test runner's own threads aside
     monkeypatch.setattr(sys, "argv", ["gnssfuse", "run", str(shipped_trace_dir), "--mode", "wls",
                                       "--out", str(tmp_path / "o")])
     with pytest.raises(Exited) as got:
@@ -218,6 +220,13 @@ def test_entry_exits_at_once_after_run_only(shipped_trace_dir, tmp_path, monkeyp
     with pytest.raises(SystemExit) as normal:           # other commands: the ordinary exit
         cli.entry()
     assert normal.value.code == 0
+    # a run that leaves a thread behind exits the ordinary way too (its exit handlers run)
+    monkeypatch.setattr(cli.threading, "active_count", lambda: 2)
+    monkeypatch.setattr(sys, "argv", ["gnssfuse", "run", str(shipped_trace_dir), "--mode", "wls",
+                                      "--out", str(tmp_path / "o2")])
+    with pytest.raises(SystemExit) as threaded:
+        cli.entry()
+    assert threaded.value.code == 0
 
 
 def test_run_output_survives_the_quick_exit(shipped_trace_dir, tmp_path):

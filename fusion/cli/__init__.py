@@ -49,22 +49,24 @@ def _usage() -> str:
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 
 
-def keep_freed_memory(limit: int = 1 << 28) -> bool:
-    """Have glibc's allocator keep freed blocks up to ``limit`` bytes for reuse instead of giving them
-    back to the system (``mallopt``; the ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` tunables).
+def keep_freed_memory(mmap_above: int = 1 << 25, trim_above: int = 1 << 28) -> bool:
+    """Have glibc's allocator serve blocks up to ``mmap_above`` bytes from its heap and keep up to
+    ``trim_above`` bytes of freed heap for reuse, instead of mapping each large block afresh and giving
+    it back when freed (``mallopt``; the ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` tunables).
 
-    By default every array over 128 kB to 32 MB is a fresh ``mmap`` and every free returns it, so each
-    new temporary of a reader or a Gauss-Newton step is pages the kernel must fault in again: ~40 % of
-    the page faults of ``gnssfuse run --mode wls`` on the Pixel5 log (12,000 -> 7,600; ~12 ms; more
-    on a virtual machine, where a fresh page is dear). For a short process; the memory is the
-    process's peak either way. False (nothing done) where the C library has no ``mallopt`` (not glibc).
+    By default each new temporary array of a reader or a Gauss-Newton step over 128 kB is pages the
+    kernel must fault in again: this takes ~40 % of the page faults of loading the Pixel5 log in
+    ``gnssfuse run --mode wls`` (12,000 -> 7,600, ~12 ms; more on a virtual machine, where a fresh page
+    is dear). For a short process (``run``, from :func:`entry`): its memory is its peak either way.
+    True when both settings took; False where the C library has no ``mallopt`` (not glibc).
     """
     try:
         import ctypes
         libc = ctypes.CDLL(None)
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, limit)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, limit))
+        took = [libc.mallopt(_M_MMAP_THRESHOLD, mmap_above), libc.mallopt(_M_TRIM_THRESHOLD, trim_above)]
     except (OSError, AttributeError):
         return False
+    return all(took)
 
 
 def _import_quietly(module: str):
@@ -97,8 +99,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gnssfuse: unknown command {cmd!r}\n\n{_usage()}", file=sys.stderr)
         return 2
     module, func = COMMANDS[cmd][0].split(":")
-    if cmd == "run":
-        keep_freed_memory()
     # a user's warning (a file read in part, navigation missing for a constellation) is one line naming
     # the command, not Python's file and source line
     warnings.formatwarning = lambda message, category, *args, **kwargs: f"gnssfuse {cmd}: warning: {message}\n"
@@ -119,13 +119,15 @@ def main(argv: list[str] | None = None) -> int:
 def entry() -> None:
     """The ``gnssfuse`` script and ``python -m fusion.cli``: :func:`main`, then exit with its code.
 
-    After ``run`` the interpreter's teardown (freeing every module and object one by one, ~20 ms of a
-    ~0.6 s ``run --mode wls``) is skipped: its files are closed and written, so once stdout and stderr
-    are flushed ``os._exit`` ends the process at once. Other subcommands (worker pools, Dask clients,
-    torch) and a ``run`` that left threads or child processes behind exit normally, with their exit
-    handlers.
+    A ``run`` keeps freed memory for reuse (:func:`keep_freed_memory`), and the interpreter's teardown
+    after it (freeing every module and object one by one, ~20 ms of a ~0.6 s ``run --mode wls``) is
+    skipped: its files are closed and written, so once stdout and stderr are flushed ``os._exit`` ends
+    the process at once. Other subcommands (worker pools, Dask clients, torch) and a ``run`` that left
+    threads or child processes behind exit normally, with their exit handlers.
     """
     argv = sys.argv[1:]
+    if argv[:1] == ["run"]:
+        keep_freed_memory()
     code = main(argv)
     if argv[:1] == ["run"] and threading.active_count() == 1 and not _children():
         sys.stdout.flush()

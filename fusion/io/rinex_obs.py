@@ -380,7 +380,8 @@ def _parse_values(fields: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     for a in range(0, n_lines, PARSE_BLOCK_LINES):
         block = fields[:14, a:a + PARSE_BLOCK_LINES]
         v, b = parse_float_columns(block.reshape(14, -1), dot_col=10)
-        values[a:a + PARSE_BLOCK_LINES], bad[a:a + PARSE_BLOCK_LINES] = v.reshape(-1, n_obs), b.reshape(-1, n_obs).any(axis=1)
+        values[a:a + PARSE_BLOCK_LINES] = v.reshape(-1, n_obs)
+        bad[a:a + PARSE_BLOCK_LINES] = b.reshape(-1, n_obs).any(axis=1)
     return values, bad, fields[14]
 
 
