@@ -130,8 +130,11 @@ def entry() -> None:
         keep_freed_memory()
     code = main(argv)
     if argv[:1] == ["run"] and threading.active_count() == 1 and not _children():
-        sys.stdout.flush()
-        sys.stderr.flush()
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        except (OSError, ValueError):       # a closed pipe: the ordinary exit reports it, as it always did
+            sys.exit(code)
         os._exit(code)
     sys.exit(code)
 
