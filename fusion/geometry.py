@@ -70,6 +70,21 @@ def ned2ecef_cov(cov_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
     return np.swapaxes(R, -1, -2) @ cov_ned @ R
 
 
+def norm3(v: np.ndarray) -> np.ndarray:
+    """(...) Euclidean norms of float64 vectors (..., 3), bit for bit ``np.linalg.norm(v, axis=-1)``.
+
+    numpy's norm squares and reduces along the last axis, in order: ``(x^2 + y^2) + z^2``. Written out
+    on the three columns this is the same arithmetic, about six times faster on the (E, S, 3) arrays of
+    every Gauss-Newton step (a reduction over a length-3 axis pays its loop overhead per vector);
+    ``tests/test_geometry.py`` holds it to numpy's bits. Other dtypes go to numpy.
+    """
+    v = np.asarray(v)
+    if v.dtype != np.float64 or v.shape[-1:] != (3,):
+        return np.linalg.norm(v, axis=-1)
+    sq = v * v
+    return np.sqrt(sq[..., 0] + sq[..., 1] + sq[..., 2])
+
+
 def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
     """Rotate transmit-time satellite ECEF positions into the ECEF frame at receive time.
 
@@ -80,11 +95,14 @@ def sagnac_rotate(sat_pos: np.ndarray, rx_pos: np.ndarray) -> np.ndarray:
     sat_pos: (..., S, 3) ECEF at transmit time. rx_pos: (..., 3) receiver ECEF guess.
     Returns (..., S, 3).
     """
-    rng = np.linalg.norm(sat_pos - rx_pos[..., None, :], axis=-1)
-    theta = OMEGA_E * rng / C_LIGHT
+    theta = OMEGA_E * norm3(sat_pos - rx_pos[..., None, :]) / C_LIGHT
     c, s = np.cos(theta), np.sin(theta)
     x, y = sat_pos[..., 0], sat_pos[..., 1]
-    return np.stack([c * x + s * y, -s * x + c * y, sat_pos[..., 2]], axis=-1)
+    out = np.empty(c.shape + (3,), np.result_type(c, sat_pos))   # what np.stack of the three made
+    out[..., 0] = c * x + s * y
+    out[..., 1] = -s * x + c * y
+    out[..., 2] = sat_pos[..., 2]
+    return out
 
 
 def line_of_sight(sat_pos: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,7 +113,7 @@ def line_of_sight(sat_pos: np.ndarray, rx_pos: np.ndarray) -> tuple[np.ndarray, 
     """
     rot = sagnac_rotate(sat_pos, rx_pos)
     d = rot - rx_pos[..., None, :]
-    rng = np.linalg.norm(d, axis=-1)
+    rng = norm3(d)
     return rng, d / np.maximum(rng, 1.0)[..., None]
 
 

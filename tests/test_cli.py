@@ -168,3 +168,81 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "asked at 10 epochs, 80 measurements" in text and "3 measurements with inputs outside" in text
     assert "12 measurements of signals it cannot read" in text and "switched off in 1" in text
     assert "4 epochs bridged" in text and "longest stretch 4 s" in text
+
+
+# ---------------------------------------------------------------------------- start-up and exit cost of `run`
+def test_run_wls_imports_nothing_heavy(shipped_trace_dir, tmp_path):
+    """`run --mode wls` needs neither the network, nor GTSAM, nor the plotting stack: their imports
+    (seconds for torch) must stay out of the wls path."""
+    code = ("import sys\nfrom fusion.cli import main\n"
+            f"assert main(['run', {str(shipped_trace_dir)!r}, '--mode', 'wls', '--out', {str(tmp_path / 'o')!r}]) == 0\n"
+            "heavy = ('torch', 'gtsam', 'matplotlib', 'learned', 'scipy', 'fusion.estimate.graph.fuse')\n"
+            "print('LOADED', [m for m in heavy if m in sys.modules])")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert "LOADED []" in proc.stdout
+
+
+def test_subcommand_import_pauses_then_freezes_the_collector():
+    import gc
+
+    from fusion.cli import _import_quietly
+
+    frozen = gc.get_freeze_count()
+    try:
+        for enabled in (True, False):
+            (gc.enable if enabled else gc.disable)()
+            assert _import_quietly("fusion.cli.run").main
+            assert gc.isenabled() is enabled          # as it was
+            assert gc.get_freeze_count() > frozen     # the imported objects are out of the collector's way
+    finally:
+        gc.enable()
+        gc.unfreeze()
+
+
+def test_entry_exits_at_once_after_run_only(shipped_trace_dir, tmp_path, monkeypatch):
+    import fusion.cli as cli
+
+    class Exited(Exception):
+        pass
+
+    def fake_exit(code):
+        raise Exited(code)
+
+    monkeypatch.setattr(cli.os, "_exit", fake_exit)
+    monkeypatch.setattr(cli, "_children", lambda: False)
+    monkeypatch.setattr(cli.threading, "active_count", lambda: 1)     # the test runner's own threads aside
+    monkeypatch.setattr(sys, "argv", ["gnssfuse", "run", str(shipped_trace_dir), "--mode", "wls",
+                                      "--out", str(tmp_path / "o")])
+    with pytest.raises(Exited) as got:
+        cli.entry()
+    assert got.value.args == (0,) and (tmp_path / "o" / "estimates.csv").is_file()
+    monkeypatch.setattr(sys, "argv", ["gnssfuse", "--version"])
+    with pytest.raises(SystemExit) as normal:           # other commands: the ordinary exit
+        cli.entry()
+    assert normal.value.code == 0
+    # a run that leaves a thread behind exits the ordinary way too (its exit handlers run)
+    monkeypatch.setattr(cli.threading, "active_count", lambda: 2)
+    monkeypatch.setattr(sys, "argv", ["gnssfuse", "run", str(shipped_trace_dir), "--mode", "wls",
+                                      "--out", str(tmp_path / "o2")])
+    with pytest.raises(SystemExit) as threaded:
+        cli.entry()
+    assert threaded.value.code == 0
+
+
+def test_run_output_survives_the_quick_exit(shipped_trace_dir, tmp_path):
+    """The process ends by os._exit after a run: what it printed to a pipe is flushed first."""
+    out = tmp_path / "o"
+    proc = subprocess.run([sys.executable, "-m", "fusion.cli", "run", str(shipped_trace_dir), "--mode", "wls",
+                           "--out", str(out)], capture_output=True, text=True)
+    assert proc.returncode == 0 and proc.stdout.rstrip().splitlines()[-1].startswith("wrote ")
+    assert (out / "metrics.json").read_text().rstrip().endswith("}")
+
+
+def test_freed_memory_is_kept_where_glibc_allows():
+    import platform
+
+    from fusion.cli import keep_freed_memory
+
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        pytest.skip("mallopt is glibc's")
+    assert keep_freed_memory() is True

@@ -56,3 +56,35 @@ def test_elevation_azimuth_with_precomputed_rotation():
     el2, az2 = elevation_azimuth(los, None, R=ned_rotation(rx))
     np.testing.assert_array_equal(el, el2)
     np.testing.assert_array_equal(az, az2)
+
+
+def test_norm3_is_numpys_norm_bit_for_bit():
+    """norm3 writes numpy's norm out on the columns: equal to the last bit, whatever the layout."""
+    from fusion.geometry import norm3
+
+    rng = np.random.default_rng(4)
+    for shape in [(2000, 10, 3), (3,), (1, 3), (0, 3), (5, 1, 3), (4, 5, 6, 3)]:
+        v = rng.normal(size=shape) * rng.choice([1.0, 1e3, 2.6e7], size=shape)
+        moved = np.moveaxis(np.moveaxis(v, -1, 0).copy(), 0, -1)      # components far apart in memory
+        for arr in (v, v[::-1], np.asfortranarray(v), moved):
+            assert np.array_equal(norm3(arr), np.linalg.norm(arr, axis=-1)), shape
+    ints = np.array([[3, 4, 12]])
+    assert norm3(ints).tolist() == [13.0] and norm3(np.ones((2, 4))).shape == (2,)
+
+
+def test_sagnac_rotation_and_line_of_sight_keep_their_bits():
+    """The rotation is written into one array instead of stacked: the same bits as the formula, in
+    float64 and float32."""
+    rng = np.random.default_rng(6)
+    for dtype in (np.float64, np.float32):
+        sat = (rng.normal(size=(50, 9, 3)) * 2.0e7).astype(dtype)
+        rx = (rng.normal(size=(50, 3)) * 6.4e6).astype(dtype)
+        theta = OMEGA_E * np.linalg.norm(sat - rx[:, None, :], axis=-1) / C_LIGHT
+        c, s = np.cos(theta), np.sin(theta)
+        want = np.stack([c * sat[..., 0] + s * sat[..., 1], -s * sat[..., 0] + c * sat[..., 1], sat[..., 2]], -1)
+        got = sagnac_rotate(sat, rx)
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+        rng_m, los = line_of_sight(sat, rx)
+        d = want - rx[:, None, :]
+        assert np.array_equal(rng_m, np.linalg.norm(d, axis=-1))
+        assert np.array_equal(los, d / np.maximum(np.linalg.norm(d, axis=-1), 1.0)[..., None])

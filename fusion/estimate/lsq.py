@@ -17,7 +17,9 @@ def normal_equations(sat_pos, pr, w, x):
     """Linearise at state x (E, 4), with sat_pos (E,S,3), pr (E,S), weights w (E,S): returns
     N (E,4,4), b (E,4), residuals r (E,S), H (E,S,4)."""
     rng, los = line_of_sight(sat_pos, x[:, :3])
-    H = np.concatenate([-los, np.ones(los.shape[:-1] + (1,))], axis=-1)
+    H = np.empty(los.shape[:-1] + (4,), np.result_type(los.dtype, np.float64))     # [-los, 1]
+    np.negative(los, out=H[..., :3])
+    H[..., 3] = 1.0
     r = pr - rng - x[:, 3:4]
     Hw = H * w[..., None]
     N = np.matmul(Hw.transpose(0, 2, 1), H)
@@ -64,7 +66,9 @@ def gauss_newton(sat_pos, pr, w, x, active, max_iter, tol, max_cond, n_iter):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
-        N, b, _, _ = normal_equations(sat_pos[idx], pr[idx], w[idx], x[idx])
+        # every epoch active (the first steps of a stage): the arrays themselves, not copies of them
+        rows = (sat_pos, pr, w, x) if idx.size == E else (sat_pos[idx], pr[idx], w[idx], x[idx])
+        N, b, _, _ = normal_equations(*rows)
         sing = ill_conditioned(N, max_cond)
         N[sing] = eye
         b[sing] = 0.0

@@ -209,21 +209,36 @@ def costly_exclusions(before: FitState, after: FitState, settings: WlsSettings) 
     return out
 
 
-def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,
-                   separation: float = SEPARATION) -> FitState:
-    """Fault detection and exclusion (module docstring) on the epochs in ``eligible`` (E,) bool.
-
-    fit: the converged fit (its ``used`` slots are the candidates); settings: ``max_exclusions`` and the
-    Gauss-Newton limits of the re-solve. ``scale``: variance factor of ``fit.w_prior`` for the test
-    (:func:`variance_factor`). Returns the fit with the exclusions removed from ``used`` and re-solved,
-    ``w_fit`` the a-priori weights of the used slots, ``flagged`` the undecided epochs and
-    ``n_excluded`` this pass's exclusions; excluded slots are counted in ``fit.dropped["outlier"]``.
-    """
+def identify_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,
+                    separation: float = SEPARATION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Steps 1-2 of :func:`exclude_faults` (module docstring): the test at the fit and the sets it
+    identifies. Returns (E,) bool failing epochs, (E, S) bool slots to remove and (E,) bool decided epochs
+    (see :func:`_best_exclusion`). It depends on the fit, ``eligible``, ``scale``, ``separation`` and
+    ``settings.max_exclusions`` alone, so passes that share them may share it."""
     w = fit.weights
     _, fails = chi2_test(fit.sat_pos, fit.pr, w, fit.x, fit.used, scale)
     fails &= eligible
     remove, decided = _best_exclusion(fit.sat_pos, fit.pr, w, fit.x, fit.used, fails, settings.max_exclusions,
                                       separation, scale)
+    return fails, remove, decided
+
+
+def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,
+                   separation: float = SEPARATION,
+                   identified: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> FitState:
+    """Fault detection and exclusion (module docstring) on the epochs in ``eligible`` (E,) bool.
+
+    fit: the converged fit (its ``used`` slots are the candidates); settings: ``max_exclusions`` and the
+    Gauss-Newton limits of the re-solve. ``scale``: variance factor of ``fit.w_prior`` for the test
+    (:func:`variance_factor`). ``identified``: :func:`identify_faults` of the same fit, eligible epochs,
+    scale, separation and ``max_exclusions``, when a caller has it already (not modified here).
+    Returns the fit with the exclusions removed from ``used`` and re-solved,
+    ``w_fit`` the a-priori weights of the used slots, ``flagged`` the undecided epochs and
+    ``n_excluded`` this pass's exclusions; excluded slots are counted in ``fit.dropped["outlier"]``.
+    """
+    if identified is None:
+        identified = identify_faults(fit, eligible, settings, scale=scale, separation=separation)
+    fails, remove, decided = identified[0], identified[1].copy(), identified[2].copy()
     after = fit.replace(used=fit.used & ~remove)
     redo = remove.any(1)
     if redo.any():

@@ -125,9 +125,25 @@ def snapshot_var(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np.ndarr
     out = np.full((trace.n_epochs, 3), np.nan)
     if solvable.any():
         good = solvable.copy()
-        good[solvable] = np.linalg.cond(N[solvable]) < 1e12
+        good[solvable] = well_conditioned(N[solvable], 1e12)
         cov = np.linalg.inv(N[good])[:, :3, :3]
         out[good] = np.diagonal(ecef2ned_cov(cov, at[good]), axis1=1, axis2=2)
+    return out
+
+
+def well_conditioned(N: np.ndarray, limit: float) -> np.ndarray:
+    """(K,) bool ``np.linalg.cond(N) < limit`` for symmetric positive semi-definite N (K, n, n).
+
+    Eigenvalues in (0, trace] give ``cond <= trace^n / det``: where that bound is below the limit with a
+    thousandfold margin (against the rounding of the determinant) the epoch is settled without its SVD,
+    which leaves the SVD to the few near-singular epochs (a WLS trace: none of ~2000).
+    """
+    n = N.shape[-1]
+    det = np.linalg.det(N) if N.shape[0] else np.zeros(0)
+    sure = (det > 0) & (np.trace(N, axis1=1, axis2=2) ** n < 1e-3 * limit * det)
+    out = sure.copy()
+    if not sure.all():
+        out[~sure] = np.linalg.cond(N[~sure]) < limit
     return out
 
 

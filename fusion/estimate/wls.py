@@ -91,7 +91,7 @@ from fusion.errors import DataError
 from fusion.estimate.clock_bridge import interpolate_clock, solve_fixed_clock
 from fusion.estimate.lsq import ill_conditioned, normal_equations
 from fusion.estimate.neighbour_fde import exclude_by_neighbours
-from fusion.estimate.raim import exclude_faults, huber_irls, variance_factor
+from fusion.estimate.raim import exclude_faults, huber_irls, identify_faults, variance_factor
 from fusion.estimate.variance_factor import calibrate_snapshot
 from fusion.estimate.wls_state import SIGMA0_M, FitState, WlsSettings  # noqa: F401 (SIGMA0_M: public here too)
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
@@ -284,13 +284,15 @@ def _fde(fit: FitState, eligible: np.ndarray, cfg: WlsSettings) -> tuple[FitStat
     # It runs without the exclusion guard: the factor measures the trace's noise, and the epochs whose
     # moderate faults the guard would keep (down-weighted, flagged) are most of what it must see.
     unguarded = cfg.replace(exclude_above_m=float("inf"))
-    first = exclude_faults(fit.replace(dropped={}), eligible, unguarded, scale=1.0)
+    trial = identify_faults(fit, eligible, unguarded, scale=1.0)
+    first = exclude_faults(fit.replace(dropped={}), eligible, unguarded, scale=1.0, identified=trial)
     settled = eligible & ~first.flagged & ~first.bad & ~first.runaway
     scale = variance_factor(first.sat_pos, first.pr, first.w_fit, first.x, first.used, settled)
     if scale == 1.0 and cfg == unguarded:
         count_skip(fit.dropped, "outlier", first.n_excluded)
         return first.replace(dropped=fit.dropped), scale
-    return exclude_faults(fit, eligible, cfg, scale=scale), scale
+    # the guard does not enter the identification: at the same scale the trial's serves again
+    return exclude_faults(fit, eligible, cfg, scale=scale, identified=trial if scale == 1.0 else None), scale
 
 
 def _usable_slots(sat_pos, pr, mask, sigma, weighting, dropped):

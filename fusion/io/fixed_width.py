@@ -19,7 +19,10 @@ def line_bounds(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     buf: (B,) uint8, the text.  Returns two (L,) int64 arrays; a final line without a newline
     counts, an empty tail after the last newline does not.
     """
-    nl = np.flatnonzero(buf == 10)
+    # in blocks: one (B,) bool mask of a 4 MB file is 4 MB of fresh memory to touch
+    block = 1 << 19
+    nl = np.concatenate([np.flatnonzero(buf[a:a + block] == 10) + a for a in range(0, buf.size, block)]
+                        or [np.zeros(0, np.int64)])
     starts = np.concatenate(([0], nl + 1))
     ends = np.concatenate((nl, [buf.size]))
     if starts[-1] >= buf.size:
@@ -34,12 +37,16 @@ def char_matrix(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, width: in
     lines are cut at ``width``, shorter ones padded with spaces (RINEX writers strip trailing
     blanks, which mean "missing").
     """
-    # Positions past a line's end point at one appended space; int32 halves the index traffic.
+    if buf.size == 0:
+        return np.full((starts.size, width), SPACE, np.uint8)
+    # Positions past a line's end read the buffer's last byte, then become spaces (no padded copy of
+    # the whole buffer); int32 halves the index traffic.
     pos_t = np.int32 if buf.size < 2**31 - 1 else np.int64
-    padded = np.append(buf, np.uint8(SPACE))
     idx = starts.astype(pos_t)[:, None] + np.arange(width, dtype=pos_t)[None, :]
-    idx = np.where(idx < ends.astype(pos_t)[:, None], idx, pos_t(buf.size))
-    return np.take(padded, idx)
+    past = idx >= ends.astype(pos_t)[:, None]
+    out = np.take(buf, np.minimum(idx, pos_t(buf.size - 1)))
+    out[past] = SPACE
+    return out
 
 
 def parse_decimal(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -135,8 +142,17 @@ def _parse_fixed_point(c: np.ndarray, dot_col: int) -> tuple[np.ndarray, np.ndar
     dec = w - 1 - dot_col
     power = np.concatenate((np.arange(dot_col - 1, -1, -1) + dec, [0], np.arange(dec - 1, -1, -1)))
     weight = np.where(np.arange(w) == dot_col, 0.0, 10.0 ** power)
-    # Digits times exact powers of ten sum exactly in float64 while the mantissa is < 2**53.
-    mantissa = weight @ np.where(digit, c - np.uint8(48), np.uint8(0)).astype(np.float64)
+    # Digits times exact powers of ten sum exactly in float64 while the mantissa is < 2**53, in any
+    # order: with at most 15 digits it always is, and a row at a time then gives the matrix product's
+    # bits without its (w, N) float64 copy of the digits (8 bytes per character: the largest array of
+    # a RINEX read, and fresh memory is slow to touch)
+    digits = np.where(digit, c - np.uint8(48), np.uint8(0))
+    if w - 1 <= 15:
+        mantissa = np.zeros(c.shape[1])
+        for j in np.flatnonzero(weight):
+            mantissa += digits[j] * weight[j]
+    else:
+        mantissa = weight @ digits.astype(np.float64)
     value = np.where(minus.any(axis=0), -mantissa, mantissa) / 10.0 ** dec
     value[blank] = np.nan
     return ok & (mantissa < 2.0 ** 53), value
@@ -149,12 +165,31 @@ def gather_fields(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, offsets
     buf: (B,) uint8.  starts, ends: (N,) line offsets.  offsets: (K,) field start columns.
     Returns (width, N, K) uint8: character j of field k of line i at ``[j, i, k]``.
     """
-    pos_t = np.int32 if buf.size < 2**31 - 1 - width - int(offsets.max(initial=0)) else np.int64
-    padded = np.append(buf, np.uint8(SPACE))
-    idx = (starts.astype(pos_t)[None, :, None] + offsets.astype(pos_t)[None, None, :]
-           + np.arange(width, dtype=pos_t)[:, None, None])
-    idx = np.where(idx < ends.astype(pos_t)[None, :, None], idx, pos_t(buf.size))
-    return np.take(padded, idx)
+    offsets = np.asarray(offsets, np.int64)
+    if starts.size == 0 or offsets.size == 0:
+        return np.full((width, starts.size, offsets.size), SPACE, np.uint8)
+    lines = line_matrix(buf, starts, ends, int(offsets.max()) + width)        # (N, W)
+    cols = (offsets[:, None] + np.arange(width)[None, :]).ravel()            # (K * width,)
+    run = np.array_equal(cols, np.arange(cols[0], cols[0] + cols.size))    # side by side: a slice, no copy
+    fields = lines[:, cols[0]:cols[0] + cols.size] if run else lines[:, cols]
+    return np.ascontiguousarray(fields.reshape(starts.size, offsets.size, width).transpose(2, 0, 1))
+
+
+def line_matrix(buf: np.ndarray, starts: np.ndarray, ends: np.ndarray, width: int) -> np.ndarray:
+    """:func:`char_matrix` for wide lines: (N, width) uint8, lines cut at ``width`` or padded with spaces.
+
+    Each line is sliced from the bytes and padded by Python's ``bytes.ljust`` and the lot laid out
+    by numpy's fixed-width bytes dtype (which cuts longer lines), one C pass; the index arithmetic of
+    :func:`char_matrix` costs three (N, width) integer arrays, twice the time on a phone's RINEX body
+    (4 MB, 33,000 satellite lines of 131 characters).
+    """
+    if starts.size == 0:
+        return np.zeros((0, width), np.uint8)
+    ends = np.maximum(ends, starts)                    # an empty line, never a backward slice
+    lo = int(starts.min())
+    raw = buf[lo:int(ends.max())].tobytes()           # the lines' span only: readers call this per block
+    padded = [raw[a:b].ljust(width) for a, b in zip((starts - lo).tolist(), (ends - lo).tolist())]
+    return np.array(padded, dtype=f"S{width}").view(np.uint8).reshape(len(padded), width)
 
 
 def parse_int(chars: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

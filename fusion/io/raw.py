@@ -157,11 +157,12 @@ def finish_raw(columns: dict[str, np.ndarray], skipped: dict[str, int] | None = 
     sig = np.array([SIGNALS.index(n) if n in SIGNALS else len(SIGNALS) for n in names] + [-1])[codes]
     t_ns, sat_id = np.asarray(cols["t_ns"], np.int64), np.asarray(cols["sat_id"], np.int64)
     order = np.lexsort((sig, sat_id, t_ns))
-    key = np.stack([t_ns[order], sat_id[order], sig[order]])
+    t_o, sat_o, sig_o = t_ns[order], sat_id[order], sig[order]
     dup = np.zeros(order.size, bool)
-    dup[1:] = (key[:, 1:] == key[:, :-1]).all(axis=0)
+    dup[1:] = (t_o[1:] == t_o[:-1]) & (sat_o[1:] == sat_o[:-1]) & (sig_o[1:] == sig_o[:-1])
     if skipped is not None:
         count_skip(skipped, "duplicate_observations", dup)
     order = order[~dup]
     dtypes = {"i": np.int64, "f": np.float64, "b": bool, "O": object}
-    return pd.DataFrame({c: np.asarray(cols[c], dtype=dtypes[k])[order] for c, k in RAW_COLUMNS.items()})
+    # copy=False: the columns are fresh (indexed by ``order``), a second copy of each is only memory
+    return pd.DataFrame({c: np.asarray(cols[c], dtype=dtypes[k])[order] for c, k in RAW_COLUMNS.items()}, copy=False)

@@ -115,12 +115,13 @@ def _read_lines(path: Path) -> list[str]:
 
 
 def _num(text: str, path: Path, line_no: int) -> float:
-    text = text.strip()
-    if not text:
-        return 0.0
     try:
+        # float() skips surrounding whitespace itself: only a failure needs the blank check
         return float(text.replace("D", "E").replace("d", "e"))
     except ValueError:
+        text = text.strip()
+        if not text:
+            return 0.0
         raise DataError(f"{path}:{line_no}: cannot read number {text!r}") from None
 
 

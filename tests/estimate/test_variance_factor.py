@@ -139,3 +139,21 @@ def test_raw_sigmas_flag_switches_the_calibration_off():
     add_run_options(p)
     assert options_from_args(p.parse_args([])).sigma_calibration is True
     assert options_from_args(p.parse_args(["--raw-sigmas"])).sigma_calibration is False
+
+
+def test_conditioning_screen_decides_as_the_svd():
+    """well_conditioned settles most epochs by trace^n / det and agrees with np.linalg.cond everywhere,
+    near-singular, singular and badly scaled matrices included."""
+    from fusion.estimate.variance_factor import well_conditioned
+
+    rng = np.random.default_rng(0)
+    for n in (4, 5, 7):
+        for scale in (1e-9, 1.0, 1e6):
+            q, _ = np.linalg.qr(rng.normal(size=(2000, n, n)))
+            ev = np.exp(rng.uniform(0.0, np.log(1e14), (2000, n))) * scale
+            ev[:, 0] = ev[:, 1:].max(1) / 10 ** rng.uniform(9.0, 15.0, 2000)      # around the 1e12 limit
+            N = np.einsum("kij,kj,klj->kil", q, ev, q)
+            N = (N + N.transpose(0, 2, 1)) / 2
+            N[::40] = 0.0
+            assert np.array_equal(well_conditioned(N, 1e12), np.linalg.cond(N) < 1e12)
+    assert well_conditioned(np.zeros((0, 4, 4)), 1e12).shape == (0,)

@@ -435,3 +435,33 @@ def test_moderate_residual_is_down_weighted_not_excluded():
         assert res.n_excluded.tolist() == [1, 1, 1] and not res.flagged.any()
     with pytest.raises(DataError, match="max_dop_growth"):
         solve_wls_arrays(sat, pr, mask, None, max_dop_growth=0.5)
+
+
+def test_fault_identification_can_be_handed_over():
+    """exclude_faults with identify_faults' answer handed in is exclude_faults itself, and leaves that
+    answer as it was (the trace-scaled test hands its trial pass's to the final pass at scale 1)."""
+    from fusion.estimate.raim import exclude_faults, identify_faults
+    from fusion.estimate.wls_state import WlsSettings
+
+    sat, pr, mask, rx, _ = synthetic(E=8)
+    pr = pr + np.random.default_rng(3).normal(0, 1.0, pr.shape)
+    pr[1, [0, 3]] += 200.0
+    pr[4, 2] += 40.0                        # moderate: the guard undoes its exclusion
+    pr[6, 5] += 300.0
+    fit = solve_wls_arrays(sat, pr, mask, None, robust="none")
+    from fusion.estimate.wls_state import FitState
+    w = np.where(fit.used, 1.0 / 9.0, 0.0)
+    state = FitState(sat_pos=sat, pr=pr, real=mask, w_prior=w, used=fit.used.copy(),
+                     x=np.column_stack([fit.pos, fit.clock_m]), w_fit=w, conv=fit.converged.copy(),
+                     bad=np.zeros(8, bool), runaway=np.zeros(8, bool), flagged=np.zeros(8, bool),
+                     n_excluded=np.zeros(8, np.int64), n_iter=np.zeros(8, np.int64))
+    eligible = fit.valid.copy()
+    for cfg in (WlsSettings(robust="exclude"), WlsSettings(robust="exclude", exclude_above_m=80.0)):
+        found = identify_faults(state, eligible, cfg)
+        kept = tuple(a.copy() for a in found)
+        a = exclude_faults(state.replace(dropped={}, n_iter=np.zeros(8, np.int64)), eligible, cfg)
+        b = exclude_faults(state.replace(dropped={}, n_iter=np.zeros(8, np.int64)), eligible, cfg, identified=found)
+        assert all(np.array_equal(x, y) for x, y in zip(found, kept))
+        for name in ("used", "x", "flagged", "n_excluded", "conv", "w_fit"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        assert a.dropped == b.dropped and a.n_excluded.sum() >= 2

@@ -320,3 +320,27 @@ def test_rinex2_malformed(tmp_path):
     with pytest.warns(UserWarning, match=rf"x\.21o:{j + 1}: unreadable number"):
         raw = read_rinex_obs(_write(tmp_path, "".join(garbled)))
     assert raw.skipped["sat_lines_bad_number"] == 1
+
+
+def test_satellite_lines_read_in_blocks_as_in_one(tmp_path, monkeypatch):
+    """The body is gathered and parsed PARSE_BLOCK_LINES satellite lines at a time: any block size
+    gives the same frame and counts, with an unreadable number in a later block."""
+    import warnings
+
+    import fusion.io.rinex_obs as ro
+
+    lines = FIXTURE.read_text().splitlines()
+    end = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln)
+    sat = [i for i, ln in enumerate(lines) if i > end and ln[:1] != ">" and ln.strip()]
+    bad = sat[-3]
+    lines[bad] = lines[bad][:10] + "x" + lines[bad][11:]
+    path = _write(tmp_path, "\n".join(lines) + "\n")
+    frames = []
+    for block in (1, 7, len(sat) - 1, 10**6):
+        monkeypatch.setattr(ro, "PARSE_BLOCK_LINES", block)
+        with warnings.catch_warnings(record=True):
+            warnings.simplefilter("always")
+            frames.append(read_rinex_obs(path))
+    for other in frames[1:]:
+        assert other.frame.equals(frames[0].frame) and other.skipped == frames[0].skipped
+    assert frames[0].skipped["sat_lines_bad_number"] == 1 and len(frames[0].frame) > 20
