@@ -18,8 +18,7 @@ from fusion.estimate.graph.marginals import marginal_positions
 from fusion.estimate.graph.optimiser import optimise_values
 from fusion.estimate.graph.solve_errors import geometry_error
 from fusion.estimate.graph.vector_graph import (VectorGraph, banded_marginals, from_values, same_layout, to_values,
-                                                vector_graph,
-                                                vector_isb_estimates, vector_velocities)
+                                                vector_graph, vector_isb_estimates, vector_velocities)
 from fusion.trace import Trace
 
 
@@ -171,7 +170,8 @@ def _solve_banded(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorG
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": vec.n_factors, "iterations": sol.iterations, "final_error": sol.error, "solver_fell_back": 0,
             "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": time.perf_counter() - t2, "graph_patched": 0,
-            "isb_m": vector_isb_estimates(vec.layout, sol.x, inp), "vel": vector_velocities(vec.layout, sol.x, epochs, E)}
+            "isb_m": vector_isb_estimates(vec.layout, sol.x, inp),
+            "vel": vector_velocities(vec.layout, sol.x, epochs, E)}
     info["batch_solution"] = BatchSolution(None, [], None, inp, cfg, pos, valid, dict(info), vector=vec, x=sol.x)
     return pos, valid, cov, info
 
@@ -221,8 +221,8 @@ def _solve_gtsam(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: boo
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)
     info = {"factors": int(graph.size()), "iterations": int(opt_iterations),
-            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back or handed_over is not None), "build_s": t1 - t0,
-            "solve_s": t2 - t1, "cov_s": t3 - t2, "graph_patched": int(pieces is None),
+            "final_error": float(opt.error), "solver_fell_back": int(opt.fell_back or handed_over is not None),
+            "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": t3 - t2, "graph_patched": int(pieces is None),
             "isb_m": isb_estimates(result, inp), "vel": read_velocities(result, epochs, E)}
     info["batch_solution"] = BatchSolution(graph, dense, result, inp, cfg, pos, valid, dict(info), pr_slice,
                                            opt.ordering)

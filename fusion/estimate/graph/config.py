@@ -74,7 +74,8 @@ class GraphConfig:
     lm_max_iter: int = 50
     # Batch solver (all stop by lm_rel_tol / lm_max_iter): "banded" (Gauss-Newton on the graph's vectorised
     # copy, fusion.estimate.graph.banded_gn: the same iterations as GTSAM's Gauss-Newton at ~10 against
-    # ~105 ms each on the Pixel5 trace, benchmarks/graph_iteration_cost.py; GTSAM's graph where the copy has no room for it, e.g. odometry),
+    # ~105 ms each on the Pixel5 trace, benchmarks/graph_iteration_cost.py; GTSAM's graph where the copy
+    # has no room for it, e.g. odometry),
     # "gauss-newton" (GTSAM's) or "levenberg-marquardt" (GTSAM's). Levenberg-Marquardt takes over where a
     # Gauss-Newton step raises the cost or meets a singular system (fusion.estimate.graph.optimiser).
     batch_solver: str = "banded"

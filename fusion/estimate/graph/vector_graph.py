@@ -123,8 +123,8 @@ def _cols(start: np.ndarray, ks: np.ndarray, dim: int) -> np.ndarray:
     return start[ks, None] + np.arange(dim)
 
 
-def scalar_blocks(cols: np.ndarray, coeffs: np.ndarray, rhs: np.ndarray, sigma: np.ndarray | float, robust: str = "none",
-                  k: float = 1.0) -> Blocks:
+def scalar_blocks(cols: np.ndarray, coeffs: np.ndarray, rhs: np.ndarray, sigma: np.ndarray | float,
+                  robust: str = "none", k: float = 1.0) -> Blocks:
     """Linear scalar factors ``(coeffs . x[cols] - rhs) / sigma``: cols, coeffs (M,n), rhs (M,), sigma (M,) or
     a number."""
     s = np.broadcast_to(np.asarray(sigma, float), rhs.shape)
@@ -227,7 +227,8 @@ def carrier_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout
     has = carrier_epochs(trace, inp)
     ks = np.flatnonzero(has)
     w = 1.0 / DISPLACEMENT_SIGMA_M
-    disp = whitened_blocks(np.concatenate([_cols(st["disp"], ks, 3), _cols(st["pos"], ks, 3), _cols(st["pos"], ks - 1, 3)], 1),
+    disp_cols = np.concatenate([_cols(st["disp"], ks, 3), _cols(st["pos"], ks, 3), _cols(st["pos"], ks - 1, 3)], 1)
+    disp = whitened_blocks(disp_cols,
                            np.tile(np.hstack([w * _I3, -w * _I3, w * _I3]), (len(ks), 1, 1)), np.zeros((len(ks), 3)))
     starts = ks[~has[ks - 1]]
     chain = scalar_blocks(st["qclk"][starts - 1, None], np.ones((len(starts), 1)), inp.init_clock_m[starts - 1], 1.0)
@@ -365,7 +366,8 @@ def banded_marginals(vec: VectorGraph, x: np.ndarray, epochs: np.ndarray, E: int
 def vector_isb_estimates(lay: Layout, x: np.ndarray, inp: EpochInputs) -> dict[str, float]:
     """Estimated inter-system biases [m], keyed ``"<signal>@<component>"`` as
     :func:`~fusion.estimate.graph.isb.isb_estimates` keys them."""
-    return {f"{SIGNALS[inp.isb.groups[g]]}@{c}": -float(x[lay.isb[(c, g)]]) for g, c in sorted((g, c) for c, g in lay.isb)}
+    order = sorted((g, c) for c, g in lay.isb)          # GTSAM's order: by group, then component
+    return {f"{SIGNALS[inp.isb.groups[g]]}@{c}": -float(x[lay.isb[(c, g)]]) for g, c in order}
 
 
 def vector_velocities(lay: Layout, x: np.ndarray, epochs: np.ndarray, E: int) -> np.ndarray | None:
