@@ -54,6 +54,13 @@ def synth_trace(E: int = 120, S: int = 8, seed: int = 0, pr_noise_m: float = 3.0
     return Trace(**kw)
 
 
+def assert_centimetres_apart(a: np.ndarray, b: np.ndarray) -> None:
+    """Two solves of one graph from different starts, both stopped at lm_rel_tol: positions (E,3) a median
+    1 cm and at most 5 cm apart."""
+    gap = np.linalg.norm(a - b, axis=1)
+    assert np.nanmedian(gap) < 0.01 and np.nanmax(gap) < 0.05
+
+
 def h_err(trace: Trace, pos: np.ndarray, valid: np.ndarray) -> np.ndarray:
     e = ned_errors(np.where(valid[:, None], pos, np.nan), trace.truth)
     return np.hypot(e[:, 0], e[:, 1])

@@ -17,7 +17,7 @@ from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.estimate.wls import solve_wls
 from fusion.eval.metrics import horizontal, ned_errors
 from fusion.run_types import RunOptions
-from tests.estimate.test_graph import synth_trace
+from tests.estimate.test_graph import assert_centimetres_apart, synth_trace
 
 
 def _graph():
@@ -36,8 +36,7 @@ def test_gauss_newton_matches_levenberg_marquardt():
            for s in optimiser.SOLVERS}
     gn, lm = got["gauss-newton"], got["levenberg-marquardt"]
     assert gn.info["solver_fell_back"] == 0
-    gap = np.linalg.norm(gn.pos - lm.pos, axis=1)
-    assert np.nanmedian(gap) < 0.01 and np.nanmax(gap) < 0.05
+    assert_centimetres_apart(gn.pos, lm.pos)
     assert gn.info["final_error"] <= lm.info["final_error"] * (1 + 1e-3)
     err = {s: np.nanpercentile(horizontal(ned_errors(r.pos, trace.truth)), 95) for s, r in got.items()}
     assert err["gauss-newton"] == pytest.approx(err["levenberg-marquardt"], rel=0.01)

@@ -69,6 +69,11 @@ def isb_inputs(trace: Trace, sel: np.ndarray, comp: np.ndarray, init_clock_m: np
     return out
 
 
+def isb_label(signal: int, comp: int) -> str:
+    """The key of an inter-system bias estimate: ``"<signal>@<component>"``, signal a SIGNALS index."""
+    return f"{SIGNALS[signal]}@{int(comp)}"
+
+
 def isb_estimates(values: gtsam.Values, inp) -> dict[str, float]:
     """Estimated inter-system biases [m] (pseudorange minus the reference-clock model), keyed
     ``"<signal>@<component>"``, for every bias state in ``values``; ``inp`` the graph's
@@ -81,5 +86,5 @@ def isb_estimates(values: gtsam.Values, inp) -> dict[str, float]:
         for c in np.unique(inp.comp[isb.new[:, g] & inp.keep]):
             key = isb_key(int(c), g)
             if values.exists(key):
-                out[f"{SIGNALS[sg]}@{int(c)}"] = -float(values.atDouble(key))   # the key holds -ISB
+                out[isb_label(sg, c)] = -float(values.atDouble(key))   # the key holds -ISB
     return out

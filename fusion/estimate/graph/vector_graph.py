@@ -23,12 +23,13 @@ from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, us
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import range_and_gradient, tdcp_measured
 from fusion.estimate.graph.inputs import EpochInputs
+from fusion.estimate.graph.isb import isb_label
 from fusion.estimate.graph.marginals import information_marginals
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
                                         isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import START_VEL_SIGMA_MPS, motion_model
 from fusion.geometry import C_LIGHT, OMEGA_E
-from fusion.trace import SIGNALS, Trace
+from fusion.trace import Trace
 
 #: per-epoch variables in their order inside an epoch: name, dimension, GTSAM key, GTSAM unit per metre
 EPOCH_VARS = (("pos", 3, pos_key, 1.0), ("vel", 3, vel_key, 1.0), ("clk", 1, clock_key, 1.0 / C_LIGHT),
@@ -66,7 +67,7 @@ def epoch_variables(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     ks = clocked_epochs(inp, epochs)
     has["clk"][ks] = True
     has["drift"][ks] = uses_drift(inp)
-    if inp.raw is not None and inp.raw.has_tdcp:
+    if inp.raw is not None:
         carrier = carrier_epochs(trace, inp)
         has["disp"] = carrier
         has["qclk"] = carrier | np.r_[carrier[1:], False]
@@ -74,7 +75,8 @@ def epoch_variables(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
 
 
 def carrier_epochs(trace: Trace, inp: EpochInputs) -> np.ndarray:
-    """(E,) bool kept epochs with a time-differenced carrier factor (as ``build.add_carriers``)."""
+    """(E,) bool kept epochs with a time-differenced carrier factor (as ``build.add_carriers``); none
+    where the trace has no carrier phase (``inp.raw.has_tdcp``)."""
     return (inp.raw.tdcp_prev >= 0).any(axis=1) & inp.keep
 
 
@@ -151,11 +153,22 @@ def pseudorange_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: La
         m = (grp >= 0) == isb
         cols = np.concatenate([_cols(lay.start["pos"], ks[m], 3), lay.start["clk"][ks[m], None]], axis=1)
         if isb:
-            gi = np.array([lay.isb[(int(c), int(g))] for c, g in zip(inp.comp[ks[m]], grp[m])], int)
-            cols = np.concatenate([cols, gi.reshape(-1, 1)], axis=1)
+            cols = np.concatenate([cols, isb_index(lay, inp.comp[ks[m]], grp[m])[:, None]], axis=1)
         out.append(Blocks(cols, robust=cfg.robust, k=cfg.robust_k,
                           model=_pseudorange_model(cols, sat[m], pr[m], sigma[m])))
     return out
+
+
+def isb_index(lay: Layout, comp: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """(M,) state index of the inter-system bias of each (component, group) pair, comp and group (M,) int
+    (-1 where the layout has no such bias)."""
+    if not lay.isb:
+        return np.full(len(comp), -1, np.int64)
+    keys = np.array(list(lay.isb), np.int64).reshape(-1, 2)
+    table = np.full((keys[:, 0].max() + 1, keys[:, 1].max() + 1), -1, np.int64)
+    table[keys[:, 0], keys[:, 1]] = list(lay.isb.values())
+    inside = (comp < table.shape[0]) & (group < table.shape[1])
+    return np.where(inside, table[np.minimum(comp, table.shape[0] - 1), np.minimum(group, table.shape[1] - 1)], -1)
 
 
 def _pseudorange_model(cols: np.ndarray, sat: np.ndarray, pr: np.ndarray, sigma: np.ndarray):
@@ -297,7 +310,7 @@ def supported(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> bool:
     if inp.raw is not None:
         if cfg.motion != "cv" and (inp.raw.doppler & inp.keep[:, None]).any():
             return False
-        ks = np.flatnonzero(carrier_epochs(trace, inp)) if inp.raw.has_tdcp else np.zeros(0, int)
+        ks = np.flatnonzero(carrier_epochs(trace, inp))
         if len(ks) and (ks.min() == 0 or not inp.keep[ks - 1].all()):
             return False
     return True
@@ -364,10 +377,10 @@ def banded_marginals(vec: VectorGraph, x: np.ndarray, epochs: np.ndarray, E: int
 
 
 def vector_isb_estimates(lay: Layout, x: np.ndarray, inp: EpochInputs) -> dict[str, float]:
-    """Estimated inter-system biases [m], keyed ``"<signal>@<component>"`` as
-    :func:`~fusion.estimate.graph.isb.isb_estimates` keys them."""
+    """Estimated inter-system biases [m], keyed and ordered as :func:`~fusion.estimate.graph.isb.isb_estimates`
+    gives them (:func:`~fusion.estimate.graph.isb.isb_label`)."""
     order = sorted((g, c) for c, g in lay.isb)          # GTSAM's order: by group, then component
-    return {f"{SIGNALS[inp.isb.groups[g]]}@{c}": -float(x[lay.isb[(c, g)]]) for g, c in order}
+    return {isb_label(inp.isb.groups[g], c): -float(x[lay.isb[(c, g)]]) for g, c in order}
 
 
 def vector_velocities(lay: Layout, x: np.ndarray, epochs: np.ndarray, E: int) -> np.ndarray | None:
