@@ -45,13 +45,9 @@ def test_a_zero_floor_is_allowed(tmp_path):
 
 
 def test_flags_override_the_file(tmp_path):
-    import argparse
-
-    from fusion.options import add_run_options, options_from_args
+    from tests.run_options import parse_run_options
 
     f = tmp_path / "g.toml"
     f.write_text("use_carrier = true\nincremental = false\nrobust_k = 4.0\n")
-    p = argparse.ArgumentParser()
-    add_run_options(p)
-    opts = options_from_args(p.parse_args(["--graph-config", str(f), "--no-carrier", "--incremental"]))
+    opts = parse_run_options(["--graph-config", str(f), "--no-carrier", "--incremental"])
     assert opts.graph.robust_k == 4.0 and not opts.use_carrier and opts.incremental and opts.use_doppler

@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from fusion.options import add_run_options, options_from_args
+from tests.run_options import parse_run_options
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import (_linear_factor, displacement_factor_xxu, doppler_factor_vcd,
                                            drift_walk_factor_cdcd, tdcp_factor_uqq)
@@ -246,11 +246,8 @@ def test_batch_and_incremental_agree(sim, wls, solutions):
 
 
 def test_cli_switches():
-    import argparse
-    p = argparse.ArgumentParser()
-    add_run_options(p)
-    on = options_from_args(p.parse_args([]))
-    off = options_from_args(p.parse_args(["--no-doppler", "--no-carrier"]))
+    on = parse_run_options([])
+    off = parse_run_options(["--no-doppler", "--no-carrier"])
     assert (on.use_doppler, on.use_carrier) == (True, True)
     assert (off.use_doppler, off.use_carrier) == (False, False)
 

@@ -117,13 +117,10 @@ def test_asking_for_odometry_without_any_is_an_error():
 
 
 def test_flag_reaches_the_run_options():
-    import argparse
+    from tests.run_options import parse_run_options
 
-    from fusion.options import add_run_options, options_from_args
-    p = argparse.ArgumentParser()
-    add_run_options(p)
-    assert options_from_args(p.parse_args([])).use_odometry is False
-    assert options_from_args(p.parse_args(["--odometry"])).use_odometry is True
+    assert parse_run_options([]).use_odometry is False
+    assert parse_run_options(["--odometry"]).use_odometry is True
 
 
 def test_odometry_improves_the_graph_on_a_simulated_drive():

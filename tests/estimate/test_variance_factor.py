@@ -132,13 +132,10 @@ def test_metrics_json_reports_the_calibrated_sigmas(short_trace, tmp_path):
 
 
 def test_raw_sigmas_flag_switches_the_calibration_off():
-    import argparse
+    from tests.run_options import parse_run_options
 
-    from fusion.options import add_run_options, options_from_args
-    p = argparse.ArgumentParser()
-    add_run_options(p)
-    assert options_from_args(p.parse_args([])).sigma_calibration is True
-    assert options_from_args(p.parse_args(["--raw-sigmas"])).sigma_calibration is False
+    assert parse_run_options([]).sigma_calibration is True
+    assert parse_run_options(["--raw-sigmas"]).sigma_calibration is False
 
 
 def test_conditioning_screen_decides_as_the_svd():
