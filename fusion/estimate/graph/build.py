@@ -265,12 +265,18 @@ def add_odometry(p: GraphPieces, inp: EpochInputs) -> None:
     p.value_sets.append((int(odo.epoch[0]), odo.values))
 
 
-def linearisation_point(inp: EpochInputs, epochs: np.ndarray) -> gtsam.Values:
-    """Zeros at every key an exact linear factor may touch (positions, velocities, displacements,
-    clocks, drifts): the shared linearisation point of :mod:`fusion.estimate.graph.factors`' linear factors."""
+def linearisation_point(inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> gtsam.Values:
+    """Zeros at every key an exact linear factor of this graph touches: positions and velocities (the
+    constant-velocity link), positions and displacements (carrier), clocks and drifts (the drift chain).
+    The shared linearisation point of :mod:`fusion.estimate.graph.factors`' linear factors; keys no linear
+    factor uses are left out (each insert is a Python call: half the incremental build on a GPS-only trace)."""
     ks = [int(k) for k in epochs]
-    lin = zero_point([f(k) for k in ks for f in (pos_key, vel_key, disp_key)])
-    lin.insert(zero_point([f(k) for k in ks for f in (clock_key, drift_key)], "double"))
+    points = (pos_key, vel_key) if cfg.motion == "cv" else ()
+    if inp.raw is not None and inp.raw.has_tdcp:
+        points = (pos_key, vel_key, disp_key) if points else (pos_key, disp_key)
+    lin = zero_point([f(k) for k in ks for f in points])
+    if uses_drift(inp):
+        lin.insert(zero_point([f(k) for k in ks for f in (clock_key, drift_key)], "double"))
     return lin
 
 
@@ -278,7 +284,7 @@ def graph_pieces(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> GraphPiece
     """Every factor and initial value of the kept epochs (``inp.keep``), built kind by kind."""
     epochs = np.flatnonzero(inp.keep)
     p = GraphPieces()
-    lin = linearisation_point(inp, epochs)
+    lin = linearisation_point(inp, cfg, epochs)
     add_positions(p, inp, epochs)
     add_clocks(p, inp, cfg, epochs)
     add_pseudoranges(p, trace, inp, cfg, epochs)
