@@ -154,9 +154,10 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
 
     info = {"learned_epochs_asked": 10, "learned_meas_asked": 80, "learned_meas_out_of_range": 3,
             "learned_meas_unseen_signal": 12, "learned_epochs_guard_shrunk": 2, "learned_epochs_guard_off": 1,
-            "epochs_bridged": 4, "longest_bridge_s": 4.0}
+            "epochs_bridged": 4, "longest_bridge_s": 4.0, "doppler_sigmas_raised": 25}
     text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
                         "info": info})
+    assert "sigmas raised where the measurements disagreed among themselves beyond them: 25 doppler" in text
     assert "asked at 10 epochs, 80 measurements" in text and "3 measurements with inputs outside" in text
     assert "12 measurements of signals it cannot read" in text and "switched off in 1" in text
     assert "4 epochs bridged" in text and "longest stretch 4 s" in text

@@ -43,6 +43,10 @@ def run_summary(record: dict) -> str:
                      " (see metrics.json 'info'; --wls-plain for the plain baseline)")
     if "learned_epochs_asked" in info:
         lines.append(learned_words(info))
+    raised = {k: int(info.get(f"{k}_sigmas_raised", 0)) for k in ("doppler", "carrier")}
+    if any(raised.values()):
+        lines.append("sigmas raised where the measurements disagreed among themselves beyond them: "
+                     + ", ".join(f"{n} {k}" for k, n in raised.items() if n) + " (metrics.json 'info')")
     if info.get("epochs_bridged"):
         lines.append(f"{info['epochs_bridged']} epochs bridged by the motion model alone (fewer than 4 satellites, "
                      f"no prior; longest stretch {info.get('longest_bridge_s', 0):.0f} s): column 'bridged' in "

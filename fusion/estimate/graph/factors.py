@@ -153,6 +153,17 @@ def tdcp_measured(delta_adr_m: np.ndarray, sat_j: np.ndarray, sat_k: np.ndarray,
     return delta_adr_m - geom_k + geom_j + np.einsum("ij,ij->i", grad_k, guess_k - guess_j)
 
 
+def doppler_rows(prr_mps: np.ndarray, sat: np.ndarray, sat_vel: np.ndarray, rx: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The linear model of :func:`doppler_factor_vcd` for N measurements at once: ``rhs = grad . v + drift``.
+    prr_mps (N,) [m/s]; sat, sat_vel, rx (N,3) ECEF. Returns grad (N,3) (the line of sight's d(range rate)/dv
+    with its Sagnac term) and rhs (N,) [m/s] (the rate less the satellite's own motion)."""
+    _, grad = range_and_gradient(sat, rx)
+    los = (sat - rx) / np.linalg.norm(sat - rx, axis=1)[:, None]
+    sagnac = OMEGA_E / C_LIGHT * (sat_vel[:, 1] * rx[:, 0] - sat_vel[:, 0] * rx[:, 1])
+    return grad, prr_mps - np.einsum("ij,ij->i", los, sat_vel) + sagnac
+
+
 def tdcp_factor_linearised(k: int, measured: float, sat_k: np.ndarray, guess_k: np.ndarray,
                            model: gtsam.noiseModel.Base) -> gtsam.DopplerFactor:
     """:func:`tdcp_factor_uqq` from its linearised measurement (:func:`tdcp_measured`) [m]: ``sat_k`` (3,)

@@ -11,6 +11,7 @@ import numpy as np
 from fusion.errors import GeometryError
 from fusion.estimate.graph.clock import clock_chain
 from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.consistency import raise_raw_sigmas
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
 from fusion.estimate.graph.odometry import OdometryFactors, odometry_factors
 from fusion.estimate.graph.priors import LearnedGraphInputs, Priors, clean_priors
@@ -231,6 +232,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
         inp.dropped.update(inp.raw.counts)
         if learned is not None and learned.prr_sigma is not None:
             inp.dropped["learned_doppler_sigmas"] = learned_doppler_noise(inp.raw, learned, cfg.prr_sigma_floor_mps)
+        inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
     if cfg.use_odometry:
         inp.odometry = odometry_factors(trace, init_pos, wls_ok, pos_link, comp, keep, cfg)
         inp.dropped.update(inp.odometry.counts if inp.odometry is not None else {"odometry_steps": 0})

@@ -1,0 +1,165 @@
+"""Doppler and carrier sigmas held to what the measurements themselves show: a robust scale of each kind's
+residuals in its own one-epoch fit, over a sliding window, raises sigmas that are too small.
+
+A phone's Doppler sigma is a tracking-loop figure (often a constant) that knows nothing of multipath or a
+reflected path's Doppler, and a time-differenced carrier's sigma knows nothing of multipath change or an
+unflagged slip. Given too much weight, such measurements steer the velocities and displacements, and the
+graph does worse with them than with pseudoranges alone (seen on city phone logs). Each kind can be checked
+without truth and without a solve: at every epoch its measurements share four unknowns, ``b = g . x + c``
+(``g`` the line-of-sight gradient; Doppler: the velocity and the clock drift; carrier: the displacement and
+the carrier-clock change), so with more than four satellites the epoch's residuals show how noisy the kind
+is against its stated sigma:
+
+- per epoch, a Cauchy IRLS fit (``ROBUST_K`` times the epoch's own robust scale), then least squares on what
+  it kept (within ``REJECT`` scales), so that a few gross errors, which the graph's robust losses already
+  handle, neither steer the fit nor set the scale;
+- the residuals ``r`` standardised by their sigma and their leverage ``h`` in the weighted fit,
+  ``r / (sigma sqrt(1 - h))``, of epochs with at least ``MIN_REDUNDANCY`` spare measurements;
+- their scale ``1.4826 * median|.|`` (the median absolute deviation) pooled over a centred window of epochs
+  (the trace's where a window has too few), floored at 1: a sigma is only ever raised, never trusted beyond
+  what the file states.
+
+The graph multiplies the kind's sigmas at each epoch by this scale (the robust loss keeps its ``k`` in
+sigmas, as an M-estimator with an estimated scale does). :func:`doppler_scale` and :func:`carrier_scale`
+give it for a trace's Doppler and carrier factors; which kinds the graph checks is
+``GraphConfig.doppler_check_window_s`` / ``carrier_check_window_s`` (why the carrier's is off:
+``experiments/results/raw_sigma_check.md``).
+"""
+from __future__ import annotations
+
+import warnings
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fusion.estimate.graph.factors import doppler_rows, range_and_gradient, tdcp_measured
+from fusion.trace import Trace
+
+if TYPE_CHECKING:
+    from fusion.estimate.graph.inputs import EpochInputs
+
+#: Cauchy width of the one-epoch fits, in units of the epoch's robust scale
+ROBUST_K = 2.0
+#: measurements beyond this many robust scales are left out of the one-epoch fits' last, least-squares pass
+REJECT = 4.0
+#: IRLS iterations of the one-epoch fits
+ITERATIONS = 4
+#: spare measurements (beyond the four unknowns) an epoch needs to say anything about its kind's noise
+MIN_REDUNDANCY = 2
+#: MAD to sigma for Gaussian errors
+MAD_TO_SIGMA = 1.4826
+
+
+def _nanmedian(x: np.ndarray, axis: int) -> np.ndarray:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)    # all-NaN rows -> NaN, on purpose
+        return np.nanmedian(x, axis=axis)
+
+
+def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Standardised residuals of each epoch's robust fit of ``b = grad . x + c``.
+
+    grad (E,S,3), b (E,S), sigma (E,S) > 0 where used, use (E,S) bool. Returns z (E,S): residual / sigma /
+    sqrt(1 - leverage) (a fit's residuals are smaller than its errors by that much), NaN where not used or
+    where the epoch has fewer than 4 + MIN_REDUNDANCY measurements."""
+    E, S = b.shape
+    A = np.concatenate([grad, np.ones((E, S, 1))], axis=2)
+    use = use & (use.sum(axis=1) >= 4 + MIN_REDUNDANCY)[:, None]
+    A = np.where(use[..., None], A, 0.0)
+    b = np.where(use, b, 0.0)
+    sig = np.where(use, sigma, 1.0)
+    w0 = np.where(use, 1.0 / sig ** 2, 0.0)
+    w = w0
+    for it in range(ITERATIONS + 1):
+        N_inv = np.linalg.inv(np.einsum("esi,es,esj->eij", A, w, A) + 1e-9 * np.eye(4))  # unused epochs too
+        x = np.einsum("eij,esj,es,es->ei", N_inv, A, w, b)
+        lev = w * np.einsum("esi,eij,esj->es", A, N_inv, A)
+        z = np.where(use, (b - np.einsum("esi,ei->es", A, x)) / sig / np.sqrt(np.clip(1.0 - lev, 0.05, None)),
+                     np.nan)
+        scale = np.maximum(MAD_TO_SIGMA * _nanmedian(np.abs(z), axis=1), 1e-6)[:, None]
+        if it < ITERATIONS - 1:
+            w = np.where(use, w0 / (1.0 + (z / (ROBUST_K * scale)) ** 2), 0.0)
+        elif it == ITERATIONS - 1:
+            # the last pass is least squares on the measurements the robust fit kept: a down-weighting fit
+            # hugs its inliers, and its residuals would understate their spread
+            w = np.where(use & (np.abs(z) <= REJECT * scale), w0, 0.0)
+    return z
+def windowed_scale(z: np.ndarray, window: int, min_count: int = 30) -> np.ndarray:
+    """(E,) ``1.4826 * median|z|`` over the standardised residuals z (E,S) (NaN: none) of a centred window of
+    ``window`` epochs (pooled: a single epoch's handful of residuals gives a biased median), the trace's where
+    a window holds fewer than ``min_count``, floored at 1 (1 where nothing is known)."""
+    E, S = z.shape
+    half = max(window // 2, 0)
+    pad = np.concatenate([np.full((half, S), np.nan), np.abs(z), np.full((half, S), np.nan)])
+    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1, axis=0).reshape(E, -1)
+    med = _nanmedian(win, axis=1)
+    enough = np.isfinite(win).sum(axis=1) >= min_count
+    overall = _nanmedian(np.abs(z).ravel(), axis=0) if np.isfinite(z).sum() >= min_count else np.nan
+    out = MAD_TO_SIGMA * np.where(enough, med, overall)
+    return np.maximum(np.where(np.isfinite(out), out, 1.0), 1.0)
+
+
+def kind_scale(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray, t: np.ndarray,
+               window_s: float) -> np.ndarray:
+    """(E,) the factor >= 1 on one measurement kind's sigmas at each epoch (module docstring). grad (E,S,3),
+    b (E,S), sigma (E,S), use (E,S) bool as :func:`epoch_fit`; t (E,) epoch times [s]; window_s the window's
+    full length [s] (turned into epochs by the median epoch interval)."""
+    dt = np.diff(t)
+    step = float(np.median(dt[dt > 0])) if (dt > 0).any() else 1.0
+    return windowed_scale(epoch_fit(grad, b, sigma, use), int(round(window_s / step)))
+
+
+def _padded(shape: tuple[int, int], ks: np.ndarray, ss: np.ndarray, grad: np.ndarray, b: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """grad (N,3) and b (N,) of the measurements at (ks, ss) laid out as (E,S,3) and (E,S)."""
+    G, B = np.zeros(shape + (3,)), np.zeros(shape)
+    G[ks, ss], B[ks, ss] = grad, b
+    return G, B
+
+
+def doppler_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray:
+    """(E,) the factor on each epoch's Doppler sigmas (``inp.raw.prr_sigma``) from the Doppler factors' own
+    one-epoch fits (velocity and clock drift, at the initial positions)."""
+    raw = inp.raw
+    use = raw.doppler & inp.keep[:, None]
+    ks, ss = np.nonzero(use)
+    grad, rhs = doppler_rows(trace.prr[ks, ss] - raw.prr_bias[ks, ss], trace.sat_pos[ks, ss],
+                             trace.sat_vel[ks, ss], inp.init_pos[ks])
+    G, B = _padded(use.shape, ks, ss, grad, rhs)
+    return kind_scale(G, B, raw.prr_sigma, use, trace.t_ms / 1000.0, window_s)
+
+
+def carrier_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray:
+    """(E,) the factor on each epoch's time-differenced carrier sigmas (``inp.raw.tdcp_sigma``) from the
+    carrier factors' own one-epoch fits (displacement and carrier-clock change, at the linearisation point)."""
+    raw = inp.raw
+    use = (raw.tdcp_prev >= 0) & inp.keep[:, None]
+    use[1:] &= inp.keep[:-1, None]
+    kk, ss = np.nonzero(use)
+    prev = raw.tdcp_prev[kk, ss]
+    lin = inp.init_pos if raw.lin_pos is None else raw.lin_pos
+    sat_k = trace.sat_pos[kk, ss]
+    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
+                             lin[kk - 1], lin[kk])
+    _, grad = range_and_gradient(sat_k, lin[kk])
+    G, B = _padded(use.shape, kk, ss, grad, measured)
+    return kind_scale(G, B, raw.tdcp_sigma, use, trace.t_ms / 1000.0, window_s)
+
+
+def raise_raw_sigmas(trace: Trace, inp: EpochInputs, doppler_window_s: float, carrier_window_s: float) -> dict:
+    """Multiply ``inp.raw``'s Doppler sigmas by :func:`doppler_scale` (``doppler_window_s`` <= 0: not) and its
+    carrier sigmas by :func:`carrier_scale` (``carrier_window_s`` <= 0: not), in place. Returns counts for the
+    run's report: the measurements whose sigma was raised (by more than 5 %) per kind."""
+    raw, counts = inp.raw, {}
+    if raw is None:
+        return counts
+    if doppler_window_s > 0 and raw.doppler.any():
+        f = doppler_scale(trace, inp, doppler_window_s)
+        raw.prr_sigma = np.where(raw.doppler, raw.prr_sigma * f[:, None], raw.prr_sigma)
+        counts["doppler_sigmas_raised"] = int((raw.doppler & (f[:, None] > 1.05)).sum())
+    if carrier_window_s > 0 and raw.has_tdcp:
+        tdcp = raw.tdcp_prev >= 0
+        f = carrier_scale(trace, inp, carrier_window_s)
+        raw.tdcp_sigma = np.where(tdcp, raw.tdcp_sigma * f[:, None], raw.tdcp_sigma)
+        counts["carrier_sigmas_raised"] = int((tdcp & (f[:, None] > 1.05)).sum())
+    return counts
