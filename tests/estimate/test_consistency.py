@@ -3,12 +3,13 @@ raises sigmas that are too small and leaves honest or cautious ones alone."""
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
 
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.consistency import epoch_fit, kind_scale, windowed_scale
+from fusion.estimate.graph.consistency import epoch_fit, kind_scale, row_medians, windowed_scale
 from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial
@@ -35,6 +36,15 @@ def scale_of(noise_sigma: float, stated: float = 0.1, E: int = 300, S: int = 10,
     b = b + np.where(bad, 30.0 * stated * rng.choice([-1.0, 1.0], (E, S)), 0.0)
     t = np.arange(E, dtype=float)
     return kind_scale(grad, b, np.full((E, S), stated), np.ones((E, S), bool), t, window_s=60.0)
+
+
+def test_row_medians_are_numpys_nanmedian():
+    x = np.random.default_rng(2).normal(size=(50, 9))
+    x[np.random.default_rng(3).random(x.shape) < 0.3] = np.nan
+    x[7] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # the all-NaN row
+        np.testing.assert_allclose(row_medians(x), np.nanmedian(x, axis=1), equal_nan=True)
 
 
 def test_exact_measurements_leave_the_sigmas_alone():

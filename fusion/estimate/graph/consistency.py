@@ -27,7 +27,6 @@ give it for a trace's Doppler and carrier factors; which kinds the graph checks 
 """
 from __future__ import annotations
 
-import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -50,10 +49,13 @@ MIN_REDUNDANCY = 2
 MAD_TO_SIGMA = 1.4826
 
 
-def _nanmedian(x: np.ndarray, axis: int) -> np.ndarray:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)    # all-NaN rows -> NaN, on purpose
-        return np.nanmedian(x, axis=axis)
+def row_medians(x: np.ndarray) -> np.ndarray:
+    """(R,) the median of each row of x (R,C), ignoring NaN (all-NaN rows: NaN); one sort, no per-row loop."""
+    srt = np.sort(x, axis=1)                     # NaN sort last
+    n = np.isfinite(x).sum(axis=1)
+    lo = np.take_along_axis(srt, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    hi = np.take_along_axis(srt, np.maximum(n // 2, 0)[:, None], axis=1)[:, 0]
+    return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
 def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray) -> np.ndarray:
@@ -63,20 +65,20 @@ def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarra
     sqrt(1 - leverage) (a fit's residuals are smaller than its errors by that much), NaN where not used or
     where the epoch has fewer than 4 + MIN_REDUNDANCY measurements."""
     E, S = b.shape
-    A = np.concatenate([grad, np.ones((E, S, 1))], axis=2)
     use = use & (use.sum(axis=1) >= 4 + MIN_REDUNDANCY)[:, None]
-    A = np.where(use[..., None], A, 0.0)
+    A = np.where(use[..., None], np.concatenate([grad, np.ones((E, S, 1))], axis=2), 0.0)
     b = np.where(use, b, 0.0)
     sig = np.where(use, sigma, 1.0)
     w0 = np.where(use, 1.0 / sig ** 2, 0.0)
     w = w0
     for it in range(ITERATIONS + 1):
-        N_inv = np.linalg.inv(np.einsum("esi,es,esj->eij", A, w, A) + 1e-9 * np.eye(4))  # unused epochs too
-        x = np.einsum("eij,esj,es,es->ei", N_inv, A, w, b)
-        lev = w * np.einsum("esi,eij,esj->es", A, N_inv, A)
-        z = np.where(use, (b - np.einsum("esi,ei->es", A, x)) / sig / np.sqrt(np.clip(1.0 - lev, 0.05, None)),
-                     np.nan)
-        scale = np.maximum(MAD_TO_SIGMA * _nanmedian(np.abs(z), axis=1), 1e-6)[:, None]
+        Aw = A * w[..., None]
+        N_inv = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + 1e-9 * np.eye(4))        # unused epochs too
+        x = (N_inv @ (Aw * b[..., None]).sum(axis=1)[..., None])[..., 0]
+        lev = w * ((A @ N_inv) * A).sum(axis=2)
+        r = b - (A @ x[..., None])[..., 0]
+        z = np.where(use, r / sig / np.sqrt(np.clip(1.0 - lev, 0.05, None)), np.nan)
+        scale = np.maximum(MAD_TO_SIGMA * row_medians(np.abs(z)), 1e-6)[:, None]
         if it < ITERATIONS - 1:
             w = np.where(use, w0 / (1.0 + (z / (ROBUST_K * scale)) ** 2), 0.0)
         elif it == ITERATIONS - 1:
@@ -84,19 +86,23 @@ def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarra
             # hugs its inliers, and its residuals would understate their spread
             w = np.where(use & (np.abs(z) <= REJECT * scale), w0, 0.0)
     return z
+
+
 def windowed_scale(z: np.ndarray, window: int, min_count: int = 30) -> np.ndarray:
     """(E,) ``1.4826 * median|z|`` over the standardised residuals z (E,S) (NaN: none) of a centred window of
     ``window`` epochs (pooled: a single epoch's handful of residuals gives a biased median), the trace's where
-    a window holds fewer than ``min_count``, floored at 1 (1 where nothing is known)."""
+    a window holds fewer than ``min_count``, floored at 1 (1 where nothing is known). The windows are centred
+    every ``window // 8`` epochs and interpolated between (a window's median moves little in an eighth of it)."""
     E, S = z.shape
     half = max(window // 2, 0)
+    centres = np.unique(np.r_[np.arange(0, E, max(window // 8, 1)), E - 1])
     pad = np.concatenate([np.full((half, S), np.nan), np.abs(z), np.full((half, S), np.nan)])
-    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1, axis=0).reshape(E, -1)
-    med = _nanmedian(win, axis=1)
-    enough = np.isfinite(win).sum(axis=1) >= min_count
-    overall = _nanmedian(np.abs(z).ravel(), axis=0) if np.isfinite(z).sum() >= min_count else np.nan
-    out = MAD_TO_SIGMA * np.where(enough, med, overall)
-    return np.maximum(np.where(np.isfinite(out), out, 1.0), 1.0)
+    win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1, axis=0)[centres].reshape(len(centres), -1)
+    finite = np.isfinite(z)
+    overall = row_medians(np.abs(z[finite])[None])[0] if finite.sum() >= min_count else np.nan
+    med = np.where(np.isfinite(win).sum(axis=1) >= min_count, row_medians(win), overall)
+    out = MAD_TO_SIGMA * np.interp(np.arange(E), centres, med) if np.isfinite(med).all() else np.ones(E)
+    return np.maximum(out, 1.0)
 
 
 def kind_scale(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray, t: np.ndarray,
