@@ -126,10 +126,10 @@ class GraphConfig:
     # sigmas say: the kind's robust residual scale in its own one-epoch fits (four unknowns) over a centred
     # window of this many seconds (0: off); never lowered (fusion.estimate.graph.consistency). Chosen a priori
     # (60 s, the pseudorange variance factor's default window), not tuned. With Doppler made worse than its stated
-    # sigma, no trace does worse with Doppler than with pseudoranges alone any more (worst 1.039 -> 0.938 x, a
-    # simulated suburban trace; the Pixel5 0.577 -> 0.485 x), at a cost of up to 4.4 % on simulated urban
+    # sigma, no trace does worse with Doppler than with pseudoranges alone any more (worst 1.039 -> 0.937 x, a
+    # simulated suburban trace; the Pixel5 0.577 -> 0.485 x), at a cost of up to 4.5 % on simulated urban
     # traces; as logged, every trace moved by -1.0 to +1.2 %. Carrier phase made worse did better unchecked
-    # (0.518 against 0.542 x on the Pixel5), so its check is off (experiments/results/raw_sigma_check.md).
+    # (0.518 against 0.541 x on the Pixel5), so its check is off (experiments/results/raw_sigma_check.md).
     doppler_check_window_s: float = 60.0
     carrier_check_window_s: float = 0.0
     # Time-differenced carrier sigma [m] = sqrt(adr_sigma(k-1)^2 + adr_sigma(k)^2 + tdcp_sigma_floor_m^2):
