@@ -104,6 +104,11 @@ class GraphConfig:
     # the three training drives above stayed 4.022 / 5.141 / 6.013 m (0.47-0.48 against 0.55 ms/epoch
     # together with the threshold above, benchmarks/bench_graph.py --part speed).
     isam_wildfire_m: float = 0.01
+    # ... and both where the graph holds carrier phase: its solution is precise to centimetres, and the coarser
+    # pair above cost 3-8 % on the simulated carrier traces of experiments/doppler_carrier.py (ISAM2 p50 0.44
+    # -> 0.46 m with carrier, 0.52 -> 0.56 m with Doppler and carrier under multipath).
+    isam_carrier_relin_threshold: float = 0.05
+    isam_carrier_wildfire_m: float = 0.001
     # Inter-system biases: "window" = one constant bias per non-reference signal (GLONASS G1,
     # Galileo E1, BeiDou B1I, ... vs GPS L1) per motion component; "none" = one clock for all.
     # The zero-mean prior sigma was chosen a priori, not tuned: the derived files' isrbM already
@@ -166,8 +171,9 @@ class GraphConfig:
 
 
 #: numeric settings that may be 0 (a floor, an "off", a count of extra updates); every other one must be > 0
-MAY_BE_ZERO = {"prior_sigma_floor_m", "doppler_check_window_s", "carrier_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
-               "isam_settle", "isam_wildfire_m", "isam_relin_threshold", "clock_sigma_m",
+MAY_BE_ZERO = {"prior_sigma_floor_m", "doppler_check_window_s", "carrier_check_window_s", "prr_sigma_floor_mps",
+               "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m", "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
+               "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps"}
 
 

@@ -17,17 +17,20 @@ from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
 
 
-def isam2(cfg: GraphConfig) -> gtsam.ISAM2:
-    """An ISAM2 smoother with per-variable relinearisation thresholds."""
+def isam2(cfg: GraphConfig, carrier: bool = False) -> gtsam.ISAM2:
+    """An ISAM2 smoother with per-variable relinearisation thresholds; ``carrier``: the graph holds carrier
+    phase (the finer thresholds of a centimetre-level solution)."""
+    relin, wildfire = ((cfg.isam_carrier_relin_threshold, cfg.isam_carrier_wildfire_m) if carrier
+                       else (cfg.isam_relin_threshold, cfg.isam_wildfire_m))
     params = gtsam.ISAM2Params()
     # The clock is in seconds: scalar thresholds meant for metres would never relinearise it or
     # propagate its updates (0.001 s = 300 km), so thresholds are per variable type, in their units.
     thr = gtsam.ISAM2ThresholdMap()
     for sym, dim, scale in (("x", 3, 1.0), ("v", 3, 1.0), ("c", 1, 1.0 / C_LIGHT), ("d", 1, 1.0 / C_LIGHT),
                             ("u", 3, 1.0), ("q", 1, 1.0), ("i", 1, 1.0), ("h", 2, 0.01)):  # h: odometry heading [rad, rad/s]
-        thr.insert((sym, np.full(dim, cfg.isam_relin_threshold * scale)))
+        thr.insert((sym, np.full(dim, relin * scale)))
     params.setRelinearizeThreshold(thr)
-    params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(cfg.isam_wildfire_m))
+    params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(wildfire))
     params.relinearizeSkip = cfg.isam_relin_skip
     params.enablePartialRelinearizationCheck = cfg.isam_partial_relin_check
     return gtsam.ISAM2(params)
@@ -70,7 +73,7 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> tuple
     solve itself.
     """
     E = trace.n_epochs
-    isam = isam2(cfg)
+    isam = isam2(cfg, carrier=inp.raw is not None and inp.raw.has_tdcp)
     t0 = time.perf_counter()
     try:
         online = feed_epochs(isam, trace, inp, cfg)
