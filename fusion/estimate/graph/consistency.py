@@ -31,7 +31,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion.estimate.graph.factors import doppler_rows, range_and_gradient, tdcp_measured
+from fusion.estimate.graph.factors import doppler_rows
+from fusion.estimate.graph.raw_inputs import carrier_rows
 from fusion.trace import Trace
 
 if TYPE_CHECKING:
@@ -41,8 +42,8 @@ if TYPE_CHECKING:
 ROBUST_K = 2.0
 #: measurements beyond this many robust scales are left out of the one-epoch fits' last, least-squares pass
 REJECT = 4.0
-#: IRLS iterations of the one-epoch fits
-ITERATIONS = 4
+#: Cauchy-weighted passes of the one-epoch fits (after a least-squares start)
+ROBUST_PASSES = 3
 #: spare measurements (beyond the four unknowns) an epoch needs to say anything about its kind's noise
 MIN_REDUNDANCY = 2
 #: MAD to sigma for Gaussian errors
@@ -58,6 +59,19 @@ def row_medians(x: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
+def _standardised(A: np.ndarray, b: np.ndarray, sig: np.ndarray, use: np.ndarray, w: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """One weighted least-squares pass of every epoch: z (E,S) the residuals / sigma / sqrt(1 - leverage)
+    (NaN where not used) and each epoch's robust scale (E,1) of them. A (E,S,4), b, sig, w (E,S), use (E,S)."""
+    Aw = A * w[..., None]
+    N_inv = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + 1e-9 * np.eye(4))            # unused epochs too
+    x = (N_inv @ (Aw * b[..., None]).sum(axis=1)[..., None])[..., 0]
+    lev = w * ((A @ N_inv) * A).sum(axis=2)
+    r = b - (A @ x[..., None])[..., 0]
+    z = np.where(use, r / sig / np.sqrt(np.clip(1.0 - lev, 0.05, None)), np.nan)
+    return z, np.maximum(MAD_TO_SIGMA * row_medians(np.abs(z)), 1e-6)[:, None]
+
+
 def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray) -> np.ndarray:
     """Standardised residuals of each epoch's robust fit of ``b = grad . x + c``.
 
@@ -70,21 +84,12 @@ def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarra
     b = np.where(use, b, 0.0)
     sig = np.where(use, sigma, 1.0)
     w0 = np.where(use, 1.0 / sig ** 2, 0.0)
-    w = w0
-    for it in range(ITERATIONS + 1):
-        Aw = A * w[..., None]
-        N_inv = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + 1e-9 * np.eye(4))        # unused epochs too
-        x = (N_inv @ (Aw * b[..., None]).sum(axis=1)[..., None])[..., 0]
-        lev = w * ((A @ N_inv) * A).sum(axis=2)
-        r = b - (A @ x[..., None])[..., 0]
-        z = np.where(use, r / sig / np.sqrt(np.clip(1.0 - lev, 0.05, None)), np.nan)
-        scale = np.maximum(MAD_TO_SIGMA * row_medians(np.abs(z)), 1e-6)[:, None]
-        if it < ITERATIONS - 1:
-            w = np.where(use, w0 / (1.0 + (z / (ROBUST_K * scale)) ** 2), 0.0)
-        elif it == ITERATIONS - 1:
-            # the last pass is least squares on the measurements the robust fit kept: a down-weighting fit
-            # hugs its inliers, and its residuals would understate their spread
-            w = np.where(use & (np.abs(z) <= REJECT * scale), w0, 0.0)
+    z, scale = _standardised(A, b, sig, use, w0)
+    for _ in range(ROBUST_PASSES):
+        z, scale = _standardised(A, b, sig, use, np.where(use, w0 / (1.0 + (z / (ROBUST_K * scale)) ** 2), 0.0))
+    # the last pass is least squares on the measurements the robust fit kept: a down-weighting fit hugs its
+    # inliers, and its residuals would understate their spread
+    z, _ = _standardised(A, b, sig, use, np.where(use & (np.abs(z) <= REJECT * scale), w0, 0.0))
     return z
 
 
@@ -142,12 +147,7 @@ def carrier_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray
     use = (raw.tdcp_prev >= 0) & inp.keep[:, None]
     use[1:] &= inp.keep[:-1, None]
     kk, ss = np.nonzero(use)
-    prev = raw.tdcp_prev[kk, ss]
-    lin = inp.init_pos if raw.lin_pos is None else raw.lin_pos
-    sat_k = trace.sat_pos[kk, ss]
-    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
-                             lin[kk - 1], lin[kk])
-    _, grad = range_and_gradient(sat_k, lin[kk])
+    grad, measured = carrier_rows(trace, raw, inp.init_pos if raw.lin_pos is None else raw.lin_pos, kk, ss)
     G, B = _padded(use.shape, kk, ss, grad, measured)
     return kind_scale(G, B, raw.tdcp_sigma, use, trace.t_ms / 1000.0, window_s)
 

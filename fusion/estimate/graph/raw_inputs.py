@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.factors import range_and_gradient, tdcp_measured
 from fusion.trace import Trace, cn0_sigma_factor, count_skip
 
 
@@ -126,3 +127,15 @@ def raw_inputs(trace: Trace, el: np.ndarray, elev_mask_deg: float, has_clock: np
         prev, tdcp_sigma = tdcp_pairs(trace, above, clock_link, cfg, counts)
     return RawInputs(doppler=doppler, prr_sigma=prr_sigma, tdcp_prev=prev, tdcp_sigma=tdcp_sigma,
                      use_drift=bool(doppler.any()), counts=counts)
+
+
+def carrier_rows(trace: Trace, raw: RawInputs, lin_pos: np.ndarray, kk: np.ndarray, ss: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The linear model of the time-differenced carrier factors at slots (kk, ss) (N,) (each paired with
+    ``raw.tdcp_prev``'s slot of epoch kk - 1), linearised at ``lin_pos`` (E,3): ``measured = grad . u + dq``.
+    Returns grad (N,3) and measured (N,) [m] (:func:`fusion.estimate.graph.factors.tdcp_measured`)."""
+    prev = raw.tdcp_prev[kk, ss]
+    sat_k = trace.sat_pos[kk, ss]
+    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
+                             lin_pos[kk - 1], lin_pos[kk])
+    return range_and_gradient(sat_k, lin_pos[kk])[1], measured

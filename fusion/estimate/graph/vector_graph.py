@@ -21,13 +21,14 @@ import numpy as np
 from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
 from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, uses_drift
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import doppler_rows, range_and_gradient, tdcp_measured
+from fusion.estimate.graph.factors import doppler_rows, range_and_gradient
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_label
 from fusion.estimate.graph.marginals import information_marginals
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
                                         isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import START_VEL_SIGMA_MPS, motion_model
+from fusion.estimate.graph.raw_inputs import carrier_rows
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
 
@@ -242,12 +243,7 @@ def carrier_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout
     starts = ks[~has[ks - 1]]
     chain = scalar_blocks(st["qclk"][starts - 1, None], np.ones((len(starts), 1)), inp.init_clock_m[starts - 1], 1.0)
     kk, ss = np.nonzero((raw.tdcp_prev >= 0) & has[:, None])
-    prev = raw.tdcp_prev[kk, ss]
-    lin_pos = inp.init_pos if raw.lin_pos is None else raw.lin_pos
-    sat_k = trace.sat_pos[kk, ss]
-    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
-                             lin_pos[kk - 1], lin_pos[kk])
-    _, grad = range_and_gradient(sat_k, lin_pos[kk])
+    grad, measured = carrier_rows(trace, raw, inp.init_pos if raw.lin_pos is None else raw.lin_pos, kk, ss)
     cols = np.concatenate([_cols(st["disp"], kk, 3), st["qclk"][kk - 1, None], st["qclk"][kk, None]], 1)
     coeffs = np.concatenate([grad, -np.ones((len(kk), 1)), np.ones((len(kk), 1))], 1)
     tdcp = scalar_blocks(cols, coeffs, measured, raw.tdcp_sigma[kk, ss], cfg.robust, cfg.robust_k)
