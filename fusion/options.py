@@ -86,6 +86,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
     p.add_argument("--no-learned-sigmas", action="store_true",
                    help="fused: without the per-satellite head's pseudorange sigmas and biases")
+    p.add_argument("--no-learned-doppler", action="store_true",
+                   help="fused: without the Doppler head's pseudorange-rate sigmas (the physical model's)")
     p.add_argument("--dnn-output", choices=("wls", "correction"), default=None,
                    help="dnn: learned-weight least squares or the paper's correction head (default: the checkpoint's)")
     p.add_argument("--raw-sigmas", action="store_true",
@@ -105,7 +107,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
-                      learned_sigmas=not args.no_learned_sigmas, dnn_output=args.dnn_output,
+                      learned_sigmas=not args.no_learned_sigmas, learned_doppler=not args.no_learned_doppler,
+                      dnn_output=args.dnn_output,
                       sigma_calibration=not args.raw_sigmas, nav=tuple(args.nav), sp3=args.sp3, clk=args.clk,
                       iono_free=args.iono_free, graph=graph_config(args))
 

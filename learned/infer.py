@@ -20,6 +20,7 @@ from fusion.estimate.graph.priors import LearnedGraphInputs
 from fusion.geometry import ned_rotation
 from fusion.trace import SIGNALS, Trace
 from learned.context import context_wls, slot_context
+from learned.doppler_head import DopplerNoise, check_head
 from learned.features import FeatureConfig, context_channels, elevation_mask, features_numpy
 from learned.guard import feature_guard, slot_out_of_range, trust
 from learned.heads import OUTPUTS, base_sigma, report_sigma, sat_sigma_bias, weighted_ls_step
@@ -134,6 +135,8 @@ class Corrector:
         self.device = device
         self.var_scale = _calibration_scales(config, path, calibrated)
         self.ranges = _input_ranges(config, self.features.n_inputs, path)
+        head = config.get("doppler_head")
+        self.doppler = None if head is None else DopplerNoise(check_head(head, path))
         self._ctx_cache: tuple[Trace, np.ndarray | None, dict] | None = None
 
     @classmethod
@@ -306,13 +309,13 @@ class Corrector:
                      elev_mask_deg: float | None = None) -> LearnedGraphInputs:
         """Everything the graph takes from the network, from ONE pass at ``init_pos`` (E,3) ECEF for the
         epochs in ``valid`` (E,): the position prior (mean (E,3), covariance (E,3,3), ok (E,)), the
-        per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion), no Doppler head (None), and the
-        guard's counts."""
+        per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion), the Doppler head where the
+        checkpoint has one (:mod:`learned.doppler_head`; None: the graph's physical model), and the guard's counts."""
         c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
         # an epoch the guard switched off has its guess as the "prior": information the graph already has
         ok = c.valid & (np.nan_to_num(c.trust) > 0)
         return LearnedGraphInputs(prior_mean=c.mean_ecef, prior_cov=c.cov_ecef, prior_ok=ok,
-                                  pr_sigma=c.sigma, pr_bias=c.bias, prr_sigma=None, prr_bias=None,
+                                  pr_sigma=c.sigma, pr_bias=c.bias, doppler_noise=self.doppler,
                                   info=dict(c.info or {}, pr_sigma_learned=int(np.isfinite(c.sigma).sum())))
 
     def _fill(self, res: Correction, out: dict, idx, guess, output: str) -> None:

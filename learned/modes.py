@@ -130,7 +130,7 @@ def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
                  at: np.ndarray | None = None) -> LearnedGraphInputs:
     """The network's one pass at :func:`learned_guess` under the run's elevation mask: the position prior
     and the per-measurement sigmas and biases the graph uses (``opts.learned_prior`` /
-    ``opts.learned_sigmas`` switch each off), and what the guard did (info keys ``learned_*``).
+    ``opts.learned_sigmas`` / ``opts.learned_doppler`` switch each off), and what the guard did (info keys ``learned_*``).
     at: (E,3) that guess if already made."""
     at = learned_guess(trace, wls, opts) if at is None else at
     out = corrector.graph_inputs(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg)
@@ -138,7 +138,9 @@ def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     if not opts.learned_prior:
         out.prior_mean = out.prior_cov = out.prior_ok = None
     if not opts.learned_sigmas:
-        out.pr_sigma = out.pr_bias = out.prr_sigma = out.prr_bias = None
+        out.pr_sigma = out.pr_bias = None
+    if not opts.learned_doppler:
+        out.doppler_noise = None
     return out
 
 

@@ -1,7 +1,7 @@
 """``gnssfuse`` command line: the dispatcher.
 
 Every subcommand is one thin module in this package (``run``, ``evaluate``, ``simulate``,
-``train``, ``adapt``) exposing ``main(argv, prog) -> int``: it parses its arguments and calls the library.
+``train``, ``adapt``, ``train-doppler``) exposing ``main(argv, prog) -> int``: it parses its arguments and calls the library.
 The dispatcher names each by a ``"module:function"`` string and imports it only when that
 subcommand runs, so ``gnssfuse run --mode wls`` never imports torch. Options several subcommands
 share are defined once in :mod:`fusion.options`. Adding a subcommand is one module here and one line
@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("fusion.cli.simulate:main", "simulate a GNSS trace (GSDC 2021 derived format + truth)"),
     "train": ("fusion.cli.train:main", "train the set-transformer correction network"),
     "adapt": ("fusion.cli.adapt:main", "fine-tune the learned models on logs without ground truth"),
+    "train-doppler": ("fusion.cli.train_doppler:main", "train the learned Doppler head on logs with truth"),
 }
 
 
@@ -41,7 +42,7 @@ def version() -> str:
 def _usage() -> str:
     lines = ["usage: gnssfuse COMMAND [options]   (gnssfuse COMMAND --help for each)",
              "       gnssfuse --version", "", "commands:"]
-    lines += [f"  {name:<10} {help_}" for name, (_, help_) in COMMANDS.items()]
+    lines += [f"  {name:<13} {help_}" for name, (_, help_) in COMMANDS.items()]
     return "\n".join(lines)
 
 

@@ -18,7 +18,7 @@ import pandas as pd
 
 from fusion.eval import plots
 from fusion.eval.metrics import summarize
-from fusion.eval.summary import DATUM, skip_words
+from fusion.eval.summary import DATUM, doppler_head_words, learned_words, skip_words
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 
@@ -207,6 +207,13 @@ def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:
                   f"in {c['epochs_with_exclusions']} epochs; {c['epochs_fault_undecided']} epochs where the "
                   f"test could not decide (kept, Huber-weighted); {c['epochs_clock_predicted']} three-satellite "
                   "epochs solved with the clock interpolated from their neighbours.", ""]
+    for mode, rec in ev.records.items():
+        info = (rec or {}).get("info") or {}
+        lines += [f"{mode}: {words(info)}." for key, words in (("learned_epochs_asked", learned_words),
+                                                              ("learned_doppler_sigmas", doppler_head_words))
+                  if key in info]
+    if lines[-1] != "":
+        lines.append("")
     if not ev.errors:
         lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
     lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]

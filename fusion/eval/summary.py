@@ -32,6 +32,15 @@ def learned_words(info: dict) -> str:
             f"{g.get('epochs_guard_off', 0)}")
 
 
+def doppler_head_words(info: dict) -> str:
+    """What the learned Doppler head and its guard did, in words."""
+    g = {k: int(info.get(f"learned_doppler_{k}", 0)) for k in ("sigmas", "unseen_system", "out_of_range",
+                                                                "likely_outliers")}
+    return (f"Doppler head: sigmas of {g['sigmas']} pseudorange rates ({g['likely_outliers']} likely outliers); "
+            f"its guard left the physical model to {g['out_of_range']} with inputs outside the training range and "
+            f"{g['unseen_system']} of constellations it never saw")
+
+
 def run_summary(record: dict) -> str:
     """The lines ``gnssfuse run`` prints from a run record (:func:`fusion.io.estimates.run_record`)."""
     lines = [f"{record['trace']}: {record['epochs_solved']}/{record['epochs_total']} epochs solved in mode "
@@ -43,6 +52,8 @@ def run_summary(record: dict) -> str:
                      " (see metrics.json 'info'; --wls-plain for the plain baseline)")
     if "learned_epochs_asked" in info:
         lines.append(learned_words(info))
+    if "learned_doppler_sigmas" in info:
+        lines.append(doppler_head_words(info))
     raised = {k: int(info.get(f"{k}_sigmas_raised", 0)) for k in ("doppler", "carrier")}
     if any(raised.values()):
         lines.append("sigmas raised where the measurements disagreed among themselves beyond them: "

@@ -120,7 +120,7 @@ def test_raw_log_is_not_switched_off_and_graph_inputs_come_from_one_pass():
     assert len(calls) == 1
     E, S = raw.mask.shape
     assert g.prior_mean.shape == (E, 3) and g.prior_cov.shape == (E, 3, 3) and g.pr_sigma.shape == (E, S)
-    assert g.prr_sigma is None and g.prr_bias is None
+    assert g.doppler_noise is None                      # this checkpoint has no Doppler head
     # every epoch asked, none switched off; every slot (Galileo too) has a sigma: the physical model from C/N0
     assert g.prior_ok[wls.valid].all() and g.info["epochs_guard_off"] == 0
     assert np.isfinite(g.pr_sigma[raw.mask & wls.valid[:, None]]).all()

@@ -120,7 +120,7 @@ def kind_scale(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarr
     return windowed_scale(epoch_fit(grad, b, sigma, use), int(round(window_s / step)))
 
 
-def _padded(shape: tuple[int, int], ks: np.ndarray, ss: np.ndarray, grad: np.ndarray, b: np.ndarray
+def padded_rows(shape: tuple[int, int], ks: np.ndarray, ss: np.ndarray, grad: np.ndarray, b: np.ndarray
             ) -> tuple[np.ndarray, np.ndarray]:
     """grad (N,3) and b (N,) of the measurements at (ks, ss) laid out as (E,S,3) and (E,S)."""
     G, B = np.zeros(shape + (3,)), np.zeros(shape)
@@ -136,7 +136,7 @@ def doppler_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray
     ks, ss = np.nonzero(use)
     grad, rhs = doppler_rows(trace.prr[ks, ss] - raw.prr_bias[ks, ss], trace.sat_pos[ks, ss],
                              trace.sat_vel[ks, ss], inp.init_pos[ks])
-    G, B = _padded(use.shape, ks, ss, grad, rhs)
+    G, B = padded_rows(use.shape, ks, ss, grad, rhs)
     return kind_scale(G, B, raw.prr_sigma, use, trace.t_ms / 1000.0, window_s)
 
 
@@ -148,7 +148,7 @@ def carrier_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray
     use[1:] &= inp.keep[:-1, None]
     kk, ss = np.nonzero(use)
     grad, measured = carrier_rows(trace, raw, inp.init_pos if raw.lin_pos is None else raw.lin_pos, kk, ss)
-    G, B = _padded(use.shape, kk, ss, grad, measured)
+    G, B = padded_rows(use.shape, kk, ss, grad, measured)
     return kind_scale(G, B, raw.tdcp_sigma, use, trace.t_ms / 1000.0, window_s)
 
 

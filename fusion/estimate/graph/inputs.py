@@ -127,19 +127,6 @@ def learned_slot_noise(trace: Trace, got_sigma: np.ndarray | None, got_bias: np.
     return np.where(use, got_sigma, sigma), np.where(use, got_bias, 0.0), int(use.sum())
 
 
-def learned_doppler_noise(raw: RawInputs, learned: LearnedGraphInputs | None, floor_mps: float) -> int:
-    """Put the learned pseudorange-rate sigmas (floored at ``floor_mps``) and biases on the used Doppler
-    slots of ``raw`` where they are finite; returns how many it set."""
-    if learned is None or learned.prr_sigma is None or not raw.doppler.any():
-        return 0
-    sig = np.asarray(learned.prr_sigma, float)
-    bias = np.zeros_like(sig) if learned.prr_bias is None else np.asarray(learned.prr_bias, float)
-    use = raw.doppler & np.isfinite(sig) & (sig > 0) & np.isfinite(bias)
-    raw.prr_sigma = np.where(use, np.maximum(sig, floor_mps), raw.prr_sigma)
-    raw.prr_bias = np.where(use, bias, 0.0)
-    return int(use.sum())
-
-
 def initial_clocks(wls: WlsResult, wls_ok: np.ndarray, resid: np.ndarray) -> np.ndarray:
     """(E,) clock [m]: WLS where solved, else the median residual at the initial position; NaN for
     epochs without a selected satellite. resid (E,S) NaN where not selected."""
@@ -230,8 +217,8 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
                       clock_drift_mps=chain.drift_mps, clock_span_s=chain.span_s)
     if inp.raw is not None:
         inp.dropped.update(inp.raw.counts)
-        if learned is not None and learned.prr_sigma is not None:
-            inp.dropped["learned_doppler_sigmas"] = learned_doppler_noise(inp.raw, learned, cfg.prr_sigma_floor_mps)
+        if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():
+            inp.dropped.update({f"learned_{k}": v for k, v in learned.doppler_noise(trace, inp).items()})
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
     if cfg.use_odometry:
         inp.odometry = odometry_factors(trace, init_pos, wls_ok, pos_link, comp, keep, cfg)

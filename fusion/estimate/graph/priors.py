@@ -23,6 +23,11 @@ PriorProvider = Callable[[Trace, np.ndarray, np.ndarray], tuple[np.ndarray, np.n
 #: and bias per slot, NaN where the provider has no opinion (the graph keeps its own sigma and no bias).
 SlotNoiseProvider = Callable[[Trace, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
+#: ``doppler_noise(trace, inp) -> counts``: called by :func:`fusion.estimate.graph.inputs.prepare_inputs` once
+#: the graph's Doppler factors and their physical sigmas are chosen (``inp`` an ``EpochInputs``), it scales
+#: ``inp.raw.prr_sigma`` in place and returns what it did, for the run's report.
+DopplerNoiseProvider = Callable[[Trace, object], dict]
+
 #: smallest eigenvalue [m^2] a provider's covariance needs to be used as a prior
 PRIOR_MIN_EIG = 1e-6
 
@@ -32,9 +37,9 @@ class LearnedGraphInputs:
     """What a learned model hands the graph for a whole trace, from one pass (E epochs, S slots).
 
     prior_mean (E,3) ECEF [m], prior_cov (E,3,3) [m^2], prior_ok (E,) bool: a position prior per epoch
-    (None: no prior). pr_sigma, pr_bias (E,S) [m]: each pseudorange's sigma and bias; prr_sigma,
-    prr_bias (E,S) [m/s]: each pseudorange rate's (None: no opinion on that kind; NaN in a slot: no
-    opinion there, the graph keeps its physical model). info: counts the model reports (what its guard
+    (None: no prior). pr_sigma, pr_bias (E,S) [m]: each pseudorange's sigma and bias (None: no
+    opinion; NaN in a slot: no opinion there, the graph keeps its physical model). doppler_noise: a
+    :data:`DopplerNoiseProvider` (None: the physical model). info: counts the model reports (what its guard
     did), passed on to the mode's info.
     """
 
@@ -43,8 +48,7 @@ class LearnedGraphInputs:
     prior_ok: np.ndarray | None = None
     pr_sigma: np.ndarray | None = None
     pr_bias: np.ndarray | None = None
-    prr_sigma: np.ndarray | None = None
-    prr_bias: np.ndarray | None = None
+    doppler_noise: "DopplerNoiseProvider | None" = None
     info: dict | None = None
 
     @property
