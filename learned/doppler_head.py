@@ -56,48 +56,51 @@ def _system_index(signal: np.ndarray) -> np.ndarray:
     return table[signal]
 
 
-def doppler_features(trace: Trace, inp: "EpochInputs") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """x (N, len(FEATURES)) float32 for the N Doppler measurements the graph uses (``inp.raw.doppler`` at
-    kept epochs, their sigmas ``inp.raw.prr_sigma`` the physical model's), and their epoch and slot
-    indices ks, ss (N,). Truth-free: everything comes from the log and the initial track."""
+def fit_inputs(trace: Trace, inp: "EpochInputs", use: np.ndarray, ks: np.ndarray, ss: np.ndarray) -> dict:
+    """The inputs from each epoch's robust one-epoch fit of velocity and drift, for the measurements at
+    (ks, ss) of ``use`` (E,S): the residual in units of its epoch's robust scale (``z``, ``abs_z``, with
+    ``z_present``: epochs with too few measurements have none) and that scale against the trace's typical one
+    (``epoch_scale``). Scale-free, so that a phone whose stated sigmas are k times too cautious reads as one
+    whose sigmas are right. Each value (N,)."""
     raw = inp.raw
-    use = raw.doppler & inp.keep[:, None]
-    ks, ss = np.nonzero(use)
-    x = np.zeros((len(ks), len(FEATURES)), np.float32)
-    if not len(ks):
-        return x, ks, ss
     grad, rhs = doppler_rows(trace.prr[ks, ss] - raw.prr_bias[ks, ss], trace.sat_pos[ks, ss],
                              trace.sat_vel[ks, ss], inp.init_pos[ks])
     G, B = padded_rows(use.shape, ks, ss, grad, rhs)
     z = epoch_fit(G, B, raw.prr_sigma, use)
-    with np.errstate(invalid="ignore"):
-        epoch_scale = MAD_TO_SIGMA * row_medians(np.abs(z))
-    # scale-free: residuals in units of their epoch's robust scale and that scale against the trace's typical
-    # one, so that a phone whose stated sigmas are k times too cautious reads as one whose are right
-    typical = np.nanmedian(epoch_scale) if np.isfinite(epoch_scale).any() else 1.0
-    f = dict.fromkeys(FEATURES)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = MAD_TO_SIGMA * row_medians(np.abs(z))
+        zk = z[ks, ss] / scale[ks]
+    typical = np.nanmedian(scale) if np.isfinite(scale).any() else 1.0
+    zc = np.clip(np.nan_to_num(zk, posinf=Z_CLIP, neginf=-Z_CLIP), -Z_CLIP, Z_CLIP)
+    return {"z_present": np.isfinite(zk), "z": zc / 3.0, "abs_z": np.log1p(np.abs(zc)),
+            "epoch_scale": np.log(np.nan_to_num(scale[ks] / typical, nan=1.0).clip(0.01, 100.0))}
+
+
+def signal_inputs(trace: Trace, ks: np.ndarray, ss: np.ndarray) -> dict:
+    """The inputs of each measurement's signal at (ks, ss): C/N0 (``cn0``, with ``cn0_present``), second
+    frequency and the constellation one-hot. Each value (N,)."""
     cn0 = np.zeros(len(ks)) if trace.cn0 is None else np.asarray(trace.cn0, float)[ks, ss]
-    f["cn0_present"] = cn0 > 0
-    f["cn0"] = np.where(cn0 > 0, (cn0 - 35.0) / 10.0, 0.0)
+    sig = trace.signal[ks, ss]
+    sys_idx = _system_index(sig)
+    return {"cn0_present": cn0 > 0, "cn0": np.where(cn0 > 0, (cn0 - 35.0) / 10.0, 0.0),
+            "second_freq": ~np.isin(sig, [SIGNALS.index(s) for s in FIRST_FREQUENCY]),
+            **{f"sys_{s}": sys_idx == i for i, s in enumerate(SYSTEMS)}}
+
+
+def doppler_features(trace: Trace, inp: "EpochInputs") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x (N, len(FEATURES)) float32 for the N Doppler measurements the graph uses (``inp.raw.doppler`` at
+    kept epochs, their sigmas ``inp.raw.prr_sigma`` the physical model's), and their epoch and slot
+    indices ks, ss (N,). Truth-free: everything comes from the log and the initial track."""
+    use = inp.raw.doppler & inp.keep[:, None]
+    ks, ss = np.nonzero(use)
+    if not len(ks):
+        return np.zeros((0, len(FEATURES)), np.float32), ks, ss
     # one slot per row: (N,1,3) satellites seen from (N,3) receivers
     el, _ = elevation_azimuth(line_of_sight(trace.sat_pos[ks, ss][:, None], inp.init_pos[ks])[1], inp.init_pos[ks])
-    f["sin_el"] = np.sin(np.radians(el[:, 0]))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        zk = z[ks, ss] / epoch_scale[ks]
-    f["z_present"] = np.isfinite(zk)
-    zc = np.clip(np.nan_to_num(zk, posinf=Z_CLIP, neginf=-Z_CLIP), -Z_CLIP, Z_CLIP)
-    f["z"], f["abs_z"] = zc / 3.0, np.log1p(np.abs(zc))
-    f["epoch_scale"] = np.log(np.nan_to_num(epoch_scale[ks] / typical, nan=1.0).clip(0.01, 100.0))
-    f["n_doppler"] = (use.sum(axis=1)[ks] - 8.0) / 8.0
-    f["speed"] = np.log1p(np.linalg.norm(inp.init_vel[ks], axis=1))
-    sig = trace.signal[ks, ss]
-    f["second_freq"] = ~np.isin(sig, [SIGNALS.index(s) for s in FIRST_FREQUENCY])
-    sys_idx = _system_index(sig)
-    for i, s in enumerate(SYSTEMS):
-        f[f"sys_{s}"] = sys_idx == i
-    for j, name in enumerate(FEATURES):
-        x[:, j] = f[name]
-    return x, ks, ss
+    f = {**fit_inputs(trace, inp, use, ks, ss), **signal_inputs(trace, ks, ss),
+         "sin_el": np.sin(np.radians(el[:, 0])), "n_doppler": (use.sum(axis=1)[ks] - 8.0) / 8.0,
+         "speed": np.log1p(np.linalg.norm(inp.init_vel[ks], axis=1))}
+    return np.stack([f[name] for name in FEATURES], axis=1).astype(np.float32), ks, ss
 
 
 def _mlp(head: dict, x: np.ndarray) -> np.ndarray:

@@ -97,6 +97,25 @@ def test_the_head_scales_the_graphs_doppler_sigmas_within_each_epoch(trained):
     assert np.median(ratio[use & bad]) > 3 * np.median(ratio[use & ~bad])
 
 
+def test_the_numpy_head_is_the_torch_head(trained):
+    import torch
+
+    from learned.doppler_train import HeadNet
+
+    head, _ = trained
+    net = HeadNet(len(head["layers"][0][1]))
+    lin = [m for m in net.net if isinstance(m, torch.nn.Linear)]
+    with torch.no_grad():
+        for m, (w, b) in zip(lin, head["layers"]):
+            m.weight.copy_(torch.tensor(w))
+            m.bias.copy_(torch.tensor(b))
+        x = np.random.default_rng(0).normal(size=(50, len(FEATURES))).astype(np.float32)
+        m_t, logit = net(torch.from_numpy(x))
+    m, p = head_outputs(head, x)
+    np.testing.assert_allclose(m, m_t.numpy(), atol=1e-5)
+    np.testing.assert_allclose(p, torch.sigmoid(logit).numpy(), atol=1e-6)
+
+
 def test_relative_divides_by_each_epochs_median():
     ks, ss = np.array([0, 0, 0, 2, 2]), np.array([0, 1, 2, 0, 3])
     out = relative(np.array([1.0, 2.0, 4.0, 3.0, 12.0]), ks, ss, (3, 4))
