@@ -4,14 +4,16 @@ model, and its probability of being an outlier (a reflected path's Doppler), fro
 A phone's Doppler sigma is a tracking-loop figure that knows nothing of the reflected paths of a street
 canyon, whose Doppler differs from the direct path's by metres per second. The head reads, per Doppler
 measurement, without truth: the C/N0 (or that there is none), the elevation, the constellation and whether
-it is a second frequency, its standardised residual in the epoch's robust one-epoch fit of velocity and drift
-(:func:`fusion.estimate.graph.consistency.epoch_fit`), that epoch's and its minute's robust scale of those
-residuals, how many Doppler measurements the epoch has and the speed of the initial track. A small
-per-measurement network (:data:`FEATURES` -> hidden -> hidden -> 2, ReLU) gives ``m`` (the log multiplier,
-bounded to +-``M_BOUND``) and ``p`` (the outlier probability); the graph's sigma becomes
-``sigma_phys * exp(m) * sqrt(1 - p + p K^2)``, the standard deviation of the two-component mixture the head
-was trained with (:mod:`learned.doppler_train`: inliers ``N(0, (sigma_phys e^m)^2)``, outliers ``K`` times
-wider).
+it is a second frequency, its residual in the epoch's robust one-epoch fit of velocity and drift
+(:func:`fusion.estimate.graph.consistency.epoch_fit`) in units of that epoch's robust scale, that scale against
+the trace's typical one, how many Doppler measurements the epoch has and the speed of the initial track. A
+small per-measurement network (:data:`FEATURES` -> hidden -> hidden -> 2, ReLU) gives ``m`` (the log
+multiplier, bounded to +-``M_BOUND``) and ``p`` (the outlier probability); the factor
+``exp(m) * sqrt(1 - p + p K^2)`` is the standard deviation of the two-component mixture the head was trained
+with (:mod:`learned.doppler_train`: inliers ``N(0, (sigma_phys e^m)^2)``, outliers ``K`` times wider). The
+graph's sigma is ``sigma_phys`` times that factor divided by its epoch's median factor (:func:`relative`): the
+head weighs an epoch's Doppler against each other, and the absolute level stays the physical model's, which
+the consistency check raises where the log shows it too small.
 
 Its guard acts per measurement: a constellation it never saw, or a feature outside the range it was trained
 on, keeps the physical model (both counted). The head lives in the checkpoint's config (``doppler_head``:

@@ -36,6 +36,9 @@ MIN_SYSTEM_ROWS = 200
 
 @dataclass
 class HeadConfig:
+    """The head's recipe: hidden width, passes over the rows, batch size, Adam's learning rate, the weight of the
+    pull of ``m`` to 0, the share of rows whose C/N0 is dropped, the seed."""
+
     hidden: int = 32
     epochs: int = 20
     batch: int = 4096
