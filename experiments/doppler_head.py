@@ -59,7 +59,8 @@ def scores(trace, opts: RunOptions, head: dict) -> tuple[float, float, float]:
     return a, b, c["gsdc_score"]
 
 
-def simulated(sim: Path) -> list[str]:
+def simulated(sim: Path) -> tuple[list[str], dict]:
+    """The leave-track-out table's lines, and the head trained on every simulated trace."""
     # in the order a shell's glob gives ``gnssfuse train-doppler`` (the shipped head's), seeds 2k-1 and 2k replay
     # the k-th track (experiments/sim_city_traces.py)
     dirs = sorted(sim.glob("sim-*"))

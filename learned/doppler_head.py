@@ -28,7 +28,7 @@ import numpy as np
 from fusion.errors import CheckpointError
 from fusion.estimate.graph.consistency import MAD_TO_SIGMA, epoch_fit, padded_rows, row_medians
 from fusion.estimate.graph.factors import doppler_rows
-from fusion.geometry import elevation_azimuth, line_of_sight
+from fusion.geometry import elevation_azimuth, line_of_sight, ned_rotation
 from fusion.trace import SIGNALS, Trace
 
 if TYPE_CHECKING:
@@ -97,8 +97,9 @@ def doppler_features(trace: Trace, inp: "EpochInputs") -> tuple[np.ndarray, np.n
     ks, ss = np.nonzero(use)
     if not len(ks):
         return np.zeros((0, len(FEATURES)), np.float32), ks, ss
-    # one slot per row: (N,1,3) satellites seen from (N,3) receivers
-    el, _ = elevation_azimuth(line_of_sight(trace.sat_pos[ks, ss][:, None], inp.init_pos[ks])[1], inp.init_pos[ks])
+    # one slot per row: (N,1,3) satellites seen from (N,3) receivers, the NED frames made once per epoch
+    R = ned_rotation(inp.init_pos)[ks]
+    el, _ = elevation_azimuth(line_of_sight(trace.sat_pos[ks, ss][:, None], inp.init_pos[ks])[1], None, R)
     f = {**fit_inputs(trace, inp, use, ks, ss), **signal_inputs(trace, ks, ss),
          "sin_el": np.sin(np.radians(el[:, 0])), "n_doppler": (use.sum(axis=1)[ks] - 8.0) / 8.0,
          "speed": np.log1p(np.linalg.norm(inp.init_vel[ks], axis=1))}
@@ -181,7 +182,8 @@ class DopplerNoise:
         x, ks, ss = doppler_features(trace, inp)
         unseen, out = guard(self.head, x)
         m, p = head_outputs(self.head, x)
-        mult = relative(np.where(unseen | out, 1.0, sigma_multiplier(m, p)), ks, ss, inp.raw.doppler.shape)
+        learned = ~(unseen | out)
+        mult = relative(np.where(learned, sigma_multiplier(m, p), 1.0), ks, ss, inp.raw.doppler.shape)
         inp.raw.prr_sigma[ks, ss] *= mult
-        return {"doppler_sigmas": int((~(unseen | out)).sum()), "doppler_unseen_system": int(unseen.sum()),
-                "doppler_out_of_range": int(out.sum()), "doppler_likely_outliers": int((p[~(unseen | out)] > 0.5).sum())}
+        return {"doppler_sigmas": int(learned.sum()), "doppler_unseen_system": int(unseen.sum()),
+                "doppler_out_of_range": int(out.sum()), "doppler_likely_outliers": int((p[learned] > 0.5).sum())}

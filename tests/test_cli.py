@@ -163,6 +163,27 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "asked at 10 epochs, 80 measurements" in text and "3 measurements with inputs outside" in text
     assert "12 measurements of signals it cannot read" in text and "switched off in 1" in text
     assert "4 epochs bridged" in text and "longest stretch 4 s" in text
+    assert "Doppler head" not in text
+    info.update(learned_doppler_sigmas=70, learned_doppler_out_of_range=5, learned_doppler_unseen_system=9,
+                learned_doppler_likely_outliers=2)
+    text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
+                        "info": info})
+    assert "sigmas of 70 pseudorange rates (2 likely outliers)" in text
+    assert "5 with inputs outside the training range and 9 of constellations it never saw" in text
+
+
+def test_the_report_says_per_mode_what_the_learned_parts_did():
+    import numpy as np
+
+    from fusion.eval.report import TraceEval, _trace_section
+    from fusion.trace import Trace, empty_trace
+
+    info = {"learned_epochs_asked": 10, "learned_meas_asked": 80, "learned_doppler_sigmas": 70}
+    ev = TraceEval(trace=Trace(**{**empty_trace(2, 4, name="a/b"), "t_ms": np.array([0, 1000])}), slug="a_b",
+                   records={"wls": {"info": {}}, "fused": {"info": info}})
+    text = "\n".join(_trace_section(ev, {}))
+    assert "fused: network: asked at 10 epochs, 80 measurements" in text
+    assert "fused: Doppler head: sigmas of 70 pseudorange rates" in text and "wls:" not in text
 
 
 # ---------------------------------------------------------------------------- start-up and exit cost of `run`

@@ -196,6 +196,10 @@ FIG_CAPTIONS = {
 }
 
 
+#: what a mode's learned parts did, in words, where its info has the key
+LEARNED_WORDS = (("learned_epochs_asked", learned_words), ("learned_doppler_sigmas", doppler_head_words))
+
+
 def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:
     """report.md's section of one trace: what WLS did, its estimates and its figures (kind -> link)."""
     lines = [f"## {ev.trace.name}", ""]
@@ -209,11 +213,8 @@ def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:
                   "epochs solved with the clock interpolated from their neighbours.", ""]
     for mode, rec in ev.records.items():
         info = (rec or {}).get("info") or {}
-        lines += [f"{mode}: {words(info)}." for key, words in (("learned_epochs_asked", learned_words),
-                                                              ("learned_doppler_sigmas", doppler_head_words))
-                  if key in info]
-    if lines[-1] != "":
-        lines.append("")
+        said = [f"{mode}: {words(info)}." for key, words in LEARNED_WORDS if key in info]
+        lines += said + [""] if said else []
     if not ev.errors:
         lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]
     lines += ["Estimates: " + ", ".join(f"[{m}]({ev.slug}/{m}/estimates.csv)" for m in ev.results), ""]
