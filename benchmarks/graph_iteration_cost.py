@@ -15,7 +15,6 @@ import time
 from pathlib import Path
 
 import gtsam
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -122,5 +121,4 @@ def banded(trace, inp, opts: RunOptions) -> None:
 
 
 if __name__ == "__main__":
-    np.set_printoptions(precision=3)
     main()

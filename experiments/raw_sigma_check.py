@@ -68,8 +68,8 @@ def score(trace: Trace, opts: RunOptions, **graph) -> float:
     return mode_metrics(trace, res)["gsdc_score"]
 
 
-def row(name: str, trace: Trace, opts: RunOptions) -> str:
-    pr = score(trace, opts, use_doppler=False, use_carrier=False)
+def row(name: str, trace: Trace, opts: RunOptions, pr: float) -> str:
+    """One table row; pr the score with pseudoranges only (which the degradations leave alone)."""
     off = score(trace, opts, doppler_check_window_s=0.0, carrier_check_window_s=0.0)
     dop = score(trace, opts, doppler_check_window_s=60.0, carrier_check_window_s=0.0)
     both = score(trace, opts, doppler_check_window_s=60.0, carrier_check_window_s=60.0)
@@ -100,9 +100,10 @@ def main(argv=None) -> int:
         if trace.has_carrier:
             kinds.update({"carrier degraded": (0.0, 0.0, args.adr_step),
                           "both degraded": (args.prr_bias, args.prr_white, args.adr_step)})
+        pr = score(trace, opts, use_doppler=False, use_carrier=False)
         for label, how in kinds.items():
             t = trace if how is None else degraded(trace, *how, seed)
-            print(row(f"{name}, {label}", t, opts), flush=True)
+            print(row(f"{name}, {label}", t, opts, pr), flush=True)
     return 0
 
 

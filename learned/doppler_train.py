@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from fusion.errors import DataError
-from fusion.estimate.graph.consistency import padded_rows, row_medians
+from fusion.estimate.graph.consistency import row_medians
 from fusion.estimate.graph.factors import doppler_rows
 from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.modes import solve_initial

@@ -18,7 +18,7 @@ import pandas as pd
 
 from fusion.eval import plots
 from fusion.eval.metrics import summarize
-from fusion.eval.summary import DATUM, doppler_head_words, learned_words, skip_words
+from fusion.eval.summary import DATUM, LEARNED_WORDS, skip_words
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 
@@ -194,10 +194,6 @@ FIG_CAPTIONS = {
     "traj": "Trajectories in a local east/north frame",
     "time": "Error vs time",
 }
-
-
-#: what a mode's learned parts did, in words, where its info has the key
-LEARNED_WORDS = (("learned_epochs_asked", learned_words), ("learned_doppler_sigmas", doppler_head_words))
 
 
 def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:

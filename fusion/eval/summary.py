@@ -41,6 +41,10 @@ def doppler_head_words(info: dict) -> str:
             f"{g['unseen_system']} of constellations it never saw")
 
 
+#: what a mode's learned parts did, in words, where its info has the key
+LEARNED_WORDS = (("learned_epochs_asked", learned_words), ("learned_doppler_sigmas", doppler_head_words))
+
+
 def run_summary(record: dict) -> str:
     """The lines ``gnssfuse run`` prints from a run record (:func:`fusion.io.estimates.run_record`)."""
     lines = [f"{record['trace']}: {record['epochs_solved']}/{record['epochs_total']} epochs solved in mode "
@@ -50,10 +54,7 @@ def run_summary(record: dict) -> str:
         lines.append(f"WLS fault detection: {info['excluded_measurements']} measurements excluded in "
                      f"{info['epochs_with_exclusions']} epochs; {info['epochs_fault_undecided']} epochs undecided"
                      " (see metrics.json 'info'; --wls-plain for the plain baseline)")
-    if "learned_epochs_asked" in info:
-        lines.append(learned_words(info))
-    if "learned_doppler_sigmas" in info:
-        lines.append(doppler_head_words(info))
+    lines += [words(info) for key, words in LEARNED_WORDS if key in info]
     raised = {k: int(info.get(f"{k}_sigmas_raised", 0)) for k in ("doppler", "carrier")}
     if any(raised.values()):
         lines.append("sigmas raised where the measurements disagreed among themselves beyond them: "
