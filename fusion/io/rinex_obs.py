@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import re
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -242,7 +243,8 @@ def _v2_frame(body: np.ndarray, head: ObsHeader, path: Path, skipped: dict[str, 
     epoch_of, system, prn_chars, fields, first = satellite_fields(body, epoch_line, n_sat, obs_start, n_types)
     prn, prn_bad = sat_number(prn_chars)
     epochs = {"t_ns": t_ns, "clock_reset": flag == 1, "epoch_of": epoch_of, "line_no": first_no + first}
-    return observation_frame(system, prn, prn_bad, _parse_values(fields), epochs, head, path, skipped)
+    parsed = _parse_values(fields.shape[1], n_types, lambda a, b: fields[:, a:b])
+    return observation_frame(system, prn, prn_bad, parsed, epochs, head, path, skipped)
 
 
 def _trim_trailing_blank(n_lines: np.ndarray, starts: np.ndarray, ends: np.ndarray) -> None:
@@ -323,9 +325,8 @@ def _observations(body: np.ndarray, sat_lines: np.ndarray, epochs: dict[str, np.
     prn, prn_bad = sat_number(m[:, 1:3])
     # F14.3 value, LLI, SSI of every observation, gathered column-major and parsed a block of lines at a time
     offsets = 3 + _FIELD * np.arange(n_obs)
-    parsed = [_parse_values(gather_fields(body, starts[a:a + PARSE_BLOCK_LINES], ends[a:a + PARSE_BLOCK_LINES],
-                                          offsets, _FIELD)) for a in range(0, starts.size, PARSE_BLOCK_LINES)]
-    parsed = tuple(np.concatenate(part) for part in zip(*parsed))
+    parsed = _parse_values(starts.size, n_obs,
+                           lambda a, b: gather_fields(body, starts[a:b], ends[a:b], offsets, _FIELD))
     return observation_frame(m[:, 0], prn, prn_bad, parsed, epochs, head, path, skipped)
 
 
@@ -371,18 +372,20 @@ def observation_frame(system: np.ndarray, prn: np.ndarray, prn_bad: np.ndarray,
 PARSE_BLOCK_LINES = 4096
 
 
-def _parse_values(fields: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(16, M, n_obs) uint8 F14.3 + LLI + SSI fields -> (M, n_obs) values (NaN blank or bad),
-    (M,) bool lines with an unreadable number and (M, n_obs) uint8 LLI characters, in blocks of
-    :data:`PARSE_BLOCK_LINES` lines."""
-    _, n_lines, n_obs = fields.shape
-    values, bad = np.empty((n_lines, n_obs)), np.empty(n_lines, bool)
+def _parse_values(n_lines: int, n_obs: int, fields_of: Callable[[int, int], np.ndarray]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The F14.3 + LLI + SSI fields of ``n_lines`` satellite lines -> (M, n_obs) values (NaN blank or bad),
+    (M,) bool lines with an unreadable number and (M, n_obs) uint8 LLI characters. ``fields_of(a, b)`` gives
+    lines a..b-1 as (16, b - a, n_obs) uint8; asked :data:`PARSE_BLOCK_LINES` lines at a time."""
+    values, bad, lli = np.empty((n_lines, n_obs)), np.empty(n_lines, bool), np.empty((n_lines, n_obs), np.uint8)
     for a in range(0, n_lines, PARSE_BLOCK_LINES):
-        block = fields[:14, a:a + PARSE_BLOCK_LINES]
-        v, b = parse_float_columns(block.reshape(14, -1), dot_col=10)
-        values[a:a + PARSE_BLOCK_LINES] = v.reshape(-1, n_obs)
-        bad[a:a + PARSE_BLOCK_LINES] = b.reshape(-1, n_obs).any(axis=1)
-    return values, bad, fields[14]
+        b = min(a + PARSE_BLOCK_LINES, n_lines)
+        block = fields_of(a, b)
+        v, bad_chars = parse_float_columns(block[:14].reshape(14, -1), dot_col=10)
+        values[a:b] = v.reshape(-1, n_obs)
+        bad[a:b] = bad_chars.reshape(-1, n_obs).any(axis=1)
+        lli[a:b] = block[14]
+    return values, bad, lli
 
 
 def _system_blocks(sys_letter: str, types: list[str], rows: np.ndarray, values: np.ndarray,
