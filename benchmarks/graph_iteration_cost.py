@@ -109,13 +109,12 @@ def main() -> None:
 def banded(trace, inp, opts: RunOptions) -> None:
     """The banded solver's build and one iteration (normal equations, banded Cholesky + Schur, the cost)."""
     vec = vector_graph(trace, inp, opts.graph)
-    band = vec.system.band
-    print(f"banded solver: {vec.n_factors} factors, {vec.layout.n} scalar unknowns, band {band}")
+    print(f"banded solver: {vec.n_factors} factors, {vec.layout.n} scalar unknowns, band {vec.system.band}")
     print(f"  build the vectorised graph                             "
           f"{best_ms(lambda: vector_graph(trace, inp, opts.graph)):7.1f} ms")
-    eq, _ = normal_equations(vec.system, vec.x0, band)
+    eq = normal_equations(vec.system, vec.x0)
     print(f"  normal equations (linearise + reweight + assemble)     "
-          f"{best_ms(lambda: normal_equations(vec.system, vec.x0, band)):7.1f} ms")
+          f"{best_ms(lambda: normal_equations(vec.system, vec.x0)):7.1f} ms")
     print(f"  banded Cholesky + Schur complement + solve             {best_ms(lambda: solve_normal(eq)):7.1f} ms")
     print(f"  cost (the stopping test)                               {best_ms(lambda: cost(vec.system, vec.x0)):7.1f} ms")
 

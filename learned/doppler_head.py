@@ -26,8 +26,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fusion.errors import CheckpointError
-from fusion.estimate.graph.consistency import MAD_TO_SIGMA, epoch_fit, padded_rows, row_medians
-from fusion.estimate.graph.factors import doppler_rows
+from fusion.estimate.graph.consistency import MAD_TO_SIGMA, doppler_fit, row_medians
 from fusion.geometry import elevation_azimuth, line_of_sight, ned_rotation
 from fusion.trace import SIGNALS, Trace
 
@@ -58,17 +57,14 @@ def _system_index(signal: np.ndarray) -> np.ndarray:
     return table[signal]
 
 
-def fit_inputs(trace: Trace, inp: "EpochInputs", use: np.ndarray, ks: np.ndarray, ss: np.ndarray) -> dict:
-    """The inputs from each epoch's robust one-epoch fit of velocity and drift, for the measurements at
-    (ks, ss) of ``use`` (E,S): the residual in units of its epoch's robust scale (``z``, ``abs_z``, with
-    ``z_present``: epochs with too few measurements have none) and that scale against the trace's typical one
-    (``epoch_scale``). Scale-free, so that a phone whose stated sigmas are k times too cautious reads as one
-    whose sigmas are right. Each value (N,)."""
-    raw = inp.raw
-    grad, rhs = doppler_rows(trace.prr[ks, ss] - raw.prr_bias[ks, ss], trace.sat_pos[ks, ss],
-                             trace.sat_vel[ks, ss], inp.init_pos[ks])
-    G, B = padded_rows(use.shape, ks, ss, grad, rhs)
-    z = epoch_fit(G, B, raw.prr_sigma, use)
+def fit_inputs(trace: Trace, inp: "EpochInputs", ks: np.ndarray, ss: np.ndarray) -> dict:
+    """The inputs from each epoch's robust one-epoch fit of velocity and drift
+    (:func:`fusion.estimate.graph.consistency.doppler_fit`), for the measurements at (ks, ss): the residual
+    in units of its epoch's robust scale (``z``, ``abs_z``, with ``z_present``: epochs with too few
+    measurements have none) and that scale against the trace's typical one (``epoch_scale``). Scale-free,
+    so that a phone whose stated sigmas are k times too cautious reads as one whose sigmas are right. Each
+    value (N,)."""
+    z = doppler_fit(trace, inp)
     with np.errstate(invalid="ignore", divide="ignore"):
         scale = MAD_TO_SIGMA * row_medians(np.abs(z))
         zk = z[ks, ss] / scale[ks]
@@ -100,7 +96,7 @@ def doppler_features(trace: Trace, inp: "EpochInputs") -> tuple[np.ndarray, np.n
     # one slot per row: (N,1,3) satellites seen from (N,3) receivers, the NED frames made once per epoch
     R = ned_rotation(inp.init_pos)[ks]
     el, _ = elevation_azimuth(line_of_sight(trace.sat_pos[ks, ss][:, None], inp.init_pos[ks])[1], None, R)
-    f = {**fit_inputs(trace, inp, use, ks, ss), **signal_inputs(trace, ks, ss),
+    f = {**fit_inputs(trace, inp, ks, ss), **signal_inputs(trace, ks, ss),
          "sin_el": np.sin(np.radians(el[:, 0])), "n_doppler": (use.sum(axis=1)[ks] - 8.0) / 8.0,
          "speed": np.log1p(np.linalg.norm(inp.init_vel[ks], axis=1))}
     return np.stack([f[name] for name in FEATURES], axis=1).astype(np.float32), ks, ss

@@ -20,7 +20,7 @@ from torch import nn
 
 from fusion.errors import DataError
 from fusion.estimate.graph.consistency import row_medians
-from fusion.estimate.graph.factors import doppler_rows
+from fusion.estimate.graph.raw_inputs import doppler_rows_at
 from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
@@ -66,8 +66,7 @@ def truth_errors(trace: Trace, inp, ks: np.ndarray, ss: np.ndarray) -> np.ndarra
     """(N,) each Doppler measurement's error at the truth [m/s] (module docstring), NaN where the truth
     velocity is missing or the epoch has fewer than MIN_EPOCH_DOPPLER measurements."""
     vel = truth_velocity(trace)
-    grad, rhs = doppler_rows(trace.prr[ks, ss] - inp.raw.prr_bias[ks, ss], trace.sat_pos[ks, ss],
-                             trace.sat_vel[ks, ss], inp.init_pos[ks])
+    grad, rhs = doppler_rows_at(trace, inp.raw, inp.init_pos, ks, ss)
     d = rhs - np.einsum("ij,ij->i", grad, vel[ks])
     pad = np.full(trace.mask.shape, np.nan)
     pad[ks, ss] = d

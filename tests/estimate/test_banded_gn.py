@@ -92,7 +92,9 @@ def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
     gtsam_gn = solve_batch(trace, inp, replace(cfg, batch_solver="gauss-newton"))
     assert banded[3]["batch_solution"].vector is not None and gtsam_gn[3]["batch_solution"].vector is None
     np.testing.assert_array_equal(banded[1], gtsam_gn[1])
-    np.testing.assert_allclose(banded[0], gtsam_gn[0], rtol=0, atol=1e-6)
+    # ECEF coordinates are ~4e6 m: two factorisations of the same system agree to ~1e-12 of that (a few
+    # micrometres, BLAS-dependent); any modelling difference shows as centimetres or more
+    np.testing.assert_allclose(banded[0], gtsam_gn[0], rtol=0, atol=5e-5)
     np.testing.assert_allclose(banded[2], gtsam_gn[2], rtol=1e-6, atol=1e-12)
     a, b = banded[3], gtsam_gn[3]
     assert a["iterations"] == b["iterations"] and a["final_error"] == pytest.approx(b["final_error"], rel=1e-9)

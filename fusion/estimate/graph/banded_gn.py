@@ -16,6 +16,7 @@ whitened rows, as GTSAM's ``noiseModel.Robust`` linearises), the cost ``sum rho(
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -70,12 +71,13 @@ class System:
     blocks: list[Blocks]
     n: int
     n_local: int
-    _static: tuple | None = field(default=None, repr=False)    # (band, Normal) of the constant factors
+    _static: "Normal | None" = field(default=None, repr=False)    # the information of the constant factors
 
-    @property
+    @cached_property
     def band(self) -> int:
-        """Largest distance between two local variables of one factor (the normal equations' bandwidth)."""
-        bw = 0
+        """Largest distance between two local variables of one factor, at least 1 (the normal equations'
+        bandwidth; the blocks are fixed once the system is made)."""
+        bw = 1
         for blk in self.blocks:
             c = np.where(blk.cols < self.n_local, blk.cols, -1)
             lo = np.where(c >= 0, c, np.iinfo(np.int64).max).min(axis=1, initial=np.iinfo(np.int64).max)
@@ -173,17 +175,17 @@ def _add_information(eq: Normal, blk: Blocks, Aw: np.ndarray, w: np.ndarray | No
         np.add.at(eq.D, (pr.d_row, pr.d_col), h[pr.in_d])
 
 
-def _static_information(system: System, band: int) -> Normal:
+def _static_information(system: System) -> Normal:
     """The information of the linear factors without a robust loss (constant: computed once per system),
     flat B and C, lower D; g zero."""
-    if system._static is None or system._static[0] != band:
+    if system._static is None:
         nl, G = system.n_local, system.n - system.n_local
-        eq = Normal(np.zeros((band + 1) * nl), np.zeros(nl * G), np.zeros((G, G)), np.zeros(system.n))
+        eq = Normal(np.zeros((system.band + 1) * nl), np.zeros(nl * G), np.zeros((G, G)), np.zeros(system.n))
         for blk in system.blocks:
             if len(blk) and _static(blk):
                 _add_information(eq, blk, blk.A, None, nl, G)
-        system._static = (band, eq)
-    eq = system._static[1]
+        system._static = eq
+    eq = system._static
     return Normal(eq.B.copy(), eq.C.copy(), eq.D.copy(), np.zeros(system.n))
 
 
@@ -192,24 +194,22 @@ def _static(blk: Blocks) -> bool:
     return blk.model is None and blk.robust == "none"
 
 
-def normal_equations(system: System, x: np.ndarray, band: int) -> tuple[Normal, float]:
-    """The Gauss-Newton normal equations at ``x`` (N,), robust losses reweighted there, and the cost."""
+def normal_equations(system: System, x: np.ndarray) -> Normal:
+    """The Gauss-Newton normal equations at ``x`` (N,), robust losses reweighted there."""
     nl, G = system.n_local, system.n - system.n_local
-    eq = _static_information(system, band)
-    total = 0.0
+    eq = _static_information(system)
     for blk in system.blocks:
         if not len(blk):
             continue
         r, A = blk.residual(x)
-        loss, w = robust_loss(blk.robust, blk.k, np.sqrt(np.einsum("md,md->m", r, r)))
-        total += float(loss.sum())
+        _, w = robust_loss(blk.robust, blk.k, np.sqrt(np.einsum("md,md->m", r, r)))
         sw = np.sqrt(w)
         Aw, rw = A * sw[:, None, None], r * sw[:, None]
         eq.g += np.bincount(blk.cols.ravel(), weights=np.einsum("mdn,md->mn", Aw, rw).ravel(), minlength=system.n)
         if not _static(blk):
             _add_information(eq, blk, Aw, w, nl, G)
     D = eq.D + np.tril(eq.D, -1).T
-    return Normal(eq.B.reshape(band + 1, nl), eq.C.reshape(nl, G), D, eq.g), total
+    return Normal(eq.B.reshape(system.band + 1, nl), eq.C.reshape(nl, G), D, eq.g)
 
 
 def solve_normal(eq: Normal) -> np.ndarray:
@@ -242,10 +242,9 @@ class Solved:
 def gauss_newton(system: System, x0: np.ndarray, rel_tol: float, max_iter: int) -> Solved:
     """Gauss-Newton from ``x0`` (N,) until the cost falls by less than ``rel_tol`` of itself (GTSAM's
     rule) or after ``max_iter`` iterations."""
-    band = max(system.band, 1)
     x, err = x0, cost(system, x0)
     for n in range(max_iter):
-        eq, _ = normal_equations(system, x, band)
+        eq = normal_equations(system, x)
         try:
             dx = solve_normal(eq)
         except np.linalg.LinAlgError:
@@ -264,8 +263,7 @@ def gauss_newton(system: System, x0: np.ndarray, rel_tol: float, max_iter: int) 
 def information_triplets(system: System, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The lower triangle of the information matrix H at ``x`` (robust losses reweighted there, as
     ``gtsam.Marginals`` linearises): rows (P,), cols (P,), values (P,), row >= col."""
-    band = max(system.band, 1)
-    eq, _ = normal_equations(system, x, band)
+    eq = normal_equations(system, x)
     nl = system.n_local
     d, j = np.nonzero(eq.B)
     rows, cols, vals = [j + d], [j], [eq.B[d, j]]

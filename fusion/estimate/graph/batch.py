@@ -68,9 +68,10 @@ class BatchSolution:
     x: np.ndarray | None = None
 
 
-def same_inputs(a, b) -> bool:
+def same_inputs(a, b, ignore: frozenset = frozenset()) -> bool:
     """Whether two :class:`EpochInputs` (or their parts) build the same graph: every array equal (NaN
-    equal to NaN), every nested dataclass likewise, other objects identical; counts (dicts) ignored."""
+    equal to NaN), every nested dataclass likewise, other objects identical; counts (dicts) and the fields
+    of ``a`` named in ``ignore`` left out."""
     if a is b:
         return True
     if type(a) is not type(b):
@@ -79,7 +80,7 @@ def same_inputs(a, b) -> bool:
         return a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
     if is_dataclass(a):
         return all(same_inputs(getattr(a, f.name), getattr(b, f.name)) for f in fields(a)
-                   if not isinstance(getattr(a, f.name), dict))
+                   if f.name not in ignore and not isinstance(getattr(a, f.name), dict))
     if isinstance(a, (tuple, list)):
         return len(a) == len(b) and all(same_inputs(x, y) for x, y in zip(a, b))
     return isinstance(a, (bool, int, float, str, np.generic)) and a == b
@@ -107,8 +108,7 @@ def patchable(start: BatchSolution | None, inp: EpochInputs, cfg: GraphConfig) -
     # the first solve may have stopped at a looser tolerance (GraphConfig.guess_rel_tol): same graph
     if replace(start.cfg, lm_rel_tol=cfg.lm_rel_tol) != cfg or (start.inp.prior_ok & start.inp.keep).any():
         return False
-    return all(same_inputs(getattr(start.inp, f.name), getattr(inp, f.name)) for f in fields(inp)
-               if f.name not in PATCHABLE and not isinstance(getattr(inp, f.name), dict))   # dicts: counts
+    return same_inputs(start.inp, inp, ignore=PATCHABLE)
 
 
 def patched_graph(start: BatchSolution, trace: Trace, inp: EpochInputs, cfg: GraphConfig

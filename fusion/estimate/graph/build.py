@@ -26,11 +26,12 @@ from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_
                                            doppler_factor_vcd, drift_prior_factor_cd, drift_walk_factor_cdcd,
                                            isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
                                            pseudorange_factor_xc, pseudorange_factor_xci, scalar_robust_models,
-                                           tdcp_factor_linearised, tdcp_measured, zero_point)
+                                           tdcp_factor_linearised, zero_point)
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
                                         isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import motion_model
+from fusion.estimate.graph.raw_inputs import carrier_rows
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
 
@@ -223,10 +224,8 @@ def carrier_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     (E,3), and the epoch of each."""
     raw = inp.raw
     kk, ss = np.nonzero((raw.tdcp_prev >= 0) & epochs[:, None])
-    prev = raw.tdcp_prev[kk, ss]
     sat_k = trace.sat_pos[kk, ss]
-    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
-                             lin_pos[kk - 1], lin_pos[kk])
+    _, measured = carrier_rows(trace, raw, lin_pos, kk, ss)
     models = scalar_robust_models(cfg.robust, cfg.robust_k, raw.tdcp_sigma[kk, ss])
     guess_k = lin_pos[kk]
     return kk, [tdcp_factor_linearised(k, m, sat_k[i], guess_k[i], models[i])

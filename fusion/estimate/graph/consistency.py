@@ -31,8 +31,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fusion.estimate.graph.factors import doppler_rows
-from fusion.estimate.graph.raw_inputs import carrier_rows
+from fusion.estimate.graph.raw_inputs import carrier_rows, doppler_rows_at
 from fusion.trace import Trace
 
 if TYPE_CHECKING:
@@ -104,20 +103,25 @@ def windowed_scale(z: np.ndarray, window: int, min_count: int = 30) -> np.ndarra
     pad = np.concatenate([np.full((half, S), np.nan), np.abs(z), np.full((half, S), np.nan)])
     win = np.lib.stride_tricks.sliding_window_view(pad, 2 * half + 1, axis=0)[centres].reshape(len(centres), -1)
     finite = np.isfinite(z)
-    overall = row_medians(np.abs(z[finite])[None])[0] if finite.sum() >= min_count else np.nan
+    overall = np.median(np.abs(z[finite])) if finite.sum() >= min_count else np.nan
     med = np.where(np.isfinite(win).sum(axis=1) >= min_count, row_medians(win), overall)
     out = MAD_TO_SIGMA * np.interp(np.arange(E), centres, med) if np.isfinite(med).all() else np.ones(E)
     return np.maximum(out, 1.0)
+
+
+def window_epochs(t: np.ndarray, window_s: float) -> int:
+    """A window of ``window_s`` seconds in epochs of the times t (E,) [s], by their median interval."""
+    dt = np.diff(t)
+    step = float(np.median(dt[dt > 0])) if (dt > 0).any() else 1.0
+    return int(round(window_s / step))
 
 
 def kind_scale(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray, t: np.ndarray,
                window_s: float) -> np.ndarray:
     """(E,) the factor >= 1 on one measurement kind's sigmas at each epoch (module docstring). grad (E,S,3),
     b (E,S), sigma (E,S), use (E,S) bool as :func:`epoch_fit`; t (E,) epoch times [s]; window_s the window's
-    full length [s] (turned into epochs by the median epoch interval)."""
-    dt = np.diff(t)
-    step = float(np.median(dt[dt > 0])) if (dt > 0).any() else 1.0
-    return windowed_scale(epoch_fit(grad, b, sigma, use), int(round(window_s / step)))
+    full length [s]."""
+    return windowed_scale(epoch_fit(grad, b, sigma, use), window_epochs(t, window_s))
 
 
 def padded_rows(shape: tuple[int, int], ks: np.ndarray, ss: np.ndarray, grad: np.ndarray, b: np.ndarray
@@ -128,16 +132,20 @@ def padded_rows(shape: tuple[int, int], ks: np.ndarray, ss: np.ndarray, grad: np
     return G, B
 
 
-def doppler_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray:
-    """(E,) the factor on each epoch's Doppler sigmas (``inp.raw.prr_sigma``) from the Doppler factors' own
-    one-epoch fits (velocity and clock drift, at the initial positions)."""
+def doppler_fit(trace: Trace, inp: EpochInputs) -> np.ndarray:
+    """z (E,S) of :func:`epoch_fit` for the Doppler factors of the kept epochs (velocity and clock drift, at the
+    initial positions, with the sigmas ``inp.raw.prr_sigma``); NaN where none."""
     raw = inp.raw
     use = raw.doppler & inp.keep[:, None]
     ks, ss = np.nonzero(use)
-    grad, rhs = doppler_rows(trace.prr[ks, ss] - raw.prr_bias[ks, ss], trace.sat_pos[ks, ss],
-                             trace.sat_vel[ks, ss], inp.init_pos[ks])
-    G, B = padded_rows(use.shape, ks, ss, grad, rhs)
-    return kind_scale(G, B, raw.prr_sigma, use, trace.t_ms / 1000.0, window_s)
+    G, B = padded_rows(use.shape, ks, ss, *doppler_rows_at(trace, raw, inp.init_pos, ks, ss))
+    return epoch_fit(G, B, raw.prr_sigma, use)
+
+
+def doppler_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray:
+    """(E,) the factor on each epoch's Doppler sigmas (``inp.raw.prr_sigma``) from the Doppler factors' own
+    one-epoch fits."""
+    return windowed_scale(doppler_fit(trace, inp), window_epochs(trace.t_ms / 1000.0, window_s))
 
 
 def carrier_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray:

@@ -139,18 +139,18 @@ def tdcp_factor_uqq(k: int, delta_adr_m: float, sat_j: np.ndarray, sat_k: np.nda
     sat_j, sat_k (3,) ECEF at transmit time; model 1-D [m]."""
     measured = tdcp_measured(np.array([delta_adr_m], float), np.asarray(sat_j, float)[None],
                              np.asarray(sat_k, float)[None], np.asarray(guess_j, float)[None],
-                             np.asarray(guess_k, float)[None])[0]
+                             np.asarray(guess_k, float)[None])[0][0]
     return tdcp_factor_linearised(k, float(measured), sat_k, guess_k, model)
 
 
 def tdcp_measured(delta_adr_m: np.ndarray, sat_j: np.ndarray, sat_k: np.ndarray, guess_j: np.ndarray,
-                  guess_k: np.ndarray) -> np.ndarray:
+                  guess_k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N,) the linearised carrier measurement of :func:`tdcp_factor_uqq` for N factors at once:
-    ``delta_adr - R_k(guess_k) + R_{k-1}(guess_j) + g_k . (guess_k - guess_j)``.
-    delta_adr_m (N,); sat_j, sat_k, guess_j, guess_k (N,3)."""
+    ``delta_adr - R_k(guess_k) + R_{k-1}(guess_j) + g_k . (guess_k - guess_j)``, and (N,3) g_k, the range's
+    gradient at guess_k. delta_adr_m (N,); sat_j, sat_k, guess_j, guess_k (N,3)."""
     geom_j, _ = range_and_gradient(sat_j, guess_j)
     geom_k, grad_k = range_and_gradient(sat_k, guess_k)
-    return delta_adr_m - geom_k + geom_j + np.einsum("ij,ij->i", grad_k, guess_k - guess_j)
+    return delta_adr_m - geom_k + geom_j + np.einsum("ij,ij->i", grad_k, guess_k - guess_j), grad_k
 
 
 def doppler_rows(prr_mps: np.ndarray, sat: np.ndarray, sat_vel: np.ndarray, rx: np.ndarray

@@ -34,8 +34,9 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     on_undetermined: "drop" (epochs nothing can determine are left unsolved and counted in
     ``info["epochs_undetermined"]``) or "raise" (:class:`GeometryError` naming the first one).
     start: a previous batch solve of the trace (``info["batch_solution"]``, kept with ``keep_values``;
-    see :func:`learned_guess_and_start`), which the batch solver reuses where the graph is the same and
-    starts from otherwise (:func:`~fusion.estimate.graph.batch.solve_batch`). None: the WLS-derived values.
+    see :func:`learned_guess_and_start`), which the batch solver starts from (and returns as it is where the
+    graph and the settings are the same, which the ``fused`` mode's looser first solve never is:
+    :func:`~fusion.estimate.graph.batch.solve_batch`). None: the WLS-derived values.
     """
     if on_undetermined not in ("drop", "raise"):
         raise GnssfuseError(f"on_undetermined must be 'drop' or 'raise', got {on_undetermined!r}")

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import range_and_gradient, tdcp_measured
+from fusion.estimate.graph.factors import doppler_rows, tdcp_measured
 from fusion.trace import Trace, cn0_sigma_factor, count_skip
 
 
@@ -135,7 +135,15 @@ def carrier_rows(trace: Trace, raw: RawInputs, lin_pos: np.ndarray, kk: np.ndarr
     ``raw.tdcp_prev``'s slot of epoch kk - 1), linearised at ``lin_pos`` (E,3): ``measured = grad . u + dq``.
     Returns grad (N,3) and measured (N,) [m] (:func:`fusion.estimate.graph.factors.tdcp_measured`)."""
     prev = raw.tdcp_prev[kk, ss]
-    sat_k = trace.sat_pos[kk, ss]
-    measured = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev], sat_k,
-                             lin_pos[kk - 1], lin_pos[kk])
-    return range_and_gradient(sat_k, lin_pos[kk])[1], measured
+    measured, grad = tdcp_measured(trace.adr[kk, ss] - trace.adr[kk - 1, prev], trace.sat_pos[kk - 1, prev],
+                                   trace.sat_pos[kk, ss], lin_pos[kk - 1], lin_pos[kk])
+    return grad, measured
+
+
+def doppler_rows_at(trace: Trace, raw: RawInputs, rx: np.ndarray, ks: np.ndarray, ss: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The linear model of the Doppler factors at slots (ks, ss) (N,), their bias removed, seen from ``rx``
+    (E,3): ``rhs = grad . v + drift``. Returns grad (N,3) and rhs (N,) [m/s]
+    (:func:`fusion.estimate.graph.factors.doppler_rows`)."""
+    return doppler_rows(trace.prr[ks, ss] - raw.prr_bias[ks, ss], trace.sat_pos[ks, ss], trace.sat_vel[ks, ss],
+                        rx[ks])

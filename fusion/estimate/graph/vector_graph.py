@@ -21,14 +21,14 @@ import numpy as np
 from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
 from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, uses_drift
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.factors import doppler_rows, range_and_gradient
+from fusion.estimate.graph.factors import range_and_gradient
 from fusion.estimate.graph.inputs import EpochInputs
 from fusion.estimate.graph.isb import isb_label
 from fusion.estimate.graph.marginals import information_marginals
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
                                         isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import START_VEL_SIGMA_MPS, motion_model
-from fusion.estimate.graph.raw_inputs import carrier_rows
+from fusion.estimate.graph.raw_inputs import carrier_rows, doppler_rows_at
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
 
@@ -222,8 +222,7 @@ def doppler_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout
     """The robust Doppler factors on v(k), c(k), d(k): GTSAM's ``DopplerFactor``, linear in them."""
     raw = inp.raw
     ks, ss = np.nonzero(raw.doppler & inp.keep[:, None])
-    prr = trace.prr[ks, ss] - raw.prr_bias[ks, ss]
-    grad, rhs = doppler_rows(prr, trace.sat_pos[ks, ss], trace.sat_vel[ks, ss], inp.init_pos[ks])
+    grad, rhs = doppler_rows_at(trace, raw, inp.init_pos, ks, ss)
     H = DRIFT_HORIZON_S
     cols = np.concatenate([_cols(lay.start["vel"], ks, 3), lay.start["clk"][ks, None], lay.start["drift"][ks, None]], 1)
     coeffs = np.concatenate([grad, np.full((len(ks), 1), -1.0 / H), np.full((len(ks), 1), 1.0 / H)], 1)
