@@ -34,6 +34,7 @@ from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
 from fusion.nav.precise import precise_states
 from fusion.nav.sat_states import SIGNAL_CLASS, broadcast_states
+from fusion.prepare.rate_check import check_rates
 from fusion.trace import (SIGNALS, Trace, cn0_sigma_factor, count_skip, flags_since_previous, pack_rows,
                           resolve_signals)
 
@@ -77,6 +78,7 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
         rows, st = _iono_free(rows, st, skipped)
     rows, st, epoch, t_ns = _epochs(rows, st, min_sats, skipped, raw)
     pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
+    rows = check_rates(rows, pr, epoch, raw.path, skipped)
     ref = _reference_rows(rows)
     rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, ref, raw)
     el, az = _elev_az(st["pos"], rx[epoch])
