@@ -172,7 +172,7 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "5 with inputs outside the training range and 9 of constellations it never saw" in text
 
 
-def test_the_report_says_per_mode_what_the_learned_parts_did():
+def test_the_report_says_per_mode_what_the_learned_parts_and_the_motion_model_did():
     import numpy as np
 
     from fusion.eval.report import TraceEval, _trace_section
@@ -180,10 +180,13 @@ def test_the_report_says_per_mode_what_the_learned_parts_did():
 
     info = {"learned_epochs_asked": 10, "learned_meas_asked": 80, "learned_doppler_sigmas": 70}
     ev = TraceEval(trace=Trace(**{**empty_trace(2, 4, name="a/b"), "t_ms": np.array([0, 1000])}), slug="a_b",
-                   records={"wls": {"info": {}}, "fused": {"info": info}})
+                   records={"wls": {"info": {}}, "fused": {"info": info},
+                            "fused-nodnn": {"info": {"epochs_bridged": 120, "longest_bridge_s": 95.0}}})
     text = "\n".join(_trace_section(ev, {}))
     assert "fused: network: asked at 10 epochs, 80 measurements" in text
     assert "fused: Doppler head: sigmas of 70 pseudorange rates" in text and "wls:" not in text
+    assert "fused-nodnn: 120 epochs bridged by the motion model alone" in text and "longest stretch 95 s" in text
+    assert "fused: 120" not in text and "fused: 0 epochs bridged" not in text
 
 
 # ---------------------------------------------------------------------------- start-up and exit cost of `run`

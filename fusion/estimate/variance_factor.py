@@ -247,4 +247,18 @@ def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     noise = result.info.get("pr_noise")
     if not getattr(opts, "sigma_calibration", False) or noise is None:
         return result
-    return calibrate_result(result, trace, mode, *noise, wls=wls_track(trace, wls, opts.elev_mask_deg))
+    result = calibrate_result(result, trace, mode, *noise, wls=wls_track(trace, wls, opts.elev_mask_deg))
+    return scale_bridged(result, opts.graph.bridged_sigma_scale)
+
+
+def scale_bridged(result, scale: float):
+    """The result with the covariance of its bridged epochs without Doppler (``info["bridged_without_doppler"]``
+    (E,) bool: fewer than 4 satellites, no prior, no Doppler) multiplied by ``scale``^2, in place: there the
+    velocity is the motion model's alone, no residual says how wrong that model is, and the variance factor
+    cannot see it (GraphConfig.bridged_sigma_scale)."""
+    bridged = result.info.get("bridged_without_doppler")
+    if result.cov is None or scale == 1.0 or not isinstance(bridged, np.ndarray) or not bridged.any():
+        return result
+    result.cov = result.cov.copy()
+    result.cov[bridged] *= scale ** 2
+    return result

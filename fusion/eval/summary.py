@@ -41,6 +41,12 @@ def doppler_head_words(info: dict) -> str:
             f"{g['unseen_system']} of constellations it never saw")
 
 
+def bridged_words(info: dict) -> str:
+    """The graph's epochs that only the motion model placed, in words."""
+    return (f"{info['epochs_bridged']} epochs bridged by the motion model alone (fewer than 4 satellites, no prior; "
+            f"longest stretch {info.get('longest_bridge_s', 0):.0f} s): column 'bridged' in estimates.csv")
+
+
 #: what a mode's learned parts did, in words, where its info has the key
 LEARNED_WORDS = (("learned_epochs_asked", learned_words), ("learned_doppler_sigmas", doppler_head_words))
 
@@ -60,9 +66,7 @@ def run_summary(record: dict) -> str:
         lines.append("sigmas raised where the measurements disagreed among themselves beyond them: "
                      + ", ".join(f"{n} {k}" for k, n in raised.items() if n) + " (metrics.json 'info')")
     if info.get("epochs_bridged"):
-        lines.append(f"{info['epochs_bridged']} epochs bridged by the motion model alone (fewer than 4 satellites, "
-                     f"no prior; longest stretch {info.get('longest_bridge_s', 0):.0f} s): column 'bridged' in "
-                     "estimates.csv")
+        lines.append(bridged_words(info))
     m = record.get("metrics") or {}
     if "within1sigma_n" in m:
         lines.append("errors within the mode's 1 sigma, N / E / D: "

@@ -535,3 +535,35 @@ def test_an_outage_is_flagged_as_bridged_with_its_length(trace, wls):
     assert sd[45] > 2 * sd[20]
     from fusion.io.estimates import estimates_frame
     assert estimates_frame(tr, res)["bridged"].sum() == 10
+
+
+def test_bridged_sigmas_are_widened_where_nothing_measures_the_velocity(trace):
+    """GraphConfig.bridged_sigma_scale multiplies the calibrated sigmas of bridged epochs without Doppler, and
+    of those alone; where Doppler measures the velocity through the outage they stay the graph's own."""
+    import dataclasses
+
+    from fusion.estimate.graph.fuse import estimate_fused_nodnn
+    from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+    from fusion.sim.simulate import SimConfig, simulate
+
+    def outage(tr):
+        mask = tr.mask.copy()
+        mask[40:50] &= np.cumsum(mask[40:50], axis=1) <= 2
+        return dataclasses.replace(tr, mask=mask)
+
+    def run(tr, scale):
+        opts = RunOptions()
+        return estimate_fused_nodnn(tr, solve_wls(tr), dataclasses.replace(opts, graph=dataclasses.replace(
+            opts.graph, bridged_sigma_scale=scale)))
+
+    tr = outage(trace)
+    one, wide = run(tr, 1.0), run(tr, 1.5)
+    np.testing.assert_array_equal(one.pos, wide.pos)
+    np.testing.assert_allclose(wide.cov[40:50], 2.25 * one.cov[40:50], rtol=1e-12)
+    np.testing.assert_array_equal(wide.cov[:40], one.cov[:40])
+    np.testing.assert_array_equal(wide.cov[50:], one.cov[50:])
+    raw = outage(simulate(n_epochs=80, nav=read_rinex_nav(default_nav_path()), seed=12,
+                          config=SimConfig(doppler=True, carrier=False)).trace)
+    one, wide = run(raw, 1.0), run(raw, 1.5)
+    assert one.info["bridged"][40:50].all() and not one.info["bridged_without_doppler"].any()
+    np.testing.assert_array_equal(wide.cov, one.cov)

@@ -140,6 +140,12 @@ class GraphConfig:
     # Time-differenced carrier sigma [m] = sqrt(adr_sigma(k-1)^2 + adr_sigma(k)^2 + tdcp_sigma_floor_m^2):
     # the floor covers what differencing leaves (multipath change, iono change over a second).
     tdcp_sigma_floor_m: float = 0.02
+    # The calibrated covariance of a bridged epoch without Doppler (fewer than 4 satellites, no prior, no
+    # Doppler: the motion model alone carries it) is multiplied by this squared: the 68th percentile of
+    # |error| / sigma there on the twelve GSDC training drives thinned to 3 satellites in 120 s of every 180 s
+    # (1.00: 0.23-0.73 of errors within 1 sigma per drive and axis; 1.61, held out per drive: 6 of 12 drives
+    # within 0.55-0.80 on every axis, against 2; experiments/results/few_satellites.md).
+    bridged_sigma_scale: float = 1.61
     # Clock with a drift state (graphs with Doppler): c(k) = c(j) + drift(j) * dt + w, w ~ N(0, rw^2 dt),
     # and drift(k) - drift(j) ~ N(0, drift_rw_mps^2 dt); a loose prior starts each chain.
     drift_clock_rw_m: float = 1.0

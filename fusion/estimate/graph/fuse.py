@@ -65,7 +65,8 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
 def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     """Solved epochs that fewer than 4 pseudoranges and no prior determine (the motion model carries
     them from their neighbours): ``bridged`` (E,) bool, their count and the longest such stretch [s],
-    so that a drift through an outage is flagged rather than passed off as a fix."""
+    so that a drift through an outage is flagged rather than passed off as a fix; and
+    ``bridged_without_doppler`` (E,) bool those where no Doppler measures the velocity either."""
     bridged = valid & (inp.sel.sum(axis=1) < 4) & ~inp.prior_ok
     t = trace.t_ms.astype(float) / 1000.0
     edges = np.diff(np.r_[0, bridged.astype(int), 0])
@@ -73,7 +74,8 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     # a stretch lasts from the last determined epoch before it to the first after it
     before, after = np.maximum(starts - 1, 0), np.minimum(ends + 1, len(t) - 1)
     longest = float(np.max(t[after] - t[before], initial=0.0))
-    return {"bridged": bridged, "epochs_bridged": int(bridged.sum()), "longest_bridge_s": longest}
+    return {"bridged": bridged, "epochs_bridged": int(bridged.sum()), "longest_bridge_s": longest,
+            "bridged_without_doppler": bridged & (inp.raw is None or ~inp.raw.doppler.any(axis=1))}
 
 
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,
