@@ -1,0 +1,47 @@
+"""Does a tighter clock or motion model stop the graph's drift through long stretches with too few
+satellites? ``fused-nodnn`` GSDC score on the twelve training drives, untouched and thinned as
+experiments/few_satellites.py thins them (3 satellites in 120 s of every 180 s), per setting.
+
+    GNSSFUSE_SHARED_DATA=../shared/data python experiments/few_satellites_models.py    # ~3 min
+"""
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from few_satellites import SHARED, thinned  # noqa: E402
+from fusion.eval.metrics import mode_metrics  # noqa: E402
+from fusion.modes import run_modes  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
+from fusion.run_types import RunOptions  # noqa: E402
+
+SETTINGS = {"shipped": {}, "clock_rw_m 1": dict(clock_rw_m=1.0),
+            "clock_rw_m 1, clock_sigma_m 0.5": dict(clock_rw_m=1.0, clock_sigma_m=0.5),
+            "clock_rw_m 2": dict(clock_rw_m=2.0), "cv_accel_h 0.5": dict(cv_accel_h=0.5)}
+
+
+def main() -> int:
+    scores = {name: ([], []) for name in SETTINGS}
+    for k, folder in enumerate(sorted((SHARED / "gsdc2021/train").glob("2020-*/Pixel4"))):
+        full = load_trace(folder)
+        thin, _ = thinned(full, 3, k)
+        for name, change in SETTINGS.items():
+            opts = RunOptions()
+            opts = replace(opts, graph=replace(opts.graph, **change))
+            for got, tr in zip(scores[name], (full, thin)):
+                got.append(mode_metrics(tr, run_modes(tr, ["fused-nodnn"], opts)["fused-nodnn"])["gsdc_score"])
+    print("| setting | mean GSDC score, untouched drives [m] | ... thinned [m] |")
+    print("|---|---|---|")
+    for name, (full, thin) in scores.items():
+        print(f"| {name} | {np.mean(full):.2f} | {np.mean(thin):.1f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
