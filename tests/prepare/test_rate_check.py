@@ -45,27 +45,17 @@ def test_consistent_logs_pass_untouched():
     assert out is rows and skipped == {} and said == []
 
 
-def test_a_reversed_doppler_is_turned_back_and_said():
+@pytest.mark.parametrize("kind, column, signal", [("doppler", "prr_mps", "GPS_L5"), ("carrier", "adr_m", "GPS_L1")])
+def test_a_reversed_signal_is_turned_back_and_said(kind, column, signal):
     rows, pr, epoch = _arcs()
     bad = rows.copy()
-    l5 = (bad["signal"] == "GPS_L5").to_numpy()
-    bad.loc[l5, "prr_mps"] *= -1.0
+    these = (bad["signal"] == signal).to_numpy()
+    bad.loc[these, column] *= -1.0
     out, skipped, said = _check(bad, pr, epoch)
-    np.testing.assert_array_equal(out["prr_mps"], rows["prr_mps"])
-    np.testing.assert_array_equal(out["adr_m"], rows["adr_m"])
-    assert skipped == {"doppler_sign_reversed:GPS_L5": int(l5.sum())}
-    assert len(said) == 1 and "phone.23o" in said[0] and "doppler of GPS_L5 has the opposite sign" in said[0]
-    assert not bad["prr_mps"].equals(out["prr_mps"])          # the caller's rows are not changed
-
-
-def test_a_reversed_carrier_is_turned_back():
-    rows, pr, epoch = _arcs()
-    bad = rows.copy()
-    l1 = (bad["signal"] == "GPS_L1").to_numpy()
-    bad.loc[l1, "adr_m"] *= -1.0
-    out, skipped, said = _check(bad, pr, epoch)
-    np.testing.assert_array_equal(out["adr_m"], rows["adr_m"])
-    assert skipped == {"carrier_sign_reversed:GPS_L1": int(l1.sum())} and len(said) == 1
+    pd.testing.assert_frame_equal(out, rows)
+    assert skipped == {f"{kind}_sign_reversed:{signal}": int(these.sum())}
+    assert len(said) == 1 and "phone.23o" in said[0] and f"{kind} of {signal} has the opposite sign" in said[0]
+    assert not bad[column].equals(out[column])                # the caller's rows are not changed
 
 
 def test_a_doppler_on_another_scale_is_left_out():
