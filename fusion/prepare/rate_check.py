@@ -4,15 +4,18 @@ the graph.
 Along a satellite's arc a pseudorange, its Doppler (as a range rate) and its carrier phase (as a range)
 change at one rate: the satellite's range rate plus the receiver clock's drift. Over a trace, the median
 ratio of the pseudoranges' rate between consecutive epochs to the Doppler's (or the carrier's) rate is 1
-to a few thousandths: the Pixel5 RINEX test trace gives 0.9999 (Doppler) and 0.9998 (carrier) on GPS L1
-and 1.0000 on L5, over thousands of pairs. A writer that stores a signal's Doppler (or carrier phase) with
+to a few thousandths: the Pixel5 RINEX test trace gives 1.000 (Doppler) and 0.998 (carrier) on GPS L1 and
+1.000 on L5, over thousands of pairs. A writer that stores a signal's Doppler (or carrier phase) with
 the opposite sign gives -1: that signal's values are reversed, with a warning and a count. Any other ratio
 (a wrong wavelength or unit, values that are not what the header says) leaves that signal's Doppler (or
 carrier) out, with a warning and a count, rather than handing the graph a measurement that contradicts
 the pseudoranges. A signal with too few pairs to decide is left as it is.
 
-Only pairs whose rate is large (:data:`RATE_MIN_MPS`) vote: a phone's pseudorange rate is noisy by metres
-per second, a satellite's range rate is hundreds.
+The rates are compared as deviations from their epoch pair's median over the signal's satellites, so that a
+clock rate the pseudoranges and the Doppler do not share (pseudoranges built with the clock bias estimated
+anew each epoch, a Doppler that keeps the oscillator's drift) cannot pass for a scale error. Only pairs whose
+deviation is large (:data:`RATE_MIN_MPS`) vote: a phone's pseudorange rate is noisy by metres per second,
+satellites' range rates differ by hundreds.
 """
 from __future__ import annotations
 
@@ -61,6 +64,11 @@ def verdict(ratio: float, n: int) -> str:
     return "reversed" if abs(ratio + 1.0) <= RATIO_TOL else "inconsistent"
 
 
+def deviations(rate: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """(P,) each pair's rate minus the median of its group's (P,) int finite rates (NaN stays NaN)."""
+    return rate - pd.Series(rate).groupby(group).transform("median").to_numpy()
+
+
 def _kind_rates(rows: pd.DataFrame, i: np.ndarray, j: np.ndarray, dt: np.ndarray) -> dict[str, np.ndarray]:
     """Each kind's rate over the pairs (i, j) (P,) [m/s], NaN where a pair cannot give one: the Doppler's
     mean over the pair, the carrier's difference (both valid, no slip at j)."""
@@ -84,8 +92,9 @@ def check_rates(rows: pd.DataFrame, pr: np.ndarray, epoch: np.ndarray, path: str
     t_ns = rows["t_ns"].to_numpy(np.int64)
     i, j = consecutive_pairs(key, epoch, t_ns)
     dt = (t_ns[j] - t_ns[i]) / 1e9
-    pr_rate = (pr[j] - pr[i]) / dt
-    rates = _kind_rates(rows, i, j, dt)
+    group = code[i].astype(np.int64) * (int(epoch.max(initial=0)) + 1) + epoch[i]
+    pr_rate = deviations((pr[j] - pr[i]) / dt, group)
+    rates = {k: deviations(v, group) for k, v in _kind_rates(rows, i, j, dt).items()}
     out = rows
     for kind, column in (("doppler", "prr_mps"), ("carrier", "adr_m")):
         for c, name in enumerate(names):

@@ -45,6 +45,14 @@ def test_consistent_logs_pass_untouched():
     assert out is rows and skipped == {} and said == []
 
 
+def test_a_clock_rate_the_pseudoranges_do_not_share_is_no_scale_error():
+    """Pseudoranges whose clock bias was estimated anew each epoch (no drift left in them) against a Doppler
+    and carrier phase that keep the oscillator's 300 m/s: the same satellites' rates, consistent."""
+    rows, pr, epoch = _arcs()
+    out, skipped, said = _check(rows, pr - 300.0 * epoch, epoch)
+    assert out is rows and skipped == {} and said == []
+
+
 @pytest.mark.parametrize("kind, column, signal", [("doppler", "prr_mps", "GPS_L5"), ("carrier", "adr_m", "GPS_L1")])
 def test_a_reversed_signal_is_turned_back_and_said(kind, column, signal):
     rows, pr, epoch = _arcs()
