@@ -26,8 +26,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from fusion.eval.metrics import mode_metrics, ned_errors  # noqa: E402
-from fusion.geometry import ecef2ned_cov  # noqa: E402
+from fusion.eval.metrics import mode_metrics, sigma_ratios, trace_errors  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402
 from fusion.options import load_options  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
@@ -55,13 +54,12 @@ def thinned(trace: Trace, keep: int, seed: int, good_s: float = 60.0, period_s: 
     return trace.select_slots(slots), poor
 
 
-def sigma_ratios(err: np.ndarray, res, rows: np.ndarray) -> np.ndarray | None:
-    """(N,3) |error| / 1 sigma per NED axis over ``rows`` (E,) bool of solved epochs (None: no covariance)."""
-    rows = rows & np.isfinite(err).all(axis=1)
+def bridged_ratios(err: np.ndarray, res, rows: np.ndarray) -> np.ndarray | None:
+    """(N,3) |error| / 1 sigma per NED axis over ``rows`` (E,) bool (None: no covariance, or no such row)."""
     if res.cov is None or not rows.any():
         return None
-    c = ecef2ned_cov(res.cov[rows], res.pos[rows])
-    return np.abs(err[rows]) / np.sqrt(np.stack([c[:, 0, 0], c[:, 1, 1], c[:, 2, 2]], axis=1))
+    z = sigma_ratios(err[rows], res.pos[rows], res.cov[rows])
+    return z if len(z) else None
 
 
 def coverage(ratios: np.ndarray | None, scale: float = 1.0) -> str:
@@ -80,19 +78,19 @@ def rows_of(name: str, trace: Trace, poor: np.ndarray, variants: dict, base: Run
         opts = replace(base, graph=replace(base.graph, **change))
         for mode, res in run_modes(trace, modes, opts).items():
             m = mode_metrics(trace, res)
-            err = ned_errors(res.pos, trace.truth)
+            err = trace_errors(trace, res)
             h = np.hypot(err[:, 0], err[:, 1])
             bridged = np.asarray(res.info.get("bridged", np.zeros(trace.n_epochs, bool)), bool)
             solved = np.isfinite(h)
-            ratios = sigma_ratios(err, res, bridged)
+            ratios = bridged_ratios(err, res, bridged)
             if mode == "fused-nodnn":
                 alone = np.asarray(res.info.get("bridged_without_doppler", bridged), bool)
-                BRIDGED[f"{name}, {label}"] = sigma_ratios(err, res, alone)
+                BRIDGED[f"{name}, {label}"] = bridged_ratios(err, res, alone)
             thinned_h = (f"{np.nanmedian(h[poor]):.1f} | {np.nanmax(h[poor]):.1f}" if np.isfinite(h[poor]).any()
                          else "- | -")
             print(f"| {name} | {label} | {mode} | {m['gsdc_score']:.2f} | {thinned_h} | "
                   f"{int(solved.sum())} / {trace.n_epochs} | {int(bridged.sum())} | "
-                  f"{coverage(ratios)} | {coverage(sigma_ratios(err, res, ~bridged))} |", flush=True)
+                  f"{coverage(ratios)} | {coverage(bridged_ratios(err, res, ~bridged))} |", flush=True)
 
 
 def fit_table(training: list[str]) -> None:

@@ -90,17 +90,23 @@ def trace_errors(trace: Trace, result: ModeResult) -> np.ndarray | None:
     return ned_errors(est, trace.truth)
 
 
+def sigma_ratios(err_ned: np.ndarray, pos: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(N,3) |error| / 1 sigma per NED axis of the N rows without a NaN. err_ned (E,3) [m], pos (E,3) ECEF,
+    cov (E,3,3) ECEF [m^2]."""
+    ok = np.isfinite(err_ned).all(1) & np.isfinite(pos).all(1) & np.isfinite(cov).all((1, 2))
+    var = np.diagonal(ecef2ned_cov(cov[ok], pos[ok]), axis1=1, axis2=2)
+    return np.abs(err_ned[ok]) / np.sqrt(np.maximum(var, 1e-12))
+
+
 def within_sigma(err_ned: np.ndarray, pos: np.ndarray, cov: np.ndarray) -> dict:
     """Calibration of a covariance: the share of |error| within 1 and 2 sigma per NED axis.
 
     err_ned (E,3) [m], pos (E,3) ECEF, cov (E,3,3) ECEF [m^2]; rows with a NaN are left out. Returns
     ``within1sigma_n/e/d``, ``within2sigma_n/e/d`` (a Gaussian: 0.683 / 0.954) and ``n_cov`` (rows used)."""
-    ok = np.isfinite(err_ned).all(1) & np.isfinite(pos).all(1) & np.isfinite(cov).all((1, 2))
-    out: dict = {"n_cov": int(ok.sum())}
-    if not ok.any():
+    z = sigma_ratios(err_ned, pos, cov)
+    out: dict = {"n_cov": len(z)}
+    if not len(z):
         return out
-    var = np.diagonal(ecef2ned_cov(cov[ok], pos[ok]), axis1=1, axis2=2)
-    z = np.abs(err_ned[ok]) / np.sqrt(np.maximum(var, 1e-12))
     for i, ax in enumerate("ned"):
         out[f"within1sigma_{ax}"] = float((z[:, i] <= 1).mean())
         out[f"within2sigma_{ax}"] = float((z[:, i] <= 2).mean())

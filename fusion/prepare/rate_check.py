@@ -29,7 +29,7 @@ from fusion.trace import count_skip
 
 #: Consecutive epochs of one satellite and signal at most this far apart form a pair [s].
 MAX_PAIR_GAP_S = 1.5
-#: Pairs whose Doppler (carrier) rate is at least this large vote [m/s].
+#: Pairs whose Doppler (carrier) rate deviates at least this much from their epoch pair's median vote [m/s].
 RATE_MIN_MPS = 50.0
 #: Fewest voting pairs that decide a signal.
 MIN_PAIRS = 30
@@ -48,8 +48,8 @@ def consecutive_pairs(key: np.ndarray, epoch: np.ndarray, t_ns: np.ndarray) -> t
 
 
 def rate_ratio(pr_rate: np.ndarray, rate: np.ndarray) -> tuple[float, int]:
-    """The median of pr_rate / rate (P,) over the pairs whose |rate| >= :data:`RATE_MIN_MPS` (finite both),
-    and how many voted (NaN ratio where none did)."""
+    """The median of pr_rate / rate (P,) (the rates' deviations, :func:`deviations`) over the pairs whose
+    |rate| >= :data:`RATE_MIN_MPS` (finite both), and how many voted (NaN ratio where none did)."""
     vote = np.isfinite(pr_rate) & np.isfinite(rate) & (np.abs(rate) >= RATE_MIN_MPS)
     n = int(vote.sum())
     return (float(np.median(pr_rate[vote] / rate[vote])) if n else float("nan")), n

@@ -74,8 +74,9 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     # a stretch lasts from the last determined epoch before it to the first after it
     before, after = np.maximum(starts - 1, 0), np.minimum(ends + 1, len(t) - 1)
     longest = float(np.max(t[after] - t[before], initial=0.0))
+    doppler = inp.raw.doppler.any(axis=1) if inp.raw is not None else np.zeros(len(t), bool)
     return {"bridged": bridged, "epochs_bridged": int(bridged.sum()), "longest_bridge_s": longest,
-            "bridged_without_doppler": bridged & (inp.raw is None or ~inp.raw.doppler.any(axis=1))}
+            "bridged_without_doppler": bridged & ~doppler}
 
 
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,
