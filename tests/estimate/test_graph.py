@@ -519,14 +519,14 @@ def test_fused_feeds_the_network_the_runs_elevation_mask(trace, wls, tmp_path, m
 
 def test_an_outage_is_flagged_as_bridged_with_its_length(trace, wls):
     """Epochs with < 4 satellites carried by the motion model are counted, timed and flagged per epoch,
-    and their sigmas grow through the outage."""
+    and their sigmas grow through the outage (at the motion model's own velocity walk: with
+    bridged_accel_scale 0.5 they grow 1.6x here)."""
     import dataclasses
 
-    mask = trace.mask.copy()
-    keep = np.cumsum(mask[40:50], axis=1) <= 2                 # 10 epochs with 2 satellites
-    mask[40:50] &= keep
-    tr = dataclasses.replace(trace, mask=mask)
-    res = fuse(tr, solve_wls(tr), RunOptions())
+    tr = _outage(trace)                                        # 10 epochs with 2 satellites
+    opts = RunOptions()
+    res = fuse(tr, solve_wls(tr), dataclasses.replace(opts, graph=dataclasses.replace(opts.graph,
+                                                                                       bridged_accel_scale=1.0)))
     assert res.info["epochs_bridged"] == 10 and res.info["bridged"][40:50].all()
     assert not res.info["bridged"][:40].any() and not res.info["bridged"][50:].any()
     dt = np.diff(tr.t_ms[[39, 50]]).item() / 1000.0
@@ -537,33 +537,62 @@ def test_an_outage_is_flagged_as_bridged_with_its_length(trace, wls):
     assert estimates_frame(tr, res)["bridged"].sum() == 10
 
 
-def test_bridged_sigmas_are_widened_where_nothing_measures_the_velocity(trace):
-    """GraphConfig.bridged_sigma_scale multiplies the calibrated sigmas of bridged epochs without Doppler, and
-    of those alone; where Doppler measures the velocity through the outage they stay the graph's own."""
+def _outage(tr: Trace) -> Trace:
+    """The trace with 2 satellites at epochs 40-49."""
     import dataclasses
 
-    from fusion.estimate.graph.fuse import estimate_fused_nodnn
+    mask = tr.mask.copy()
+    mask[40:50] &= np.cumsum(mask[40:50], axis=1) <= 2
+    return dataclasses.replace(tr, mask=mask)
+
+
+@pytest.fixture(scope="module")
+def doppler_outage():
+    """A simulated trace with Doppler (no carrier) and the same outage."""
     from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
     from fusion.sim.simulate import SimConfig, simulate
 
-    def outage(tr):
-        mask = tr.mask.copy()
-        mask[40:50] &= np.cumsum(mask[40:50], axis=1) <= 2
-        return dataclasses.replace(tr, mask=mask)
+    return _outage(simulate(n_epochs=80, nav=read_rinex_nav(default_nav_path()), seed=12,
+                            config=SimConfig(doppler=True, carrier=False)).trace)
 
-    def run(tr, scale):
-        opts = RunOptions()
-        return estimate_fused_nodnn(tr, solve_wls(tr), dataclasses.replace(opts, graph=dataclasses.replace(
-            opts.graph, bridged_sigma_scale=scale)))
 
-    tr = outage(trace)
-    one, wide = run(tr, 1.0), run(tr, 1.5)
+def _fused_nodnn(tr: Trace, **change):
+    import dataclasses
+
+    from fusion.estimate.graph.fuse import estimate_fused_nodnn
+
+    opts = RunOptions()
+    return estimate_fused_nodnn(tr, solve_wls(tr), dataclasses.replace(opts, graph=dataclasses.replace(
+        opts.graph, **change)))
+
+
+def test_bridged_sigmas_are_widened_where_nothing_measures_the_velocity(trace, doppler_outage):
+    """GraphConfig.bridged_sigma_scale multiplies the calibrated sigmas of bridged epochs without Doppler, and
+    of those alone; where Doppler measures the velocity through the outage they stay the graph's own."""
+    tr = _outage(trace)
+    one, wide = _fused_nodnn(tr, bridged_sigma_scale=1.0), _fused_nodnn(tr, bridged_sigma_scale=1.5)
     np.testing.assert_array_equal(one.pos, wide.pos)
     np.testing.assert_allclose(wide.cov[40:50], 2.25 * one.cov[40:50], rtol=1e-12)
     np.testing.assert_array_equal(wide.cov[:40], one.cov[:40])
     np.testing.assert_array_equal(wide.cov[50:], one.cov[50:])
-    raw = outage(simulate(n_epochs=80, nav=read_rinex_nav(default_nav_path()), seed=12,
-                          config=SimConfig(doppler=True, carrier=False)).trace)
-    one, wide = run(raw, 1.0), run(raw, 1.5)
+    one, wide = _fused_nodnn(doppler_outage, bridged_sigma_scale=1.0), _fused_nodnn(doppler_outage,
+                                                                                    bridged_sigma_scale=1.5)
     assert one.info["bridged"][40:50].all() and not one.info["bridged_without_doppler"].any()
     np.testing.assert_array_equal(wide.cov, one.cov)
+
+
+def test_a_tighter_velocity_walk_only_where_the_motion_model_alone_places_the_epoch(trace, doppler_outage):
+    """GraphConfig.bridged_accel_scale changes the motion noise into epochs with fewer than 4 satellites, no
+    prior and no Doppler, the same in GTSAM's graph and in the banded solver's copy; a trace whose outage has
+    Doppler keeps its solution."""
+    from fusion.estimate.graph.inputs import motion_only
+
+    tr = _outage(trace)
+    only = motion_only(prepare_inputs(tr, solve_wls(tr), GraphConfig()))
+    assert only[40:50].all() and not only[:40].any() and not only[50:].any()
+    tight, loose = _fused_nodnn(tr, bridged_accel_scale=0.5), _fused_nodnn(tr, bridged_accel_scale=1.0)
+    gtsam_tight = _fused_nodnn(tr, bridged_accel_scale=0.5, batch_solver="gauss-newton")
+    assert np.linalg.norm(tight.pos[40:50] - loose.pos[40:50], axis=1).max() > 1e-3
+    np.testing.assert_allclose(tight.pos, gtsam_tight.pos, rtol=0, atol=5e-5)
+    np.testing.assert_array_equal(_fused_nodnn(doppler_outage, bridged_accel_scale=0.5).pos,
+                                  _fused_nodnn(doppler_outage, bridged_accel_scale=1.0).pos)

@@ -27,7 +27,7 @@ from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_
                                            isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
                                            pseudorange_factor_xc, pseudorange_factor_xci, scalar_robust_models,
                                            tdcp_factor_linearised, zero_point)
-from fusion.estimate.graph.inputs import EpochInputs
+from fusion.estimate.graph.inputs import EpochInputs, motion_only
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
                                         isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import motion_model
@@ -247,7 +247,7 @@ def prior_factors(inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> tup
 
 def add_motion(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin: gtsam.Values) -> None:
     """The motion model's variables and its link from ``k - 1`` (or a component start) at every kept epoch."""
-    motion = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg)
+    motion = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg, motion_only(inp))
     if cfg.motion == "cv":
         p.points += [(int(k), vel_key(int(k)), inp.init_vel[k]) for k in epochs]
     for k in epochs:

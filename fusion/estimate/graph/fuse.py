@@ -16,7 +16,7 @@ from fusion.errors import GnssfuseError
 from fusion.estimate.graph.batch import BatchSolution, solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.incremental import solve_incremental
-from fusion.estimate.graph.inputs import EpochInputs, initial_positions, prepare_inputs
+from fusion.estimate.graph.inputs import EpochInputs, initial_positions, motion_only, prepare_inputs
 from fusion.estimate.graph.priors import (LearnedGraphInputs, PriorProvider, SlotNoiseProvider,
                                           learned_from_providers)
 from fusion.estimate.graph.solve_errors import check_determined
@@ -74,9 +74,8 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     # a stretch lasts from the last determined epoch before it to the first after it
     before, after = np.maximum(starts - 1, 0), np.minimum(ends + 1, len(t) - 1)
     longest = float(np.max(t[after] - t[before], initial=0.0))
-    doppler = inp.raw.doppler.any(axis=1) if inp.raw is not None else np.zeros(len(t), bool)
     return {"bridged": bridged, "epochs_bridged": int(bridged.sum()), "longest_bridge_s": longest,
-            "bridged_without_doppler": bridged & ~doppler}
+            "bridged_without_doppler": valid & motion_only(inp)}
 
 
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,

@@ -64,6 +64,13 @@ class EpochInputs:
     odometry: OdometryFactors | None = None
 
 
+def motion_only(inp: EpochInputs) -> np.ndarray:
+    """(E,) bool epochs that only the motion model can place: fewer than 4 pseudoranges, no prior, and no
+    Doppler measuring the velocity."""
+    doppler = inp.raw.doppler.any(axis=1) if inp.raw is not None else np.zeros(len(inp.dt), bool)
+    return (inp.sel.sum(axis=1) < 4) & ~inp.prior_ok & ~doppler
+
+
 def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(E,3) WLS positions, interpolated in time where WLS failed, and (E,) bool where WLS solved."""
     wls_ok = np.asarray(wls.valid, bool) & np.isfinite(wls.pos).all(axis=1)

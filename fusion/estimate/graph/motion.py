@@ -48,12 +48,13 @@ class ConstantVelocityMotion:
 
     init_pos (E,3) ECEF (NED frames), init_vel (E,3) ECEF [m/s] initial velocities, dt (E,) [s]."""
 
-    def __init__(self, init_pos: np.ndarray, init_vel: np.ndarray, dt: np.ndarray, cfg: GraphConfig):
+    def __init__(self, init_pos: np.ndarray, init_vel: np.ndarray, dt: np.ndarray, cfg: GraphConfig,
+                 accel_scale: np.ndarray | float = 1.0):
         self.dt, self.init_vel = dt, init_vel
-        dts = np.maximum(dt, 1e-3)
+        dts = np.maximum(dt, 1e-3) * np.asarray(accel_scale, float) ** 2
         var_h, var_v = cfg.cv_accel_h ** 2 * dts, cfg.cv_accel_v ** 2 * dts
         self.vel_cov = ned2ecef_cov(np.stack([var_h, var_h, var_v], axis=-1), init_pos)
-        self.pos_sqrt_info = 1.0 / (cfg.cv_pos_sigma_m * np.sqrt(dts))
+        self.pos_sqrt_info = 1.0 / (cfg.cv_pos_sigma_m * np.sqrt(np.maximum(dt, 1e-3)))
 
     def add_values(self, k: int, values: gtsam.Values) -> None:
         values.insert(vel_key(k), self.init_vel[k])
@@ -76,10 +77,13 @@ class ConstantVelocityMotion:
         return [velocity_prior_factor_v(k, self.init_vel[k], START_VEL_SIGMA_MPS)]
 
 
-def motion_model(init_pos: np.ndarray, init_vel: np.ndarray, dt: np.ndarray, cfg: GraphConfig):
-    """The motion model named by ``cfg.motion`` ("rw" or "cv") for a trace's epochs."""
+def motion_model(init_pos: np.ndarray, init_vel: np.ndarray, dt: np.ndarray, cfg: GraphConfig,
+                 motion_only: np.ndarray | None = None):
+    """The motion model named by ``cfg.motion`` ("rw" or "cv") for a trace's epochs; ``motion_only`` (E,) bool
+    the epochs nothing else places, whose velocity random walk into them is ``cfg.bridged_accel_scale`` x."""
     if cfg.motion == "rw":
         return RandomWalkMotion(init_pos, dt, cfg)
     if cfg.motion == "cv":
-        return ConstantVelocityMotion(init_pos, init_vel, dt, cfg)
+        scale = 1.0 if motion_only is None else np.where(motion_only, cfg.bridged_accel_scale, 1.0)
+        return ConstantVelocityMotion(init_pos, init_vel, dt, cfg, scale)
     raise GeometryError(f"unknown motion model {cfg.motion!r}; choose rw or cv")

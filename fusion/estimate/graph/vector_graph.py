@@ -22,7 +22,7 @@ from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
 from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, uses_drift
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import range_and_gradient
-from fusion.estimate.graph.inputs import EpochInputs
+from fusion.estimate.graph.inputs import EpochInputs, motion_only
 from fusion.estimate.graph.isb import isb_label
 from fusion.estimate.graph.marginals import information_marginals
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
@@ -258,7 +258,7 @@ def prior_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.nda
 
 def motion_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.ndarray) -> list[Blocks]:
     """The motion model's links from ``k - 1`` and its component starts (:mod:`fusion.estimate.graph.motion`)."""
-    model = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg)
+    model = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg, motion_only(inp))
     link = (epochs > 0) & inp.pos_link[epochs]
     k = epochs[link]
     pos = lay.start["pos"]
