@@ -2,13 +2,17 @@
 satellites? ``fused-nodnn`` GSDC score on the twelve training drives, untouched and thinned as
 experiments/few_satellites.py thins them (3 satellites in 120 s of every 180 s), per setting; and per drive,
 the shipped GraphConfig.bridged_accel_scale (a tighter velocity walk into the epochs only the motion model
-places) against none.
+places) against none. With ``--sim DIR`` (the simulated city traces of experiments/sim_city_traces.py,
+which have Doppler), whether the tighter walk pays also where Doppler measures the velocity.
 
     GNSSFUSE_SHARED_DATA=../shared/data python experiments/few_satellites_models.py    # ~3 min
+    python experiments/few_satellites_models.py --sim /tmp/sim                        # ~30 s
 """
 from __future__ import annotations
 
+import argparse
 import sys
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -18,6 +22,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from few_satellites import SHARED, thinned  # noqa: E402
+import fusion.estimate.graph.build as build  # noqa: E402
+import fusion.estimate.graph.vector_graph as vector_graph  # noqa: E402
+from fusion.estimate.graph.inputs import motion_only, pseudorange_gap  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
@@ -30,7 +37,42 @@ SETTINGS = {"shipped": {}, "bridged_accel_scale 1": dict(bridged_accel_scale=1.0
             "clock_rw_m 2": dict(clock_rw_m=2.0), "cv_accel_h 0.5": dict(cv_accel_h=0.5)}
 
 
+@contextmanager
+def walk_tightened_where(which):
+    """Both graph builders tighten the walk into the epochs ``which(inp)`` marks (shipped: motion_only)."""
+    build.motion_only = vector_graph.motion_only = which
+    try:
+        yield
+    finally:
+        build.motion_only = vector_graph.motion_only = motion_only
+
+
+def with_doppler(sim: Path) -> int:
+    """Thinned simulated traces (Doppler, all signals): the walk tightened at motion-only epochs (shipped)
+    against at every pseudorange gap, Doppler or not."""
+    print("| simulated trace, thinned | none | motion-only epochs x0.5 (shipped) | every gap x0.5 | every gap x0.25 |")
+    print("|---|---|---|---|---|")
+    runs = {"none": (motion_only, 1.0), "shipped": (motion_only, 0.5), "gap 0.5": (pseudorange_gap, 0.5),
+            "gap 0.25": (pseudorange_gap, 0.25)}
+    means = {name: [] for name in runs}
+    for k, folder in enumerate(sorted(sim.glob("*/SimPhone"))):
+        opts = RunOptions(signals=("all",))
+        thin, _ = thinned(load_trace(folder, signals=("all",)), 3, k)
+        for name, (which, scale) in runs.items():
+            with walk_tightened_where(which):
+                o = replace(opts, graph=replace(opts.graph, bridged_accel_scale=scale))
+                means[name].append(mode_metrics(thin, run_modes(thin, ["fused-nodnn"], o)["fused-nodnn"])["gsdc_score"])
+        print(f"| {folder.parent.name} | " + " | ".join(f"{v[-1]:.1f}" for v in means.values()) + " |")
+    print("| mean | " + " | ".join(f"{np.mean(v):.1f}" for v in means.values()) + " |")
+    return 0
+
+
 def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sim", type=Path, help="simulated traces with Doppler instead of the GSDC drives")
+    args = ap.parse_args()
+    if args.sim:
+        return with_doppler(args.sim)
     scores = {name: ([], []) for name in SETTINGS}
     drives = sorted((SHARED / "gsdc2021/train").glob("2020-*/Pixel4"))
     for k, folder in enumerate(drives):

@@ -16,7 +16,8 @@ from fusion.errors import GnssfuseError
 from fusion.estimate.graph.batch import BatchSolution, solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.incremental import solve_incremental
-from fusion.estimate.graph.inputs import EpochInputs, initial_positions, motion_only, prepare_inputs
+from fusion.estimate.graph.inputs import (EpochInputs, initial_positions, motion_only, prepare_inputs,
+                                         pseudorange_gap)
 from fusion.estimate.graph.priors import (LearnedGraphInputs, PriorProvider, SlotNoiseProvider,
                                           learned_from_providers)
 from fusion.estimate.graph.solve_errors import check_determined
@@ -67,7 +68,7 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     them from their neighbours): ``bridged`` (E,) bool, their count and the longest such stretch [s],
     so that a drift through an outage is flagged rather than passed off as a fix; and
     ``bridged_without_doppler`` (E,) bool those where no Doppler measures the velocity either."""
-    bridged = valid & (inp.sel.sum(axis=1) < 4) & ~inp.prior_ok
+    bridged = valid & pseudorange_gap(inp)
     t = trace.t_ms.astype(float) / 1000.0
     edges = np.diff(np.r_[0, bridged.astype(int), 0])
     starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1

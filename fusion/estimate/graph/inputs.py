@@ -64,11 +64,16 @@ class EpochInputs:
     odometry: OdometryFactors | None = None
 
 
+def pseudorange_gap(inp: EpochInputs) -> np.ndarray:
+    """(E,) bool epochs whose position neither 4 pseudoranges nor a prior fixes."""
+    return (inp.sel.sum(axis=1) < 4) & ~inp.prior_ok
+
+
 def motion_only(inp: EpochInputs) -> np.ndarray:
-    """(E,) bool epochs that only the motion model can place: fewer than 4 pseudoranges, no prior, and no
-    Doppler measuring the velocity."""
+    """(E,) bool epochs that only the motion model can place: a :func:`pseudorange_gap` without a Doppler
+    measuring the velocity either."""
     doppler = inp.raw.doppler.any(axis=1) if inp.raw is not None else np.zeros(len(inp.dt), bool)
-    return (inp.sel.sum(axis=1) < 4) & ~inp.prior_ok & ~doppler
+    return pseudorange_gap(inp) & ~doppler
 
 
 def initial_positions(trace: Trace, wls: WlsResult, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

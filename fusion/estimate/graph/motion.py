@@ -46,15 +46,17 @@ class RandomWalkMotion:
 class ConstantVelocityMotion:
     """Velocity states: x(k) = x(k-1) + v(k-1) dt + small noise; v(k) - v(k-1) a random walk.
 
-    init_pos (E,3) ECEF (NED frames), init_vel (E,3) ECEF [m/s] initial velocities, dt (E,) [s]."""
+    init_pos (E,3) ECEF (NED frames), init_vel (E,3) ECEF [m/s] initial velocities, dt (E,) [s];
+    accel_scale (E,) or scalar: the walk's sigma into each epoch, in units of the configured one."""
 
     def __init__(self, init_pos: np.ndarray, init_vel: np.ndarray, dt: np.ndarray, cfg: GraphConfig,
                  accel_scale: np.ndarray | float = 1.0):
         self.dt, self.init_vel = dt, init_vel
-        dts = np.maximum(dt, 1e-3) * np.asarray(accel_scale, float) ** 2
-        var_h, var_v = cfg.cv_accel_h ** 2 * dts, cfg.cv_accel_v ** 2 * dts
+        dts = np.maximum(dt, 1e-3)
+        walk = dts * np.asarray(accel_scale, float) ** 2
+        var_h, var_v = cfg.cv_accel_h ** 2 * walk, cfg.cv_accel_v ** 2 * walk
         self.vel_cov = ned2ecef_cov(np.stack([var_h, var_h, var_v], axis=-1), init_pos)
-        self.pos_sqrt_info = 1.0 / (cfg.cv_pos_sigma_m * np.sqrt(np.maximum(dt, 1e-3)))
+        self.pos_sqrt_info = 1.0 / (cfg.cv_pos_sigma_m * np.sqrt(dts))
 
     def add_values(self, k: int, values: gtsam.Values) -> None:
         values.insert(vel_key(k), self.init_vel[k])
