@@ -121,7 +121,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|---|---|")
     drives = sorted((SHARED / "gsdc2021/train").glob("2020-*/Pixel4"))[:args.training]
     for k, folder in enumerate(drives):
-        trace, poor = thinned(load_trace(folder), args.keep, args.seed + k)
+        trace, poor = thinned(load_trace(folder, min_sats=1), args.keep, args.seed + k)   # as gnssfuse loads it
         rows_of(folder.parent.name, trace, poor, {"pseudoranges": {}}, RunOptions(), ["wls", "fused-nodnn"])
     training = list(BRIDGED)
     base = RunOptions(signals=None, nav=(NAV,))

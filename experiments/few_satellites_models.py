@@ -57,7 +57,7 @@ def with_doppler(sim: Path) -> int:
     means = {name: [] for name in runs}
     for k, folder in enumerate(sorted(sim.glob("*/SimPhone"))):
         opts = RunOptions(signals=("all",))
-        thin, _ = thinned(load_trace(folder, signals=("all",)), 3, k)
+        thin, _ = thinned(load_trace(folder, signals=("all",), min_sats=1), 3, k)
         for name, (which, scale) in runs.items():
             with walk_tightened_where(which):
                 o = replace(opts, graph=replace(opts.graph, bridged_accel_scale=scale))
@@ -76,7 +76,7 @@ def main() -> int:
     scores = {name: ([], []) for name in SETTINGS}
     drives = sorted((SHARED / "gsdc2021/train").glob("2020-*/Pixel4"))
     for k, folder in enumerate(drives):
-        full = load_trace(folder)
+        full = load_trace(folder, min_sats=1)                  # as gnssfuse run and evaluate load it
         thin, _ = thinned(full, 3, k)
         for name, change in SETTINGS.items():
             opts = RunOptions()

@@ -151,8 +151,8 @@ class GraphConfig:
     # 4 satellites, no prior, no Doppler) is this times cv_accel_h / cv_accel_v: there nothing measures the
     # velocity, and a looser walk lets the few pseudoranges left, with a clock interpolated across the gap,
     # steer the track. On the twelve GSDC training drives thinned to 3 satellites in 120 s of every 180 s, the
-    # mean fused-nodnn score went 79.6 (1.0) -> 61.3 (0.5), 60.7 (0.25), 105.3 m (0.1), 11 of 12 drives better
-    # at 0.5; the drives as logged are unchanged (3.83 m), having no such epochs
+    # mean fused-nodnn score went 79.7 (1.0) -> 61.2 (0.5), 60.0 (0.25), 105.2 m (0.1), 11 of 12 drives better
+    # at 0.5; the drives as logged, with their few short bridges, 3.83 -> 3.84 m
     # (experiments/few_satellites_models.py). Where Doppler measures the velocity it did not pay on the
     # simulated city traces thinned the same way, so those epochs keep the configured walk.
     bridged_accel_scale: float = 0.5
