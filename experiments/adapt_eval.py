@@ -2,11 +2,13 @@
 weights on that log alone (the adaptation never reads truth), then score ``fused`` with the shipped and
 the adapted weights, and ``fused-nodnn``, against the truth (read here, for scoring only). Prints a
 Markdown table: GSDC score (mean of horizontal p50 and p95) and the ratio adapted / shipped, the
-self-check's decision and held-out criterion by epoch, the epochs the teacher trusted, the pseudoranges the
-adapted network gave a sigma for, the guard's shrunk / off epochs, and the times.
+decision, the self-check's held-out criterion by epoch, the graph check's held-out error (base -> adapted),
+the epochs the teacher trusted, the pseudoranges the adapted network gave a sigma for, the guard's shrunk /
+off epochs, and the times.
 
     python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] [--agree W] \
-        [--part sat|all] [--margin F] [--block N] [--every K] [--no-widen] [--teacher fused|fused-nodnn] [LOG ...]
+        [--part sat|all] [--margin F] [--block N] [--every K] [--no-widen] [--teacher fused|fused-nodnn] \
+        [--no-graph-check] [--graph-margin F] [LOG ...]
 
 LOG: a GSDC 2021 training-folder name (``2020-05-29-US-MTV-1/Pixel4``) or any trace folder (the smartLoc
 one). Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
@@ -67,7 +69,7 @@ def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path) -> dict:
             print(f"    {name} {k}: " + " ".join(f"{c[k]:.4f}" for c in rec["heldout_all"] if c), file=sys.stderr)
     return dict(score, trusted=f"{c['teacher_trusted']}/{c['epochs']}", sigmas=learned_sigmas(adapted.info),
                 guard=guard(adapted.info), shipped_guard=guard(shipped["fused"].info), t_adapt=t_adapt,
-                decision=f"{rec['decision']} (epoch {rec['best_epoch']})",
+                decision=f"{rec['decision']} (epoch {rec['best_epoch']})", graph=graph_words(rec),
                 heldout=" -> ".join("-" if v is None else f"{v:.3f}" for v in rec["heldout"]))
 
 
@@ -79,6 +81,15 @@ def log_path(name: str) -> Path:
 def learned_sigmas(info: dict) -> int:
     """Pseudoranges the network gave a sigma for (asked minus those its guard gave the physical model)."""
     return int(info.get("learned_meas_asked", 0)) - int(info.get("learned_meas_out_of_range", 0))
+
+
+def graph_words(rec: dict) -> str:
+    """The graph check's held-out error base -> adapted [m], or why there is none."""
+    g = rec.get("graph_check")
+    if g is None:
+        return "not run (self-check declined)" if rec["decision"] == "declined" and "graph check" not in \
+            rec["reason"] else "off"
+    return f"{g['base_m']:.3f} -> {g['adapted_m']:.3f}"
 
 
 def guard(info: dict) -> str:
@@ -100,16 +111,20 @@ def main() -> int:
     p.add_argument("--margin", type=float, default=AdaptConfig.margin)
     p.add_argument("--block", type=int, default=AdaptConfig.block)
     p.add_argument("--every", type=int, default=AdaptConfig.every)
+    p.add_argument("--no-graph-check", dest="graph_check", action="store_false")
+    p.add_argument("--graph-margin", type=float, default=AdaptConfig.graph_margin)
     a = p.parse_args()
     cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo,
-                      teacher=a.teacher, anchor=a.anchor, widen=a.widen, part=a.part, agree=a.agree, margin=a.margin, block=a.block, every=a.every)
+                      teacher=a.teacher, anchor=a.anchor, widen=a.widen, part=a.part, agree=a.agree, margin=a.margin, block=a.block, every=a.every,
+                      graph_check=a.graph_check, graph_margin=a.graph_margin)
     print(f"adapt: teacher {cfg.teacher}, epochs {cfg.epochs}, lr {cfg.lr}, max teacher sigma {cfg.max_teacher_sigma_m} m, "
           f"leave-one-out weight {cfg.loo}, teacher-agreement weight {cfg.agree}, fine-tuned: {cfg.part}, scale/bias anchor {cfg.anchor}, guard ranges widened: {cfg.widen}, held out every {cfg.every}th block of {cfg.block}, "
-          f"margin {cfg.margin}, seed {cfg.seed}\n")
+          f"margin {cfg.margin}, graph check {'on, margin ' + str(cfg.graph_margin) if cfg.graph_check else 'off'}, "
+          f"seed {cfg.seed}\n")
     print("| log | base trained on it | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped "
-          "| self-check | held-out criterion [m] by epoch | teacher-trusted epochs | learned sigmas (adapted) "
-          "| guard shrunk / off: shipped, adapted | adapt [s] |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| decision | held-out criterion [m] by epoch | graph check [m] | teacher-trusted epochs "
+          "| learned sigmas (adapted) | guard shrunk / off: shipped, adapted | adapt [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios = []
     for name in a.logs:
         nav, insample = LOGS.get(name, ((), (TRAIN / name).is_dir() and not name.startswith(NOT_TRAINED)))
@@ -117,7 +132,7 @@ def main() -> int:
             r = one(name, nav, cfg, Path(tmp))
         ratios.append(r["adapted"] / r["fused"])
         print(f"| {name} | {'yes' if insample else 'no'} | {r['fused-nodnn']:.2f} | {r['fused']:.2f} | "
-              f"{r['adapted']:.2f} | {ratios[-1]:.3f} | {r['decision']} | {r['heldout']} | {r['trusted']} | {r['sigmas']} | "
+              f"{r['adapted']:.2f} | {ratios[-1]:.3f} | {r['decision']} | {r['heldout']} | {r['graph']} | {r['trusted']} | {r['sigmas']} | "
               f"{r['shipped_guard']}, {r['guard']} | {r['t_adapt']:.0f} |", flush=True)
     print(f"\nmean adapted / shipped: {sum(ratios) / len(ratios):.3f}; worst {max(ratios):.3f}")
     return 0

@@ -21,7 +21,10 @@ Every adaptation is self-validated on the log itself (:mod:`learned.selfcheck`):
 the teacher-trusted epochs are held out, the held-out criterion is measured before and after each epoch,
 the best epoch is kept, and if none beats the base by the margin the adaptation is declined: the output
 checkpoint then holds the base's weights and input ranges unchanged, with the decision and its reason in
-``config["adapted"]``.
+``config["adapted"]``. An adaptation the self-check accepts must also place the ``fused`` graph better
+(:mod:`learned.graph_check`: satellites held out of the graph, predicted at its positions), else it is
+declined the same way: the self-check scores snapshots, and the graph weighs pseudoranges against
+Doppler, carrier and motion over time.
 
 Ground truth is never read: every trace is loaded with ``truth="none"`` and a trace that still carries
 truth is refused. The adapted checkpoint keeps the base's calibration (nothing here can measure a new
@@ -58,6 +61,7 @@ from learned.consistency import loo_nll
 from learned.data import build_samples
 from learned.features import FeatureConfig
 from learned.forward import outputs, take
+from learned.graph_check import FOLDS, graph_decision, graph_error
 from learned.guard import input_ranges
 from learned.infer import SHIPPED_WEIGHTS
 from learned.selfcheck import BLOCK, CRITERION, EVERY, MARGIN, criteria, decide, heldout_inputs, split
@@ -76,7 +80,7 @@ class AdaptConfig:
     Defaults (chosen on smartLoc and six GSDC training-folder drives, ``experiments/results/adapt.md``):
     the per-satellite head alone, from the leave-one-satellite-out consistency alone (the teacher only
     linearises it and picks the epochs) with its scale and biases anchored to the base's, 5 epochs at
-    3e-4, kept only if the held-out check accepts it."""
+    3e-4, kept only if the held-out check accepts it and the graph check (``graph_*``) confirms it."""
 
     epochs: int = 5
     lr: float = 3e-4
@@ -94,6 +98,9 @@ class AdaptConfig:
     margin: float = MARGIN    # relative held-out gain needed to accept the adaptation
     anchor: float = 10.0      # weight of the pull of each epoch's mean log-sigma and the biases to the base's
     widen: bool = True        # widen the guard's input ranges by the adapted-on inputs (when accepted)
+    graph_check: bool = True  # an accepted adaptation must also place the fused graph better (learned.graph_check)
+    graph_folds: int = FOLDS  # ... judged on this many folds of satellites held out of the graph
+    graph_margin: float = 0.0  # ... by at least this relative gain
 
 
 @dataclass
@@ -214,9 +221,10 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
           progress: bool = False, log=None, scheduler: str | None = None) -> dict:
     """Fine-tune ``weights`` (None: the shipped ones) on the logs ``paths`` without truth and write the
     checkpoint ``out``: the best epoch on the held-out blocks (:mod:`learned.selfcheck`), or the base
-    weights unchanged when no epoch beats them by the margin (``record["decision"] == "declined"``).
-    The teachers are solved in ``jobs`` processes or on the Dask cluster at ``scheduler``
-    (:func:`teachers`); the fine-tuning runs here.
+    weights unchanged when no epoch beats them by the margin or the graph check (:func:`check_in_graph`)
+    finds the graph placed no better (``record["decision"] == "declined"``). The teachers are solved in
+    ``jobs`` processes or on the Dask cluster at ``scheduler`` (:func:`teachers`); the fine-tuning and the
+    graph check run here.
     Returns the adaptation record stored in its config (``config["adapted"]``)."""
     cfg, opts = cfg or AdaptConfig(), opts or RunOptions()
     weights = Path(weights) if weights is not None else SHIPPED_WEIGHTS
@@ -230,16 +238,18 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
         raise DataError(f"need loo >= 0 and agree >= 0, not both 0 (got {cfg.loo}, {cfg.agree})")
     if cfg.block < 1 or cfg.every < 2:
         raise DataError(f"the self-check needs block >= 1 and every >= 2 (got {cfg.block}, {cfg.every})")
+    if cfg.graph_check and cfg.graph_folds < 2:
+        raise DataError(f"the graph check needs at least 2 satellite folds (got {cfg.graph_folds})")
     # the teacher's trust threshold (max_teacher_sigma_m) was set on the graph's raw marginals
-    taught = teachers([str(p) for p in paths], replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights,
-                                                       sigma_calibration=False),
-                      cfg.max_epochs, cfg.teacher, jobs, progress, scheduler)
+    teacher_opts = replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights, sigma_calibration=False)
+    taught = teachers([str(p) for p in paths], teacher_opts, cfg.max_epochs, cfg.teacher, jobs, progress, scheduler)
     samples, counts = adaptation_samples(taught, tcfg.signals, cfg)
     t_teacher = time.perf_counter() - t0
     if log:
         log(f"teacher ({cfg.teacher}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
             f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
     train_s, held_s = split(samples, cfg.block, cfg.every)
+    start = copy.deepcopy(model.state_dict())
     history, ranges, check = fine_tune(model, train_s, tcfg, cfg, held_s, progress)
     record = {"from": weights.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
               "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "anchor": cfg.anchor,
@@ -247,12 +257,41 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
               "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
               "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
               "train_s": round(sum(h["time_s"] for h in history), 1), **check}
+    write_adapted(out, model, base, record, ranges if cfg.widen else None, history)
+    if record["decision"] == "accepted" and cfg.graph_check:
+        check_in_graph(out, weights, [t.trace for t in taught], teacher_opts, cfg, record, log)
+        if record["decision"] == "declined":
+            model.load_state_dict(start)
+            write_adapted(out, model, base, record, None, history)
+    return record
+
+
+def write_adapted(out: str | Path, model: torch.nn.Module, base: dict, record: dict, ranges: dict | None,
+                  history: list[dict]) -> None:
+    """Save ``model`` with the base's config plus the adaptation ``record``; the guard's input ranges
+    widened by ``ranges`` only when the record says accepted."""
     config = copy.deepcopy(base)
     config["adapted"] = list(base.get("adapted") or []) + [record]      # adapting an adapted one keeps both
-    if check["decision"] == "accepted" and cfg.widen:
+    if record["decision"] == "accepted" and ranges is not None:
         config["input_ranges"] = widened_ranges(base.get("input_ranges"), ranges)
-    save_checkpoint(out, model, config, epoch=check["best_epoch"], history=history)
-    return record
+    save_checkpoint(out, model, config, epoch=record["best_epoch"], history=history)
+
+
+def check_in_graph(out: Path, weights: Path, traces: list[Trace], opts: RunOptions, cfg: AdaptConfig,
+                   record: dict, log=None) -> None:
+    """The graph check (:mod:`learned.graph_check`) of the adapted checkpoint ``out`` against the base
+    ``weights`` on the logs' ``traces`` (no truth); turns ``record`` into a decline when it fails."""
+    t0 = time.perf_counter()
+    base = graph_error(traces, replace(opts, weights=weights), cfg.graph_folds, cfg.seed)
+    adapted = graph_error(traces, replace(opts, weights=Path(out)), cfg.graph_folds, cfg.seed)
+    keep, reason = graph_decision(base, adapted, cfg.graph_margin)
+    record["graph_check"] = {"base_m": _rounded(base["error_m"]), "adapted_m": _rounded(adapted["error_m"]),
+                             "measurements": adapted["measurements"], "folds": cfg.graph_folds,
+                             "margin": cfg.graph_margin, "seconds": round(time.perf_counter() - t0, 1)}
+    if log:
+        log(f"{reason} ({record['graph_check']['seconds']:.0f} s)")
+    if not keep:
+        record.update(decision="declined", best_epoch=0, reason=f"{record['reason']}; but {reason}")
 
 
 #: What ``AdaptConfig.part`` may name, and the parameter-name prefixes each fine-tunes (None: all).

@@ -26,6 +26,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need --anchor >= 0")
     if not -1 <= args.margin < 1:
         raise DataError("need -1 <= --margin < 1")
+    if not -1 <= args.graph_margin < 1:
+        raise DataError("need -1 <= --graph-margin < 1")
     if args.block < 1 or args.every < 2:
         raise DataError("need --block >= 1 and --every >= 2")
     if args.max_epochs is not None and args.max_epochs < 1:
@@ -63,7 +65,8 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
     cfg = AdaptConfig(epochs=args.epochs, lr=args.lr, batch=args.batch, seed=args.seed,
                       max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
                       teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree,
-                      anchor=args.anchor, margin=args.margin, block=args.block, every=args.every)
+                      anchor=args.anchor, margin=args.margin, block=args.block, every=args.every,
+                      graph_check=args.graph_check, graph_margin=args.graph_margin)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr), scheduler=args.scheduler)
     print(f"{verdict(record, args.out)}\n{describe(record)}")

@@ -43,6 +43,7 @@ def _same_checkpoint(a, b) -> bool:
     for c in (ca, cb):
         for rec in c["config"]["adapted"]:
             rec.pop("teacher_s"), rec.pop("train_s")
+            rec.get("graph_check", {}).pop("seconds", None)
             for t in rec["traces"].values():
                 t.pop("teacher_s")
         for h in c["history"]:
@@ -66,18 +67,20 @@ def test_never_reads_ground_truth(shipped_trace_dir, tmp_path, monkeypatch):
         for name in ("read_truth_csv", "interp_gapped", "match_nearest", "check_overlap"):
             if hasattr(mod, name):
                 monkeypatch.setattr(mod, name, boom)
-    cfg = AdaptConfig(epochs=1, max_epochs=FEW)
+    cfg = AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0)      # accepted: the graph check runs too
     rec = adapt([with_tripwire], tmp_path / "a.pt", cfg=cfg)
     adapt([without], tmp_path / "b.pt", cfg=cfg)
     assert _same_checkpoint(tmp_path / "a.pt", tmp_path / "b.pt")
     assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4"] and rec["samples"] > 0
+    assert rec["graph_check"]["measurements"] > 0
 
 
 def test_seeded_and_reproducible(shipped_trace_dir, tmp_path):
     runs = {}
     for tag, seed in (("a", 3), ("b", 3), ("c", 4)):      # margin -1: keep the epoch whatever the self-check says
         adapt([shipped_trace_dir], tmp_path / f"{tag}.pt",
-              cfg=AdaptConfig(epochs=1, max_epochs=FEW, seed=seed, margin=-1.0, part="all", agree=1.0))
+              cfg=AdaptConfig(epochs=1, max_epochs=FEW, seed=seed, margin=-1.0, graph_margin=-1.0, part="all",
+                              agree=1.0))
         runs[tag] = tmp_path / f"{tag}.pt"
     assert _same_checkpoint(runs["a"], runs["b"])
     assert not _same_checkpoint(runs["a"], runs["c"])
@@ -88,7 +91,7 @@ def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, cap
     # --margin -1: accepted whatever the self-check says, so that the weights do move (the decline is
     # tested on its own)
     assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", "300", "--epochs", "1", "--out", str(out),
-                "--threads", "1", "--margin", "-1"]) == 0
+                "--threads", "1", "--margin", "-1", "--graph-margin", "-1"]) == 0
     said = capsys.readouterr().out
     assert "without ground truth" in said and "2021-04-28-US-MTV-1/Pixel4" in said
     base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
@@ -138,6 +141,7 @@ def test_widened_ranges():
     (["--loo", "-1"], "--loo >= 0"),
     (["--loo", "0"], "not both 0"),
     (["--margin", "1"], "-1 <= --margin < 1"),
+    (["--graph-margin", "-2"], "-1 <= --graph-margin < 1"),
     (["--every", "1"], "--every >= 2"),
     (["--anchor", "-1"], "--anchor >= 0"),
     (["--clk", "x.clk"], "--clk needs --sp3"),
@@ -222,11 +226,11 @@ def test_declined_adaptation_writes_the_base_weights_and_says_why(shipped_trace_
 
 def test_accepted_adaptation_keeps_the_best_epoch_and_moves_only_the_chosen_part(shipped_trace_dir, tmp_path):
     rec = adapt([shipped_trace_dir], tmp_path / "sat.pt", cfg=AdaptConfig(epochs=2, max_epochs=FEW, margin=-1.0,
-                                                                          lr=1e-2))
+                                                                          lr=1e-2, graph_check=False))
     assert rec["decision"] == "accepted" and rec["best_epoch"] == 1 + int(np.argmin(rec["heldout"][1:]))
     assert _differing(SHIPPED_WEIGHTS, tmp_path / "sat.pt") == {"sat_head.weight", "sat_head.bias"}
     rec = adapt([shipped_trace_dir], tmp_path / "all.pt",
-                cfg=AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0, part="all", agree=1.0))
+                cfg=AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0, part="all", agree=1.0, graph_check=False))
     assert len(_differing(SHIPPED_WEIGHTS, tmp_path / "all.pt")) > 10
     with pytest.raises(GnssfuseError, match="part must be one of"):
         adapt([shipped_trace_dir], tmp_path / "x.pt", cfg=AdaptConfig(epochs=1, max_epochs=FEW, part="trunk"))
