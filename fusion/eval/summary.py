@@ -61,7 +61,7 @@ def run_summary(record: dict) -> str:
                      f"{info['epochs_with_exclusions']} epochs; {info['epochs_fault_undecided']} epochs undecided"
                      " (see metrics.json 'info'; --wls-plain for the plain baseline)")
     lines += [words(info) for key, words in LEARNED_WORDS if key in info]
-    raised = {k: int(info.get(f"{k}_sigmas_raised", 0)) for k in ("doppler", "carrier")}
+    raised = {k: int(info.get(f"{k}_sigmas_raised", 0)) for k in ("pseudorange", "doppler", "carrier")}
     if any(raised.values()):
         lines.append("sigmas raised where the measurements disagreed among themselves beyond them: "
                      + ", ".join(f"{n} {k}" for k, n in raised.items() if n) + " (metrics.json 'info')")

@@ -130,3 +130,37 @@ def test_the_graph_inputs_raise_carrier_sigmas_below_the_carriers_noise(raw_sim)
     default = prepare_inputs(noisy, wls, GraphConfig())
     assert "carrier_sigmas_raised" not in default.dropped
     np.testing.assert_array_equal(default.raw.tdcp_sigma, honest.raw.tdcp_sigma)
+
+
+def test_a_clock_per_group_is_fitted_and_counted_as_unknowns():
+    rng, grad, b = geometry(60, 10, 5)
+    groups = np.tile(np.r_[np.zeros(6, int), np.full(4, 3)], (60, 1))     # two signals, as GPS L1 and L5
+    b = b + np.where(groups == 3, 250.0, 0.0)                               # an inter-signal offset
+    stated = np.full(b.shape, 0.1)
+    use = np.ones(b.shape, bool)
+    one_clock = epoch_fit(grad, b, stated, use)
+    per_group = epoch_fit(grad, b, stated, use, groups)
+    assert np.nanmax(np.abs(one_clock)) > 100 and np.nanmax(np.abs(per_group)) < 1e-5
+    use[0, :4] = False          # 6 measurements, 5 unknowns: one spare, not enough
+    assert np.isnan(epoch_fit(grad, b, stated, use, groups)[0]).all()
+    assert np.isfinite(epoch_fit(grad, b, stated, use)[0][4:]).all()   # one clock: 4 unknowns, enough
+
+
+def test_the_graph_inputs_raise_understated_pseudorange_sigmas_when_asked(raw_sim):
+    trace = raw_sim.trace
+    wls = solve_initial(trace, RunOptions())
+    cfg = GraphConfig(pseudorange_check_window_s=60.0)
+    honest = prepare_inputs(trace, wls, cfg)
+    # the physical model's sigmas are at least the simulated noise: nothing much to raise
+    assert honest.dropped["pseudorange_sigmas_raised"] < 0.1 * honest.sel.sum()
+    rng = np.random.default_rng(1)
+    noisy = dataclasses.replace(trace, pr=trace.pr + np.where(trace.mask, rng.normal(0.0, 15.0, trace.pr.shape), 0.0))
+    checked = prepare_inputs(noisy, wls, cfg)
+    off = prepare_inputs(noisy, wls, GraphConfig())
+    assert "pseudorange_sigmas_raised" not in off.dropped           # off by default
+    assert checked.dropped["pseudorange_sigmas_raised"] == checked.sel.sum()
+    ratio = checked.sigma[checked.sel] / off.sigma[checked.sel]
+    assert ratio.min() > 1.5
+    # one factor per epoch: the ratios between satellites are kept
+    per_epoch = np.where(checked.sel, checked.sigma / off.sigma, np.nan)
+    assert np.nanmax(np.nanmax(per_epoch, axis=1) - np.nanmin(per_epoch, axis=1)) < 1e-9

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fusion.estimate.graph.raw_inputs import carrier_rows, doppler_rows_at
+from fusion.geometry import line_of_sight
 from fusion.trace import Trace
 
 if TYPE_CHECKING:
@@ -63,7 +64,7 @@ def _standardised(A: np.ndarray, b: np.ndarray, sig: np.ndarray, use: np.ndarray
     """One weighted least-squares pass of every epoch: z (E,S) the residuals / sigma / sqrt(1 - leverage)
     (NaN where not used) and each epoch's robust scale (E,1) of them. A (E,S,4), b, sig, w (E,S), use (E,S)."""
     Aw = A * w[..., None]
-    N_inv = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + 1e-9 * np.eye(4))            # unused epochs too
+    N_inv = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + 1e-9 * np.eye(A.shape[2]))   # unused epochs too
     x = (N_inv @ (Aw * b[..., None]).sum(axis=1)[..., None])[..., 0]
     lev = w * ((A @ N_inv) * A).sum(axis=2)
     r = b - (A @ x[..., None])[..., 0]
@@ -71,15 +72,22 @@ def _standardised(A: np.ndarray, b: np.ndarray, sig: np.ndarray, use: np.ndarray
     return z, np.maximum(MAD_TO_SIGMA * row_medians(np.abs(z)), 1e-6)[:, None]
 
 
-def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """Standardised residuals of each epoch's robust fit of ``b = grad . x + c``.
+def epoch_fit(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray,
+              groups: np.ndarray | None = None) -> np.ndarray:
+    """Standardised residuals of each epoch's robust fit of ``b = grad . x + c`` (one ``c`` per value of
+    ``groups`` (E,S) int, e.g. a clock per signal; None: one for all).
 
     grad (E,S,3), b (E,S), sigma (E,S) > 0 where used, use (E,S) bool. Returns z (E,S): residual / sigma /
     sqrt(1 - leverage) (a fit's residuals are smaller than its errors by that much), NaN where not used or
-    where the epoch has fewer than 4 + MIN_REDUNDANCY measurements."""
+    where the epoch has fewer than its unknowns + MIN_REDUNDANCY measurements."""
     E, S = b.shape
-    use = use & (use.sum(axis=1) >= 4 + MIN_REDUNDANCY)[:, None]
-    A = np.where(use[..., None], np.concatenate([grad, np.ones((E, S, 1))], axis=2), 0.0)
+    if groups is None:
+        onehot = np.ones((E, S, 1))
+    else:
+        onehot = (groups[..., None] == np.unique(groups[use])).astype(float) if use.any() else np.ones((E, S, 1))
+    unknowns = 3 + (onehot * use[..., None]).any(axis=1).sum(axis=1)
+    use = use & (use.sum(axis=1) >= unknowns + MIN_REDUNDANCY)[:, None]
+    A = np.where(use[..., None], np.concatenate([grad, onehot], axis=2), 0.0)
     b = np.where(use, b, 0.0)
     sig = np.where(use, sigma, 1.0)
     w0 = np.where(use, 1.0 / sig ** 2, 0.0)
@@ -158,6 +166,27 @@ def carrier_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray
     grad, measured = carrier_rows(trace, raw, inp.init_pos if raw.lin_pos is None else raw.lin_pos, kk, ss)
     G, B = padded_rows(use.shape, kk, ss, grad, measured)
     return kind_scale(G, B, raw.tdcp_sigma, use, trace.t_ms / 1000.0, window_s)
+
+
+def pseudorange_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray:
+    """(E,) the factor on each epoch's pseudorange sigmas (``inp.sigma``, learned or physical) from the
+    pseudoranges' own one-epoch fits (position and a clock per signal, at the initial positions, the
+    slot-noise bias removed)."""
+    use = inp.sel & inp.keep[:, None] & np.isfinite(trace.pr) & (inp.sigma > 0)
+    rng, los = line_of_sight(trace.sat_pos, inp.init_pos)
+    b = np.where(use, trace.pr - np.nan_to_num(inp.pr_bias) - rng, 0.0)
+    z = epoch_fit(-los, b, np.where(use, inp.sigma, 1.0), use, trace.signal)
+    return windowed_scale(z, window_epochs(trace.t_ms / 1000.0, window_s))
+
+
+def raise_pseudorange_sigmas(trace: Trace, inp: EpochInputs, window_s: float) -> dict:
+    """Multiply ``inp.sigma`` by :func:`pseudorange_scale` (``window_s`` <= 0: not), in place. Returns
+    counts for the run's report (pseudoranges whose sigma was raised by more than 5 %)."""
+    if window_s <= 0 or not inp.sel.any():
+        return {}
+    f = pseudorange_scale(trace, inp, window_s)
+    inp.sigma = np.where(inp.sel, inp.sigma * f[:, None], inp.sigma)
+    return {"pseudorange_sigmas_raised": int((inp.sel & (f[:, None] > 1.05)).sum())}
 
 
 def raise_raw_sigmas(trace: Trace, inp: EpochInputs, doppler_window_s: float, carrier_window_s: float) -> dict:

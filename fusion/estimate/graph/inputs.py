@@ -11,7 +11,7 @@ import numpy as np
 from fusion.errors import GeometryError
 from fusion.estimate.graph.clock import clock_chain
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.consistency import raise_raw_sigmas
+from fusion.estimate.graph.consistency import raise_pseudorange_sigmas, raise_raw_sigmas
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
 from fusion.estimate.graph.odometry import OdometryFactors, odometry_factors
 from fusion.estimate.graph.priors import LearnedGraphInputs, Priors, clean_priors
@@ -232,6 +232,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
         if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():
             inp.dropped.update({f"learned_{k}": v for k, v in learned.doppler_noise(trace, inp).items()})
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
+    inp.dropped.update(raise_pseudorange_sigmas(trace, inp, cfg.pseudorange_check_window_s))
     if cfg.use_odometry:
         inp.odometry = odometry_factors(trace, init_pos, wls_ok, pos_link, comp, keep, cfg)
         inp.dropped.update(inp.odometry.counts if inp.odometry is not None else {"odometry_steps": 0})
