@@ -81,5 +81,8 @@ def verdict(record: dict, out) -> str:
     if record["decision"] == "declined":
         return (f"adaptation DECLINED: {out} holds the base weights {record['from']} unchanged ({head}; "
                 f"{record['reason']})")
+    g = record.get("graph_check")
+    graph = "" if g is None else (f"; graph check: held-out satellites' error {g['base_m']:.3f} -> "
+                                  f"{g['adapted_m']:.3f} m")
     return (f"adapted {record['from']} on {head}: kept epoch {record['best_epoch']} of {record['epochs']} "
-            f"({record['reason']}) -> {out}")
+            f"({record['reason']}{graph}) -> {out}")

@@ -99,7 +99,7 @@ def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, cap
     assert rec["teacher"] == "fused" and rec["loo"] == 1.0 and rec["epochs"] == 1 and rec["from"] == SHIPPED_WEIGHTS.name
     assert rec["part"] == "sat" and rec["agree"] == 0.0 and rec["decision"] == "accepted"
     # the first line says what became of it; by default the per-satellite head moves, and nothing else
-    assert said.splitlines()[0].startswith("adapted")
+    assert said.splitlines()[0].startswith("adapted") and "graph check: held-out satellites' error" in said
     assert _differing(SHIPPED_WEIGHTS, out) == {"sat_head.weight", "sat_head.bias"}
     c = rec["traces"]["2021-04-28-US-MTV-1/Pixel4"]
     assert c["epochs"] == 300 and 0 < c["teacher_trusted"] <= c["teacher_solved"] <= 300
