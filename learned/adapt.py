@@ -61,7 +61,7 @@ from learned.consistency import loo_nll
 from learned.data import build_samples
 from learned.features import FeatureConfig
 from learned.forward import outputs, take
-from learned.graph_check import FOLDS, graph_decision, graph_error
+from learned.graph_check import FOLDS, graph_decision, graph_errors
 from learned.guard import input_ranges
 from learned.infer import SHIPPED_WEIGHTS
 from learned.selfcheck import BLOCK, CRITERION, EVERY, MARGIN, criteria, decide, heldout_inputs, split
@@ -282,12 +282,13 @@ def check_in_graph(out: Path, weights: Path, traces: list[Trace], opts: RunOptio
     """The graph check (:mod:`learned.graph_check`) of the adapted checkpoint ``out`` against the base
     ``weights`` on the logs' ``traces`` (no truth); turns ``record`` into a decline when it fails."""
     t0 = time.perf_counter()
-    base = graph_error(traces, replace(opts, weights=weights), cfg.graph_folds, cfg.seed)
-    adapted = graph_error(traces, replace(opts, weights=Path(out)), cfg.graph_folds, cfg.seed)
+    base, adapted = graph_errors(traces, [replace(opts, weights=weights), replace(opts, weights=Path(out))],
+                                 cfg.graph_folds, cfg.seed)
     keep, reason = graph_decision(base, adapted, cfg.graph_margin)
     record["graph_check"] = {"base_m": _rounded(base["error_m"]), "adapted_m": _rounded(adapted["error_m"]),
                              "measurements": adapted["measurements"], "folds": cfg.graph_folds,
-                             "margin": cfg.graph_margin, "seconds": round(time.perf_counter() - t0, 1)}
+                             "folds_unsolved": adapted["folds_unsolved"], "margin": cfg.graph_margin,
+                             "seconds": round(time.perf_counter() - t0, 1)}
     if log:
         log(f"{reason} ({record['graph_check']['seconds']:.0f} s)")
     if not keep:

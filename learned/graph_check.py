@@ -19,6 +19,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from fusion.errors import GnssfuseError
 from fusion.geometry import line_of_sight
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
@@ -31,7 +32,8 @@ FOLDS, CAP = 4, 10.0
 
 def satellite_folds(trace: Trace, folds: int = FOLDS, seed: int = 0) -> np.ndarray:
     """(E,S) int: the fold of each slot's satellite (all its signals in one fold), -1 on padding.
-    Satellites are dealt to folds in a seeded random order, so each fold holds every constellation."""
+    Satellites are dealt to folds in a seeded random order (not by number, which would put neighbouring
+    orbit slots together)."""
     ids = np.unique(trace.sat_id[trace.mask])
     order = np.random.default_rng(seed).permutation(len(ids)) % folds
     pos = np.searchsorted(ids, trace.sat_id)
@@ -60,21 +62,38 @@ def heldout_residuals(trace: Trace, pos: np.ndarray, held: np.ndarray) -> np.nda
     return np.abs(resid - clock)[score]
 
 
-def graph_error(traces: list[Trace], opts: RunOptions, folds: int = FOLDS, seed: int = 0) -> dict:
-    """The held-out score of ``fused`` with ``opts.weights`` over ``traces``: ``error_m`` (mean capped
-    |residual|, NaN when nothing could be scored) and ``measurements`` (how many)."""
-    opts = replace(opts, sigma_calibration=False)      # positions only: the covariance is not used
-    parts = []
+def graph_errors(traces: list[Trace], options: list[RunOptions], folds: int = FOLDS, seed: int = 0) -> list[dict]:
+    """The held-out score of ``fused`` under each of ``options`` (e.g. base and adapted weights), paired:
+    the same traces and folds for every one, a fold left out for all when any graph cannot be solved
+    without it. Per option: ``error_m`` (mean capped |residual|, NaN when nothing could be scored) and
+    ``measurements`` (how many), plus ``folds_unsolved`` (folds left out)."""
+    options = [replace(o, sigma_calibration=False) for o in options]     # positions only
+    parts, unsolved = [[] for _ in options], 0
     for trace in traces:
         fold = satellite_folds(trace, folds, seed)
         for k in range(folds):
             held = fold == k
             if not held.any():
                 continue
-            res = run_modes(trace.select_slots(~held), ["fused"], opts)["fused"]
-            parts.append(heldout_residuals(trace, np.where(res.valid[:, None], res.pos, np.nan), held))
-    e = np.concatenate(parts) if parts else np.zeros(0)
-    return {"error_m": float(np.minimum(e, CAP).mean()) if e.size else float("nan"), "measurements": int(e.size)}
+            try:
+                pos = [_positions(trace.select_slots(~held), o) for o in options]
+            except GnssfuseError:           # too few satellites left for any graph: no comparison there
+                unsolved += 1
+                continue
+            for part, p in zip(parts, pos):
+                part.append(heldout_residuals(trace, p, held))
+    out = []
+    for part in parts:
+        e = np.concatenate(part) if part else np.zeros(0)
+        out.append({"error_m": float(np.minimum(e, CAP).mean()) if e.size else float("nan"),
+                    "measurements": int(e.size), "folds_unsolved": unsolved})
+    return out
+
+
+def _positions(trace: Trace, opts: RunOptions) -> np.ndarray:
+    """(E,3) ECEF positions of ``fused`` on ``trace``, NaN where unsolved."""
+    res = run_modes(trace, ["fused"], opts)["fused"]
+    return np.where(res.valid[:, None], res.pos, np.nan)
 
 
 def graph_decision(base: dict, adapted: dict, margin: float) -> tuple[bool, str]:

@@ -75,3 +75,22 @@ def test_a_graph_check_that_fails_writes_the_base_weights_and_says_why(shipped_t
 def test_the_api_refuses_a_graph_check_without_folds(shipped_trace_dir, tmp_path):
     with pytest.raises(GnssfuseError, match="at least 2 satellite folds"):
         adapt([shipped_trace_dir], tmp_path / "w.pt", cfg=AdaptConfig(max_epochs=FEW, graph_folds=1))
+
+
+def test_graph_errors_are_paired_and_skip_a_fold_any_graph_cannot_solve(trace, monkeypatch):
+    import learned.graph_check as gc
+    from fusion.errors import GeometryError
+    from fusion.run_types import RunOptions
+    calls = []
+
+    def positions(tr, opts):                 # the truth, 5 m off for the second option; its 2nd fold fails
+        calls.append(opts.elev_mask_deg)
+        if opts.elev_mask_deg == 11.0 and len(calls) == 4:
+            raise GeometryError("too few satellites")
+        return trace.truth + (5.0 if opts.elev_mask_deg == 11.0 else 0.0)
+
+    monkeypatch.setattr(gc, "_positions", positions)
+    a, b = gc.graph_errors([trace], [RunOptions(), RunOptions(elev_mask_deg=11.0)], folds=4)
+    assert a["folds_unsolved"] == b["folds_unsolved"] == 1
+    assert a["measurements"] == b["measurements"] > 0          # the same three folds for both
+    assert a["error_m"] < b["error_m"]
