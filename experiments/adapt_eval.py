@@ -8,7 +8,7 @@ off epochs, and the times.
 
     python experiments/adapt_eval.py [--epochs N] [--lr X] [--max-teacher-sigma M] [--loo W] [--agree W] \
         [--part sat|all] [--margin F] [--block N] [--every K] [--no-widen] [--teacher fused|fused-nodnn] \
-        [--no-graph-check] [--graph-margin F] [LOG ...]
+        [--no-graph-check] [--graph-margin F] [--fold-weights DIR] [LOG ...]
 
 LOG: a GSDC 2021 training-folder name (``2020-05-29-US-MTV-1/Pixel4``) or any trace folder (the smartLoc
 one). Default logs: the Pixel5 RINEX trace (GPS broadcast navigation; a test trace), the two GSDC 2021 test
@@ -27,7 +27,9 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
+from crossval import FOLDS2  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.prepare.raw_load import RawSources  # noqa: E402
@@ -52,11 +54,19 @@ NOT_TRAINED = ("2021-04-28-", "2020-05-29-US-MTV-1")
 DEFAULT_LOGS = list(LOGS)[:4]
 
 
-def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path) -> dict:
-    opts = RunOptions(signals=None, nav=tuple(nav))
+def fold_weights(name: str, folder: Path | None) -> Path | None:
+    """With ``--fold-weights DIR``: the two-fold cross-validation network that never saw this GSDC drive
+    (``DIR/fold_AB.pt`` for the AB drives, ...); None (the shipped weights) otherwise."""
+    drive = name.split("/")[0]
+    fold = next((f for f, drives in FOLDS2.items() if drive in drives), None) if folder else None
+    return None if fold is None else folder / f"fold_{fold}.pt"
+
+
+def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path, base: Path | None = None) -> dict:
+    opts = RunOptions(signals=None, nav=tuple(nav), weights=base)
     t0 = time.perf_counter()
     path = log_path(name)
-    rec = adapt([path], folder / "w.pt", cfg=cfg, opts=opts)
+    rec = adapt([path], folder / "w.pt", weights=base, cfg=cfg, opts=opts)
     t_adapt = time.perf_counter() - t0
     trace = load_trace(path, signals=None, min_sats=1, raw_sources=RawSources(tuple(nav)))
     shipped = run_modes(trace, ["fused-nodnn", "fused"], opts)
@@ -113,6 +123,8 @@ def main() -> int:
     p.add_argument("--every", type=int, default=AdaptConfig.every)
     p.add_argument("--no-graph-check", dest="graph_check", action="store_false")
     p.add_argument("--graph-margin", type=float, default=AdaptConfig.graph_margin)
+    p.add_argument("--fold-weights", type=Path, default=None,
+                   help="adapt each GSDC training drive from the cross-validation network that never saw it")
     a = p.parse_args()
     cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo,
                       teacher=a.teacher, anchor=a.anchor, widen=a.widen, part=a.part, agree=a.agree, margin=a.margin, block=a.block, every=a.every,
@@ -121,6 +133,9 @@ def main() -> int:
           f"leave-one-out weight {cfg.loo}, teacher-agreement weight {cfg.agree}, fine-tuned: {cfg.part}, scale/bias anchor {cfg.anchor}, guard ranges widened: {cfg.widen}, held out every {cfg.every}th block of {cfg.block}, "
           f"margin {cfg.margin}, graph check {'on, margin ' + str(cfg.graph_margin) if cfg.graph_check else 'off'}, "
           f"seed {cfg.seed}\n")
+    if a.fold_weights:
+        print(f"base networks: {a.fold_weights}/fold_*.pt, each GSDC drive adapted from the one that never saw it "
+              "('fused, shipped' is that base)\n")
     print("| log | base trained on it | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped "
           "| decision | held-out criterion [m] by epoch | graph check [m] | teacher-trusted epochs "
           "| learned sigmas (adapted) | guard shrunk / off: shipped, adapted | adapt [s] |")
@@ -128,8 +143,10 @@ def main() -> int:
     ratios = []
     for name in a.logs:
         nav, insample = LOGS.get(name, ((), (TRAIN / name).is_dir() and not name.startswith(NOT_TRAINED)))
+        base = fold_weights(name, a.fold_weights)
+        insample = insample and base is None
         with tempfile.TemporaryDirectory() as tmp:
-            r = one(name, nav, cfg, Path(tmp))
+            r = one(name, nav, cfg, Path(tmp), base)
         ratios.append(r["adapted"] / r["fused"])
         print(f"| {name} | {'yes' if insample else 'no'} | {r['fused-nodnn']:.2f} | {r['fused']:.2f} | "
               f"{r['adapted']:.2f} | {ratios[-1]:.3f} | {r['decision']} | {r['heldout']} | {r['graph']} | {r['trusted']} | {r['sigmas']} | "
