@@ -99,7 +99,7 @@ def graph_words(rec: dict) -> str:
     if g is None:
         return "not run (self-check declined)" if rec["decision"] == "declined" and "graph check" not in \
             rec["reason"] else "off"
-    return f"{g['base_m']:.3f} -> {g['adapted_m']:.3f} ({g['gain']:+.2%} ± {g['gain_se']:.2%})"
+    return f"{g['base_m']:.3f} -> {g['adapted_m']:.3f}"
 
 
 def guard(info: dict) -> str:
