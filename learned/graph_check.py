@@ -12,6 +12,11 @@ predicted at the graph's positions, each epoch's clock per signal taken as the m
 satellites the graph kept. The held-out satellites' own errors (multipath, NLOS) are the same whichever
 weights solved the graph; what differs is where each graph puts the phone. The score is the mean of
 min(|residual|, ``CAP``) over the held-out pseudoranges, pooled over the logs. Nothing here reads truth.
+
+It is a coarse safety net: it caught the Pixel5's rise, but on GSDC drives the base never saw, its gains of
+0.0-0.3 % do not follow the truth, one of them passing an adaptation 4.5 % worse. The held-out satellites share
+their environment's errors with the kept ones, so the score is biased towards graphs that agree with them
+(``experiments/results/adapt.md``).
 """
 from __future__ import annotations
 
