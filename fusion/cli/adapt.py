@@ -44,9 +44,9 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("--anchor", type=float, default=10.0, metavar="W",
                    help="weight of the pull of each epoch's mean sigma and of the biases to the base's "
                         "(default 10; what the log's own consistency cannot check)")
-    p.add_argument("--margin", type=float, default=0.005, metavar="F",
+    p.add_argument("--margin", type=float, default=0.02, metavar="F",
                    help="relative gain on the held-out blocks' leave-one-satellite-out error needed to keep "
-                        "the adaptation (default 0.005); below it the base weights are written unchanged "
+                        "the adaptation (default 0.02); below it the base weights are written unchanged "
                         "(negative: keep the best epoch even where it is worse)")
     p.add_argument("--block", type=int, default=60, metavar="N",
                    help="self-check: blocks of N teacher-trusted epochs (default 60) ...")

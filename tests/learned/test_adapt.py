@@ -285,3 +285,13 @@ def test_decide():
 def test_the_api_refuses_a_self_check_that_holds_nothing_out(bad, shipped_trace_dir, tmp_path):
     with pytest.raises(GnssfuseError, match="block >= 1 and every >= 2"):
         adapt([shipped_trace_dir], tmp_path / "w.pt", cfg=AdaptConfig(max_epochs=FEW, **bad))
+
+
+def test_the_command_line_defaults_are_the_apis(tmp_path):
+    from fusion.cli.adapt import build_parser
+    args = build_parser().parse_args(["x", "--out", str(tmp_path / "w.pt")])
+    cfg = AdaptConfig()
+    for name in ("epochs", "lr", "batch", "seed", "loo", "teacher", "part", "agree", "anchor", "margin", "block",
+                 "every", "graph_check", "graph_margin"):
+        assert getattr(args, name) == getattr(cfg, name), name
+    assert args.max_teacher_sigma == cfg.max_teacher_sigma_m and args.elev_mask == cfg.elev_mask_deg
