@@ -25,6 +25,7 @@ from dataclasses import replace
 import numpy as np
 
 from fusion.errors import GnssfuseError
+from fusion.estimate.graph.consistency import row_medians
 from fusion.geometry import line_of_sight
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
@@ -39,11 +40,10 @@ def satellite_folds(trace: Trace, folds: int = FOLDS, seed: int = 0) -> np.ndarr
     """(E,S) int: the fold of each slot's satellite (all its signals in one fold), -1 on padding.
     Satellites are dealt to folds in a seeded random order (not by number, which would put neighbouring
     orbit slots together)."""
-    ids = np.unique(trace.sat_id[trace.mask])
-    order = np.random.default_rng(seed).permutation(len(ids)) % folds
-    pos = np.searchsorted(ids, trace.sat_id)
-    known = trace.mask & (pos < len(ids)) & (ids[np.minimum(pos, len(ids) - 1)] == trace.sat_id)
-    return np.where(known, order[np.minimum(pos, len(ids) - 1)], -1)
+    ids, which = np.unique(trace.sat_id[trace.mask], return_inverse=True)
+    out = np.full(trace.mask.shape, -1)
+    out[trace.mask] = (np.random.default_rng(seed).permutation(len(ids)) % folds)[which]
+    return out
 
 
 def heldout_residuals(trace: Trace, pos: np.ndarray, held: np.ndarray) -> np.ndarray:
@@ -57,12 +57,7 @@ def heldout_residuals(trace: Trace, pos: np.ndarray, held: np.ndarray) -> np.nda
     clock = np.full(resid.shape, np.nan)
     for sig in np.unique(trace.signal[trace.mask]):
         of_sig = trace.signal == sig
-        use = kept & of_sig
-        has = use.any(axis=1)
-        med = np.full(trace.n_epochs, np.nan)
-        if has.any():
-            med[has] = np.nanmedian(np.where(use[has], resid[has], np.nan), axis=1)
-        clock = np.where(of_sig, med[:, None], clock)
+        clock = np.where(of_sig, row_medians(np.where(kept & of_sig, resid, np.nan))[:, None], clock)
     score = held & trace.mask & ok[:, None] & np.isfinite(clock)
     return np.abs(resid - clock)[score]
 

@@ -125,11 +125,11 @@ def window_epochs(t: np.ndarray, window_s: float) -> int:
 
 
 def kind_scale(grad: np.ndarray, b: np.ndarray, sigma: np.ndarray, use: np.ndarray, t: np.ndarray,
-               window_s: float) -> np.ndarray:
+               window_s: float, groups: np.ndarray | None = None) -> np.ndarray:
     """(E,) the factor >= 1 on one measurement kind's sigmas at each epoch (module docstring). grad (E,S,3),
-    b (E,S), sigma (E,S), use (E,S) bool as :func:`epoch_fit`; t (E,) epoch times [s]; window_s the window's
-    full length [s]."""
-    return windowed_scale(epoch_fit(grad, b, sigma, use), window_epochs(t, window_s))
+    b (E,S), sigma (E,S), use (E,S) bool, groups (E,S) int or None as :func:`epoch_fit`; t (E,) epoch times
+    [s]; window_s the window's full length [s]."""
+    return windowed_scale(epoch_fit(grad, b, sigma, use, groups), window_epochs(t, window_s))
 
 
 def padded_rows(shape: tuple[int, int], ks: np.ndarray, ss: np.ndarray, grad: np.ndarray, b: np.ndarray
@@ -175,8 +175,7 @@ def pseudorange_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.nda
     use = inp.sel & inp.keep[:, None] & np.isfinite(trace.pr) & (inp.sigma > 0)
     rng, los = line_of_sight(trace.sat_pos, inp.init_pos)
     b = np.where(use, trace.pr - np.nan_to_num(inp.pr_bias) - rng, 0.0)
-    z = epoch_fit(-los, b, np.where(use, inp.sigma, 1.0), use, trace.signal)
-    return windowed_scale(z, window_epochs(trace.t_ms / 1000.0, window_s))
+    return kind_scale(-los, b, np.where(use, inp.sigma, 1.0), use, trace.t_ms / 1000.0, window_s, trace.signal)
 
 
 def raise_pseudorange_sigmas(trace: Trace, inp: EpochInputs, window_s: float) -> dict:
