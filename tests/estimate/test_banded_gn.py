@@ -58,6 +58,7 @@ def _cases(raw_sim, doppler_sim):
         "isb+prior cauchy": (two, two_wls, GraphConfig(), prior),
         "isb+prior huber": (two, two_wls, GraphConfig(robust="huber", prior_robust="huber"), prior),
         "random walk": (syn, solve_wls(syn), GraphConfig(motion="rw", robust="none"), None),
+        "no drift states": (two, two_wls, GraphConfig(clock_drift_states="doppler"), prior),
     }
 
 
@@ -68,7 +69,7 @@ def _inputs(trace, wls, cfg, provider):
 
 
 @pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
-                                  "random walk"])
+                                  "random walk", "no drift states"])
 def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
@@ -84,7 +85,7 @@ def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
 
 
 @pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
-                                  "random walk"])
+                                  "random walk", "no drift states"])
 def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)

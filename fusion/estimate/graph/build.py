@@ -104,8 +104,13 @@ class GraphPieces:
 
 
 def uses_drift(inp: EpochInputs) -> bool:
-    """Whether the graph has clock-drift states (it uses some Doppler)."""
-    return inp.raw is not None and inp.raw.use_drift
+    """Whether the graph has clock-drift states (GraphConfig.clock_drift_states)."""
+    return inp.use_drift
+
+
+def drift_clock_rw(inp: EpochInputs, cfg: GraphConfig) -> float:
+    """The clock's random walk [m per sqrt(s)] beside a drift state: tighter where Doppler measures the drift."""
+    return cfg.drift_clock_rw_m if inp.raw is not None and inp.raw.use_drift else cfg.drift_clock_rw_no_doppler_m
 
 
 def clocked_epochs(inp: EpochInputs, epochs: np.ndarray) -> np.ndarray:
@@ -174,8 +179,8 @@ def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: 
                    for k in starts])
     linked = js >= 0
     ks, js = ks[linked], js[linked]
-    root = np.sqrt(np.maximum(inp.clock_span_s[ks], 1e-3))
-    p.add(ks, [clock_drift_factor_ccd(int(j), int(k), float(inp.clock_span_s[k]), cfg.drift_clock_rw_m * r, lin)
+    root, rw = np.sqrt(np.maximum(inp.clock_span_s[ks], 1e-3)), drift_clock_rw(inp, cfg)
+    p.add(ks, [clock_drift_factor_ccd(int(j), int(k), float(inp.clock_span_s[k]), rw * r, lin)
                for j, k, r in zip(js, ks, root)])
     first = len(p.factors)
     p.add(ks, [drift_walk_factor_cdcd(int(j), int(k), cfg.drift_rw_mps * r, lin) for j, k, r in zip(js, ks, root)])

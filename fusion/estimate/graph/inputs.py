@@ -37,7 +37,8 @@ class EpochInputs:
     dropped: counts by reason; isb: the inter-system bias states (:class:`IsbInputs`);
     pr_bias (E,S) [m] subtracted from each pseudorange (a slot-noise provider's bias, else 0); raw: the
     Doppler and carrier factors (:class:`RawInputs`); clock_drift_mps (E,) starting drift [m/s] and
-    clock_span_s (E,) [s] along each clock link (for drift states).
+    clock_span_s (E,) [s] along each clock link (for drift states); use_drift: the clock chain has drift
+    states (GraphConfig.clock_drift_states).
     """
 
     init_pos: np.ndarray
@@ -62,6 +63,7 @@ class EpochInputs:
     clock_drift_mps: np.ndarray | None = None
     clock_span_s: np.ndarray | None = None
     odometry: OdometryFactors | None = None
+    use_drift: bool = False
 
 
 def pseudorange_gap(inp: EpochInputs) -> np.ndarray:
@@ -137,6 +139,14 @@ def learned_slot_noise(trace: Trace, got_sigma: np.ndarray | None, got_bias: np.
             ratio = np.nanmedian(np.where(use, sigma, np.nan), 1) / np.nanmedian(np.where(use, got_sigma, np.nan), 1)
         got_sigma = got_sigma * np.nan_to_num(ratio, nan=1.0)[:, None]
     return np.where(use, got_sigma, sigma), np.where(use, got_bias, 0.0), int(use.sum())
+
+
+def drift_states(raw: RawInputs | None, mode: str) -> bool:
+    """Whether the clock chain gets drift states: always, or where some Doppler is used (``mode``
+    "always" / "doppler", GraphConfig.clock_drift_states)."""
+    if mode not in ("always", "doppler"):
+        raise GeometryError(f"GraphConfig.clock_drift_states must be 'always' or 'doppler', got {mode!r}")
+    return mode == "always" or (raw is not None and raw.use_drift)
 
 
 def initial_clocks(wls: WlsResult, wls_ok: np.ndarray, resid: np.ndarray) -> np.ndarray:
@@ -227,6 +237,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
                       raw=trace_raw_inputs(trace, init_pos, elev_mask_deg, sel.any(axis=1), chain.link, cfg,
                                            cfg.use_doppler, cfg.use_carrier),
                       clock_drift_mps=chain.drift_mps, clock_span_s=chain.span_s)
+    inp.use_drift = drift_states(inp.raw, cfg.clock_drift_states)
     if inp.raw is not None:
         inp.dropped.update(inp.raw.counts)
         if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():

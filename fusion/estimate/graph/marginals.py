@@ -73,9 +73,20 @@ def _column_order(result: gtsam.Values) -> tuple[np.ndarray, np.ndarray, int]:
     return col, new_start, int(dim[local].sum())
 
 
+def _present_columns(gfg: gtsam.GaussianFactorGraph, result: gtsam.Values, key_start: dict) -> np.ndarray:
+    """(m,) the time-ordered column of each column of ``gfg``'s ``sparseJacobian_``, whose columns are the
+    keys ``gfg`` holds in increasing order: a variable that only dense factors hold (the last drift state of a
+    chain without Doppler) is not among them, and every later column would shift."""
+    dims = result.dims()
+    held = gfg.keys()               # iterating a temporary KeySet outlives it in GTSAM's binding and hangs
+    present = sorted(int(k) for k in list(held))
+    return np.concatenate([key_start[k] + np.arange(dims[k]) for k in present])
+
+
 def _jacobian_pairs(gfg: gtsam.GaussianFactorGraph, col: np.ndarray):
     """Entries of ``A^T A`` (lower triangle of the new column order, duplicates to be summed) of the
-    Jacobian factors of ``gfg``: rows (P,), cols (P,), values (P,)."""
+    Jacobian factors of ``gfg``: rows (P,), cols (P,), values (P,); col (m,) the new column of each of its
+    ``sparseJacobian_`` columns (:func:`_present_columns`)."""
     try:
         i, j, v = gfg.sparseJacobian_()
     except RuntimeError as exc:
@@ -127,9 +138,10 @@ def chain_marginals(graph: gtsam.NonlinearFactorGraph, result: gtsam.Values, epo
             jac.remove(int(i))
     else:
         jac = graph
-    r, c, h = _jacobian_pairs(jac.linearize(result), col)
+    start = dict(zip((int(k) for k in keys), new_start))
+    gfg = jac.linearize(result)
+    r, c, h = _jacobian_pairs(gfg, _present_columns(gfg, result, start))
     if len(dense):
-        start = dict(zip((int(k) for k in keys), new_start))
         r2, c2, h2 = _dense_pairs(graph, result, dense, start)
         r, c, h = np.r_[r, r2], np.r_[c, c2], np.r_[h, h2]
     p0 = new_start[np.searchsorted(keys, np.array([pos_key(int(k)) for k in epochs], dtype=np.uint64))]

@@ -25,7 +25,7 @@ MIN_TDCP_SATS = 5
 @dataclass
 class RawInputs:
     """E epochs, S slots. doppler (E,S) bool slots with a Doppler factor; prr_sigma (E,S) [m/s];
-    use_drift: clock-drift states in the clock chain (some Doppler is used); tdcp_prev (E,S) int: the
+    use_drift: some Doppler is used (its clock chain needs drift states); tdcp_prev (E,S) int: the
     slot of epoch k-1 whose carrier phase is differenced with slot s of epoch k (-1: none);
     tdcp_sigma (E,S) [m]; counts: factors used and measurements left out, by reason; lin_pos (E,3) the
     positions the carrier factors are linearised at (None: the graph's initial positions); prr_bias

@@ -19,7 +19,7 @@ import gtsam
 import numpy as np
 
 from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
-from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, uses_drift
+from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, uses_drift
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import range_and_gradient
 from fusion.estimate.graph.inputs import EpochInputs, motion_only
@@ -206,7 +206,7 @@ def clock_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.nda
     root = np.sqrt(np.maximum(inp.clock_span_s[k], 1e-3))
     a = inp.clock_span_s[k] / H
     out.append(scalar_blocks(np.stack([c[k], c[j], d[j]], 1), np.stack([np.ones_like(a), a - 1.0, -a], 1),
-                             np.zeros(len(k)), cfg.drift_clock_rw_m * root))
+                             np.zeros(len(k)), drift_clock_rw(inp, cfg) * root))
     out.append(scalar_blocks(np.stack([d[k], c[k], d[j], c[j]], 1), np.tile([1.0, -1.0, -1.0, 1.0], (len(k), 1)),
                              np.zeros(len(k)), cfg.drift_rw_mps * root * H))
     return out
