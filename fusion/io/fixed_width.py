@@ -227,3 +227,12 @@ def parse_int_text(text: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
         ok &= ~bad_slow
         value[~ok] = 0
     return value, empty, ~ok & ~empty
+
+
+def cut_inside_a_number(length: int, first_col: int, field: int = 16, number: int = 14) -> bool:
+    """Whether a line of ``length`` characters whose fields of ``field`` characters (a ``number``-wide value,
+    then flags) start at ``first_col`` ends inside a value: a file's last line without a newline may have been
+    cut there, and the cut value would still parse, wrongly. A line ending at a field's edge or after a
+    value is complete as far as it goes (writers trim blank trailing fields and flags)."""
+    into = (length - first_col) % field
+    return length > first_col and 0 < into < number

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import DataError
-from fusion.io.fixed_width import char_matrix, gather_fields, line_bounds
+from fusion.io.fixed_width import char_matrix, cut_inside_a_number, gather_fields, line_bounds
 from fusion.trace import count_skip
 
 _PER_LINE_SATS = 12
@@ -51,7 +51,8 @@ def walk_records(body: np.ndarray, n_types: int, first_line_no: int, path: Path,
             continue
         n_list = max(1, -(-n // _PER_LINE_SATS))
         size = n_list + n * per_sat
-        if i + size > n_lines or (i + size == n_lines and body[-1] != 10):
+        if i + size > n_lines or (i + size == n_lines and body[-1] != 10
+                                  and cut_inside_a_number(int(ends[-1] - starts[-1]), 0)):
             warnings.warn(f"{path}:{first_line_no + i}: last epoch record is truncated; skipped", stacklevel=4)
             count_skip(skipped, "records_truncated", 1)
             break

@@ -28,8 +28,8 @@ import numpy as np
 import pandas as pd
 
 from fusion.errors import DataError
-from fusion.io.fixed_width import (char_matrix, gather_fields, line_bounds, parse_decimal, parse_float,
-                                   parse_float_columns, parse_int)
+from fusion.io.fixed_width import (char_matrix, cut_inside_a_number, gather_fields, line_bounds, parse_decimal,
+                                   parse_float, parse_float_columns, parse_int)
 from fusion.io.rinex2_obs import satellite_fields, walk_records
 from fusion.io.text_open import read_bytes
 from fusion.io.nav_records import SLOT_CHANNEL
@@ -192,10 +192,8 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     t_ns, flag, n_sat = epoch_fields(char_matrix(body, starts[e_line], ends[e_line], 35), head, path, line_no)
     n_lines = np.diff(np.append(e_line, starts.size)) - 1
     _trim_trailing_blank(n_lines, starts, ends)
-    if body[-1] != 10 and n_lines[-1] > 0:
-        # No final newline: the last line may be cut inside a number, which would still parse
-        # (to a wrong value), so its record counts as truncated.
-        n_lines[-1] -= 1
+    if body[-1] != 10 and n_lines[-1] > 0 and cut_inside_a_number(int(ends[-1] - starts[-1]), 3):
+        n_lines[-1] -= 1              # the record then counts as truncated
     event = (flag >= 2) & (flag <= 6)
     count_skip(skipped, "event_records", (flag >= 2) & (flag <= 5))
     count_skip(skipped, "cycle_slip_records", flag == 6)

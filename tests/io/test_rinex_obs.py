@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import gzip
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -176,6 +177,29 @@ def test_cut_inside_last_line_is_truncated_not_misread(tmp_path):
     with pytest.warns(UserWarning, match="truncated"):
         raw = read_rinex_obs(_write(tmp_path, cut))
     assert raw.skipped["records_truncated"] == 1 and raw.n_epochs == 4
+
+
+def test_a_complete_last_line_without_a_newline_is_kept(tmp_path):
+    """Many writers end the file without a newline: a last line that ends at a field's edge or after a value
+    is read (RINEX 3 and 2), one that ends inside a value is not (the test above)."""
+    ref = read_rinex_obs(FIXTURE)
+    for name, text in (("x.21o", FIXTURE.read_text()), ("v2.21o", _to_v2(FIXTURE.read_text()))):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            raw = read_rinex_obs(_write(tmp_path, text.rstrip("\n"), name))
+        assert raw.frame.equals(ref.frame) and raw.skipped == ref.skipped
+
+
+def test_published_mixed_types_sample_keeps_its_last_epoch(shared_data):
+    path = shared_data / "android_samples" / "rinex_obs_mixed_types.20o"
+    assert path.read_bytes()[-1:] != b"\n"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        raw = read_rinex_obs(path)
+    assert raw.n_epochs == 5 and "records_truncated" not in raw.skipped
+    last = raw.frame[raw.frame.t_ns == raw.frame.t_ns.max()]
+    e30 = last[(last.const == "E") & (last.svid == 30)]       # the last line, with its two signals
+    assert len(e30) == 2 and e30.pr_m.notna().all()
 
 
 def test_glonass_channels_fill_missing_header_slots(tmp_path):
