@@ -114,6 +114,12 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
         _warn_without_navigation(raw, f["const"].to_numpy(object)[~keep], nav, precise)
     else:
         count_skip(skipped, "rows_signal_not_selected", ~keep)
+        # a chosen signal of a constellation the navigation lacks: said as such, not as a file of the wrong day
+        letters = f["const"].to_numpy(object)
+        bare = keep & ~np.isin(letters.astype(str), sorted(_systems(nav, precise)))
+        count_skip(skipped, "rows_constellation_without_navigation", bare)
+        _warn_without_navigation(raw, letters[bare], nav, precise)
+        keep = keep & ~bare
     pr = f["pr_m"].to_numpy()
     good = np.isfinite(pr) & (pr > _PR_RANGE_M[0]) & (pr < _PR_RANGE_M[1])
     count_skip(skipped, "rows_no_pseudorange", keep & ~good)
@@ -123,7 +129,7 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
     rows = f[keep & good & known].reset_index(drop=True)
     if rows.empty:
         raise DataError(f"{raw.path}: no pseudorange of signal(s) {', '.join(names)} "
-                        f"(navigation covers {', '.join(sorted(_systems(nav, precise)))})")
+                        f"(navigation covers {', '.join(SYSTEM_NAMES.get(x, x) for x in sorted(_systems(nav, precise)))})")
     return rows
 
 

@@ -84,7 +84,7 @@ def test_exact_pseudoranges_give_geometry_plus_clock(nav, rx_clock_m):
     finally:
         nav.klobuchar = klob
     m = tr.mask[0]
-    assert m.sum() == len(prns) and tr.skipped == {"rows_no_ephemeris": 1}
+    assert m.sum() == len(prns) and tr.skipped == {"rows_constellation_without_navigation": 1}
     rng, _ = line_of_sight(tr.sat_pos[0][m], P5_START)
     from fusion.nav.atmosphere import tropo_delay
     from fusion.geometry import ecef2geodetic, elevation_azimuth
@@ -129,6 +129,13 @@ def test_default_signals_follow_navigation(nav):
     assert tr.skipped == {"rows_constellation_without_navigation": 2} and tr.mask.sum() == len(prns)
     with pytest.raises(DataError, match="no pseudorange of signal"):
         raw_to_trace(raw, nav, signals=["BDS_B1I"])
+    # a chosen signal of a constellation the navigation lacks: that is what the user hears, not a wrong day
+    with pytest.warns(UserWarning, match=r"no navigation for Galileo \(2 measurements\)"):
+        with pytest.raises(DataError, match=r"no pseudorange of signal\(s\) GAL_E1 \(navigation covers GPS\)"):
+            raw_to_trace(raw, nav, signals=["GAL_E1"])
+    with pytest.warns(UserWarning, match=r"no navigation for Galileo \(2 measurements\)"):
+        tr = raw_to_trace(raw, nav, signals=["GPS_L1", "GAL_E1"])
+    assert tr.skipped["rows_constellation_without_navigation"] == 2 and tr.mask.sum() == len(prns)
     with pytest.raises(DataError, match="no navigation data"):
         raw_to_trace(raw, None)
     late, _ = _synthetic(nav, P5_START, t, prns)
