@@ -12,7 +12,7 @@ from pathlib import Path
 
 from dataclasses import replace
 
-from fusion.errors import GnssfuseError
+from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.graph.config import GraphConfig, load_graph_config
 from fusion.run_types import RunOptions
 from fusion.trace import SIGNALS, resolve_signals
@@ -104,6 +104,10 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
         raise GnssfuseError("--dnn-passes must be >= 1")
     if args.clk is not None and args.sp3 is None:
         raise GnssfuseError("--clk needs --sp3 (precise clocks go with precise orbits)")
+    for flag, paths in (("--nav", args.nav), ("--sp3", [args.sp3]), ("--clk", [args.clk])):
+        for path in (p for p in paths if p is not None):
+            if not Path(path).is_file():        # checked here: a trace that needs none would ignore it
+                raise DataError(f"{path}: {flag} file not found")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,

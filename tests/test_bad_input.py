@@ -147,6 +147,32 @@ def test_corrupt_nav_file(tmp_path, capsys, content, message):
     _one_line_error(capsys, nav, message)
 
 
+def test_a_missing_navigation_file_is_named_even_where_no_navigation_is_needed(clean, tmp_path, capsys):
+    rows, truth, _, _ = clean
+    d = _write_trace(tmp_path, rows, truth)
+    assert _run(d, tmp_path / "o", "--nav", str(tmp_path / "nope.21n")) == 2
+    _one_line_error(capsys, tmp_path / "nope.21n", "--nav file not found")
+
+
+@pytest.mark.parametrize("content, message", [(b"", "(the file is empty)"), (b"hello\n", "reads: a GSDC")])
+def test_a_file_that_is_no_measurement_file_is_not_called_a_gsdc_file(tmp_path, capsys, content, message):
+    f = tmp_path / "x.21o"
+    f.write_bytes(content)
+    assert _run(f, tmp_path / "o") == 2
+    err = _one_line_error(capsys, f, "not a measurement file gnssfuse reads", message)
+    assert "derived file is" not in err
+
+
+def test_a_log_without_measurements_says_so_before_asking_for_navigation(tmp_path, capsys):
+    d = tmp_path / "drive" / "phone"
+    d.mkdir(parents=True)
+    (d / "gnss_log.txt").write_text("# Header Description:\n#\n# Fix,Provider,LatitudeDegrees\n"
+                                    "Fix,gps,37.4,-122.1\n")
+    assert _run(d, tmp_path / "o") == 2
+    err = _one_line_error(capsys, d / "gnss_log.txt", "Raw,")
+    assert "navigation" not in err
+
+
 # ---------------------------------------------------------------------------- kept: the good part, counted
 def test_non_numeric_and_nan_values_skip_their_rows(clean, tmp_path):
     rows, truth, ref, _ = clean

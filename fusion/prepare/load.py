@@ -67,6 +67,11 @@ def _locate(path: Path) -> tuple[Path, Path, bool]:
                             f"pass one of them")
         return files[0], path, True
     if path.is_file():
+        stem = _csv_name(path)
+        if "_derived" not in stem and stem != "device_gnss":     # raw logs were recognised by content before
+            empty = " (the file is empty)" if path.stat().st_size == 0 else ""
+            raise DataError(f"{path}: not a measurement file gnssfuse reads{empty}: a GSDC *_derived.csv[.gz] or "
+                            "device_gnss.csv[.gz], a RINEX observation file or a GnssLogger log")
         return path, path.parent, len(_measurement_files(path.parent)) == 1
     raise DataError(f"{path}: no such trace folder or file")
 

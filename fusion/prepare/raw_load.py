@@ -128,7 +128,11 @@ def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, tr
     """Read ``log``, compute satellite states from the navigation, attach interpolated truth."""
     from fusion.prepare.raw_trace import raw_to_trace
 
-    nav, precise = _navigation(folder, src)
+    try:
+        nav, precise = _navigation(folder, src)
+    except DataError:
+        read_raw(log, None)         # a log with nothing to solve says so before asking for navigation
+        raise
     raw = read_raw(log, nav.glonass_channels() if nav is not None else None)
     trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats, iono_free=src.iono_free,
                          name=name or f"{folder.parent.name}/{folder.name}")
