@@ -140,9 +140,9 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     the same as with one process.
     """
     check_modes(modes)
-    missing = [str(d) for d in trace_dirs if not Path(d).is_dir()]
+    missing = [str(d) for d in trace_dirs if not Path(d).exists()]      # a folder, or a log / file in one
     if missing:
-        raise DataError(f"trace folder(s) not found: {', '.join(missing)}")
+        raise DataError(f"trace folder(s) or file(s) not found: {', '.join(missing)}")
     if max_epochs is not None and max_epochs < 1:
         raise GnssfuseError("--max-epochs must be >= 1")
     check_pace(jobs, scheduler)

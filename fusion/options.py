@@ -20,7 +20,8 @@ from fusion.trace import SIGNALS, resolve_signals
 
 #: What a trace folder may hold (the positional argument of ``run`` and ``evaluate``).
 TRACE_DIR_HELP = ("a <collection>/<phone> folder (GSDC 2021 derived, 2022/23 device_gnss, or a RINEX "
-                  "observation file / GnssLogger log, directly or in supplemental/)")
+                  "observation file / GnssLogger log, directly or in supplemental/; a smartLoc drive folder), "
+                  "or one such file")
 
 
 def add_nav_options(p: argparse.ArgumentParser) -> None:

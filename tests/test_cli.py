@@ -144,6 +144,14 @@ def test_skip_counts_print_as_words():
         "84 conflicting duplicate rows, 2 rows nonnumeric (rawPrM)"
 
 
+def test_evaluate_takes_a_measurement_file_as_run_does(shipped_trace_dir, tmp_path, capsys):
+    f = shipped_trace_dir / "Pixel4_derived.csv.gz"
+    assert main(["evaluate", str(f), "--modes", "wls", "--max-epochs", "30", "--out", str(tmp_path / "r")]) == 0
+    assert "2021-04-28-US-MTV-1/Pixel4" in (tmp_path / "r" / "metrics.csv").read_text()
+    assert main(["evaluate", str(tmp_path / "nope"), "--modes", "wls", "--out", str(tmp_path / "r2")]) == 2
+    assert "trace folder(s) or file(s) not found" in capsys.readouterr().err
+
+
 def test_no_escape_codes_when_stderr_is_not_a_terminal(shipped_trace_dir, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "fusion.cli", "evaluate", str(shipped_trace_dir), "--modes", "wls",
                            "--max-epochs", "30", "--out", str(tmp_path / "r")], capture_output=True, text=True)
