@@ -180,6 +180,16 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "5 with inputs outside the training range and 9 of constellations it never saw" in text
 
 
+def test_incremental_runs_say_they_have_no_covariance(shipped_trace_dir, tmp_path, capsys):
+    """ISAM2 computes no marginals: the run says so instead of silently leaving the sigmas out."""
+    out = tmp_path / "inc"
+    assert main(["run", str(shipped_trace_dir), "--mode", "fused-nodnn", "--incremental", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "no covariance from this run" in printed and "within" not in printed
+    assert json.loads((out / "metrics.json").read_text())["covariance"] is False
+    assert "sigma_n_m" not in (out / "estimates.csv").read_text().splitlines()[0]
+
+
 def test_the_report_says_per_mode_what_the_learned_parts_and_the_motion_model_did():
     import numpy as np
 

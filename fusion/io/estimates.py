@@ -85,7 +85,7 @@ def run_record(trace: Trace, mode: str, result: ModeResult, metrics: dict | None
         "trace": trace.name, "mode": mode, "epochs_total": trace.n_epochs,
         "epochs_solved": int(result.valid.sum()), "skipped": dict(trace.skipped),
         "info": {k: v for k, v in result.info.items() if isinstance(v, (int, float, str, bool))},
-        "metrics": metrics,
+        "metrics": metrics, "covariance": result.cov is not None,
     }
 
 
