@@ -66,11 +66,11 @@ class SigmaCalibration:
 #: (pooled, unseen-drive) calibration.
 DEFAULTS: dict[str, SigmaCalibration] = {
     "wls": SigmaCalibration(a=(1.0631, 1.0673, 1.1816), b=1.5, window_s=15.0, snapshot=0.3),
-    "dnn": SigmaCalibration(a=(1.4514, 1.365, 1.8363), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+    "dnn": SigmaCalibration(a=(1.448, 1.3579, 1.8361), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
                             snapshot=0.3),
-    "fused-nodnn": SigmaCalibration(a=(1.1824, 1.4629, 1.3158), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
+    "fused-nodnn": SigmaCalibration(a=(1.1825, 1.4571, 1.8144), b=1.5, floor_m=(0.0, 0.0, 1.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(0.9071, 1.0542, 0.8314), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
+    "fused": SigmaCalibration(a=(0.9067, 1.0518, 0.8317), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
 }
 
 
