@@ -70,7 +70,7 @@ DEFAULTS: dict[str, SigmaCalibration] = {
                             snapshot=0.3),
     "fused-nodnn": SigmaCalibration(a=(1.1825, 1.4571, 1.8144), b=1.5, floor_m=(0.0, 0.0, 1.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(0.9067, 1.0518, 0.8317), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
+    "fused": SigmaCalibration(a=(0.8989, 1.0404, 0.8179), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
 }
 
 
