@@ -23,7 +23,8 @@ class GraphConfig:
     # provider only reweights satellites against each other). Chosen on the tuning logs with the shipped
     # recipe's fold networks: GSDC two-fold cross-validation pooled fused 3.77 -> 3.76 m (AB 3.88 both, CD
     # 3.60 -> 3.58), smartLoc fused 28.84 -> 28.12 / 33.73 -> 33.48 m with the two fold networks, 31.62 ->
-    # 31.08 m with the shipped one (experiments/results/crossval_v3.md).
+    # 31.08 m with the shipped one. With smartLoc's vehicle odometry (off where phones are compared) it is
+    # mixed: 12.70 -> 12.65 / 15.84 -> 16.26 m, shipped 14.64 -> 15.08 m (experiments/results/crossval_v3.md).
     slot_noise_level: str = "absolute"
     robust: str = "cauchy"             # "huber", "cauchy" or "none"
     robust_k: float = 2.0              # scale on the whitened residual
