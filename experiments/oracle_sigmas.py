@@ -2,8 +2,8 @@
 follow? An experiment with truth-derived ("oracle") sigmas: never a model input, never at inference.
 
 Per GSDC training drive, ``fused-nodnn`` with the physical sigma model, and with slot sigmas
-``sqrt(phys^2 + x^2)`` (the graph's "relative" level: satellites reweighted against each other within an
-epoch) where x is:
+``sqrt(phys^2 + x^2)`` at the "relative" level (``GraphConfig.slot_noise_level``: satellites reweighted against
+each other within an epoch, the level held at the physical model's, so only who is trusted changes) where x is:
 
 - ``oracle |e|``: each pseudorange's error at the truth (clock removed: the epoch's median), what a perfect
   per-satellite head would know;
@@ -25,6 +25,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from fusion.estimate.graph.config import GraphConfig  # noqa: E402
 from fusion.estimate.graph.consistency import row_medians  # noqa: E402
 from fusion.estimate.graph.fuse import fuse  # noqa: E402
 from fusion.eval.metrics import ned_errors, summarize  # noqa: E402
@@ -65,7 +66,7 @@ def provider(extra: np.ndarray):
 
 
 def main() -> int:
-    opts = RunOptions()
+    opts = RunOptions(graph=GraphConfig(slot_noise_level="relative"))
     rows = []
     for folder in sorted((SHARED / "gsdc2021/train").glob("2020-*/Pixel4")):
         tr = load_trace(folder)
