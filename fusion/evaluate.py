@@ -9,6 +9,7 @@ is in :mod:`fusion.eval.report`.
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -128,6 +129,20 @@ def _input_bytes(trace_dir: Path) -> int:
         return 0
 
 
+def once_each(trace_dirs: list[Path]) -> list[Path]:
+    """The traces without repeats (the same path twice, e.g. from overlapping shell globs, would count twice in
+    the ALL rows), each repeat warned about."""
+    seen, out = set(), []
+    for d in trace_dirs:
+        key = Path(d).resolve()
+        if key in seen:
+            warnings.warn(f"{d}: given more than once; evaluated once", stacklevel=3)
+            continue
+        seen.add(key)
+        out.append(d)
+    return out
+
+
 def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
              max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
              argv: list[str] | None = None, jobs: int = 1,
@@ -143,6 +158,7 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     missing = [str(d) for d in trace_dirs if not Path(d).exists()]      # a folder, or a log / file in one
     if missing:
         raise DataError(f"trace folder(s) or file(s) not found: {', '.join(missing)}")
+    trace_dirs = once_each(trace_dirs)
     if max_epochs is not None and max_epochs < 1:
         raise GnssfuseError("--max-epochs must be >= 1")
     check_pace(jobs, scheduler)

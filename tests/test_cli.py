@@ -152,6 +152,21 @@ def test_evaluate_takes_a_measurement_file_as_run_does(shipped_trace_dir, tmp_pa
     assert "trace folder(s) or file(s) not found" in capsys.readouterr().err
 
 
+def test_a_trace_given_twice_is_evaluated_once(shipped_trace_dir, tmp_path):
+    twice = [str(shipped_trace_dir), str(shipped_trace_dir) + "/"]
+    with pytest.warns(UserWarning, match="given more than once; evaluated once"):
+        assert main(["evaluate", *twice, "--modes", "wls", "--max-epochs", "30", "--out", str(tmp_path / "r")]) == 0
+    rows = [l for l in (tmp_path / "r" / "metrics.csv").read_text().splitlines() if "2021-04-28-US-MTV-1/Pixel4" in l]
+    assert len(rows) == 1
+
+
+def test_a_relative_trace_folder_is_named_after_its_collection(shipped_trace_dir, monkeypatch):
+    from fusion.prepare.load import trace_name
+
+    monkeypatch.chdir(shipped_trace_dir)
+    assert trace_name(".") == "2021-04-28-US-MTV-1/Pixel4"
+
+
 def test_no_escape_codes_when_stderr_is_not_a_terminal(shipped_trace_dir, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "fusion.cli", "evaluate", str(shipped_trace_dir), "--modes", "wls",
                            "--max-epochs", "30", "--out", str(tmp_path / "r")], capture_output=True, text=True)

@@ -61,7 +61,8 @@ def _locate(path: Path) -> tuple[Path, Path, bool]:
         files = _measurement_files(path)
         if not files:
             raise DataError(f"{path}: no *_derived.csv[.gz] or device_gnss.csv[.gz] measurement file, "
-                            "RINEX observation file or GnssLogger log (also looked in supplemental/)")
+                            "RINEX observation file or GnssLogger log (also looked in supplemental/), "
+                            "nor a smartLoc <drive>_Input.txt")
         if len(files) > 1:
             raise DataError(f"{path}: several measurement files ({', '.join(p.name for p in files)}); "
                             f"pass one of them")
@@ -77,6 +78,7 @@ def _locate(path: Path) -> tuple[Path, Path, bool]:
 
 
 def _name(meas: Path, folder: Path, single: bool) -> str:
+    folder = folder.resolve()                 # a relative "phone" or "." still names its collection
     return f"{folder.parent.name}/{folder.name}" if single else f"{folder.name}/{_csv_name(meas)}"
 
 

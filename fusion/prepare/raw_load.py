@@ -135,7 +135,7 @@ def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, tr
         raise
     raw = read_raw(log, nav.glonass_channels() if nav is not None else None)
     trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats, iono_free=src.iono_free,
-                         name=name or f"{folder.parent.name}/{folder.name}")
+                         name=name or f"{folder.resolve().parent.name}/{folder.resolve().name}")
     del raw     # the raw rows' memory serves the truth reader (fresh pages are slow to touch)
     if truth != "none":
         trace.truth = _truth(folder, trace, truth, fix_truth_height)
