@@ -17,8 +17,8 @@ def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
     p.add_argument("trace_dir", type=Path, help=TRACE_DIR_HELP)
     p.add_argument("--mode", default="wls", choices=list(MODES), help="estimator (default wls)")
     p.add_argument("--out", type=Path, required=True, help="output folder (created if missing)")
-    p.add_argument("--export", default=None, metavar="FORMATS",
-                   help=f"also write OUT/estimates.<format> for each of these, comma-separated: "
+    p.add_argument("--export", action="append", default=None, metavar="FORMATS",
+                   help=f"also write OUT/estimates.<format> for each of these, comma-separated (or --export again): "
                         f"{','.join(WRITERS)} (GPX track, KML line + placemarks, NMEA GGA/RMC, RTKLIB .pos)")
     add_run_options(p)
     return p
@@ -34,7 +34,7 @@ def main(argv: list[str], prog: str = "gnssfuse run") -> int:
 
     args = build_parser(prog).parse_args(argv)
     opts = options_from_args(args)
-    formats = parse_formats(args.export) if args.export is not None else ()
+    formats = parse_formats(",".join(args.export)) if args.export is not None else ()
     out = out_folder(args.out)
     # min_sats=1: keep epochs with 1-3 satellites; WLS/dnn leave them unsolved (counted in info),
     # the fused modes carry them with the prior and the motion model

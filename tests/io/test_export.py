@@ -180,6 +180,13 @@ def test_run_export_on_the_shipped_trace(shipped_trace_dir, tmp_path, capsys):
     assert "ellipsoidal" in capsys.readouterr().out
 
 
+def test_export_given_twice_writes_both(shipped_trace_dir, tmp_path):
+    out = tmp_path / "twice"
+    assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--out", str(out), "--export", "gpx",
+                 "--export", "pos"]) == 0
+    assert (out / "estimates.gpx").is_file() and (out / "estimates.pos").is_file()
+
+
 def test_run_export_unknown_format_is_one_line(shipped_trace_dir, tmp_path, capsys):
     assert main(["run", str(shipped_trace_dir), "--out", str(tmp_path / "o"), "--export", "shp"]) == 2
     err = capsys.readouterr().err
