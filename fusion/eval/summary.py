@@ -73,6 +73,9 @@ def run_summary(record: dict) -> str:
                      + " / ".join(f"{m[f'within1sigma_{a}']:.2f}" for a in "ned") + " (a Gaussian: 0.68)")
     if record.get("covariance") is False:
         lines.append("no covariance from this run (--incremental computes no marginals): estimates.csv has no "
-                     "sigma columns, and a .pos export writes 0 for them, RTKLIB's 'unknown'")
+                     "sigma columns, and a .pos export writes 0 for them, RTKLIB's 'unknown'"
+                     if record["info"].get("incremental") else
+                     "no covariance from this run: estimates.csv has no sigma columns, and a .pos export writes 0 "
+                     "for them, RTKLIB's 'unknown'")
     lines.append(DATUM)
     return "\n".join(lines)

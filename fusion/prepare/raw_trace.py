@@ -128,8 +128,8 @@ def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) ->
     count_skip(skipped, "rows_unknown_carrier_frequency", keep & good & ~known)
     rows = f[keep & good & known].reset_index(drop=True)
     if rows.empty:
-        raise DataError(f"{raw.path}: no pseudorange of signal(s) {', '.join(names)} "
-                        f"(navigation covers {', '.join(SYSTEM_NAMES.get(x, x) for x in sorted(_systems(nav, precise)))})")
+        have = ", ".join(SYSTEM_NAMES.get(x, x) for x in sorted(_systems(nav, precise)))
+        raise DataError(f"{raw.path}: no pseudorange of signal(s) {', '.join(names)} (navigation covers {have})")
     return rows
 
 
