@@ -200,7 +200,7 @@ def test_incremental_runs_say_they_have_no_covariance(shipped_trace_dir, tmp_pat
     out = tmp_path / "inc"
     assert main(["run", str(shipped_trace_dir), "--mode", "fused-nodnn", "--incremental", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "no covariance from this run" in printed and "within" not in printed
+    assert "no covariance from this run (--incremental computes no marginals)" in printed and "within" not in printed
     assert json.loads((out / "metrics.json").read_text())["covariance"] is False
     assert "sigma_n_m" not in (out / "estimates.csv").read_text().splitlines()[0]
 

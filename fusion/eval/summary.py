@@ -74,7 +74,7 @@ def run_summary(record: dict) -> str:
     if record.get("covariance") is False:
         lines.append("no covariance from this run (--incremental computes no marginals): estimates.csv has no "
                      "sigma columns, and a .pos export writes 0 for them, RTKLIB's 'unknown'"
-                     if record["info"].get("incremental") else
+                     if "incremental_s" in record["info"] else
                      "no covariance from this run: estimates.csv has no sigma columns, and a .pos export writes 0 "
                      "for them, RTKLIB's 'unknown'")
     lines.append(DATUM)
