@@ -156,10 +156,11 @@ class GraphConfig:
     # The calibrated covariance of a bridged epoch without Doppler (fewer than 4 satellites, no prior, no
     # Doppler: the motion model alone carries it) is multiplied by this squared: the 68th percentile of
     # |error| / sigma there on the twelve GSDC training drives thinned to 3 satellites in 120 s of every 180 s,
-    # with bridged_accel_scale and the clock-drift states below (1.00: 0.26-0.91 of errors within 1 sigma per
-    # drive and axis; 1.46, held out per drive: 0.39-0.97, 2 of 12 drives within 0.55-0.80 on every axis;
-    # 1.72 before the drift states; experiments/results/few_satellites.md).
-    bridged_sigma_scale: float = 1.46
+    # with bridged_accel_scale, the clock-drift states below and fused-nodnn's calibration refitted with them
+    # (1.00: 0.26-0.93 of errors within 1 sigma per drive and axis; 1.41, held out per drive: 0.37-0.98, 1 of 12
+    # drives within 0.55-0.80 on every axis, several within 0.02 of it; 1.72 before the drift states, 4 of 12;
+    # experiments/results/few_satellites.md).
+    bridged_sigma_scale: float = 1.41
     # The constant-velocity model's velocity random walk into an epoch only the motion model places (fewer than
     # 4 satellites, no prior, no Doppler) is this times cv_accel_h / cv_accel_v: there nothing measures the
     # velocity, and a looser walk lets the few pseudoranges left, with a clock interpolated across the gap,
