@@ -4,6 +4,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import re
+import shutil
 import sys
 import types
 from pathlib import Path
@@ -151,9 +152,12 @@ def test_a_pooled_figure_that_fails_is_a_warning_not_a_lost_report(tmp_path, shi
 
     monkeypatch.setitem(report.POOLED, "box", broken)
     out = tmp_path / "out"
+    d = _need(shipped_trace_dir)
+    copy = tmp_path / "2021-04-28-US-MTV-1-copy" / "Pixel4"       # pooled figures need two traces
+    shutil.copytree(d, copy)
     with pytest.warns(UserWarning, match=r"all_box\.png: not drawn: RuntimeError: no room to draw"):
-        d = str(_need(shipped_trace_dir))          # twice: pooled figures need two traces
-        rc = cli.main(["evaluate", d, d, "--modes", "wls", "--out", str(out), "--max-epochs", "100", "--no-progress"])
+        rc = cli.main(["evaluate", str(d), str(copy), "--modes", "wls", "--out", str(out), "--max-epochs", "100",
+                       "--no-progress"])
     assert rc == 0
     assert (out / "figures" / "all_cdf.png").is_file() and not (out / "figures" / "all_box.png").exists()
     assert "all_cdf.png" in (out / "report.md").read_text()
