@@ -6,7 +6,7 @@ without a tighter velocity walk into the epochs only the motion model places (br
 the shipped settings. With ``--sim DIR`` (the simulated city traces of experiments/sim_city_traces.py,
 which have Doppler), whether the tighter walk pays also where Doppler measures the velocity.
 
-    GNSSFUSE_SHARED_DATA=../shared/data python experiments/few_satellites_models.py    # ~3 min
+    GNSSFUSE_SHARED_DATA=../shared/data python experiments/few_satellites_models.py    # ~7 min
     python experiments/few_satellites_models.py --sim /tmp/sim                        # ~30 s
 """
 from __future__ import annotations
