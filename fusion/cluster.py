@@ -20,7 +20,7 @@ from collections.abc import Callable, Sequence
 from tqdm import tqdm
 
 from fusion.errors import GnssfuseError
-from fusion.parallel import _one_thread, failure, guarded, one_line
+from fusion.parallel import _one_thread, failure, guarded, one_line, plain_warnings
 
 
 class ClusterError(GnssfuseError):
@@ -67,6 +67,7 @@ def check_environment(client, address: str) -> None:
 def _on_worker(func: Callable, a: tuple):
     """On a Dask worker: ``func(*a)`` with one BLAS/torch thread, an exception becoming its failure line."""
     _one_thread()
+    plain_warnings()
     return guarded(func, *a)
 
 

@@ -22,6 +22,7 @@ import os
 import sys
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import wait
 
@@ -40,6 +41,11 @@ def _one_thread() -> None:
         os.environ[var] = "1"
     if "torch" in sys.modules:  # pragma: no cover - not in a spawned worker, but cheap to be sure
         sys.modules["torch"].set_num_threads(1)
+
+
+def plain_warnings() -> None:
+    """In a worker: warnings as the command prints its own, one line without Python's source location."""
+    warnings.formatwarning = lambda message, *args, **kwargs: f"gnssfuse: warning: {message}\n"
 
 
 def check_pace(jobs: int, scheduler: str | None) -> None:
@@ -208,6 +214,7 @@ def _reap(procs: list) -> None:
 def _child(func: Callable, a: tuple, pipe) -> None:
     """In the child: ``func(*a)`` with one thread, its result (or failure line) sent on ``pipe``."""
     _one_thread()
+    plain_warnings()
     result = guarded(func, *a)
     try:
         pipe.send(result)

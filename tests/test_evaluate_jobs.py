@@ -73,6 +73,18 @@ def test_a_dying_worker_costs_only_its_own_call():
         assert [out[i] for i in (0, 1, 4, 5)] == [0, 10, 40, 50]
 
 
+def _warning_line(x: int) -> str:
+    import warnings
+    return warnings.formatwarning(f"trace {x}: something to say", UserWarning, "somewhere.py", 7)
+
+
+def test_a_workers_warning_is_one_plain_line():
+    """Workers print warnings as the command does (their stderr is the forkserver's, so the line is
+    checked where it is made)."""
+    assert map_traces(_warning_line, [(1,), (2,)], jobs=2) == [f"gnssfuse: warning: trace {x}: something to say\n"
+                                                                 for x in (1, 2)]
+
+
 def _started_at(x: int) -> tuple[int, int]:
     t = time.monotonic_ns()     # one clock for all processes of the machine
     time.sleep(0.5)
