@@ -79,6 +79,9 @@ class Navigation:
     skipped: dict[str, int] = field(default_factory=dict)
     #: file -> constellation letters it has records of (what each file covers, for the user)
     file_systems: dict[str, set[str]] = field(default_factory=dict)
+    #: file -> (first, last) record reference time [ms, its systems' own times: to the minute] (which day a
+    #: file is of, when several were given)
+    file_spans: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     def systems(self) -> set[str]:
         """Constellation letters with at least one record."""
@@ -335,11 +338,14 @@ def read_nav(paths: str | Path | list) -> Navigation:
     recs: list = []
     klob = leap = None
     file_systems: dict[str, set[str]] = {}
+    file_spans: dict[str, tuple[int, int]] = {}
     for path in paths:
         lines = _read_lines(path)
         head = _header(lines, path)
         mine = _records(lines, head, path, skipped)
         file_systems[str(path)] = {r[0] for r in mine}
+        if mine:
+            file_spans[str(path)] = (min(r[2] for r in mine), max(r[2] for r in mine))
         recs += mine
         klob = klob if klob is not None else head.klobuchar
         leap = leap if leap is not None else head.leap_s
@@ -349,7 +355,7 @@ def read_nav(paths: str | Path | list) -> Navigation:
     glo_leap = leap if leap is not None else _leap_at_gps_ms(min(r[2] for r in recs))
     return Navigation(kepler=_kepler_table(recs, name, skipped), glonass=_glonass_table(recs, glo_leap, name, skipped),
                       klobuchar=klob, leap_s=leap, sources=[str(p) for p in paths], skipped=skipped,
-                      file_systems=file_systems)
+                      file_systems=file_systems, file_spans=file_spans)
 
 
 def _leap_at_gps_ms(t_ms: int) -> int:

@@ -147,6 +147,19 @@ def test_default_signals_follow_navigation(nav):
         raw_to_trace(late, nav)
 
 
+def test_several_navigation_files_are_each_dated_when_the_log_is_not_covered(nav):
+    """Two navigation files of different days merge into one span: the warning also says which day each
+    file's records are of (the second file here, of 2023, serves the log's Galileo rows nothing)."""
+    t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
+    prns = _visible(nav, t)
+    raw, _ = _synthetic(nav, P5_START, t, prns, extra_rows=[("E", s) for s in range(1, 31)])
+    other = Path(__file__).resolve().parents[1] / "data" / "brdc_2023073_mixed_305.rnx"
+    both = read_nav([default_nav_path(), other])
+    with pytest.warns(UserWarning, match=r"hour1180.21n: records 2021-04-2\d .* to 2021-04-2\d .*; "
+                                         r"brdc_2023073_mixed_305.rnx: records 2023-03-1\d"):
+        raw_to_trace(raw, both)
+
+
 def test_pixel5_head_rinex(nav):
     """The shipped Pixel5 RINEX head: GPS L1 + L5 with the L5 inter-signal bias removed, WLS
     within tens of metres of the truth, Doppler and carrier carried."""
