@@ -19,6 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -277,6 +278,12 @@ def flags_since_previous(flags: np.ndarray, kept: np.ndarray) -> tuple[np.ndarra
     flagged[1:] = cum[kept[1:] + 1] - cum[kept[:-1] + 1] > 0
     gap[1:] = np.diff(kept) > 1
     return flagged, gap
+
+
+def trace_folder_name(folder: Path) -> str:
+    """The name of the trace in ``folder``: ``<collection>/<phone>``, also when given as ``.`` or ``phone``."""
+    folder = Path(folder).resolve()
+    return f"{folder.parent.name}/{folder.name}"
 
 
 def count_skip(skipped: dict[str, int], key: str, n) -> None:

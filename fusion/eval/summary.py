@@ -72,10 +72,8 @@ def run_summary(record: dict) -> str:
         lines.append("errors within the mode's 1 sigma, N / E / D: "
                      + " / ".join(f"{m[f'within1sigma_{a}']:.2f}" for a in "ned") + " (a Gaussian: 0.68)")
     if record.get("covariance") is False:
-        lines.append("no covariance from this run (--incremental computes no marginals): estimates.csv has no "
-                     "sigma columns, and a .pos export writes 0 for them, RTKLIB's 'unknown'"
-                     if "incremental_s" in record["info"] else
-                     "no covariance from this run: estimates.csv has no sigma columns, and a .pos export writes 0 "
-                     "for them, RTKLIB's 'unknown'")
+        why = " (--incremental computes no marginals)" if "incremental_s" in info else ""
+        lines.append(f"no covariance from this run{why}: estimates.csv has no sigma columns, and a .pos export "
+                     "writes 0 for them, RTKLIB's 'unknown'")
     lines.append(DATUM)
     return "\n".join(lines)

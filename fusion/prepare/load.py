@@ -18,7 +18,7 @@ from fusion.io.gsdc import load_derived_2021, load_device_gnss
 from fusion.prepare.raw_load import RawSources, load_raw_trace, raw_log_files
 from fusion.prepare.smartloc import load_smartloc, smartloc_input
 from fusion.io.truth import TRUTH_TOL_MS
-from fusion.trace import Trace
+from fusion.trace import Trace, trace_folder_name
 
 def _csv_name(p: Path) -> str:
     """'x.csv' or 'x.csv.gz' -> 'x', else ''."""
@@ -78,8 +78,7 @@ def _locate(path: Path) -> tuple[Path, Path, bool]:
 
 
 def _name(meas: Path, folder: Path, single: bool) -> str:
-    folder = folder.resolve()                 # a relative "phone" or "." still names its collection
-    return f"{folder.parent.name}/{folder.name}" if single else f"{folder.name}/{_csv_name(meas)}"
+    return trace_folder_name(folder) if single else f"{folder.resolve().name}/{_csv_name(meas)}"
 
 
 def trace_name(path: str | Path) -> str:
@@ -88,7 +87,7 @@ def trace_name(path: str | Path) -> str:
     try:
         smartloc = smartloc_input(Path(path))
         if smartloc is not None:
-            return f"{smartloc.parent.parent.name}/{smartloc.parent.name}"
+            return trace_folder_name(smartloc.parent)
         return _name(*_locate(Path(path)))
     except DataError:
         return str(path)

@@ -22,7 +22,7 @@ from fusion.errors import DataError
 from fusion.io.discover import SYSTEM_NAMES, files_of_kind, is_gnss_logger, rinex_kind
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, check_overlap, interp_gapped, llh_ecef,
                              read_truth_csv, warn_outside_bay_area)
-from fusion.trace import Trace
+from fusion.trace import Trace, trace_folder_name
 
 #: GnssLogger logs.
 _LOG = re.compile(r"(gnss_?log.*\.txt)(\.gz)?$", re.IGNORECASE)
@@ -135,7 +135,7 @@ def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, tr
         raise
     raw = read_raw(log, nav.glonass_channels() if nav is not None else None)
     trace = raw_to_trace(raw, nav, signals=signals, precise=precise, min_sats=min_sats, iono_free=src.iono_free,
-                         name=name or f"{folder.resolve().parent.name}/{folder.resolve().name}")
+                         name=name or trace_folder_name(folder))
     del raw     # the raw rows' memory serves the truth reader (fresh pages are slow to touch)
     if truth != "none":
         trace.truth = _truth(folder, trace, truth, fix_truth_height)

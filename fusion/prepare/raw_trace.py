@@ -107,19 +107,15 @@ def default_signals(nav, precise) -> tuple[str, ...]:
 def _select_rows(raw: RawObs, nav, precise, signals, skipped: dict[str, int]) -> pd.DataFrame:
     """Rows of selected signals with a plausible pseudorange."""
     f = raw.frame
-    names = default_signals(nav, precise) if signals is None else tuple(SIGNALS[i] for i in resolve_signals(signals))
-    keep = f["signal"].isin(names).to_numpy()
-    if signals is None:
-        count_skip(skipped, "rows_constellation_without_navigation", ~keep)
-        _warn_without_navigation(raw, f["const"].to_numpy(object)[~keep], nav, precise)
-    else:
-        count_skip(skipped, "rows_signal_not_selected", ~keep)
-        # a chosen signal of a constellation the navigation lacks: said as such, not as a file of the wrong day
-        letters = f["const"].to_numpy(object)
-        bare = keep & ~np.isin(letters.astype(str), sorted(_systems(nav, precise)))
-        count_skip(skipped, "rows_constellation_without_navigation", bare)
-        _warn_without_navigation(raw, letters[bare], nav, precise)
-        keep = keep & ~bare
+    covered = default_signals(nav, precise)
+    names = covered if signals is None else tuple(SIGNALS[i] for i in resolve_signals(signals))
+    keep = np.ones(len(f), bool) if signals is None else f["signal"].isin(names).to_numpy()
+    count_skip(skipped, "rows_signal_not_selected", ~keep)
+    # a constellation the navigation lacks, chosen or not: said as such, not as a file of the wrong day
+    bare = keep & ~f["signal"].isin(covered).to_numpy()
+    count_skip(skipped, "rows_constellation_without_navigation", bare)
+    _warn_without_navigation(raw, f["const"].to_numpy(object)[bare], nav, precise)
+    keep = keep & ~bare
     pr = f["pr_m"].to_numpy()
     good = np.isfinite(pr) & (pr > _PR_RANGE_M[0]) & (pr < _PR_RANGE_M[1])
     count_skip(skipped, "rows_no_pseudorange", keep & ~good)

@@ -45,7 +45,7 @@ from fusion.geometry import line_of_sight
 from fusion.io.clean import epochs_with_enough_rows
 from fusion.io.librsf import read_librsf
 from fusion.io.truth import TRUTH_TOL_MS, check_overlap, match_nearest
-from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals
+from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals, trace_folder_name
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +116,7 @@ def load_smartloc(input_path: str | Path, *, signals=None, truth: str = "auto", 
         odom, _ = records["odom3"]
         odometry = match_nearest(t_ms, *_by_time(odom, t0), truth_tol_ms)
         count_skip(skipped, "epochs_without_odometry", ~np.isfinite(odometry).all(axis=1))
-    trace = Trace(name=name or f"{input_path.parent.parent.name}/{input_path.parent.name}", skipped=skipped,
+    trace = Trace(name=name or trace_folder_name(input_path.parent), skipped=skipped,
                   odometry=odometry, **kwargs)
     gt = input_path.with_name(f"{drive}_GT.txt")
     gt = gt if gt.is_file() else gt.with_name(gt.name + ".gz")
