@@ -59,6 +59,8 @@ def _cases(raw_sim, doppler_sim):
         "isb+prior huber": (two, two_wls, GraphConfig(robust="huber", prior_robust="huber"), prior),
         "random walk": (syn, solve_wls(syn), GraphConfig(motion="rw", robust="none"), None),
         "no drift states": (two, two_wls, GraphConfig(clock_drift_states="doppler"), prior),
+        "level prior": (raw_sim[0], raw_sim[1], GraphConfig(cv_level_sigma_mps=0.5), None),
+        "level prior, no Doppler": (two, two_wls, GraphConfig(cv_level_sigma_no_doppler_mps=0.5), prior),
     }
 
 
@@ -69,7 +71,8 @@ def _inputs(trace, wls, cfg, provider):
 
 
 @pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
-                                  "random walk", "no drift states"])
+                                  "random walk", "no drift states", "level prior",
+                                  "level prior, no Doppler"])
 def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
@@ -85,7 +88,8 @@ def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
 
 
 @pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
-                                  "random walk", "no drift states"])
+                                  "random walk", "no drift states", "level prior",
+                                  "level prior, no Doppler"])
 def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)

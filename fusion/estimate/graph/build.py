@@ -113,6 +113,11 @@ def drift_clock_rw(inp: EpochInputs, cfg: GraphConfig) -> float:
     return cfg.drift_clock_rw_m if inp.raw is not None and inp.raw.use_drift else cfg.drift_clock_rw_no_doppler_m
 
 
+def level_sigma(inp: EpochInputs, cfg: GraphConfig) -> float:
+    """The prior's sigma on each epoch's vertical velocity [m/s] (0: none): its own where Doppler is used."""
+    return cfg.cv_level_sigma_mps if inp.raw is not None and inp.raw.use_drift else cfg.cv_level_sigma_no_doppler_mps
+
+
 def clocked_epochs(inp: EpochInputs, epochs: np.ndarray) -> np.ndarray:
     """The kept epochs with a clock variable (at least one selected pseudorange)."""
     return epochs[inp.sel[epochs].any(axis=1)]
@@ -252,12 +257,14 @@ def prior_factors(inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> tup
 
 def add_motion(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray, lin: gtsam.Values) -> None:
     """The motion model's variables and its link from ``k - 1`` (or a component start) at every kept epoch."""
-    motion = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg, motion_only(inp))
+    motion = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg, motion_only(inp), level_sigma(inp, cfg))
     if cfg.motion == "cv":
         p.points += [(int(k), vel_key(int(k)), inp.init_vel[k]) for k in epochs]
     for k in epochs:
         k = int(k)
         p.add(k, motion.link_factors(k, lin) if (k > 0 and inp.pos_link[k]) else motion.start_factors(k))
+        if cfg.motion == "cv":
+            p.add(k, motion.level_factors(k, lin))
 
 
 def add_odometry(p: GraphPieces, inp: EpochInputs) -> None:

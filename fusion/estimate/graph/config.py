@@ -38,6 +38,17 @@ class GraphConfig:
     cv_accel_h: float = 1.0
     cv_accel_v: float = 0.2
     cv_pos_sigma_m: float = 0.5
+    # cv: zero-mean prior on the vertical velocity at every epoch [m/s] (0: none), in graphs with Doppler /
+    # without. A car or a walker rarely climbs faster than a metre a second, so the height holds where the
+    # satellites cannot place it (a receiver's altitude hold, softened). Chosen by the drift walk's rule below
+    # (the least mean over traces thinned to 3 satellites in 120 s of every 180 s among the settings that leave
+    # no trace as logged worse than 1.01 x), of 0 / 0.3 / 0.5 / 1 / 2 m/s (experiments/level_prior.py): with
+    # Doppler, on the simulated city traces (the only tuning traces with Doppler), thinned 29.44 -> 26.48 m (0.5
+    # m/s: 25.95 m but one trace as simulated 1.011 x); without, on the twelve GSDC drives thinned 48.20 ->
+    # 48.02 m at 2 m/s, a gain within their drive-to-drive swings (-29 % to +24 % per drive at 1 m/s), and
+    # smartLoc's canyon 35.66 -> 35.72 m.
+    cv_level_sigma_mps: float = 1.0
+    cv_level_sigma_no_doppler_mps: float = 2.0
     max_gap_s: float = 10.0            # motion chain broken beyond this epoch gap
     # Clock random walk around the WLS-derived drift: sigma = clock_sigma_m + clock_rw_m * sqrt(dt).
     clock_sigma_m: float = 2.0
@@ -215,7 +226,8 @@ MAY_BE_ZERO = {"prior_sigma_floor_m", "doppler_check_window_s", "carrier_check_w
                "pseudorange_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
-               "odom_speed_sigma_floor_mps"}
+               "odom_speed_sigma_floor_mps", "cv_level_sigma_mps",
+               "cv_level_sigma_no_doppler_mps"}
 
 
 def check_numbers(cfg: GraphConfig, where: str) -> None:

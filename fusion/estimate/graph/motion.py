@@ -13,7 +13,7 @@ from fusion.errors import GeometryError
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import velocity_prior_factor_v, zero_point
 from fusion.estimate.graph.keys import pos_key, vel_key
-from fusion.geometry import ned2ecef_cov
+from fusion.geometry import ned2ecef_cov, ned_rotation
 
 #: Loose velocity prior at the start of a component [m/s] (cars stay well inside it).
 START_VEL_SIGMA_MPS = 50.0
@@ -47,16 +47,19 @@ class ConstantVelocityMotion:
     """Velocity states: x(k) = x(k-1) + v(k-1) dt + small noise; v(k) - v(k-1) a random walk.
 
     init_pos (E,3) ECEF (NED frames), init_vel (E,3) ECEF [m/s] initial velocities, dt (E,) [s];
-    accel_scale (E,) or scalar: the walk's sigma into each epoch, in units of the configured one."""
+    accel_scale (E,) or scalar: the walk's sigma into each epoch, in units of the configured one;
+    level_sigma_mps: the zero-mean prior's sigma on each epoch's vertical velocity (0: none)."""
 
     def __init__(self, init_pos: np.ndarray, init_vel: np.ndarray, dt: np.ndarray, cfg: GraphConfig,
-                 accel_scale: np.ndarray | float = 1.0):
+                 accel_scale: np.ndarray | float = 1.0, level_sigma_mps: float = 0.0):
         self.dt, self.init_vel = dt, init_vel
         dts = np.maximum(dt, 1e-3)
         walk = dts * np.asarray(accel_scale, float) ** 2
         var_h, var_v = cfg.cv_accel_h ** 2 * walk, cfg.cv_accel_v ** 2 * walk
         self.vel_cov = ned2ecef_cov(np.stack([var_h, var_h, var_v], axis=-1), init_pos)
         self.pos_sqrt_info = 1.0 / (cfg.cv_pos_sigma_m * np.sqrt(dts))
+        # (E,3) ECEF down direction over the level prior's sigma: the prior's whitened row
+        self.level_row = ned_rotation(init_pos)[:, 2, :] / level_sigma_mps if level_sigma_mps > 0 else None
 
     def add_values(self, k: int, values: gtsam.Values) -> None:
         values.insert(vel_key(k), self.init_vel[k])
@@ -78,14 +81,23 @@ class ConstantVelocityMotion:
     def start_factors(self, k: int) -> list:
         return [velocity_prior_factor_v(k, self.init_vel[k], START_VEL_SIGMA_MPS)]
 
+    def level_factors(self, k: int, lin: gtsam.Values | None = None) -> list:
+        """The zero-mean prior on epoch ``k``'s vertical velocity (none where the config has no level sigma);
+        linear, so exact as a whitened JacobianFactor (``lin`` as in :meth:`link_factors`)."""
+        if self.level_row is None:
+            return []
+        jf = gtsam.JacobianFactor(vel_key(k), self.level_row[k][None, :], np.zeros(1), gtsam.noiseModel.Unit.Create(1))
+        return [gtsam.LinearContainerFactor(jf, zero_point([vel_key(k)]) if lin is None else lin)]
+
 
 def motion_model(init_pos: np.ndarray, init_vel: np.ndarray, dt: np.ndarray, cfg: GraphConfig,
-                 motion_only: np.ndarray | None = None):
+                 motion_only: np.ndarray | None = None, level_sigma_mps: float = 0.0):
     """The motion model named by ``cfg.motion`` ("rw" or "cv") for a trace's epochs; ``motion_only`` (E,) bool
-    the epochs nothing else places, whose velocity random walk into them is ``cfg.bridged_accel_scale`` x."""
+    the epochs nothing else places, whose velocity random walk into them is ``cfg.bridged_accel_scale`` x;
+    ``level_sigma_mps`` the cv model's prior on the vertical velocity (0: none)."""
     if cfg.motion == "rw":
         return RandomWalkMotion(init_pos, dt, cfg)
     if cfg.motion == "cv":
         scale = 1.0 if motion_only is None else np.where(motion_only, cfg.bridged_accel_scale, 1.0)
-        return ConstantVelocityMotion(init_pos, init_vel, dt, cfg, scale)
+        return ConstantVelocityMotion(init_pos, init_vel, dt, cfg, scale, level_sigma_mps)
     raise GeometryError(f"unknown motion model {cfg.motion!r}; choose rw or cv")

@@ -19,7 +19,8 @@ import gtsam
 import numpy as np
 
 from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
-from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, uses_drift
+from fusion.estimate.graph.build import (DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, level_sigma,
+                                        uses_drift)
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import range_and_gradient
 from fusion.estimate.graph.inputs import EpochInputs, motion_only
@@ -258,7 +259,7 @@ def prior_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.nda
 
 def motion_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.ndarray) -> list[Blocks]:
     """The motion model's links from ``k - 1`` and its component starts (:mod:`fusion.estimate.graph.motion`)."""
-    model = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg, motion_only(inp))
+    model = motion_model(inp.init_pos, inp.init_vel, inp.dt, cfg, motion_only(inp), level_sigma(inp, cfg))
     link = (epochs > 0) & inp.pos_link[epochs]
     k = epochs[link]
     pos = lay.start["pos"]
@@ -274,7 +275,10 @@ def motion_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.nd
                            np.tile(np.hstack([-_I3, _I3]), (len(k), 1, 1)), np.zeros((len(k), 3)), model.vel_cov[k])
     start = whitened_blocks(_cols(vel, s, 3), np.tile(_I3 / START_VEL_SIGMA_MPS, (len(s), 1, 1)),
                             inp.init_vel[s] / START_VEL_SIGMA_MPS)
-    return [step, walk, start]
+    if model.level_row is None:
+        return [step, walk, start]
+    level = scalar_blocks(_cols(vel, epochs, 3), model.level_row[epochs], np.zeros(len(epochs)), 1.0)
+    return [step, walk, start, level]
 
 
 @dataclass
