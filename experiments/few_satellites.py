@@ -73,7 +73,7 @@ BRIDGED: dict[str, np.ndarray] = {}
 
 
 def rows_of(name: str, trace: Trace, poor: np.ndarray, variants: dict, base: RunOptions, modes: list[str]):
-    base = replace(base, graph=replace(base.graph, bridged_sigma_scale=1.0))
+    base = replace(base, graph=replace(base.graph, bridged_sigma_scale=1.0, bridged_sigma_scale_down=1.0))
     for label, change in variants.items():
         opts = replace(base, graph=replace(base.graph, **change))
         for mode, res in run_modes(trace, modes, opts).items():
@@ -94,20 +94,24 @@ def rows_of(name: str, trace: Trace, poor: np.ndarray, variants: dict, base: Run
 
 
 def fit_table(training: list[str]) -> None:
-    """The bridged sigma scale: the 68th percentile of the training drives' pooled |error| / sigma (all three
-    axes), and each drive's coverage with the scale fitted without it; the test trace with the full fit."""
+    """The bridged sigma scales, horizontal and down: the 68th percentile of the training drives' pooled
+    |error| / sigma on the north and east axes, and on the down axis; each drive's coverage with the scales
+    fitted without it; the test trace with the full fit."""
     def fit(names):
-        return float(np.percentile(np.concatenate([BRIDGED[n].ravel() for n in names if BRIDGED[n] is not None]), 68))
+        z = np.concatenate([BRIDGED[n] for n in names if BRIDGED[n] is not None])
+        return np.array([np.percentile(z[:, :2], 68)] * 2 + [np.percentile(z[:, 2], 68)])
     full = fit(training)
-    print(f"\nbridged_sigma_scale fitted on the {len(training)} training drives: {full:.2f}\n")
-    print("| trace (fused-nodnn, bridged epochs without Doppler) | epochs | scale | within 1 sigma N / E / D, "
-          "before | after |")
+    print(f"\nbridged_sigma_scale (north, east) and bridged_sigma_scale_down fitted on the {len(training)} training "
+          f"drives: {full[0]:.2f}, {full[2]:.2f}\n")
+    print("| trace (fused-nodnn, bridged epochs without Doppler) | epochs | scales h / down | within 1 sigma N / E / "
+          "D, before | after |")
     print("|---|---|---|---|---|")
     for n, r in BRIDGED.items():
         held = [t for t in training if t != n]
         scale = fit(held) if n in training else full
         print(f"| {n}{'' if n in training else ' (test)'} | {0 if r is None else len(r)} | "
-              f"{scale:.2f}{' (held out)' if n in training else ''} | {coverage(r)} | {coverage(r, scale)} |")
+              f"{scale[0]:.2f} / {scale[2]:.2f}{' (held out)' if n in training else ''} | {coverage(r)} | "
+              f"{coverage(r, scale)} |")
 
 
 def main() -> int:

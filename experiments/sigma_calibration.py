@@ -35,8 +35,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from fusion.estimate.variance_factor import (SigmaCalibration, epoch_chi2, sigma_model, snapshot_var,  # noqa: E402
-                                             whitened_residuals, windowed_factor)
+from fusion.estimate.variance_factor import (FITTED_MODES, SigmaCalibration, epoch_chi2, sigma_model,  # noqa: E402
+                                             snapshot_var, whitened_residuals, windowed_factor)
 from fusion.eval.metrics import trace_errors  # noqa: E402
 from fusion.geometry import ecef2ned_cov  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
@@ -72,14 +72,15 @@ def jobs(fold_weights: Path) -> list[tuple[str, Path, dict, Path | None]]:
     return out
 
 
-def mode_record(trace, res, sel, sigma, bias) -> dict:
-    """What tuning needs of one mode: NED errors and raw variances (E,3), chi2 and dof (E,) at its positions."""
+def mode_record(trace, res, sel, sigma, bias, fitted: bool) -> dict:
+    """What tuning needs of one mode: NED errors and raw variances (E,3), chi2 and dof (E,) at its positions
+    (``fitted``: one-epoch least-squares positions, variance_factor.FITTED_MODES)."""
     pos = np.where(res.valid[:, None], res.pos, np.nan)
     err = trace_errors(trace, res)
     var = np.full((trace.n_epochs, 3), np.nan)
     ok = res.valid & np.isfinite(res.cov).all(axis=(1, 2))
     var[ok] = np.diagonal(ecef2ned_cov(res.cov[ok], res.pos[ok]), axis1=1, axis2=2)
-    z, dof = whitened_residuals(trace, pos, sel, sigma, bias)
+    z, dof = whitened_residuals(trace, pos, sel, sigma, bias, fitted)
     return {"err": err, "var": var, "chi2": epoch_chi2(z), "dof": dof, "snap": snapshot_var(trace, pos, sel, sigma)}
 
 
@@ -95,7 +96,7 @@ def collect_one(job) -> str:
         else:
             sel, sigma = sigma_model(trace, np.where(res.valid[:, None], res.pos, np.nan), opts.elev_mask_deg)
             sel, bias = (sel & wls.used if mode == "wls" else sel), None
-        for k, v in mode_record(trace, res, sel, sigma, bias).items():
+        for k, v in mode_record(trace, res, sel, sigma, bias, mode in FITTED_MODES).items():
             out[f"{mode}/{k}"] = v
     return name, out
 

@@ -103,6 +103,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
     signals = parse_signals(args.signals)
     if args.dnn_passes < 1:
         raise GnssfuseError("--dnn-passes must be >= 1")
+    if not 0.0 <= args.elev_mask < 90.0:
+        raise GnssfuseError(f"--elev-mask {args.elev_mask:g}: an elevation mask is between 0 and 90 degrees")
     if args.clk is not None and args.sp3 is None:
         raise GnssfuseError("--clk needs --sp3 (precise clocks go with precise orbits)")
     for flag, paths in (("--nav", args.nav), ("--sp3", [args.sp3]), ("--clk", [args.clk])):
@@ -116,6 +118,25 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
                       dnn_output=args.dnn_output,
                       sigma_calibration=not args.raw_sigmas, nav=tuple(args.nav), sp3=args.sp3, clk=args.clk,
                       iono_free=args.iono_free, graph=graph_config(args))
+
+
+#: run options that act only in some modes: (attribute, flag, the modes it acts in)
+MODE_FLAGS = (("incremental", "--incremental", ("fused-nodnn", "fused")),
+              ("graph_config", "--graph-config", ("fused-nodnn", "fused")),
+              ("no_doppler", "--no-doppler", ("fused-nodnn", "fused")),
+              ("no_carrier", "--no-carrier", ("fused-nodnn", "fused")),
+              ("odometry", "--odometry", ("fused-nodnn", "fused")),
+              ("weights", "--weights", ("dnn", "fused")),
+              ("no_learned_prior", "--no-learned-prior", ("fused",)),
+              ("no_learned_sigmas", "--no-learned-sigmas", ("fused",)),
+              ("no_learned_doppler", "--no-learned-doppler", ("fused",)),
+              ("dnn_output", "--dnn-output", ("dnn",)))
+
+
+def flags_without_effect(args: argparse.Namespace, modes: list[str]) -> list[str]:
+    """The flags given (set away from their defaults) that act in none of ``modes``."""
+    return [flag for attr, flag, acts_in in MODE_FLAGS
+            if getattr(args, attr, None) not in (None, False) and not set(acts_in) & set(modes)]
 
 
 def graph_config(args: argparse.Namespace) -> GraphConfig:

@@ -200,8 +200,10 @@ def adaptation_samples(taught: list[Teacher], signals: tuple[str, ...], cfg: Ada
         keys.append(key)
         traces.append(tr)
     if not any(c["teacher_trusted"] for c in counts.values()):
+        n = sum(t.trace.n_epochs for t in taught)
+        short = f"; the log(s) hold only {n} epochs, fewer than a held-out block" if n <= cfg.block else ""
         raise DataError(f"no epoch of {', '.join(counts)} has a teacher sigma <= {cfg.max_teacher_sigma_m} m "
-                        "(raise --max-teacher-sigma?)")
+                        f"(raise --max-teacher-sigma?){short}")
     samples = build_samples(traces, cfg.elev_mask_deg, real=[True] * len(traces))
     samples.graph = samples.truth.copy()
     for key, n in zip(keys, np.bincount(samples.trace, minlength=len(keys))):
@@ -383,6 +385,9 @@ def fine_tune(model: torch.nn.Module, samples, tcfg: TrainConfig, cfg: AdaptConf
     if bar is not None:
         bar.close()
     best, reason = decide(scores, cfg.margin)
+    if va is None:
+        reason = (f"nothing held out to validate on: {len(samples)} teacher-trusted epochs fill fewer than two "
+                  f"blocks of --block {cfg.block} (the second is held out); a longer log adapts")
     model.load_state_dict(states[best])
     model.eval()
     check = {"decision": "accepted" if best else "declined", "reason": reason, "best_epoch": best,

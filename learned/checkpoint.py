@@ -22,7 +22,7 @@ from torch import nn
 
 from fusion.errors import CheckpointError
 from learned.model import MODELS, build_model
-from learned.npz_weights import check_config, file_sha256, npz_path_for, write_npz
+from learned.npz_weights import check_config, check_torch_file, file_sha256, npz_path_for, write_npz
 
 FORMAT = "gnssfuse-checkpoint"
 FORMAT_VERSION = 1
@@ -49,13 +49,15 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     """Load and validate the container (not the weights). Raises CheckpointError naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise CheckpointError(f"{path}: checkpoint file not found")
+        raise CheckpointError(f"{path}: " + ("a folder, not a checkpoint file" if path.is_dir()
+                                             else "checkpoint file not found"))
+    check_torch_file(path)
     try:
         blob = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         # weights_only refuses arbitrary objects (code could run on unpickling): never load those.
         raise CheckpointError(f"{path}: refused to load: holds objects other than tensors and plain "
-                              f"containers ({str(exc).splitlines()[-1][:120] if str(exc) else ''})") from exc
+                              f"containers") from exc
     except Exception as exc:  # torch raises many types for bad zips / legacy pickles / short files
         raise CheckpointError(f"{path}: not a readable checkpoint (corrupt or truncated file?): "
                               f"{type(exc).__name__}") from exc

@@ -17,6 +17,8 @@ solved once per trace: the point where the fused mode asks the network.
 """
 from __future__ import annotations
 
+import warnings
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -220,13 +222,18 @@ def split_traces(samples: Samples, val_frac: float, rng: np.random.Generator) ->
     return samples.subset(np.flatnonzero(~is_val)), samples.subset(np.flatnonzero(is_val))
 
 
-def check_not_forbidden(path: Path) -> None:
-    """DataError when ``path`` is (or lies in) a held-out test trace; matched on whole path components,
-    so that another phone of a test drive (``Pixel4XL`` beside ``Pixel4``) stays usable."""
+def forbidden_trace(path: Path) -> str | None:
+    """The held-out test trace ``path`` is (or lies in), or None; matched on whole path components, so that
+    another phone of a test drive (``Pixel4XL`` beside ``Pixel4``) stays usable."""
     s = Path(path).resolve().as_posix() + "/"
-    for bad in FORBIDDEN_TRACES:
-        if f"/{bad}/" in s:
-            raise DataError(f"{path}: {bad} is a held-out test trace and must not be used for training")
+    return next((bad for bad in FORBIDDEN_TRACES if f"/{bad}/" in s), None)
+
+
+def check_not_forbidden(path: Path) -> None:
+    """DataError when ``path`` is (or lies in) a held-out test trace (:func:`forbidden_trace`)."""
+    bad = forbidden_trace(path)
+    if bad is not None:
+        raise DataError(f"{path}: {bad} is a held-out test trace and must not be used for training")
 
 
 def load_real_traces(paths: list[str | Path], signals=("GPS_L1",), raw_sources: RawSources | None = None
@@ -238,10 +245,17 @@ def load_real_traces(paths: list[str | Path], signals=("GPS_L1",), raw_sources: 
         p = Path(p)
         if not p.exists():
             raise DataError(f"{p}: training data path does not exist")
+        check_not_forbidden(p)                 # named explicitly: refused
         folders = find_traces(p) or [p]
+        held = [f for f in folders if forbidden_trace(f)]
+        if held:                               # found under a root (a Kaggle train/ folder holds them): left out
+            warnings.warn(f"{p}: left out {len(held)} held-out test trace(s) found under it: "
+                          + ", ".join(str(Path(f).relative_to(p)) for f in held))
         for f in folders:
-            check_not_forbidden(f)
-            traces.append(load_trace(f, signals=tuple(signals), raw_sources=raw_sources))
+            if f not in held:
+                traces.append(load_trace(f, signals=tuple(signals), raw_sources=raw_sources))
+        if folders == held:
+            raise DataError(f"{p}: every trace under it is a held-out test trace; nothing to train on")
     return traces
 
 

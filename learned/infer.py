@@ -144,6 +144,8 @@ class Corrector:
         """The checkpoint at ``path`` (.pt or its .npz twin; None: the shipped weights), without torch when
         the .npz is there."""
         path = SHIPPED_WEIGHTS if path is None else Path(path)
+        if path.is_dir():
+            raise CheckpointError(f"{path}: a folder, not a checkpoint file (e.g. {path / SHIPPED_WEIGHTS.name})")
         if not path.is_file():
             raise CheckpointError(f"{path}: checkpoint not found"
                                   + (" (shipped weights missing from learned/weights/)" if path == SHIPPED_WEIGHTS else ""))

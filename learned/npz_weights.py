@@ -96,6 +96,7 @@ def load_for_inference(path: str | Path) -> tuple[dict[str, np.ndarray], dict, P
         if sha == file_sha256(path):
             return weights, config, npz
     # no npz, or one exported from another .pt: read the .pt itself (imports torch)
+    check_torch_file(path)
     try:
         from learned.checkpoint import read_checkpoint
     except ImportError as exc:
@@ -104,6 +105,16 @@ def load_for_inference(path: str | Path) -> tuple[dict[str, np.ndarray], dict, P
                               "'gnssfuse[train]'") from None
     blob = read_checkpoint(path)
     return {k: v.detach().cpu().float().numpy() for k, v in blob["model_state"].items()}, blob["config"], path
+
+
+def check_torch_file(path: Path) -> None:
+    """CheckpointError unless ``path`` starts as torch.save writes (a zip archive, or the older pickle):
+    a text or JSON file passed as weights is named as such before torch is imported to read it."""
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    if head != b"PK\x03\x04" and head[:1] != b"\x80":
+        raise CheckpointError(f"{path}: not a checkpoint (a .pt file is a zip archive written by torch.save; "
+                              f"this one starts with {head!r})")
 
 
 def check_config(config, path, kinds) -> None:

@@ -25,6 +25,30 @@ def test_run_on_missing_folder_is_one_line_error(tmp_path):
     assert "Traceback" not in proc.stderr
 
 
+def test_a_run_that_solves_no_epoch_is_refused_and_leaves_no_folder(shipped_trace_dir, tmp_path, capsys):
+    """WLS above an 89 degree mask solves nothing: one line, exit 2, no export half-written, and the output
+    folder the run made is gone again; a refused input leaves none either."""
+    out = tmp_path / "o"
+    assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--elev-mask", "89", "--out", str(out),
+                 "--export", "kml,gpx"]) == 2
+    err = capsys.readouterr().err
+    assert "solved none of its 1998 epochs" in err and err.strip().count("\n") == 0 and not out.exists()
+    assert main(["run", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert not out.exists()
+    out.mkdir()                                   # a folder that was there stays, even empty
+    assert main(["run", str(tmp_path / "nope"), "--out", str(out)]) == 2 and out.is_dir()
+
+
+def test_exports_of_an_earlier_run_are_removed_and_said(shipped_trace_dir, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["run", str(shipped_trace_dir), "--out", str(out), "--export", "kml,gpx"]) == 0
+    (out / "estimates.txt").write_text("the user's own")
+    capsys.readouterr()
+    assert main(["run", str(shipped_trace_dir), "--out", str(out), "--export", "gpx"]) == 0
+    assert "removed estimates.kml of an earlier run" in capsys.readouterr().out
+    assert sorted(p.name for p in out.iterdir()) == ["estimates.csv", "estimates.gpx", "estimates.txt", "metrics.json"]
+
+
 def test_unwritable_output_is_one_line_error(shipped_trace_dir, tmp_path, capsys):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
@@ -298,3 +322,9 @@ def test_freed_memory_is_kept_where_glibc_allows():
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         pytest.skip("mallopt is glibc's")
     assert keep_freed_memory() is True
+
+
+@pytest.mark.parametrize("mask", ["95", "-10", "nan"])
+def test_an_elevation_mask_outside_0_to_90_degrees_is_refused(shipped_trace_dir, tmp_path, capsys, mask):
+    assert main(["run", str(shipped_trace_dir), "--elev-mask", mask, "--out", str(tmp_path / "o")]) == 2
+    assert "between 0 and 90 degrees" in capsys.readouterr().err and not (tmp_path / "o").exists()

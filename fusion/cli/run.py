@@ -2,11 +2,16 @@
 from __future__ import annotations
 
 import argparse
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from fusion.cli.common import out_folder
+from fusion.errors import GeometryError
 from fusion.io.export import WRITERS, parse_formats
-from fusion.options import TRACE_DIR_HELP, add_run_options, load_options, options_from_args
+from fusion.options import TRACE_DIR_HELP, add_run_options, flags_without_effect, load_options, options_from_args
 
 
 def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
@@ -24,6 +29,29 @@ def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
     return p
 
 
+@contextmanager
+def out_folder_kept_on_success(path: Path):
+    """The output folder, made before any work (:func:`~fusion.cli.common.out_folder`), and removed again if
+    this run made it and the work in the block fails before anything was written into it."""
+    made = not Path(path).exists()
+    out = out_folder(path)
+    try:
+        yield out
+    except BaseException:
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+def remove_stale_exports(out: Path, formats: tuple[str, ...]) -> list[Path]:
+    """Remove ``out/estimates.<format>`` of the formats not written this time (an earlier run's, which would
+    sit beside this run's estimates.csv disagreeing with it); the paths removed."""
+    stale = [out / f"estimates.{fmt}" for fmt in WRITERS if fmt not in formats and (out / f"estimates.{fmt}").is_file()]
+    for path in stale:
+        path.unlink()
+    return stale
+
+
 def main(argv: list[str], prog: str = "gnssfuse run") -> int:
     from fusion.eval.metrics import format_table, mode_metrics
     from fusion.eval.summary import run_summary
@@ -35,15 +63,24 @@ def main(argv: list[str], prog: str = "gnssfuse run") -> int:
     args = build_parser(prog).parse_args(argv)
     opts = options_from_args(args)
     formats = parse_formats(",".join(args.export)) if args.export is not None else ()
-    out = out_folder(args.out)
-    # min_sats=1: keep epochs with 1-3 satellites; WLS/dnn leave them unsolved (counted in info),
-    # the fused modes carry them with the prior and the motion model
-    trace = load_trace(args.trace_dir, fix_truth_height=not args.no_truth_height_fix, min_sats=1,
-                       **load_options(opts))
-    result = run_modes(trace, [args.mode], opts)[args.mode]
+    unused = flags_without_effect(args, [args.mode])
+    if unused:
+        warnings.warn(f"{', '.join(unused)} {'has' if len(unused) == 1 else 'have'} no effect in mode {args.mode}")
+    with out_folder_kept_on_success(args.out) as out:
+        # min_sats=1: keep epochs with 1-3 satellites; WLS/dnn leave them unsolved (counted in info),
+        # the fused modes carry them with the prior and the motion model
+        trace = load_trace(args.trace_dir, fix_truth_height=not args.no_truth_height_fix, min_sats=1,
+                           **load_options(opts))
+        result = run_modes(trace, [args.mode], opts)[args.mode]
+        if not np.asarray(result.valid, bool).any():
+            raise GeometryError(f"{args.trace_dir}: {args.mode} solved none of its {trace.n_epochs} epochs (too few "
+                                f"satellites above the {opts.elev_mask_deg:g} deg elevation mask); nothing written")
     record = write_outputs(out, trace, args.mode, result, mode_metrics(trace, result))
     written = write_exports(export_frame(trace, result), out, formats, f"{trace.name} ({args.mode})")
+    stale = remove_stale_exports(out, formats)
     print(run_summary(record))
+    if stale:
+        print(f"removed {', '.join(p.name for p in stale)} of an earlier run in {out} (not asked for this time)")
     if record["metrics"]:
         print(format_table({args.mode: record["metrics"]}))
     print(f"wrote {', '.join(str(p) for p in [out / 'estimates.csv', out / 'metrics.json', *written])}")

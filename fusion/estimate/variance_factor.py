@@ -61,16 +61,20 @@ class SigmaCalibration:
     factor_from: str = "own"
 
 
+#: Modes whose positions are one-epoch least-squares fits to the pseudoranges (their residuals have three
+#: degrees of freedom fewer per epoch than a smoother's)
+FITTED_MODES = frozenset({"wls", "dnn"})
+
 #: Per-mode settings, tuned leave-drives-out on the twelve GSDC 2021 training drives and smartLoc
 #: (``experiments/results/sigma_calibration.md``). ``dnn`` / ``fused`` act on top of the checkpoint's own
 #: (pooled, unseen-drive) calibration.
 DEFAULTS: dict[str, SigmaCalibration] = {
-    "wls": SigmaCalibration(a=(1.0631, 1.0673, 1.1816), b=1.5, window_s=15.0, snapshot=0.3),
-    "dnn": SigmaCalibration(a=(1.448, 1.3579, 1.8361), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+    "wls": SigmaCalibration(a=(1.0615, 1.0661, 1.18), b=1.5, window_s=15.0, snapshot=0.3),
+    "dnn": SigmaCalibration(a=(1.4478, 1.3567, 1.8347), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
                             snapshot=0.3),
-    "fused-nodnn": SigmaCalibration(a=(1.1825, 1.4571, 1.8144), b=1.5, floor_m=(0.0, 0.0, 1.0), window_s=15.0,
+    "fused-nodnn": SigmaCalibration(a=(1.1747, 1.4537, 1.3116), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(0.8989, 1.0404, 0.8179), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
+    "fused": SigmaCalibration(a=(0.9005, 1.0387, 0.8117), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
 }
 
 
@@ -87,12 +91,17 @@ def sigma_model(trace: Trace, pos: np.ndarray, elev_mask_deg: float, zenith_m: f
 
 
 def whitened_residuals(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np.ndarray,
-                       bias: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                       bias: np.ndarray | None = None, fitted: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Whitened pseudorange residuals at ``pos`` (E,3) with each epoch's clock and per-signal offsets
     fitted (weighted mean), and each epoch's degrees of freedom.
 
-    sel (E,S) slots used; sigma (E,S) [m]; bias (E,S) [m] subtracted from pr (or None). Returns z (E,S)
-    (NaN off ``sel``) and dof (E,) = used slots - signals present (0 where that is negative)."""
+    sel (E,S) slots used; sigma (E,S) [m]; bias (E,S) [m] subtracted from pr (or None); fitted: ``pos`` was
+    solved from these pseudoranges epoch by epoch (WLS), so an epoch without a slot to spare beyond its position
+    and offsets (4 satellites of one signal) has zero residuals that say nothing about the noise: its dof is 0.
+    Returns z (E,S) (NaN off ``sel``) and dof (E,) = used slots - signals present (0 where that is negative).
+    The fitted epochs' dof keep the three their positions took: the calibration's level absorbs them, and
+    counted out (the textbook factor) the leave-fold-out tuning fitted worse on every mode
+    (experiments/results/sigma_calibration.md)."""
     ok = sel & np.isfinite(pos).all(axis=1)[:, None] & (sigma > 0) & np.isfinite(trace.pr)
     rng, _ = line_of_sight(trace.sat_pos, np.where(np.isfinite(pos), pos, 0.0))
     r = trace.pr - (0.0 if bias is None else np.nan_to_num(bias)) - rng
@@ -105,6 +114,8 @@ def whitened_residuals(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np
     r = r - np.einsum("eg,esg->es", offset, onehot)
     z = np.where(ok, r * np.sqrt(w), np.nan)
     dof = np.maximum(ok.sum(axis=1) - (sw > 0).sum(axis=1), 0)
+    if fitted:
+        dof = np.where(dof > 3, dof, 0)
     return z, dof
 
 
@@ -169,9 +180,10 @@ def windowed_factor(t_s: np.ndarray, chi2: np.ndarray, dof: np.ndarray, window_s
 
 
 def track_factor(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np.ndarray,
-                 bias: np.ndarray | None, window_s: float, min_dof: float = 10.0) -> np.ndarray:
-    """(E,) windowed variance factor of a position track ``pos`` (E,3) (NaN rows: not solved)."""
-    z, dof = whitened_residuals(trace, pos, sel, sigma, bias)
+                 bias: np.ndarray | None, window_s: float, min_dof: float = 10.0, fitted: bool = False) -> np.ndarray:
+    """(E,) windowed variance factor of a position track ``pos`` (E,3) (NaN rows: not solved; ``fitted`` as
+    in :func:`whitened_residuals`)."""
+    z, dof = whitened_residuals(trace, pos, sel, sigma, bias, fitted)
     return windowed_factor(trace.t_ms.astype(float) / 1000.0, epoch_chi2(z), dof, window_s, min_dof)
 
 
@@ -218,9 +230,9 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     cal = cal or DEFAULTS[mode]
     pos = np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan)
     if cal.factor_from == "wls" and wls is not None:
-        f = track_factor(trace, wls[0], wls[1], wls[2], None, cal.window_s, cal.min_dof)
+        f = track_factor(trace, wls[0], wls[1], wls[2], None, cal.window_s, cal.min_dof, fitted=True)
     else:
-        f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof)
+        f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof, fitted=mode in FITTED_MODES)
     snap = snapshot_var(trace, pos, sel, sigma) if cal.snapshot > 0 else None
     result.cov = calibrate_cov(result.cov, pos, f, cal, snap)
     result.info["variance_factor_p50"] = float(np.median(f[np.asarray(result.valid, bool)]))
@@ -248,17 +260,21 @@ def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     if not getattr(opts, "sigma_calibration", False) or noise is None:
         return result
     result = calibrate_result(result, trace, mode, *noise, wls=wls_track(trace, wls, opts.elev_mask_deg))
-    return scale_bridged(result, opts.graph.bridged_sigma_scale)
+    return scale_bridged(result, opts.graph.bridged_sigma_scale, opts.graph.bridged_sigma_scale_down)
 
 
-def scale_bridged(result, scale: float):
+def scale_bridged(result, scale_h: float, scale_down: float):
     """The result with the covariance of its bridged epochs without Doppler (``info["bridged_without_doppler"]``
-    (E,) bool: fewer than 4 satellites, no prior, no Doppler) multiplied by ``scale``^2, in place: there the
-    velocity is the motion model's alone, no residual says how wrong that model is, and the variance factor
-    cannot see it (GraphConfig.bridged_sigma_scale)."""
+    (E,) bool: fewer than 4 satellites, no prior, no Doppler) scaled by ``scale_h`` on the north and east axes
+    and ``scale_down`` on the down axis (their squares on the variances), in place: there the velocity is the
+    motion model's alone, no residual says how wrong that model is, and the variance factor cannot see it
+    (GraphConfig.bridged_sigma_scale, bridged_sigma_scale_down)."""
     bridged = result.info.get("bridged_without_doppler")
-    if result.cov is None or scale == 1.0 or not isinstance(bridged, np.ndarray) or not bridged.any():
+    if result.cov is None or (scale_h, scale_down) == (1.0, 1.0) or not isinstance(bridged, np.ndarray) \
+            or not bridged.any():
         return result
     result.cov = result.cov.copy()
-    result.cov[bridged] *= scale ** 2
+    d = np.array([scale_h, scale_h, scale_down])
+    ned = ecef2ned_cov(result.cov[bridged], result.pos[bridged]) * d[:, None] * d[None, :]
+    result.cov[bridged] = ned2ecef_cov(ned, result.pos[bridged])
     return result

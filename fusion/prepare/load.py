@@ -110,9 +110,11 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
     if truth not in ("auto", "csv", "nmea", "none"):
         raise GnssfuseError(f"truth must be 'auto', 'csv', 'nmea' or 'none', got {truth!r}")
     smartloc = smartloc_input(path)
+    raw = _raw_log(path)
+    if raw is None:
+        _say_unused(path, raw_sources)
     if smartloc is not None:
         return load_smartloc(smartloc, signals=signals, truth=truth, min_sats=min_sats, truth_tol_ms=truth_tol_ms)
-    raw = _raw_log(path)
     if raw is not None:
         return load_raw_trace(raw[0], raw[1], raw_sources or RawSources(), signals=signals, truth=truth,
                               fix_truth_height=fix_truth_height, min_sats=min_sats)
@@ -142,6 +144,17 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
             raise GnssfuseError("truth='nmea' already has correct heights; fix_truth_height=False contradicts it")
     return load_derived_2021(meas, truth_csv, nmea, signals=signals, fix_truth_height=fix_truth_height,
                              min_sats=min_sats, truth_tol_ms=truth_tol_ms, name=name)
+
+
+def _say_unused(path: Path, sources: RawSources | None) -> None:
+    """Warn that navigation options given for a file that carries its own satellite states do nothing."""
+    if sources is None:
+        return
+    given = [flag for flag, v in (("--nav", sources.nav), ("--sp3", sources.sp3), ("--clk", sources.clk),
+                                  ("--iono-free", sources.iono_free)) if v]
+    if given:
+        warnings.warn(f"{path}: {', '.join(given)} not used: this file carries its satellites' positions and "
+                      f"corrected pseudoranges (only RINEX observations and GnssLogger logs need navigation)")
 
 
 def _raw_log(path: Path) -> tuple[Path, Path] | None:

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from fusion.errors import DataError
 from fusion.geometry import C_LIGHT, ecef2geodetic, ecef2ned_vec
 from fusion.gpstime import gps_ms_to_unix_ms
 from fusion.io.gsdc_write import write_gsdc2021
@@ -143,6 +144,19 @@ def write_trace(result, out_dir: str | Path, collection: str, phone: str = "SimP
     tr = result.trace
     rich = tr.cn0 is not None or tr.prr is not None or tr.adr is not None or bool(
         np.any(tr.signal[tr.mask] != SIGNALS.index("GPS_L1")))
-    if fmt == "device_gnss" or (fmt == "auto" and rich):
+    device = fmt == "device_gnss" or (fmt == "auto" and rich)
+    check_no_other_trace(Path(out_dir) / collection / phone, phone, device)
+    if device:
         return [p for p in write_device_gnss(result, out_dir, collection, phone) if p is not None]
     return list(write_gsdc2021(result, out_dir, collection, phone))
+
+
+def check_no_other_trace(folder: Path, phone: str, device: bool) -> None:
+    """DataError when ``folder`` holds a simulated trace of the other format (its measurement file, or
+    per-measurement labels the derived format has none of): written beside it, the folder would hold two
+    measurement files (that no command reads) and one truth. The same format is overwritten."""
+    other = [f"{phone}_derived.csv"] if device else ["device_gnss.csv", LABELS_FILE]
+    found = [name for name in other if (folder / name).is_file()]
+    if found:
+        raise DataError(f"{folder}: already holds {', '.join(found)} of another simulation; pass another --out, "
+                        f"--collection or --seed, or remove it")

@@ -569,14 +569,21 @@ def _fused_nodnn(tr: Trace, **change):
 def test_bridged_sigmas_are_widened_where_nothing_measures_the_velocity(trace, doppler_outage):
     """GraphConfig.bridged_sigma_scale multiplies the calibrated sigmas of bridged epochs without Doppler, and
     of those alone; where Doppler measures the velocity through the outage they stay the graph's own."""
+    from fusion.geometry import ecef2ned_cov
+
     tr = _outage(trace)
-    one, wide = _fused_nodnn(tr, bridged_sigma_scale=1.0), _fused_nodnn(tr, bridged_sigma_scale=1.5)
+    one = _fused_nodnn(tr, bridged_sigma_scale=1.0, bridged_sigma_scale_down=1.0)
+    wide = _fused_nodnn(tr, bridged_sigma_scale=1.5, bridged_sigma_scale_down=1.5)
     np.testing.assert_array_equal(one.pos, wide.pos)
-    np.testing.assert_allclose(wide.cov[40:50], 2.25 * one.cov[40:50], rtol=1e-12)
+    np.testing.assert_allclose(wide.cov[40:50], 2.25 * one.cov[40:50], rtol=1e-9, atol=1e-12)
     np.testing.assert_array_equal(wide.cov[:40], one.cov[:40])
     np.testing.assert_array_equal(wide.cov[50:], one.cov[50:])
-    one, wide = _fused_nodnn(doppler_outage, bridged_sigma_scale=1.0), _fused_nodnn(doppler_outage,
-                                                                                    bridged_sigma_scale=1.5)
+    # each axis its own scale: north-east variances x 1.5^2, down x 2^2, the cross terms in between
+    axes = _fused_nodnn(tr, bridged_sigma_scale=1.5, bridged_sigma_scale_down=2.0)
+    ned_one, ned_axes = (ecef2ned_cov(r.cov[40:50], r.pos[40:50]) for r in (one, axes))
+    d = np.array([1.5, 1.5, 2.0])
+    np.testing.assert_allclose(ned_axes, ned_one * d[:, None] * d[None, :], rtol=1e-9, atol=1e-9)
+    one, wide = (_fused_nodnn(doppler_outage, bridged_sigma_scale=s, bridged_sigma_scale_down=s) for s in (1.0, 1.5))
     assert one.info["bridged"][40:50].all() and not one.info["bridged_without_doppler"].any()
     np.testing.assert_array_equal(wide.cov, one.cov)
 

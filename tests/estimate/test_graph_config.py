@@ -27,7 +27,10 @@ def test_a_file_sets_fields_and_round_trips(tmp_path):
                                         ('robust_k = -1.0\n', "'robust_k' must be a finite number > 0"),
                                         ('lm_max_iter = 0\n', "'lm_max_iter' must be a finite number > 0"),
                                         ('max_gap_s = nan\n', "'max_gap_s' must be a finite number > 0"),
-                                        ('prior_sigma_floor_m = -2.0\n', "must be a finite number >= 0")])
+                                        ('prior_sigma_floor_m = -2.0\n', "must be a finite number >= 0"),
+                                        ('motion = "rwx"\n', "'motion' must be one of 'cv', 'rw', got 'rwx'"),
+                                        ('clock_drift_states = "yes"\n', "'clock_drift_states' must be one of"),
+                                        ('batch_solver = "lu"\n', "'batch_solver' must be one of")])
 def test_bad_files_name_the_file_and_the_setting(tmp_path, text, says):
     f = tmp_path / "g.toml"
     f.write_text(text)
@@ -51,3 +54,27 @@ def test_flags_override_the_file(tmp_path):
     f.write_text("use_carrier = true\nincremental = false\nrobust_k = 4.0\n")
     opts = parse_run_options(["--graph-config", str(f), "--no-carrier", "--incremental"])
     assert opts.graph.robust_k == 4.0 and not opts.use_carrier and opts.incremental and opts.use_doppler
+
+
+def test_every_string_setting_has_its_choices_and_the_defaults_pass():
+    from dataclasses import fields
+
+    from fusion.estimate.graph.config import CHOICES, check_choices
+
+    assert {f.name for f in fields(GraphConfig) if f.type == "str"} == set(CHOICES)
+    check_choices(GraphConfig(), "defaults")
+
+
+def test_clock_settings_without_effect_are_said(tmp_path):
+    """clock_sigma_m / clock_rw_m only act on graphs without drift states: set with the default "always",
+    the file is loaded with a warning saying so; with "doppler" they act, and nothing is said."""
+    import warnings
+
+    f = tmp_path / "g.toml"
+    f.write_text("clock_rw_m = 500.0\n")
+    with pytest.warns(UserWarning, match="clock_rw_m act only without clock-drift states"):
+        assert load_graph_config(f).clock_rw_m == 500.0
+    f.write_text('clock_rw_m = 500.0\nclock_drift_states = "doppler"\n')
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_graph_config(f)

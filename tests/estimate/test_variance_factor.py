@@ -72,6 +72,29 @@ def test_pseudorange_residuals_at_the_truth_give_the_noise_ratio_squared():
     assert F[0] == pytest.approx(4.0, rel=0.1)
 
 
+def test_fitted_epochs_without_a_spare_satellite_count_no_dof():
+    """A WLS track's residuals at an epoch of 4 satellites (one signal) are zero by construction: such
+    epochs count no dof, so a stretch of them takes the trace's factor instead of a factor of ~0 (which had
+    shrunk WLS sigmas to millimetres where the errors were tens of metres)."""
+    from fusion.estimate.wls import solve_wls
+
+    trace, _ = pseudorange_trace(noise_m=3.0, sigma_m=3.0, rng=np.random.default_rng(4), E=120)
+    few = np.zeros_like(trace.mask)
+    few[:, :4] = True
+    trace = trace.select_slots(np.where((np.arange(120) >= 60)[:, None], few, trace.mask))
+    wls = solve_wls(trace)
+    pos, used = np.where(np.asarray(wls.valid)[:, None], wls.pos, np.nan), np.asarray(wls.used, bool)
+    assert (used[60:].sum(axis=1) == 4).sum() >= 40         # the rest: a satellite below the mask, unsolved
+    z, dof = whitened_residuals(trace, pos, used, trace.pr_sigma, fitted=True)
+    assert (dof[:60] == used[:60].sum(axis=1) - 1).all() and (dof[:60] > 3).all() and (dof[60:] == 0).all()
+    assert np.nanmax(np.abs(z[60:])) < 1e-3                      # zero residuals: nothing learned from them
+    F = windowed_factor(trace.t_ms / 1000.0, epoch_chi2(z), dof, window_s=15.0)
+    assert F[60:].min() == pytest.approx(F[0:60].mean(), rel=0.5) and F.min() > 0.2
+    _, counted = whitened_residuals(trace, pos, used, trace.pr_sigma)
+    four = used[60:].sum(axis=1) == 4
+    assert (counted[60:][four] == 3).all()                       # at a given (not fitted) track they count
+
+
 def test_snapshot_variance_matches_the_least_squares_covariance():
     trace, pos = pseudorange_trace(noise_m=1.0, sigma_m=1.0, rng=np.random.default_rng(3), E=3)
     var = snapshot_var(trace, pos, trace.mask, trace.pr_sigma)

@@ -111,7 +111,7 @@ def test_loader_finds_files_by_content_and_says_what_it_used(tmp_path, capsys):
     with pytest.warns(UserWarning, match="no navigation for Galileo"):
         tr = load_trace(folder, signals=None, min_sats=1)
     assert tr.n_epochs == 5
-    assert "navigation: broadcast.nav.txt (GPS)" in capsys.readouterr().err
+    assert "navigation: broadcast.nav.txt (GPS, records 2021-04-28 00:00 to 2021-04-28 23:59 GPST)" in capsys.readouterr().err
 
 
 def test_one_reader_for_plain_and_gzip(tmp_path):

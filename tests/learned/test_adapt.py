@@ -146,6 +146,7 @@ def test_widened_ranges():
     (["--anchor", "-1"], "--anchor >= 0"),
     (["--clk", "x.clk"], "--clk needs --sp3"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "no epoch of 2021-04-28-US-MTV-1/Pixel4 has a teacher"),
+    (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "hold only 20 epochs, fewer than a held-out block"),
 ])
 def test_bad_arguments_are_one_line_errors(shipped_trace_dir, tmp_path, capsys, extra, words):
     assert cli(["adapt", str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), *extra]) == 2
@@ -207,6 +208,13 @@ def test_teachers_in_worker_processes_match_in_process(shipped_trace_dir, tmp_pa
     assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-MTV-1/Pixel4 #2"]
     assert sum(c["samples"] for c in rec["traces"].values()) == rec["samples"]
     assert _same_checkpoint(tmp_path / "j1.pt", tmp_path / "j2.pt")
+
+
+def test_a_log_too_short_to_hold_a_block_out_is_declined_saying_so(shipped_trace_dir, tmp_path, capsys):
+    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", "40", "--epochs", "1", "--out",
+                str(tmp_path / "w.pt"), "--threads", "1"]) == 0
+    said = capsys.readouterr().out
+    assert "DECLINED" in said and "fewer than two blocks of --block 60" in said
 
 
 def test_declined_adaptation_writes_the_base_weights_and_says_why(shipped_trace_dir, tmp_path, capsys):

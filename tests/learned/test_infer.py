@@ -167,8 +167,14 @@ def test_checkpoint_errors(tmp_path, tiny_ckpt):
         Corrector.load(tmp_path / "missing.pt")
     txt = tmp_path / "notes.pt"
     txt.write_text("hello, not a checkpoint\n")
-    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+    with pytest.raises(CheckpointError, match=r"not a checkpoint .*starts with b'hell'"):
         read_checkpoint(txt)
+    with pytest.raises(CheckpointError, match=r"not a checkpoint .*starts with b'hell'"):
+        Corrector.load(txt)                       # named before torch is imported to read it
+    with pytest.raises(CheckpointError, match="a folder, not a checkpoint file"):
+        Corrector.load(tmp_path)
+    with pytest.raises(CheckpointError, match="a folder, not a checkpoint file"):
+        read_checkpoint(tmp_path)
     data = tiny_ckpt.read_bytes()
     trunc = tmp_path / "trunc.pt"
     trunc.write_bytes(data[: len(data) // 2])

@@ -220,3 +220,24 @@ def test_train_signals_all_teaches_every_constellation_of_the_data(tmp_path, cap
     assert unseen["all"] == 0 < unseen["l1"]
     assert cli(["train", *common, "--signals", "GPS_X9", "--out", str(tmp_path / "bad.pt")]) == 2
     assert "unknown signal name" in capsys.readouterr().err
+
+
+def test_a_root_leaves_its_test_traces_out_and_a_named_test_trace_is_refused(shipped_trace_dir, tmp_path):
+    """A Kaggle ``train/`` folder holds the 2021-04-28 test drives: found under a root they are left out
+    with a warning naming them; named themselves, or all a root holds, they are refused."""
+    import shutil
+
+    from learned.data import load_real_traces
+
+    root = tmp_path / "train"
+    test_dir, other = root / "2021-04-28-US-MTV-1" / "Pixel4", root / "2020-01-02-US-ABC-1" / "Pixel4"
+    for d in (test_dir, other):
+        shutil.copytree(shipped_trace_dir, d)
+    with pytest.warns(UserWarning, match=r"left out 1 held-out test trace.*2021-04-28-US-MTV-1"):
+        traces = load_real_traces([root])
+    assert len(traces) == 1
+    with pytest.raises(DataError, match="held-out test trace"):
+        load_real_traces([test_dir])
+    shutil.rmtree(other.parent)
+    with pytest.warns(UserWarning), pytest.raises(DataError, match="every trace under it is a held-out"):
+        load_real_traces([root])

@@ -326,3 +326,19 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "empty.21n" in err and "Traceback" not in err
     assert gnssfuse(["simulate", "--out", str(tmp_path), "--start", "2021-06-01T00:00:00"]) == 2
     assert "outside the validity" in capsys.readouterr().err
+
+
+def test_a_folder_holding_the_other_format_is_refused_and_the_same_one_overwritten(tmp_path, capsys):
+    """The README's two simulate commands into one --out used to leave two measurement files and one truth
+    behind, which no command reads: the second is refused, naming the file; the same format is rewritten."""
+    from fusion.cli import main as gnssfuse
+
+    args = ["simulate", "--out", str(tmp_path), "--epochs", "10", "--seed", "1"]
+    assert gnssfuse(args) == 0 and gnssfuse(args) == 0
+    assert gnssfuse(args + ["--scenario", "urban"]) == 2
+    err = capsys.readouterr().err
+    assert "already holds SimPhone_derived.csv of another simulation" in err and err.strip().count("\n") == 0
+    assert not (tmp_path / "2021-04-28-US-SIM-1/SimPhone/device_gnss.csv").exists()
+    assert gnssfuse(["simulate", "--out", str(tmp_path / "c"), "--epochs", "10", "--scenario", "urban"]) == 0
+    assert gnssfuse(["simulate", "--out", str(tmp_path / "c"), "--epochs", "10"]) == 2
+    assert "already holds device_gnss.csv, sim_labels.csv" in capsys.readouterr().err
