@@ -57,7 +57,7 @@ def read_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     except pickle.UnpicklingError as exc:
         # weights_only refuses arbitrary objects (code could run on unpickling): never load those.
         raise CheckpointError(f"{path}: refused to load: holds objects other than tensors and plain "
-                              f"containers") from exc
+                              "containers") from exc
     except Exception as exc:  # torch raises many types for bad zips / legacy pickles / short files
         raise CheckpointError(f"{path}: not a readable checkpoint (corrupt or truncated file?): "
                               f"{type(exc).__name__}") from exc

@@ -18,7 +18,6 @@ solved once per trace: the point where the fused mode asks the network.
 from __future__ import annotations
 
 import warnings
-
 from dataclasses import dataclass, field
 from pathlib import Path
 

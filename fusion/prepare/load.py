@@ -110,7 +110,7 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
     if truth not in ("auto", "csv", "nmea", "none"):
         raise GnssfuseError(f"truth must be 'auto', 'csv', 'nmea' or 'none', got {truth!r}")
     smartloc = smartloc_input(path)
-    raw = _raw_log(path)
+    raw = None if smartloc is not None else _raw_log(path)
     if raw is None:
         _say_unused(path, raw_sources)
     if smartloc is not None:

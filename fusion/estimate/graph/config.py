@@ -2,6 +2,7 @@
 learned prior's use, solver tolerances."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 
@@ -304,7 +305,6 @@ def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
     check_choices(cfg, str(path))
     inert = [n for n in WITHOUT_DRIFT_STATES if n in out and out[n] != getattr(GraphConfig, n)]
     if inert and cfg.clock_drift_states == "always":
-        import warnings
         warnings.warn(f"{path}: {', '.join(inert)} act only without clock-drift states; with clock_drift_states = "
                       f"'always' (the default) they have no effect")
     return cfg
