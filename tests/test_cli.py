@@ -328,3 +328,35 @@ def test_freed_memory_is_kept_where_glibc_allows():
 def test_an_elevation_mask_outside_0_to_90_degrees_is_refused(shipped_trace_dir, tmp_path, capsys, mask):
     assert main(["run", str(shipped_trace_dir), "--elev-mask", mask, "--out", str(tmp_path / "o")]) == 2
     assert "between 0 and 90 degrees" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_flags_a_mode_does_not_read_are_said(shipped_trace_dir, tmp_path):
+    """--incremental and --no-learned-prior act in graph / learned modes only: with wls, a warning says so."""
+    from fusion.options import flags_without_effect
+
+    with pytest.warns(UserWarning, match="--incremental, --no-learned-prior have no effect in mode wls"):
+        assert main(["run", str(shipped_trace_dir), "--incremental", "--no-learned-prior", "--out",
+                     str(tmp_path / "o")]) == 0
+    args = argparse.Namespace(incremental=True, weights=None, no_learned_prior=False, dnn_output="wls")
+    assert flags_without_effect(args, ["fused-nodnn"]) == ["--dnn-output"]
+    assert flags_without_effect(args, ["fused", "dnn"]) == []
+
+
+def test_navigation_for_a_file_that_carries_satellite_states_is_said(shipped_trace_dir, tmp_path):
+    from fusion.io.rinex_nav import default_nav_path
+
+    with pytest.warns(UserWarning, match="--nav not used: this file carries its satellites' positions"):
+        assert main(["run", str(shipped_trace_dir), "--nav", str(default_nav_path()), "--out",
+                     str(tmp_path / "o")]) == 0
+
+
+def test_wls_sigmas_stay_metres_where_four_satellites_place_it(shipped_trace_dir, tmp_path):
+    """Above a 30 degree mask the shipped trace's WLS epochs mostly have 4-5 satellites: its sigmas had
+    shrunk to millimetres (0.00 of the errors within 1 sigma); the calibration must leave them metres."""
+    import pandas as pd
+
+    out = tmp_path / "o"
+    assert main(["run", str(shipped_trace_dir), "--elev-mask", "30", "--out", str(out)]) == 0
+    m = json.loads((out / "metrics.json").read_text())["metrics"]
+    est = pd.read_csv(out / "estimates.csv")
+    assert est["sigma_n_m"].min() > 1.0 and min(m[f"within1sigma_{a}"] for a in "ned") > 0.3    # measured 0.49
