@@ -60,7 +60,9 @@ class GraphConfig:
     # Learned prior: covariance used = prior_cov_scale * cov + prior_sigma_floor_m^2 * I. Scale 4: the
     # network's correction comes from the same pseudoranges the graph already holds, so its covariance
     # counted at face value counts them twice; chosen by two-fold cross-validation on the training drives
-    # (pooled fused 3.80 m at 4 against 3.83 m at 1, experiments/results/crossval_v3.md).
+    # (pooled fused 3.80 m at 4 against 3.83 m at 1, experiments/results/crossval_v3.md). Rerun with the level
+    # prior: 3.74 / 3.73 / 3.72 m at 4 / 8 / 16 (smartLoc 31.18 / 31.13 / 31.02 m), but at 16 the adaptation's
+    # graph check declines smartLoc's adaptation (28.66 m at 4), and 0.5 % is inside the training seed's spread.
     # Where the network is asked (once): "graph" = at the solution of the same graph without anything
     # learned (a better guess than WLS, around which the network was trained; chosen on a held-out
     # training trace, experiments/results/graph_tuning.md), at the price of a second solve without
