@@ -7,7 +7,7 @@ and with ``--sim DIR`` the simulated city traces of experiments/sim_city_traces.
 as simulated and thinned. Those decide; ``--pixel5`` then reports the Pixel5 RINEX test trace (GPS
 broadcast navigation, Doppler and carrier), as logged and thinned, without the prior and with the defaults.
 
-    GNSSFUSE_SHARED_DATA=../shared/data python experiments/level_prior.py --sim /tmp/sim    # ~6 min
+    GNSSFUSE_SHARED_DATA=../shared/data python experiments/level_prior.py --sim /tmp/sim    # ~3 min
     GNSSFUSE_SHARED_DATA=../shared/data python experiments/level_prior.py --pixel5         # ~1 min
 """
 from __future__ import annotations

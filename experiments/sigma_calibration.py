@@ -35,7 +35,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from fusion.estimate.variance_factor import (FITTED_MODES, SigmaCalibration, epoch_chi2, sigma_model,  # noqa: E402
+from fusion.estimate.variance_factor import (SigmaCalibration, epoch_chi2, fitted_positions, sigma_model,  # noqa: E402
                                              snapshot_var, whitened_residuals, windowed_factor)
 from fusion.eval.metrics import trace_errors  # noqa: E402
 from fusion.geometry import ecef2ned_cov  # noqa: E402
@@ -74,7 +74,7 @@ def jobs(fold_weights: Path) -> list[tuple[str, Path, dict, Path | None]]:
 
 def mode_record(trace, res, sel, sigma, bias, fitted: bool) -> dict:
     """What tuning needs of one mode: NED errors and raw variances (E,3), chi2 and dof (E,) at its positions
-    (``fitted``: one-epoch least-squares positions, variance_factor.FITTED_MODES)."""
+    (``fitted``: one-epoch least-squares positions, variance_factor.fitted_positions)."""
     pos = np.where(res.valid[:, None], res.pos, np.nan)
     err = trace_errors(trace, res)
     var = np.full((trace.n_epochs, 3), np.nan)
@@ -96,7 +96,7 @@ def collect_one(job) -> str:
         else:
             sel, sigma = sigma_model(trace, np.where(res.valid[:, None], res.pos, np.nan), opts.elev_mask_deg)
             sel, bias = (sel & wls.used if mode == "wls" else sel), None
-        for k, v in mode_record(trace, res, sel, sigma, bias, mode in FITTED_MODES).items():
+        for k, v in mode_record(trace, res, sel, sigma, bias, fitted_positions(mode, res.info)).items():
             out[f"{mode}/{k}"] = v
     return name, out
 

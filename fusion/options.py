@@ -120,23 +120,25 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
                       iono_free=args.iono_free, graph=graph_config(args))
 
 
-#: run options that act only in some modes: (attribute, flag, the modes it acts in)
-MODE_FLAGS = (("incremental", "--incremental", ("fused-nodnn", "fused")),
-              ("graph_config", "--graph-config", ("fused-nodnn", "fused")),
-              ("no_doppler", "--no-doppler", ("fused-nodnn", "fused")),
-              ("no_carrier", "--no-carrier", ("fused-nodnn", "fused")),
-              ("odometry", "--odometry", ("fused-nodnn", "fused")),
-              ("weights", "--weights", ("dnn", "fused")),
-              ("no_learned_prior", "--no-learned-prior", ("fused",)),
-              ("no_learned_sigmas", "--no-learned-sigmas", ("fused",)),
-              ("no_learned_doppler", "--no-learned-doppler", ("fused",)),
-              ("dnn_output", "--dnn-output", ("dnn",)))
+#: run options that act only in some modes: (attribute, flag, its default, the modes it acts in); the rest
+#: (--wls-plain, --raw-sigmas, --signals, ...) act in every mode
+MODE_FLAGS = (("incremental", "--incremental", False, ("fused-nodnn", "fused")),
+              ("graph_config", "--graph-config", None, ("fused-nodnn", "fused")),
+              ("no_doppler", "--no-doppler", False, ("fused-nodnn", "fused")),
+              ("no_carrier", "--no-carrier", False, ("fused-nodnn", "fused")),
+              ("odometry", "--odometry", False, ("fused-nodnn", "fused")),
+              ("weights", "--weights", None, ("dnn", "fused")),
+              ("dnn_passes", "--dnn-passes", 1, ("dnn",)),
+              ("no_learned_prior", "--no-learned-prior", False, ("fused",)),
+              ("no_learned_sigmas", "--no-learned-sigmas", False, ("fused",)),
+              ("no_learned_doppler", "--no-learned-doppler", False, ("fused",)),
+              ("dnn_output", "--dnn-output", None, ("dnn",)))
 
 
 def flags_without_effect(args: argparse.Namespace, modes: list[str]) -> list[str]:
     """The flags given (set away from their defaults) that act in none of ``modes``."""
-    return [flag for attr, flag, acts_in in MODE_FLAGS
-            if getattr(args, attr, None) not in (None, False) and not set(acts_in) & set(modes)]
+    return [flag for attr, flag, default, acts_in in MODE_FLAGS
+            if getattr(args, attr, default) != default and not set(acts_in) & set(modes)]
 
 
 def graph_config(args: argparse.Namespace) -> GraphConfig:

@@ -201,7 +201,7 @@ def adaptation_samples(taught: list[Teacher], signals: tuple[str, ...], cfg: Ada
         traces.append(tr)
     if not any(c["teacher_trusted"] for c in counts.values()):
         n = sum(t.trace.n_epochs for t in taught)
-        short = f"; the log(s) hold only {n} epochs, fewer than a held-out block" if n <= cfg.block else ""
+        short = f"; the log(s) hold only {n} epochs in all, fewer than a held-out block" if n <= cfg.block else ""
         raise DataError(f"no epoch of {', '.join(counts)} has a teacher sigma <= {cfg.max_teacher_sigma_m} m "
                         f"(raise --max-teacher-sigma?){short}")
     samples = build_samples(traces, cfg.elev_mask_deg, real=[True] * len(traces))

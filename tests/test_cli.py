@@ -37,6 +37,8 @@ def test_a_run_that_solves_no_epoch_is_refused_and_leaves_no_folder(shipped_trac
     assert not out.exists()
     out.mkdir()                                   # a folder that was there stays, even empty
     assert main(["run", str(tmp_path / "nope"), "--out", str(out)]) == 2 and out.is_dir()
+    assert main(["run", str(tmp_path / "nope"), "--out", str(tmp_path / "a" / "b")]) == 2   # the parents it made too
+    assert not (tmp_path / "a").exists()
 
 
 def test_exports_of_an_earlier_run_are_removed_and_said(shipped_trace_dir, tmp_path, capsys):
@@ -332,14 +334,17 @@ def test_an_elevation_mask_outside_0_to_90_degrees_is_refused(shipped_trace_dir,
 
 def test_flags_a_mode_does_not_read_are_said(shipped_trace_dir, tmp_path):
     """--incremental and --no-learned-prior act in graph / learned modes only: with wls, a warning says so."""
+    from fusion.cli.run import build_parser as build_run_parser
     from fusion.options import flags_without_effect
 
     with pytest.warns(UserWarning, match="--incremental, --no-learned-prior have no effect in mode wls"):
         assert main(["run", str(shipped_trace_dir), "--incremental", "--no-learned-prior", "--out",
                      str(tmp_path / "o")]) == 0
-    args = argparse.Namespace(incremental=True, weights=None, no_learned_prior=False, dnn_output="wls")
-    assert flags_without_effect(args, ["fused-nodnn"]) == ["--dnn-output"]
+    args = argparse.Namespace(incremental=True, weights=None, no_learned_prior=False, dnn_output="wls", dnn_passes=2)
+    assert flags_without_effect(args, ["fused-nodnn"]) == ["--dnn-passes", "--dnn-output"]
     assert flags_without_effect(args, ["fused", "dnn"]) == []
+    for mode in ("wls", "dnn", "fused-nodnn", "fused"):          # the defaults say nothing
+        assert flags_without_effect(build_run_parser().parse_args(["x", "--out", "o"]), [mode]) == []
 
 
 def test_navigation_for_a_file_that_carries_satellite_states_is_said(shipped_trace_dir, tmp_path):
@@ -348,6 +353,13 @@ def test_navigation_for_a_file_that_carries_satellite_states_is_said(shipped_tra
     with pytest.warns(UserWarning, match="--nav not used: this file carries its satellites' positions"):
         assert main(["run", str(shipped_trace_dir), "--nav", str(default_nav_path()), "--out",
                      str(tmp_path / "o")]) == 0
+    import warnings
+
+    with warnings.catch_warnings(record=True) as seen:           # a path that is no trace: the error alone
+        warnings.simplefilter("always")
+        assert main(["run", str(tmp_path / "nope"), "--nav", str(default_nav_path()), "--out",
+                     str(tmp_path / "o2")]) == 2
+    assert not [w for w in seen if "not used" in str(w.message)]
 
 
 def test_wls_sigmas_stay_metres_where_four_satellites_place_it(shipped_trace_dir, tmp_path):

@@ -31,15 +31,18 @@ def build_parser(prog: str = "gnssfuse run") -> argparse.ArgumentParser:
 
 @contextmanager
 def out_folder_kept_on_success(path: Path):
-    """The output folder, made before any work (:func:`~fusion.cli.common.out_folder`), and removed again if
-    this run made it and the work in the block fails before anything was written into it."""
-    made = not Path(path).exists()
+    """The output folder, made before any work (:func:`~fusion.cli.common.out_folder`), and removed again with
+    the parents this run made if the work in the block fails before anything was written into them."""
+    path = Path(path)
+    made = [p for p in (path, *path.parents) if not p.exists()]      # innermost first
     out = out_folder(path)
     try:
         yield out
     except BaseException:
-        if made and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
+        for folder in made:
+            if not folder.is_dir() or any(folder.iterdir()):
+                break
+            folder.rmdir()
         raise
 
 
@@ -73,8 +76,9 @@ def main(argv: list[str], prog: str = "gnssfuse run") -> int:
                            **load_options(opts))
         result = run_modes(trace, [args.mode], opts)[args.mode]
         if not np.asarray(result.valid, bool).any():
-            raise GeometryError(f"{args.trace_dir}: {args.mode} solved none of its {trace.n_epochs} epochs (too few "
-                                f"satellites above the {opts.elev_mask_deg:g} deg elevation mask); nothing written")
+            raise GeometryError(f"{args.trace_dir}: {args.mode} solved none of its {trace.n_epochs} epochs (no epoch "
+                                f"with enough usable satellites above the {opts.elev_mask_deg:g} deg elevation mask); "
+                                "nothing written")
     record = write_outputs(out, trace, args.mode, result, mode_metrics(trace, result))
     written = write_exports(export_frame(trace, result), out, formats, f"{trace.name} ({args.mode})")
     stale = remove_stale_exports(out, formats)

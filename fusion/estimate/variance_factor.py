@@ -61,9 +61,12 @@ class SigmaCalibration:
     factor_from: str = "own"
 
 
-#: Modes whose positions are one-epoch least-squares fits to the pseudoranges (their residuals have three
-#: degrees of freedom fewer per epoch than a smoother's)
-FITTED_MODES = frozenset({"wls", "dnn"})
+def fitted_positions(mode: str, info: dict) -> bool:
+    """Whether a mode's positions are one-epoch least-squares fits to the pseudoranges (:func:`whitened_residuals`'
+    ``fitted``): wls, and dnn where the network's output is its learned-weight least squares (not the paper's
+    correction added to WLS)."""
+    return mode == "wls" or (mode == "dnn" and info.get("output") == "wls")
+
 
 #: Per-mode settings, tuned leave-drives-out on the twelve GSDC 2021 training drives and smartLoc
 #: (``experiments/results/sigma_calibration.md``). ``dnn`` / ``fused`` act on top of the checkpoint's own
@@ -232,7 +235,8 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     if cal.factor_from == "wls" and wls is not None:
         f = track_factor(trace, wls[0], wls[1], wls[2], None, cal.window_s, cal.min_dof, fitted=True)
     else:
-        f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof, fitted=mode in FITTED_MODES)
+        f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof,
+                         fitted=fitted_positions(mode, result.info))
     snap = snapshot_var(trace, pos, sel, sigma) if cal.snapshot > 0 else None
     result.cov = calibrate_cov(result.cov, pos, f, cal, snap)
     result.info["variance_factor_p50"] = float(np.median(f[np.asarray(result.valid, bool)]))

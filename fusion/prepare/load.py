@@ -110,16 +110,16 @@ def load_trace(path: str | Path, signals=("GPS_L1",), fix_truth_height: bool = T
     if truth not in ("auto", "csv", "nmea", "none"):
         raise GnssfuseError(f"truth must be 'auto', 'csv', 'nmea' or 'none', got {truth!r}")
     smartloc = smartloc_input(path)
-    raw = None if smartloc is not None else _raw_log(path)
-    if raw is None:
-        _say_unused(path, raw_sources)
     if smartloc is not None:
+        _say_unused(path, raw_sources)
         return load_smartloc(smartloc, signals=signals, truth=truth, min_sats=min_sats, truth_tol_ms=truth_tol_ms)
+    raw = _raw_log(path)
     if raw is not None:
         return load_raw_trace(raw[0], raw[1], raw_sources or RawSources(), signals=signals, truth=truth,
                               fix_truth_height=fix_truth_height, min_sats=min_sats)
     signals = ("GPS_L1",) if signals is None else signals
     meas, folder, single = _locate(path)
+    _say_unused(path, raw_sources)
     name = _name(meas, folder, single)
     stem = _csv_name(meas)
 

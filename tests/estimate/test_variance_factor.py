@@ -177,3 +177,11 @@ def test_conditioning_screen_decides_as_the_svd():
             N[::40] = 0.0
             assert np.array_equal(well_conditioned(N, 1e12), np.linalg.cond(N) < 1e12)
     assert well_conditioned(np.zeros((0, 4, 4)), 1e12).shape == (0,)
+
+
+def test_only_least_squares_positions_count_as_fitted():
+    from fusion.estimate.variance_factor import fitted_positions
+
+    assert fitted_positions("wls", {}) and fitted_positions("dnn", {"output": "wls"})
+    assert not fitted_positions("dnn", {"output": "correction"})       # WLS plus the paper's correction
+    assert not fitted_positions("fused", {}) and not fitted_positions("fused-nodnn", {})

@@ -146,7 +146,7 @@ def test_widened_ranges():
     (["--anchor", "-1"], "--anchor >= 0"),
     (["--clk", "x.clk"], "--clk needs --sp3"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "no epoch of 2021-04-28-US-MTV-1/Pixel4 has a teacher"),
-    (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "hold only 20 epochs, fewer than a held-out block"),
+    (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "hold only 20 epochs in all, fewer than a held-out block"),
 ])
 def test_bad_arguments_are_one_line_errors(shipped_trace_dir, tmp_path, capsys, extra, words):
     assert cli(["adapt", str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), *extra]) == 2

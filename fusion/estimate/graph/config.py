@@ -308,7 +308,7 @@ def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
     inert = [n for n in WITHOUT_DRIFT_STATES if n in out and out[n] != getattr(GraphConfig, n)]
     if inert and cfg.clock_drift_states == "always":
         warnings.warn(f"{path}: {', '.join(inert)} act only without clock-drift states; with clock_drift_states = "
-                      f"'always' (the default) they have no effect")
+                      f"'always' they have no effect")
     return cfg
 
 
