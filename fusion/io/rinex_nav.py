@@ -83,6 +83,13 @@ class Navigation:
     #: file is of, when several were given)
     file_spans: dict[str, tuple[int, int]] = field(default_factory=dict)
 
+    def records_text(self, path: str) -> str | None:
+        """"records <first> to <last>" of a navigation file (to the minute; None: it has none)."""
+        from fusion.gpstime import format_gps_ms
+
+        span = self.file_spans.get(path)
+        return None if span is None else f"records {format_gps_ms(span[0])[:16]} to {format_gps_ms(span[1])[:16]}"
+
     def systems(self) -> set[str]:
         """Constellation letters with at least one record."""
         inv = {v: k for k, v in _CTYPE.items()}

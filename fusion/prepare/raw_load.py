@@ -94,14 +94,11 @@ def _say(line: str) -> None:
 
 def describe_navigation(nav) -> list[str]:
     """One line per navigation file: its name, the constellations it covers and its records' time span."""
-    from fusion.gpstime import format_gps_ms
-
     out = []
     for f, systems in nav.file_systems.items():
         what = ", ".join(SYSTEM_NAMES[s] for s in "GRECJ" if s in systems) or "no usable records"
-        span = nav.file_spans.get(f)
-        when = "" if span is None else f", records {format_gps_ms(span[0])[:16]} to {format_gps_ms(span[1])[:16]} GPST"
-        out.append(f"navigation: {Path(f).name} ({what}{when})")
+        when = nav.records_text(f)
+        out.append(f"navigation: {Path(f).name} ({what}{'' if when is None else ', ' + when + ' GPST'})")
     return out
 
 

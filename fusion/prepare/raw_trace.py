@@ -158,8 +158,7 @@ def _check_coverage(raw: RawObs, rows: pd.DataFrame, ok: np.ndarray, nav, precis
                                              [precise.sp3.source]))
     msg = f"{raw.path}: the log runs {log_span} but the navigation ({files}) covers {cover}"
     if precise is None and nav is not None and len(nav.file_spans) > 1:     # which file is of which day
-        msg += " (" + "; ".join(f"{Path(f).name}: records {format_gps_ms(a)[:16]} to {format_gps_ms(b)[:16]}"
-                                for f, (a, b) in nav.file_spans.items()) + ")"
+        msg += " (" + "; ".join(f"{Path(f).name}: {nav.records_text(f)}" for f in nav.file_spans) + ")"
     if not ok.any():
         raise DataError(msg + ": pass a navigation file of the log's day (--nav FILE)")
     warnings.warn(f"{msg}: {int((~ok).sum())} of {ok.size} measurements have no ephemeris", stacklevel=3)

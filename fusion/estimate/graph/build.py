@@ -103,19 +103,19 @@ class GraphPieces:
         return epochs, graphs, vals
 
 
-def uses_drift(inp: EpochInputs) -> bool:
-    """Whether the graph has clock-drift states (GraphConfig.clock_drift_states)."""
-    return inp.use_drift
+def uses_doppler(inp: EpochInputs) -> bool:
+    """Whether the graph uses some Doppler (which measures the velocity and the clock's drift)."""
+    return inp.raw is not None and inp.raw.use_drift
 
 
 def drift_clock_rw(inp: EpochInputs, cfg: GraphConfig) -> float:
     """The clock's random walk [m per sqrt(s)] beside a drift state: tighter where Doppler measures the drift."""
-    return cfg.drift_clock_rw_m if inp.raw is not None and inp.raw.use_drift else cfg.drift_clock_rw_no_doppler_m
+    return cfg.drift_clock_rw_m if uses_doppler(inp) else cfg.drift_clock_rw_no_doppler_m
 
 
 def level_sigma(inp: EpochInputs, cfg: GraphConfig) -> float:
     """The prior's sigma on each epoch's vertical velocity [m/s] (0: none): its own where Doppler is used."""
-    return cfg.cv_level_sigma_mps if inp.raw is not None and inp.raw.use_drift else cfg.cv_level_sigma_no_doppler_mps
+    return cfg.cv_level_sigma_mps if uses_doppler(inp) else cfg.cv_level_sigma_no_doppler_mps
 
 
 def clocked_epochs(inp: EpochInputs, epochs: np.ndarray) -> np.ndarray:
@@ -134,7 +134,7 @@ def add_clocks(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.nd
     ks = clocked_epochs(inp, epochs)
     clock_s = inp.init_clock_m[ks] / C_LIGHT
     p.doubles += [(int(k), clock_key(int(k)), float(c)) for k, c in zip(ks, clock_s)]
-    if uses_drift(inp):
+    if inp.use_drift:
         d = clock_s + inp.clock_drift_mps[ks] * DRIFT_HORIZON_S / C_LIGHT
         p.doubles += [(int(k), drift_key(int(k)), float(v)) for k, v in zip(ks, d)]
     if inp.isb.new is None:
@@ -174,7 +174,7 @@ def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: 
     clock follows the drift and the drift walks; a chain start gets a loose drift prior."""
     ks = clocked_epochs(inp, epochs)
     js = inp.clock_link[ks]
-    if not uses_drift(inp):
+    if not inp.use_drift:
         linked = js >= 0
         p.add(ks[linked], [clock_factor_cc(int(j), int(k), inp.clock_mean_m[k], inp.clock_sigma_m[k])
                            for j, k in zip(js[linked], ks[linked])])
@@ -263,8 +263,7 @@ def add_motion(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.nd
     for k in epochs:
         k = int(k)
         p.add(k, motion.link_factors(k, lin) if (k > 0 and inp.pos_link[k]) else motion.start_factors(k))
-        if cfg.motion == "cv":
-            p.add(k, motion.level_factors(k, lin))
+        p.add(k, motion.level_factors(k, lin))
 
 
 def add_odometry(p: GraphPieces, inp: EpochInputs) -> None:
@@ -286,7 +285,7 @@ def linearisation_point(inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) 
     if inp.raw is not None and inp.raw.has_tdcp:
         points = (pos_key, vel_key, disp_key) if points else (pos_key, disp_key)
     lin = zero_point([f(k) for k in ks for f in points])
-    if uses_drift(inp):
+    if inp.use_drift:
         lin.insert(zero_point([f(k) for k in ks for f in (clock_key, drift_key)], "double"))
     return lin
 

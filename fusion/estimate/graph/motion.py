@@ -42,6 +42,10 @@ class RandomWalkMotion:
         """Factors at the first epoch of a motion component."""
         return []
 
+    def level_factors(self, k: int, lin: gtsam.Values | None = None) -> list:
+        """No vertical-velocity prior: this model has no velocity."""
+        return []
+
 
 class ConstantVelocityMotion:
     """Velocity states: x(k) = x(k-1) + v(k-1) dt + small noise; v(k) - v(k-1) a random walk.

@@ -19,8 +19,7 @@ import gtsam
 import numpy as np
 
 from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
-from fusion.estimate.graph.build import (DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, level_sigma,
-                                        uses_drift)
+from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, level_sigma
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import range_and_gradient
 from fusion.estimate.graph.inputs import EpochInputs, motion_only
@@ -68,7 +67,7 @@ def epoch_variables(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     has["vel"][epochs] = cfg.motion == "cv"
     ks = clocked_epochs(inp, epochs)
     has["clk"][ks] = True
-    has["drift"][ks] = uses_drift(inp)
+    has["drift"][ks] = inp.use_drift
     if inp.raw is not None:
         carrier = carrier_epochs(trace, inp)
         has["disp"] = carrier
@@ -196,7 +195,7 @@ def clock_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout, epochs: np.nda
     js = inp.clock_link[ks]
     c, d = lay.start["clk"], lay.start["drift"]
     linked = js >= 0
-    if not uses_drift(inp):
+    if not inp.use_drift:
         k, j = ks[linked], js[linked]
         return [scalar_blocks(np.stack([c[j], c[k]], 1), np.tile([-1.0, 1.0], (len(k), 1)), inp.clock_mean_m[k],
                               inp.clock_sigma_m[k])]
