@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
 class _NoOpinion:
     """A slot-noise source with no opinion: every factor gets the default sigma (the comparison graph)."""
 
-    def slot_noise(self, elev_mask_deg=None):
+    def slot_noise(self, elev_mask_deg=None, sigma_power=1.0):
         return lambda trace, init_pos, valid: (np.full(trace.mask.shape, np.nan),) * 2
 
 

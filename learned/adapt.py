@@ -61,7 +61,7 @@ from learned.consistency import loo_nll
 from learned.data import build_samples
 from learned.features import FeatureConfig
 from learned.forward import outputs, take
-from learned.graph_check import FOLDS, graph_decision, graph_errors
+from learned.graph_check import FOLDS, MARGIN as GRAPH_MARGIN, graph_decision, graph_errors
 from learned.guard import input_ranges
 from learned.infer import SHIPPED_WEIGHTS
 from learned.selfcheck import BLOCK, CRITERION, EVERY, MARGIN, criteria, decide, heldout_inputs, split
@@ -101,7 +101,7 @@ class AdaptConfig:
     widen: bool = True        # widen the guard's input ranges by the adapted-on inputs (when accepted)
     graph_check: bool = True  # an accepted adaptation must also place the fused graph better (learned.graph_check)
     graph_folds: int = FOLDS  # ... judged on this many folds of satellites held out of the graph
-    graph_margin: float = 0.0  # ... by at least this relative gain
+    graph_margin: float = GRAPH_MARGIN  # ... by at least this relative gain (negative: a tolerance)
 
 
 @dataclass

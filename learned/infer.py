@@ -46,6 +46,7 @@ class Correction:
     n_too_few: epochs with a valid guess but < 4 satellites above the mask.
     sigma, bias: (E,S) learned pseudorange sigma and bias [m] per trace slot, NaN where the network was
                not asked or the slot's inputs are out of the training range (:mod:`learned.guard`).
+    base:      (E,S) the physical sigma model the head's sigma multiplies [m], NaN where not asked.
     trust:     (E,) the guard's trust in [0, 1] (NaN where not valid); the correction is shrunk by it.
     info:      what the guard did: counts by reason (:meth:`Corrector.guard_counts`).
     """
@@ -60,6 +61,7 @@ class Correction:
     bias: np.ndarray | None = None
     trust: np.ndarray | None = None
     info: dict | None = None
+    base: np.ndarray | None = None
 
 
 def _calibration_scales(config: dict, path, calibrated: bool) -> dict[str, np.ndarray]:
@@ -286,7 +288,7 @@ class Corrector:
         idx, mask, unseen, n_too_few = self._asked(trace, init_pos, valid, elev, drop)
         res = Correction(np.full((E, 3), np.nan), np.full((E, 3, 3), np.nan), np.full((E, 3), np.nan),
                          np.full((E, 3, 3), np.nan), np.zeros(E, bool), n_too_few, np.full((E, S), np.nan),
-                         np.full((E, S), np.nan), np.full(E, np.nan))
+                         np.full((E, S), np.nan), np.full(E, np.nan), base=np.full((E, S), np.nan))
         oor, counts = np.zeros(mask.shape, bool), {}
         if len(idx):
             out = self._forward(trace, idx, mask, init_pos[idx], drop)
@@ -308,16 +310,18 @@ class Corrector:
                 "meas_unseen_signal": int(np.sum(unseen))}
 
     def graph_inputs(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
-                     elev_mask_deg: float | None = None) -> LearnedGraphInputs:
+                     elev_mask_deg: float | None = None, sigma_power: float = 1.0) -> LearnedGraphInputs:
         """Everything the graph takes from the network, from ONE pass at ``init_pos`` (E,3) ECEF for the
         epochs in ``valid`` (E,): the position prior (mean (E,3), covariance (E,3,3), ok (E,)), the
-        per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion), the Doppler head where the
+        per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion; the head's multiplier on the
+        physical model raised to ``sigma_power``, see :func:`graph_sigma`), the Doppler head where the
         checkpoint has one (:mod:`learned.doppler_head`; None: the graph's physical model), and the guard's counts."""
         c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
         # an epoch the guard switched off has its guess as the "prior": information the graph already has
         ok = c.valid & (np.nan_to_num(c.trust) > 0)
         return LearnedGraphInputs(prior_mean=c.mean_ecef, prior_cov=c.cov_ecef, prior_ok=ok,
-                                  pr_sigma=c.sigma, pr_bias=c.bias, doppler_noise=self.doppler,
+                                  pr_sigma=graph_sigma(c.sigma, c.base, sigma_power), pr_bias=c.bias,
+                                  doppler_noise=self.doppler,
                                   info=dict(c.info or {}, pr_sigma_learned=int(np.isfinite(c.sigma).sum())))
 
     def _fill(self, res: Correction, out: dict, idx, guess, output: str) -> None:
@@ -338,6 +342,7 @@ class Corrector:
         off = out["oor"] & (self.features.version == 2)
         res.sigma[idx] = np.where(off, np.nan, out["sigma"])
         res.bias[idx] = np.where(off, np.nan, out["bias"])
+        res.base[idx] = np.where(off, np.nan, out["base"])
 
     def __call__(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
         return self.provider()(trace, init_pos, valid)
@@ -351,13 +356,28 @@ class Corrector:
             return c.mean_ecef, c.cov_ecef, c.valid
         return ask
 
-    def slot_noise(self, elev_mask_deg: float | None = None):
+    def slot_noise(self, elev_mask_deg: float | None = None, sigma_power: float = 1.0):
         """This corrector as a graph slot-noise provider ``(trace, init_pos, valid) -> (sigma (E,S),
-        bias (E,S))`` [m], NaN where it has no opinion (the graph then keeps its default sigma)."""
+        bias (E,S))`` [m], NaN where it has no opinion (the graph then keeps its default sigma); the sigma
+        as :func:`graph_sigma` makes it for ``sigma_power``."""
         def ask(trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
             c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
-            return c.sigma, c.bias
+            return graph_sigma(c.sigma, c.base, sigma_power), c.bias
         return ask
+
+
+def graph_sigma(sigma: np.ndarray, base: np.ndarray, power: float) -> np.ndarray:
+    """The head's pseudorange sigma for a smoother: ``base * (sigma / base) ** power``, all (E,S) [m].
+
+    The head is trained on one epoch's error, and a smoother averages epochs: a pseudorange the head
+    finds worse than the physical model is mostly multipath or a reflection, whose error lasts for many
+    epochs and does not average away, so the graph needs it down-weighted more than one epoch's
+    variance says (and the clean ones up-weighted). ``power`` 1 is the head as trained.
+    """
+    if power == 1.0:
+        return sigma
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return base * (sigma / base) ** power
 
 
 def calibration(err_ned: np.ndarray, cov_ned: np.ndarray) -> dict:

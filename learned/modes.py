@@ -133,7 +133,8 @@ def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     ``opts.learned_sigmas`` / ``opts.learned_doppler`` switch each off), and what the guard did (info keys ``learned_*``).
     at: (E,3) that guess if already made."""
     at = learned_guess(trace, wls, opts) if at is None else at
-    out = corrector.graph_inputs(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg)
+    out = corrector.graph_inputs(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg,
+                                 sigma_power=opts.graph.learned_sigma_power)
     out.info = {f"learned_{k}": v for k, v in (out.info or {}).items()}
     if not opts.learned_prior:
         out.prior_mean = out.prior_cov = out.prior_ok = None

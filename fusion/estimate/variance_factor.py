@@ -77,7 +77,7 @@ DEFAULTS: dict[str, SigmaCalibration] = {
                             snapshot=0.3),
     "fused-nodnn": SigmaCalibration(a=(1.1747, 1.4537, 1.3116), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(0.9005, 1.0387, 0.8117), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
+    "fused": SigmaCalibration(a=(0.9039, 1.0405, 0.8077), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
 }
 
 

@@ -61,6 +61,7 @@ def _cases(raw_sim, doppler_sim):
         "no drift states": (two, two_wls, GraphConfig(clock_drift_states="doppler"), prior),
         "level prior": (raw_sim[0], raw_sim[1], GraphConfig(cv_level_sigma_mps=0.5), None),
         "level prior, no Doppler": (two, two_wls, GraphConfig(cv_level_sigma_no_doppler_mps=0.5), prior),
+        "own robust scales": (raw_sim[0], raw_sim[1], GraphConfig(robust_k=1.0, rate_robust_k=3.0), None),
     }
 
 
@@ -72,7 +73,7 @@ def _inputs(trace, wls, cfg, provider):
 
 @pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
                                   "random walk", "no drift states", "level prior",
-                                  "level prior, no Doppler"])
+                                  "level prior, no Doppler", "own robust scales"])
 def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
@@ -89,7 +90,7 @@ def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
 
 @pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
                                   "random walk", "no drift states", "level prior",
-                                  "level prior, no Doppler"])
+                                  "level prior, no Doppler", "own robust scales"])
 def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
@@ -198,3 +199,15 @@ def test_pixel5_graph_matches_gtsam(shared_data):
     banded = solve_batch(trace, inp, opts.graph, want_cov=False)
     gtsam_gn = solve_batch(trace, inp, replace(opts.graph, batch_solver="gauss-newton"), want_cov=False)
     np.testing.assert_allclose(banded[0], gtsam_gn[0], rtol=0, atol=1e-5)
+
+
+def test_doppler_and_carrier_take_their_own_robust_scale(raw_sim):
+    """Pseudorange blocks carry ``robust_k``; Doppler and carrier blocks ``rate_robust_k``."""
+    from fusion.estimate.graph.vector_graph import carrier_blocks, doppler_blocks, make_layout, pseudorange_blocks
+    trace, wls = raw_sim
+    cfg = GraphConfig(robust_k=1.0, rate_robust_k=3.0)
+    inp = _inputs(trace, wls, cfg, None)
+    lay = make_layout(trace, inp, cfg, np.arange(trace.n_epochs))
+    assert {b.k for b in pseudorange_blocks(trace, inp, cfg, lay)} == {1.0}
+    assert {b.k for b in doppler_blocks(trace, inp, cfg, lay)} == {3.0}
+    assert carrier_blocks(trace, inp, cfg, lay)[-1].k == 3.0

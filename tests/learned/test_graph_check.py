@@ -57,6 +57,14 @@ def test_graph_decision():
     assert not graph_decision({"error_m": float("nan")}, {"error_m": 1.0, "measurements": 0}, 0.0)[0]
 
 
+def test_the_default_margin_tolerates_one_percent():
+    from learned.adapt import AdaptConfig
+    from learned.graph_check import MARGIN
+    assert AdaptConfig().graph_margin == MARGIN == -0.01
+    assert graph_decision({"error_m": 2.0}, {"error_m": 2.009, "measurements": 9}, MARGIN)[0]     # 0.45 % worse
+    assert not graph_decision({"error_m": 2.0}, {"error_m": 2.024, "measurements": 9}, MARGIN)[0]  # 1.2 % worse
+
+
 def test_a_graph_check_that_fails_writes_the_base_weights_and_says_why(shipped_trace_dir, tmp_path, capsys):
     out = tmp_path / "w.pt"      # the self-check keeps anything (-1); no adaptation gains 99 % in the graph
     assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--epochs", "1", "--margin", "-1",

@@ -198,7 +198,7 @@ def add_dopplers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfi
     keep[epochs] = True
     ks, ss = np.nonzero(inp.raw.doppler & keep[:, None])
     prr = trace.prr[ks, ss] - inp.raw.prr_bias[ks, ss]
-    models = scalar_robust_models(cfg.robust, cfg.robust_k, inp.raw.prr_sigma[ks, ss])
+    models = scalar_robust_models(cfg.robust, cfg.rate_robust_k, inp.raw.prr_sigma[ks, ss])
     sat_pos, sat_vel, rx = trace.sat_pos[ks, ss], trace.sat_vel[ks, ss], inp.init_pos[ks]
     p.add(ks, [doppler_factor_vcd(k, r, sat_pos[i], sat_vel[i], rx[i], models[i])
                for i, (k, r) in enumerate(zip(ks.tolist(), prr.tolist()))])
@@ -236,7 +236,7 @@ def carrier_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     kk, ss = np.nonzero((raw.tdcp_prev >= 0) & epochs[:, None])
     sat_k = trace.sat_pos[kk, ss]
     _, measured = carrier_rows(trace, raw, lin_pos, kk, ss)
-    models = scalar_robust_models(cfg.robust, cfg.robust_k, raw.tdcp_sigma[kk, ss])
+    models = scalar_robust_models(cfg.robust, cfg.rate_robust_k, raw.tdcp_sigma[kk, ss])
     guess_k = lin_pos[kk]
     return kk, [tdcp_factor_linearised(k, m, sat_k[i], guess_k[i], models[i])
                 for i, (k, m) in enumerate(zip(kk.tolist(), measured.tolist()))]

@@ -226,7 +226,7 @@ def doppler_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout
     H = DRIFT_HORIZON_S
     cols = np.concatenate([_cols(lay.start["vel"], ks, 3), lay.start["clk"][ks, None], lay.start["drift"][ks, None]], 1)
     coeffs = np.concatenate([grad, np.full((len(ks), 1), -1.0 / H), np.full((len(ks), 1), 1.0 / H)], 1)
-    return [scalar_blocks(cols, coeffs, rhs, raw.prr_sigma[ks, ss], cfg.robust, cfg.robust_k)]
+    return [scalar_blocks(cols, coeffs, rhs, raw.prr_sigma[ks, ss], cfg.robust, cfg.rate_robust_k)]
 
 
 def carrier_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:
@@ -245,7 +245,7 @@ def carrier_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout
     grad, measured = carrier_rows(trace, raw, inp.init_pos if raw.lin_pos is None else raw.lin_pos, kk, ss)
     cols = np.concatenate([_cols(st["disp"], kk, 3), st["qclk"][kk - 1, None], st["qclk"][kk, None]], 1)
     coeffs = np.concatenate([grad, -np.ones((len(kk), 1)), np.ones((len(kk), 1))], 1)
-    tdcp = scalar_blocks(cols, coeffs, measured, raw.tdcp_sigma[kk, ss], cfg.robust, cfg.robust_k)
+    tdcp = scalar_blocks(cols, coeffs, measured, raw.tdcp_sigma[kk, ss], cfg.robust, cfg.rate_robust_k)
     return [disp, chain, tdcp]
 
 
