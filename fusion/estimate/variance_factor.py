@@ -75,9 +75,10 @@ DEFAULTS: dict[str, SigmaCalibration] = {
     "wls": SigmaCalibration(a=(1.0615, 1.0661, 1.18), b=1.5, window_s=15.0, snapshot=0.3),
     "dnn": SigmaCalibration(a=(1.4478, 1.3567, 1.8347), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
                             snapshot=0.3),
-    "fused-nodnn": SigmaCalibration(a=(1.1747, 1.4537, 1.3116), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
+    "fused-nodnn": SigmaCalibration(a=(1.1498, 1.4317, 1.3176), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(0.9039, 1.0405, 0.8077), b=1.5, window_s=300.0, snapshot=0.3, factor_from="wls"),
+    "fused": SigmaCalibration(a=(1.5676, 1.7593, 1.5783), b=1.5, floor_m=(0.5, 0.5, 0.0), window_s=300.0,
+                              snapshot=0.3),
 }
 
 
