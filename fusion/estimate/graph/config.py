@@ -84,8 +84,8 @@ class GraphConfig:
     # this power (learned.infer.graph_sigma). The head is trained on one epoch's error; a smoother needs the
     # satellites it finds bad (multipath, reflections: errors that last) down-weighted further. Two-fold
     # cross-validation, three training seeds' fold networks, pooled fused 3.74 / 3.70 / 3.69 / 3.71 m at
-    # 1 / 2 / 3 / 4 (every fold better at 3 than at 1); smartLoc, never trained on, 31.4 -> 27.2 m at 3
-    # (mean of the six fold networks; experiments/results/sigma_power.md).
+    # 1 / 2 / 3 / 4 (every fold better at 3 than at 1; robust_k 2 then); smartLoc, never trained on,
+    # 31.1 -> 27.4 m at 3 (mean of the six fold networks; experiments/results/sigma_power.md).
     learned_sigma_power: float = 3.0
     prior_cov_scale: float = 4.0
     prior_sigma_floor_m: float = 2.0
