@@ -23,7 +23,7 @@ from learned.context import context_wls, slot_context
 from learned.doppler_head import DopplerNoise, check_head
 from learned.features import FeatureConfig, context_channels, elevation_mask, features_numpy
 from learned.guard import feature_guard, slot_out_of_range, trust
-from learned.heads import OUTPUTS, base_sigma, report_sigma, sat_sigma_bias, weighted_ls_step
+from learned.heads import LOGSIG_RANGE, OUTPUTS, base_sigma, report_sigma, sat_sigma_bias, weighted_ls_step
 from learned.npnet import KINDS, NpNet, as_net
 from learned.npz_weights import check_config, load_for_inference
 
@@ -372,12 +372,14 @@ def graph_sigma(sigma: np.ndarray, base: np.ndarray, power: float) -> np.ndarray
     The head is trained on one epoch's error, and a smoother averages epochs: a pseudorange the head
     finds worse than the physical model is mostly multipath or a reflection, whose error lasts for many
     epochs and does not average away, so the graph needs it down-weighted more than one epoch's
-    variance says (and the clean ones up-weighted). ``power`` 1 is the head as trained.
+    variance says (and the clean ones up-weighted). ``power`` 1 is the head as trained. The raised
+    log-multiplier keeps the head's own clamp (:data:`learned.heads.LOGSIG_RANGE`, 1/55 to 55 x the model):
+    one satellite at millimetres would make the graph's normal equations ill-conditioned.
     """
     if power == 1.0:
         return sigma
     with np.errstate(invalid="ignore", divide="ignore"):
-        return base * (sigma / base) ** power
+        return base * np.exp(np.clip(power * np.log(sigma / base), *LOGSIG_RANGE))
 
 
 def calibration(err_ned: np.ndarray, cov_ned: np.ndarray) -> dict:

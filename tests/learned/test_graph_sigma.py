@@ -21,6 +21,8 @@ def test_graph_sigma_raises_the_multiplier_and_keeps_no_opinion():
     np.testing.assert_allclose(graph_sigma(sigma, base, 2.0)[0, :2], [8.0, 1.0])
     np.testing.assert_allclose(graph_sigma(sigma, base, 0.0)[0, :2], [2.0, 4.0])   # the physical model
     assert np.isnan(graph_sigma(sigma, base, 2.0)[0, 2])
+    # the raised multiplier keeps the head's clamp: e^(3 * 3) would be 8103 x
+    np.testing.assert_allclose(graph_sigma(np.array([np.exp(3.0)]), np.array([1.0]), 3.0), [np.exp(4.0)])
 
 
 class _SlotNet:
