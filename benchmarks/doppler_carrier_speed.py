@@ -106,7 +106,7 @@ def tdcp_custom(k, trace, inp, cfg, values) -> list:
         return []
     prev = raw.tdcp_prev[k, cur]
     return [tdcp_factor_xxcc(k - 1, k, trace.adr[k, cur] - trace.adr[k - 1, prev], trace.sat_pos[k - 1, prev],
-                             trace.sat_pos[k, cur], raw.tdcp_sigma[k, cur], cfg.robust, cfg.robust_k)]
+                             trace.sat_pos[k, cur], raw.tdcp_sigma[k, cur], cfg.robust, cfg.rate_robust_k)]
 
 
 def tdcp_custom_all(p, trace, inp, cfg, epochs, lin) -> None:
@@ -137,7 +137,7 @@ def doppler_custom(k, trace, inp, cfg) -> list:
             drift = w * (v.atDouble(keys[2]) - v.atDouble(keys[1]))
             return np.array([los @ (sv - v.atPoint3(keys[0])) + drift - z])
 
-        model = robust_model(cfg.robust, cfg.robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.prr_sigma[k, s])))
+        model = robust_model(cfg.robust, cfg.rate_robust_k, gtsam.noiseModel.Isotropic.Sigma(1, float(raw.prr_sigma[k, s])))
         out.append(gtsam.CustomFactor(model, gtsam.KeyVector(keys), error))
     return out
 

@@ -6,7 +6,7 @@ predicts from that satellite's residual, geometry, reported uncertainty and hist
 (:func:`learned.factor.learned_pseudorange_factors`), and a loose random walk between positions and clocks.
 The same graph with one fixed sigma for every satellite is solved beside it; both errors are printed.
 
-    python examples/05_learned_pseudorange_factors.py [--trace DIR] [--weights CKPT] [--epochs 120]
+    python examples/05_learned_pseudorange_factors.py [--trace DIR] [--weights CKPT] [--epochs 120] [--sigma-power P]
 """
 from __future__ import annotations
 
@@ -53,12 +53,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--weights", type=Path, default=None, help="checkpoint (default: shipped weights)")
     p.add_argument("--epochs", type=int, default=120)
     p.add_argument("--walk", type=float, default=15.0, help="position random walk per epoch [m]")
+    p.add_argument("--sigma-power", type=float, default=1.0,
+                   help="the head's multiplier raised to this (the fused mode's graph takes 3)")
     args = p.parse_args(argv)
     trace = load_trace(args.trace)
     trace = trace.select(np.arange(min(args.epochs, trace.n_epochs)))
     wls = solve_wls(trace)                                    # guesses for the head (never the truth)
     keys = [gtsam.symbol("x", k) for k in range(trace.n_epochs)], [gtsam.symbol("c", k) for k in range(trace.n_epochs)]
-    learned, sigma = learned_pseudorange_factors(Corrector.load(args.weights), trace, wls.pos, wls.valid, *keys)
+    learned, sigma = learned_pseudorange_factors(Corrector.load(args.weights), trace, wls.pos, wls.valid, *keys,
+                                                 sigma_power=args.sigma_power)
     fixed, _ = learned_pseudorange_factors(_NoOpinion(), trace, wls.pos, wls.valid, *keys)
     for name, factors in (("fixed 5 m sigma", fixed), ("learned sigmas", learned)):
         h = horizontal(ned_errors(solve(factors, wls, args.walk), trace.truth))
@@ -71,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
 class _NoOpinion:
     """A slot-noise source with no opinion: every factor gets the default sigma (the comparison graph)."""
 
-    def slot_noise(self, elev_mask_deg=None, sigma_power=1.0):
+    def slot_noise(self, elev_mask_deg=None):
         return lambda trace, init_pos, valid: (np.full(trace.mask.shape, np.nan),) * 2
 
 

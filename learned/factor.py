@@ -26,7 +26,6 @@ import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
-from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import prior_noise_model, robust_model
 from fusion.estimate.graph.priors import PRIOR_MIN_EIG, PriorProvider, Priors, ask_provider, clean_priors
 from fusion.trace import SIGNALS, Trace, empty_trace
@@ -248,7 +247,7 @@ def learned_prior_factors(corrector: PriorProvider, trace: Trace, init_pos: np.n
 def learned_pseudorange_factors(corrector, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
                                 pos_keys: list[int], clock_keys: list[int], *, default_sigma_m: float = 5.0,
                                 robust: str = "huber", robust_k: float = 2.0,
-                                sigma_power: float | None = None) -> tuple[list[list], np.ndarray]:
+                                sigma_power: float = 1.0) -> tuple[list[list], np.ndarray]:
     """GTSAM ``PseudorangeFactor`` per measurement, weighted by the per-satellite head.
 
     corrector: a ``learned.infer.Corrector`` (its :meth:`slot_noise` is asked at ``init_pos``).
@@ -257,16 +256,19 @@ def learned_pseudorange_factors(corrector, trace: Trace, init_pos: np.ndarray, v
     clock in seconds (``double``), as GTSAM's ``PseudorangeFactor`` expects.
     Each factor measures ``pr - bias`` with sigma from the head; slots the head has no opinion on (not
     asked, out of the training range, other signals) get ``default_sigma_m`` and no bias. The noise model is
-    wrapped in ``robust`` at ``robust_k`` sigmas. ``sigma_power``: the head's multiplier raised to it, as the
-    ``fused`` mode does for a smoother (None: ``GraphConfig.learned_sigma_power``; 1: the head as trained,
-    for one epoch alone). Returns ``(factors per epoch (E lists), sigma (E,S))``, the sigma used per slot
-    (NaN on padding).
+    wrapped in ``robust`` at ``robust_k`` sigmas. ``sigma_power``: the head's multiplier raised to it
+    (:func:`learned.infer.graph_sigma`; 1: the head as trained). The ``fused`` mode's graph takes
+    ``GraphConfig.learned_sigma_power`` (3) beside a Cauchy loss at 1.5 and a constant-velocity model; in
+    example 05's random walk with Huber at 2, 3 did worse than 1 (horizontal p95 21.2 against 18.3 m,
+    ``examples/05_learned_pseudorange_factors.py --sigma-power 3``), so choose it for your own graph. Returns ``(factors per epoch (E lists), sigma (E,S))``, the sigma used per
+    slot (NaN on padding).
     """
     E = trace.n_epochs
     if len(pos_keys) != E or len(clock_keys) != E:
         raise GeometryError(f"{trace.name}: {E} position and clock keys needed, got {len(pos_keys)} / {len(clock_keys)}")
-    power = GraphConfig().learned_sigma_power if sigma_power is None else sigma_power
-    sigma, bias = corrector.slot_noise(sigma_power=power)(trace, np.asarray(init_pos, float), np.asarray(valid, bool))
+    # a slot-noise source written before the power existed takes no sigma_power
+    noise = corrector.slot_noise() if sigma_power == 1.0 else corrector.slot_noise(sigma_power=sigma_power)
+    sigma, bias = noise(trace, np.asarray(init_pos, float), np.asarray(valid, bool))
     have = np.isfinite(sigma) & np.isfinite(bias)
     used = np.where(trace.mask, np.where(have, sigma, default_sigma_m), np.nan)
     pr = trace.pr - np.where(have, bias, 0.0)

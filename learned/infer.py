@@ -46,7 +46,9 @@ class Correction:
     n_too_few: epochs with a valid guess but < 4 satellites above the mask.
     sigma, bias: (E,S) learned pseudorange sigma and bias [m] per trace slot, NaN where the network was
                not asked or the slot's inputs are out of the training range (:mod:`learned.guard`).
-    base:      (E,S) the physical sigma model the head's sigma multiplies [m], NaN where not asked.
+    base:      (E,S) the head's own physical sigma model, which its sigma multiplies [m] (the reported sigma or
+               the C/N0 model, and elevation: :func:`learned.heads.base_sigma`; not the graph's default sigma),
+               NaN where not asked.
     trust:     (E,) the guard's trust in [0, 1] (NaN where not valid); the correction is shrunk by it.
     info:      what the guard did: counts by reason (:meth:`Corrector.guard_counts`).
     """
@@ -313,8 +315,9 @@ class Corrector:
                      elev_mask_deg: float | None = None, sigma_power: float = 1.0) -> LearnedGraphInputs:
         """Everything the graph takes from the network, from ONE pass at ``init_pos`` (E,3) ECEF for the
         epochs in ``valid`` (E,): the position prior (mean (E,3), covariance (E,3,3), ok (E,)), the
-        per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion; the head's multiplier on the
-        physical model raised to ``sigma_power``, see :func:`graph_sigma`), the Doppler head where the
+        per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion; the head's multiplier on its
+        physical model raised to ``sigma_power``, see :func:`graph_sigma`: 1 is the head as trained, the
+        ``fused`` mode passes ``GraphConfig.learned_sigma_power``), the Doppler head where the
         checkpoint has one (:mod:`learned.doppler_head`; None: the graph's physical model), and the guard's counts."""
         c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
         # an epoch the guard switched off has its guess as the "prior": information the graph already has
@@ -359,7 +362,7 @@ class Corrector:
     def slot_noise(self, elev_mask_deg: float | None = None, sigma_power: float = 1.0):
         """This corrector as a graph slot-noise provider ``(trace, init_pos, valid) -> (sigma (E,S),
         bias (E,S))`` [m], NaN where it has no opinion (the graph then keeps its default sigma); the sigma
-        as :func:`graph_sigma` makes it for ``sigma_power``."""
+        as :func:`graph_sigma` makes it for ``sigma_power`` (1: the head as trained)."""
         def ask(trace: Trace, init_pos: np.ndarray, valid: np.ndarray):
             c = self.predict(trace, init_pos, valid, elev_mask_deg=elev_mask_deg)
             return graph_sigma(c.sigma, c.base, sigma_power), c.bias

@@ -197,7 +197,7 @@ def test_pseudorange_factors_take_the_heads_sigma_and_bias():
     sig[:, 0], bias[:, 0] = 2.0, 50.0
 
     class Head:
-        def slot_noise(self, elev_mask_deg=None, sigma_power=1.0):
+        def slot_noise(self, elev_mask_deg=None):
             return lambda trace, init_pos, valid: (sig, bias)
 
     pk, ck = [gtsam.symbol("x", k) for k in range(3)], [gtsam.symbol("c", k) for k in range(3)]

@@ -57,15 +57,21 @@ def test_the_fused_mode_takes_the_configured_power_from_one_pass():
         np.testing.assert_array_equal(g.pr_bias[ok], c.bias[ok])
 
 
-def test_pseudorange_factors_take_the_power_too():
+def test_pseudorange_factors_take_the_power_when_asked():
     import gtsam
     from learned.factor import learned_pseudorange_factors
     tr = toy_trace(5, seed=4, n_sats=(7, 7))
     wls = solve_wls(tr)
     corr = _corrector()
     keys = [gtsam.symbol("x", k) for k in range(5)], [gtsam.symbol("c", k) for k in range(5)]
-    _, one = learned_pseudorange_factors(corr, tr, wls.pos, wls.valid, *keys, sigma_power=1.0)
+    _, one = learned_pseudorange_factors(corr, tr, wls.pos, wls.valid, *keys)      # the head as trained
     _, three = learned_pseudorange_factors(corr, tr, wls.pos, wls.valid, *keys, sigma_power=3.0)
     base = corr.predict(tr, wls.pos, wls.valid).base
     ok = np.isfinite(base) & tr.mask
     np.testing.assert_allclose(three[ok], base[ok] * (one[ok] / base[ok]) ** 3)
+
+
+def test_the_graph_defaults_are_the_ones_chosen():
+    """The settings experiments/results/sigma_power.md chose (a change needs that file rerun)."""
+    cfg = GraphConfig()
+    assert (cfg.learned_sigma_power, cfg.robust_k, cfg.rate_robust_k) == (3.0, 1.5, 2.0)

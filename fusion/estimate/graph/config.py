@@ -31,9 +31,10 @@ class GraphConfig:
     # Scale on the whitened residual of the pseudorange factors. 1.5 against 2 (chosen on three drives in the
     # first round) and 1: fused-nodnn better at 1.5 than at 2 on every tuning set (GSDC 3.89 -> 3.86 m pooled,
     # smartLoc 35.72 -> 34.90 m, each of the eight simulated city traces); 1 was better still on smartLoc and
-    # the simulated traces but not on the GSDC drives (3.90 m), and fused was best at 1.5 (GSDC 3.69 / 3.69 /
-    # 3.70 m at 1.5 / 2 / 1, smartLoc 26.55 / 27.14 / 27.31 m; experiments/results/sigma_power.md). Multipath and
-    # reflections give pseudoranges heavy tails; on Gaussian errors a narrower Cauchy costs a little.
+    # seven of the simulated traces but not on the GSDC drives (3.90 m), and fused was best or tied at 1.5 (GSDC
+    # 3.69 / 3.69 / 3.70 m at 1.5 / 2 / 1, smartLoc 26.55 / 27.14 / 27.31 m; experiments/results/sigma_power.md).
+    # Multipath and reflections give pseudoranges heavy tails; on Gaussian errors a narrower Cauchy costs some
+    # efficiency (experiments/robust_scale_clean.py).
     robust_k: float = 1.5
     # The same for the Doppler and time-differenced carrier factors: 2 (the old common value) against 1.5 on the
     # simulated city traces, the only tuning logs with Doppler: mean fused-nodnn 5.44 -> 5.37 m, no trace worse
@@ -85,7 +86,8 @@ class GraphConfig:
     # satellites it finds bad (multipath, reflections: errors that last) down-weighted further. Two-fold
     # cross-validation, three training seeds' fold networks, pooled fused 3.74 / 3.70 / 3.69 / 3.71 m at
     # 1 / 2 / 3 / 4 (every fold better at 3 than at 1; robust_k 2 then); smartLoc, never trained on,
-    # 31.1 -> 27.4 m at 3 (mean of the six fold networks; experiments/results/sigma_power.md).
+    # 31.4 -> 27.2 m at 3 (mean of the six fold networks; 31.1 -> 27.4 m at robust_k 1.5;
+    # experiments/results/sigma_power.md).
     learned_sigma_power: float = 3.0
     prior_cov_scale: float = 4.0
     prior_sigma_floor_m: float = 2.0
