@@ -188,8 +188,8 @@ def test_switches_and_traces_without_the_fields(sim, wls):
 @pytest.fixture(scope="module")
 def solutions(sim, wls):
     # the simulated errors here are Gaussian: pseudoranges at the Doppler's robust scale (2), not the
-    # narrower one chosen for real logs' multipath (GraphConfig.robust_k), which on Gaussian errors costs a
-    # little efficiency; test_doppler_helps_at_the_defaults checks the defaults
+    # narrower one chosen for real logs' multipath (GraphConfig.robust_k), which on Gaussian errors costs
+    # efficiency (experiments/robust_scale_clean.py); test_doppler_helps_at_the_defaults checks the defaults
     return {(d, c): solve(sim.trace, wls, use_doppler=d, use_carrier=c, robust_k=2.0)
             for d, c in ((False, False), (True, False), (True, True))}
 
