@@ -24,7 +24,7 @@ from fusion.eval.metrics import format_table, mode_metrics  # noqa: E402
 from fusion.modes import run_modes
 from fusion.run_types import RunOptions
 from learned.data import FORBIDDEN_TRACES, build_samples, load_real_traces, split_random  # noqa: E402
-from learned.features import CHANNELS, FeatureConfig  # noqa: E402
+from learned.features import RECIPE_INPUTS, FeatureConfig  # noqa: E402
 from learned.train import TrainConfig, train  # noqa: E402
 
 SHIPPED = REPO / "data" / "gsdc2021" / "train" / "2021-04-28-US-MTV-1" / "Pixel4"
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     # the shipped recipe's inputs: the paper's (residual, line of sight) and every context channel
     cfg = TrainConfig(epochs=args.epochs, seed=args.seed, data={"sources": [str(args.gsdc_root)]},
-                      features=FeatureConfig(inputs=tuple(CHANNELS)))
+                      features=FeatureConfig(inputs=RECIPE_INPUTS))
     history = train(train_s, val_s, cfg, args.out, progress=False)
     best = min(history, key=lambda r: r["val_score_m"])
     print(f"best epoch {best['epoch']} (val horizontal error {best['val_score_m']:.2f} m) -> {args.out}")

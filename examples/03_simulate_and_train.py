@@ -24,7 +24,7 @@ from fusion.modes import run_modes
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate, simulate_dataset  # noqa: E402
 from learned.data import build_samples, split_random  # noqa: E402
-from learned.features import CHANNELS, FeatureConfig  # noqa: E402
+from learned.features import RECIPE_INPUTS, FeatureConfig  # noqa: E402
 from learned.train import TrainConfig, train  # noqa: E402
 
 
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"simulated {len(traces)} drives -> {len(train_s)} training / {len(val_s)} validation epochs")
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    cfg = TrainConfig(epochs=args.epochs, seed=args.seed, features=FeatureConfig(inputs=tuple(CHANNELS)),
+    cfg = TrainConfig(epochs=args.epochs, seed=args.seed, features=FeatureConfig(inputs=RECIPE_INPUTS),
                       data={"sources": ["sim"], "traces": args.traces, "bias": args.bias_scenario})
     history = train(train_s, val_s, cfg, args.out, progress=False)
     best = min(history, key=lambda r: r["val_score_m"])

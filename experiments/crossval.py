@@ -220,7 +220,7 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--loss", default="correction=1,sat=0.1,wls=1,shrink=1")
     p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3")
-    p.add_argument("--inputs", default=None, help="input groups (default: every group of the feature version)")
+    p.add_argument("--inputs", default=None, help="input groups (default: the shipped recipe's, gnssfuse train --inputs)")
     p.add_argument("--dropout", default=None, help="feature dropout rates (gnssfuse train --dropout)")
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
     p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")

@@ -6,6 +6,10 @@ constellations and signals); ``learned/weights/TRAINING.md`` and ``experiments/r
 measure what they buy on real logs.
 
     python experiments/sim_city_traces.py --out /tmp/sim      # writes /tmp/sim/sim-<scenario>-<seed>/SimPhone/
+
+``--held-out`` writes eight traces no network is trained on, for tuning graph settings where the learned part
+acts inside the trace: four other drives' tracks (never replayed in training), seeds 101-108,
+``/tmp/simho/ho-<scenario>-<seed>/SimPhone/``.
 """
 from __future__ import annotations
 
@@ -23,20 +27,24 @@ SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "d
 #: replayed tracks (training drives only: never a test trace's road)
 TRACKS = ("2020-05-14-US-MTV-2", "2020-05-29-US-MTV-1", "2020-06-04-US-MTV-1", "2020-07-08-US-MTV-1")
 SCENARIOS = ("urban", "suburban")
+#: the held-out set's tracks (``--held-out``) and its first seed
+HELD_OUT_TRACKS = ("2020-05-21-US-MTV-1", "2020-06-11-US-MTV-1", "2020-05-21-US-MTV-2", "2020-05-29-US-MTV-2")
+HELD_OUT_SEED = 100
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--epochs", type=int, default=1200)
+    p.add_argument("--held-out", action="store_true", help="the eight held-out traces instead of the training ones")
     args = p.parse_args(argv)
-    seed = 0
-    for track in TRACKS:
+    tracks, seed, prefix = (HELD_OUT_TRACKS, HELD_OUT_SEED, "ho") if args.held_out else (TRACKS, 0, "sim")
+    for track in tracks:
         for scenario in SCENARIOS:
             seed += 1
             gt = SHARED / "gsdc2021" / "trajectories" / track / "Pixel4" / "ground_truth.csv"
             rc = cli(["simulate", "--out", str(args.out), "--scenario", scenario, "--trajectory", str(gt),
-                      "--seed", str(seed), "--collection", f"sim-{scenario}-{seed}", "--epochs", str(args.epochs)])
+                      "--seed", str(seed), "--collection", f"{prefix}-{scenario}-{seed}", "--epochs", str(args.epochs)])
             if rc:
                 return rc
     return 0

@@ -20,7 +20,11 @@ All of it comes from the measurements and the WLS solution of the same trace (no
   integrated over the step (receiver clock drift and motion cancel; multipath and reflections do not),
   with ``cmd_ok`` where both epochs have a Doppler;
 - ``adr_has``, ``adr_ok``, ``adr_slip``: the trace carries carrier phase for the slot; it is valid; it
-  slipped or reset since the previous epoch.
+  slipped or reset since the previous epoch;
+- ``rel_sin``, ``rel_cos``, ``heading_ok``: the satellite's azimuth relative to the direction of travel
+  (sine and cosine) where the receiver is moving (:func:`travel_heading`). Streets run along the direction
+  of travel, so a low satellite across it is the one buildings block or reflect; the line of sight alone
+  does not say which way the street runs.
 
 A slot's "previous epoch" is the epoch before it in the trace, if no more than :data:`MAX_STEP_S`
 earlier, with the same satellite and signal, neither epoch's WLS failed, and no clock reset between.
@@ -33,7 +37,7 @@ import numpy as np
 
 from fusion.errors import GnssfuseError
 from fusion.estimate.wls import WlsResult
-from fusion.geometry import line_of_sight
+from fusion.geometry import ecef2ned_vec, elevation_azimuth, line_of_sight
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
@@ -44,7 +48,7 @@ MAX_STEP_S = 1.5
 MAX_ARC_S = 600.0
 #: The per-slot context arrays, in a fixed order.
 CONTEXT_KEYS = ("pr_sigma", "cn0", "dres", "prev_ok", "arc_s", "pr_sigma_ok", "signal", "isb", "cmd", "cmd_ok",
-                "adr_has", "adr_ok", "adr_slip")
+                "adr_has", "adr_ok", "adr_slip", "rel_sin", "rel_cos", "heading_ok")
 
 
 @dataclass
@@ -64,6 +68,9 @@ class SlotContext:
     adr_has: np.ndarray
     adr_ok: np.ndarray
     adr_slip: np.ndarray
+    rel_sin: np.ndarray
+    rel_cos: np.ndarray
+    heading_ok: np.ndarray
 
     def as_dict(self) -> dict[str, np.ndarray]:
         return {k: getattr(self, k) for k in CONTEXT_KEYS}
@@ -133,12 +140,64 @@ def slot_context(trace: Trace, wls: WlsResult, elev_mask_deg: float = 10.0) -> S
     reported = m if trace.pr_sigma_ok is None else m & trace.pr_sigma_ok
     cmd, cmd_ok = code_minus_doppler(trace, prev, t_s)
     has_adr = trace.adr_ok is not None
+    rel_sin, rel_cos, heading_ok = relative_azimuth(trace, np.where(valid[:, None], wls.pos, np.nan), t_s)
     return SlotContext(pr_sigma=np.where(m, trace.pr_sigma, 1.0), cn0=np.where(m, cn0, 0.0),
                        dres=np.where(prev_ok, dres, 0.0), prev_ok=prev_ok, arc_s=arc, pr_sigma_ok=reported,
                        signal=np.where(m, trace.signal, 0).astype(np.int64),
                        isb=np.where(m, signal_biases(trace, elev_mask_deg), 0.0), cmd=cmd, cmd_ok=cmd_ok,
                        adr_has=m & has_adr, adr_ok=m & (trace.adr_ok if has_adr else False),
-                       adr_slip=m & (trace.adr_slip if has_adr else False))
+                       adr_slip=m & (trace.adr_slip if has_adr else False), rel_sin=np.where(m, rel_sin, 0.0),
+                       rel_cos=np.where(m, rel_cos, 0.0), heading_ok=m & heading_ok[:, None])
+
+
+#: The direction of travel: a straight-line fit to the last HEADING_WINDOW_S seconds of the WLS track
+#: (causal, so a filter running epoch by epoch sees the same), trusted at HEADING_MIN_SPEED_MPS and above
+#: (a WLS track's metres of noise over the window turn a slower heading to noise).
+HEADING_WINDOW_S = 6.0
+HEADING_MIN_SPEED_MPS = 3.0
+HEADING_MIN_POINTS = 3
+
+
+def travel_heading(t_s: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(E,) heading [rad, from north towards east] of a track ``pos`` (E,3) ECEF (NaN rows: no fix) at
+    times ``t_s`` (E,), and (E,) bool where it is trusted: a least-squares velocity over the trailing
+    :data:`HEADING_WINDOW_S` of valid fixes, at least :data:`HEADING_MIN_POINTS` of them, moving at
+    :data:`HEADING_MIN_SPEED_MPS` or faster."""
+    E = t_s.shape[0]
+    ok = np.isfinite(pos).all(axis=1)
+    if ok.sum() < HEADING_MIN_POINTS:
+        return np.zeros(E), np.zeros(E, bool)
+    ref = np.median(pos[ok], axis=0)
+    ne = np.where(ok[:, None], ecef2ned_vec(np.where(ok[:, None], pos, ref) - ref, ref)[:, :2], 0.0)
+    tt = np.where(ok, t_s - t_s[0], 0.0)
+    # windowed sums by cumulative sums over epochs; the window's first epoch by time
+    w = ok.astype(float)
+    cols = np.stack([w, tt, tt * tt, ne[:, 0], ne[:, 1], tt * ne[:, 0], tt * ne[:, 1]], axis=1)
+    cum = np.vstack([np.zeros(7), np.cumsum(cols, axis=0)])
+    start = np.searchsorted(t_s, t_s - HEADING_WINDOW_S, side="left")
+    n, st, stt, sn, se, stn, ste = (cum[1:] - cum[start]).T
+    den = n * stt - st * st
+    good = (n >= HEADING_MIN_POINTS) & (den > 1e-9 * np.maximum(n * n, 1.0))
+    vn = np.where(good, (n * stn - st * sn) / np.where(good, den, 1.0), 0.0)
+    ve = np.where(good, (n * ste - st * se) / np.where(good, den, 1.0), 0.0)
+    moving = good & ok & (np.hypot(vn, ve) >= HEADING_MIN_SPEED_MPS)
+    return np.arctan2(ve, vn), moving
+
+
+def relative_azimuth(trace: Trace, pos: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(E,S) sine and cosine of each slot's azimuth minus the direction of travel (:func:`travel_heading`
+    of the track ``pos`` (E,3), NaN rows without a fix), and (E,) bool where the heading is trusted (the
+    sine and cosine are 0 elsewhere)."""
+    heading, moving = travel_heading(t_s, pos)
+    E, S = trace.mask.shape
+    if not moving.any():
+        return np.zeros((E, S)), np.zeros((E, S)), moving
+    at = np.where(moving[:, None], pos, pos[moving][0])
+    _, los = line_of_sight(trace.sat_pos, at)
+    _, az = elevation_azimuth(los, at)
+    rel = np.radians(az) - heading[:, None]
+    keep = moving[:, None] & trace.mask
+    return np.where(keep, np.sin(rel), 0.0), np.where(keep, np.cos(rel), 0.0), moving
 
 
 def signal_biases(trace: Trace, elev_mask_deg: float = 10.0) -> np.ndarray:

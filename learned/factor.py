@@ -258,7 +258,7 @@ def learned_pseudorange_factors(corrector, trace: Trace, init_pos: np.ndarray, v
     asked, out of the training range, other signals) get ``default_sigma_m`` and no bias. The noise model is
     wrapped in ``robust`` at ``robust_k`` sigmas. ``sigma_power``: the head's multiplier raised to it
     (:func:`learned.infer.graph_sigma`; 1: the head as trained). The ``fused`` mode's graph takes
-    ``GraphConfig.learned_sigma_power`` (3) beside a Cauchy loss at 1.5 and a constant-velocity model; in
+    ``GraphConfig.learned_sigma_power`` (4) beside a Cauchy loss at 1.5 and a constant-velocity model; in
     example 05's random walk with Huber at 2, 3 did worse than 1 (horizontal p95 21.2 against 18.3 m,
     ``examples/05_learned_pseudorange_factors.py --sigma-power 3``), so choose it for your own graph.
     Returns ``(factors per epoch (E lists), sigma (E,S))``, the sigma used per slot (NaN on padding).

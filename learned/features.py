@@ -44,12 +44,21 @@ N_SYSTEMS, N_SIGNALS = 5, len(SIGNAL_SYSTEM)
 #: Each group a file may lack carries its own "present" flag (missing: flag 0 and value 0): pr_sigma (the
 #: receiver's report; RINEX has none), cn0, cmd (code minus Doppler), carrier (has phase, valid, slip).
 #: system / signal: one-hot with a last "unknown" entry (a signal never seen in training reads as unknown).
+#: heading: present, sine and cosine of the azimuth relative to the direction of travel (absent while standing
+#: still or in a lone epoch); opt-in, not among the shipped recipe's inputs (:data:`RECIPE_INPUTS`).
 CHANNELS = {"res": 1, "los": 3, "pr_sigma": 2, "cn0": 2, "dres": 2, "arc": 1, "cmd": 2, "carrier": 3,
-            "system": N_SYSTEMS + 1, "signal": N_SIGNALS + 1}
+            "system": N_SYSTEMS + 1, "signal": N_SIGNALS + 1, "heading": 3}
+#: The shipped recipe's inputs: every group but the opt-in "heading" (tried, no gain on the GSDC drives:
+#: experiments/results/feature_ablation.md).
+RECIPE_INPUTS = tuple(c for c in CHANNELS if c != "heading")
 #: Version 2's groups and widths (its pr_sigma has no flag: every 2021 file reports one).
 CHANNELS_V2 = {"res": 1, "los": 3, "pr_sigma": 1, "cn0": 2, "dres": 2, "arc": 1}
 #: Groups a file may lack (with a present flag as their last channel but one, see :func:`context_channels`).
-OPTIONAL_GROUPS = ("pr_sigma", "cn0", "cmd", "carrier")
+OPTIONAL_GROUPS = ("pr_sigma", "cn0", "cmd", "carrier", "heading")
+#: Each optional group's "present" channel within the group, and the groups bounded by construction (the
+#: guard checks no range on them).
+FLAG_CHANNEL = {"pr_sigma": 1, "cn0": 1, "cmd": 1, "carrier": 0, "heading": 0}
+BOUNDED_GROUPS = ("carrier", "heading")
 #: One-hot groups whose last channel is "unknown".
 CATEGORY_GROUPS = ("system", "signal")
 #: The paper's inputs.
@@ -176,6 +185,9 @@ def _group(name: str, ctx: dict, drop: dict, cfg: FeatureConfig) -> list:
     if name == "carrier":
         has = (np.asarray(ctx["adr_has"]) > 0) & ~drop["carrier"]
         return [has, has & (np.asarray(ctx["adr_ok"]) > 0), has & (np.asarray(ctx["adr_slip"]) > 0)]
+    if name == "heading":
+        has = (np.asarray(ctx["heading_ok"]) > 0) & ~drop["heading"]
+        return [has, np.where(has, ctx["rel_sin"], 0.0), np.where(has, ctx["rel_cos"], 0.0)]
     sig = np.asarray(ctx["signal"], np.int64)
     known = (sig >= 0) & (sig < N_SIGNALS)
     if name == "system":

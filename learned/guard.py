@@ -60,7 +60,7 @@ def feature_guard(x: np.ndarray, mask: np.ndarray, ranges: dict | None, cfg) -> 
     :func:`learned.features.context_channels`), ``core`` (N,S) bool (the slot's own residual, residual
     change or arc age is outside the training range: handed to the physical model) and counts by reason.
     """
-    from learned.features import CATEGORY_GROUPS, OPTIONAL_GROUPS
+    from learned.features import BOUNDED_GROUPS, CATEGORY_GROUPS, FLAG_CHANNEL, OPTIONAL_GROUPS
     missing, counts = {}, {}
     if not ranges:
         return missing, np.zeros(mask.shape, bool), counts
@@ -69,12 +69,12 @@ def feature_guard(x: np.ndarray, mask: np.ndarray, ranges: dict | None, cfg) -> 
     sl = cfg.slices()
     for g in (k for k in OPTIONAL_GROUPS if k in sl):
         a = sl[g].start
-        flag = a if g == "carrier" else a + 1
+        flag = a + FLAG_CHANNEL[g]
         present = mask & (x[..., flag] > 0.5)
         if not seen[flag]:
             drop = present
             counts[f"meas_{g}_unseen_in_training"] = int(drop.sum())
-        elif g == "carrier":
+        elif g in BOUNDED_GROUPS:
             continue
         else:
             drop = present & ((x[..., a] < lo[a]) | (x[..., a] > hi[a]))

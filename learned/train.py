@@ -48,7 +48,8 @@ from learned.model import build_model
 #: Feature chunk size when regenerating a whole epoch's inputs (bounded memory on any device).
 CHUNK = 16384
 #: Feature dropout of the shipped recipe (:attr:`TrainConfig.dropout`).
-DEFAULT_DROPOUT = {"pr_sigma": 0.5, "cn0": 0.3, "cmd": 0.3, "carrier": 0.3, "system": 0.05, "signal": 0.1}
+DEFAULT_DROPOUT = {"pr_sigma": 0.5, "cn0": 0.3, "cmd": 0.3, "carrier": 0.3, "system": 0.05, "signal": 0.1,
+                   "heading": 0.2}
 
 
 @dataclass

@@ -19,12 +19,13 @@ from learned.augment import parse_guess_mix
 from learned.checkpoint import read_checkpoint
 from learned.data import (Samples, build_samples, load_real_traces, simulated_traces, split_blocks, split_random,
                           split_traces)
-from learned.features import CHANNELS, CHANNELS_V2, FeatureConfig
+from learned.features import CHANNELS_V2, RECIPE_INPUTS, FeatureConfig
 from learned.model import build_model, count_parameters
 from learned.train import DEFAULT_DROPOUT, LossWeights, TrainConfig, train
 
-#: Inputs of the shipped recipe: the paper's (residual, line of sight) and every context channel.
-DEFAULT_INPUTS = ",".join(CHANNELS)
+#: Inputs of the shipped recipe: the paper's (residual, line of sight) and every context channel but the opt-in
+#: heading.
+DEFAULT_INPUTS = ",".join(RECIPE_INPUTS)
 
 
 def default_inputs(version: int) -> str:

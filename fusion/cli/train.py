@@ -31,7 +31,7 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
     p.add_argument("--wls-max-err", type=float, default=100.0, help="[m] farther guess sources -> box guess")
     p.add_argument("--inputs", default=None,
                    help="comma-separated input channel groups from res,los,pr_sigma,cn0,dres,arc,cmd,carrier,"
-                        "system,signal (feature version 3; default: all of them)")
+                        "system,signal,heading (feature version 3; default: all of them but the opt-in heading)")
     p.add_argument("--output", default="wls", choices=OUTPUTS,
                    help="dnn output: learned-weight least squares (wls) or the paper's correction")
     p.add_argument("--loss", default="correction=1,sat=0.1,wls=1,shrink=1",

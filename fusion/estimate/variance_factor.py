@@ -77,7 +77,7 @@ DEFAULTS: dict[str, SigmaCalibration] = {
                             snapshot=0.3),
     "fused-nodnn": SigmaCalibration(a=(1.1498, 1.4317, 1.3176), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(1.5676, 1.7593, 1.5783), b=1.5, floor_m=(0.5, 0.5, 0.0), window_s=300.0,
+    "fused": SigmaCalibration(a=(1.6298, 1.8151, 1.6391), b=1.5, floor_m=(0.5, 0.5, 0.0), window_s=300.0,
                               snapshot=0.3),
 }
 

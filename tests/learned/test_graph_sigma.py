@@ -74,4 +74,4 @@ def test_pseudorange_factors_take_the_power_when_asked():
 def test_the_graph_defaults_are_the_ones_chosen():
     """The settings experiments/results/sigma_power.md chose (a change needs that file rerun)."""
     cfg = GraphConfig()
-    assert (cfg.learned_sigma_power, cfg.robust_k, cfg.rate_robust_k) == (3.0, 1.5, 2.0)
+    assert (cfg.learned_sigma_power, cfg.robust_k, cfg.rate_robust_k) == (4.0, 1.5, 2.0)

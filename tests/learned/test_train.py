@@ -10,7 +10,7 @@ import torch
 from fusion.errors import CheckpointError, DataError
 from learned.checkpoint import read_checkpoint
 from learned.data import build_samples, check_not_forbidden, split_random
-from learned.features import CHANNELS, FEATURE_VERSION, FeatureConfig
+from learned.features import CHANNELS, FEATURE_VERSION, RECIPE_INPUTS, FeatureConfig
 from learned.infer import Corrector
 from learned.toy import toy_dataset
 from learned.train import TrainConfig, setup, train
@@ -134,14 +134,17 @@ def test_cli_writes_checkpoint_with_config(tmp_path, capsys):
     cfg = read_checkpoint(out)["config"]
     assert cfg["eta"] == 20.0 and cfg["features"]["version"] == FEATURE_VERSION and cfg["seed"] == 5
     assert cfg["model"]["kind"] == "set" and cfg["data"]["n_train"] + cfg["data"]["n_val"] == 80
-    # the defaults: every context channel, learned-weight WLS output, three-loss mix, box/wls/graph guesses
-    assert cfg["features"]["inputs"] == list(CHANNELS) and cfg["model"]["hparams"]["d_in"] == 4 + sum(CHANNELS.values()) - 4
+    # the defaults: every context channel but the opt-in heading, learned-weight WLS output, three-loss mix,
+    # box/wls/graph guesses
+    width = sum(CHANNELS[c] for c in RECIPE_INPUTS)
+    assert "heading" not in RECIPE_INPUTS and set(RECIPE_INPUTS) | {"heading"} == set(CHANNELS)
+    assert cfg["features"]["inputs"] == list(RECIPE_INPUTS) and cfg["model"]["hparams"]["d_in"] == width
     assert cfg["dropout"]["pr_sigma"] > 0 and (tmp_path / "ck.npz").is_file()
     assert cfg["output"] == "wls" and cfg["loss"]["sat"] == 0.1 and cfg["loss"]["wls"] == 1.0
     assert cfg["guess_mix"] == {"box": 0.2, "wls": 0.5, "graph": 0.3} and cfg["data"]["val_split"] == "traces"
     assert set(cfg["calibration"]) == {"wls", "correction"}
     assert all(len(c["scale_ned"]) == 3 for c in cfg["calibration"].values())
-    assert len(cfg["input_ranges"]["lo"]) == len(cfg["input_ranges"]["hi"]) == 4 + sum(CHANNELS.values()) - 4
+    assert len(cfg["input_ranges"]["lo"]) == len(cfg["input_ranges"]["hi"]) == width
     assert "best epoch 1" in capsys.readouterr().out
 
 
