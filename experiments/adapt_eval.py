@@ -34,6 +34,7 @@ from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.prepare.raw_load import RawSources  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402
+from fusion.options import parse_signals  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.adapt import AdaptConfig, adapt  # noqa: E402
 
@@ -62,15 +63,15 @@ def fold_weights(name: str, folder: Path | None) -> Path | None:
     return None if fold is None else folder / f"fold_{fold}.pt"
 
 
-def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path, base: Path | None = None) -> dict:
-    opts = RunOptions(signals=None, nav=tuple(nav), weights=base)
+def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path, base: Path | None = None, signals=None) -> dict:
+    opts = RunOptions(signals=signals, nav=tuple(nav), weights=base)
     t0 = time.perf_counter()
     path = log_path(name)
     rec = adapt([path], folder / "w.pt", weights=base, cfg=cfg, opts=opts)
     t_adapt = time.perf_counter() - t0
-    trace = load_trace(path, signals=None, min_sats=1, raw_sources=RawSources(tuple(nav)))
+    trace = load_trace(path, signals=signals, min_sats=1, raw_sources=RawSources(tuple(nav)))
     shipped = run_modes(trace, ["fused-nodnn", "fused"], opts)
-    adapted = run_modes(trace, ["fused"], RunOptions(signals=None, nav=tuple(nav), weights=folder / "w.pt"))["fused"]
+    adapted = run_modes(trace, ["fused"], RunOptions(signals=signals, nav=tuple(nav), weights=folder / "w.pt"))["fused"]
     score = {k: mode_metrics(trace, r)["gsdc_score"] for k, r in shipped.items()}
     score["adapted"] = mode_metrics(trace, adapted)["gsdc_score"]
     c = next(iter(rec["traces"].values()))
@@ -123,6 +124,7 @@ def main() -> int:
     p.add_argument("--every", type=int, default=AdaptConfig.every)
     p.add_argument("--no-graph-check", dest="graph_check", action="store_false")
     p.add_argument("--graph-margin", type=float, default=AdaptConfig.graph_margin)
+    p.add_argument("--signals", default=None, help="as gnssfuse run --signals (default: the format's own)")
     p.add_argument("--fold-weights", type=Path, default=None,
                    help="adapt each GSDC training drive from the cross-validation network that never saw it")
     a = p.parse_args()
@@ -142,11 +144,12 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     ratios = []
     for name in a.logs:
-        nav, insample = LOGS.get(name, ((), (TRAIN / name).is_dir() and not name.startswith(NOT_TRAINED)))
+        in_train = not Path(name).is_absolute() and (TRAIN / name).is_dir()
+        nav, insample = LOGS.get(name, ((), in_train and not name.startswith(NOT_TRAINED)))
         base = fold_weights(name, a.fold_weights)
         insample = insample and base is None
         with tempfile.TemporaryDirectory() as tmp:
-            r = one(name, nav, cfg, Path(tmp), base)
+            r = one(name, nav, cfg, Path(tmp), base, parse_signals(a.signals))
         ratios.append(r["adapted"] / r["fused"])
         print(f"| {name} | {'yes' if insample else 'no'} | {r['fused-nodnn']:.2f} | {r['fused']:.2f} | "
               f"{r['adapted']:.2f} | {ratios[-1]:.3f} | {r['decision']} | {r['heldout']} | {r['graph']} | {r['trusted']} | {r['sigmas']} | "
