@@ -159,35 +159,41 @@ HEADING_MIN_POINTS = 3
 
 
 def travel_heading(t_s: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(E,) heading [rad, from north towards east] of a track ``pos`` (E,3) ECEF (NaN rows: no fix) at
-    times ``t_s`` (E,), and (E,) bool where it is trusted: a least-squares velocity over the trailing
-    :data:`HEADING_WINDOW_S` of valid fixes, at least :data:`HEADING_MIN_POINTS` of them, moving at
-    :data:`HEADING_MIN_SPEED_MPS` or faster."""
+    """(E,) heading [rad, from north towards east, in each epoch's own local frame] of a track ``pos`` (E,3)
+    ECEF (NaN rows: no fix) at ascending times ``t_s`` (E,) [s], and (E,) bool where it is trusted: a
+    least-squares velocity over the trailing :data:`HEADING_WINDOW_S` of valid fixes, at least
+    :data:`HEADING_MIN_POINTS` of them, moving at :data:`HEADING_MIN_SPEED_MPS` or faster. Nothing later
+    than an epoch enters its heading."""
     E = t_s.shape[0]
     ok = np.isfinite(pos).all(axis=1)
     if ok.sum() < HEADING_MIN_POINTS:
         return np.zeros(E), np.zeros(E, bool)
-    ref = np.median(pos[ok], axis=0)
-    ne = np.where(ok[:, None], ecef2ned_vec(np.where(ok[:, None], pos, ref) - ref, ref)[:, :2], 0.0)
-    tt = np.where(ok, t_s - t_s[0], 0.0)
-    # windowed sums by cumulative sums over epochs; the window's first epoch by time
+    # offsets from the first fix keep the running sums small; the fit is in ECEF, turned into each epoch's
+    # north and east afterwards, so a long drive's changing north does not bend its early headings
+    first = np.argmax(ok)
+    d = np.where(ok[:, None], pos - pos[first], 0.0)
+    tt = np.where(ok, t_s - t_s[first], 0.0)
     w = ok.astype(float)
-    cols = np.stack([w, tt, tt * tt, ne[:, 0], ne[:, 1], tt * ne[:, 0], tt * ne[:, 1]], axis=1)
-    cum = np.vstack([np.zeros(7), np.cumsum(cols, axis=0)])
+    cols = np.column_stack([w, tt, tt * tt, d, tt[:, None] * d])                       # (E,9)
+    cum = np.vstack([np.zeros(cols.shape[1]), np.cumsum(cols, axis=0)])
+    # running sums give every epoch's trailing window in O(E), whatever the spacing of the epochs
     start = np.searchsorted(t_s, t_s - HEADING_WINDOW_S, side="left")
-    n, st, stt, sn, se, stn, ste = (cum[1:] - cum[start]).T
+    win = cum[1:] - cum[start]
+    n, st, stt, sd, std = win[:, 0], win[:, 1], win[:, 2], win[:, 3:6], win[:, 6:9]
     den = n * stt - st * st
-    good = (n >= HEADING_MIN_POINTS) & (den > 1e-9 * np.maximum(n * n, 1.0))
-    vn = np.where(good, (n * stn - st * sn) / np.where(good, den, 1.0), 0.0)
-    ve = np.where(good, (n * ste - st * se) / np.where(good, den, 1.0), 0.0)
-    moving = good & ok & (np.hypot(vn, ve) >= HEADING_MIN_SPEED_MPS)
-    return np.arctan2(ve, vn), moving
+    good = ok & (n >= HEADING_MIN_POINTS) & (den > 1e-9 * np.maximum(n * n, 1.0))
+    vel = np.where(good[:, None], (n[:, None] * std - st[:, None] * sd) / np.where(good, den, 1.0)[:, None], 0.0)
+    ned = np.zeros((E, 3))
+    if good.any():
+        ned[good] = ecef2ned_vec(vel[good], pos[good])
+    moving = good & (np.hypot(ned[:, 0], ned[:, 1]) >= HEADING_MIN_SPEED_MPS)
+    return np.arctan2(ned[:, 1], ned[:, 0]), moving
 
 
 def relative_azimuth(trace: Trace, pos: np.ndarray, t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(E,S) sine and cosine of each slot's azimuth minus the direction of travel (:func:`travel_heading`
-    of the track ``pos`` (E,3), NaN rows without a fix), and (E,) bool where the heading is trusted (the
-    sine and cosine are 0 elsewhere)."""
+    of the track ``pos`` (E,3) ECEF, NaN rows without a fix, at ascending times ``t_s`` (E,) [s]), both in the
+    epoch's own local frame, and (E,) bool where the heading is trusted (the sine and cosine are 0 elsewhere)."""
     heading, moving = travel_heading(t_s, pos)
     E, S = trace.mask.shape
     if not moving.any():

@@ -48,12 +48,12 @@ N_SYSTEMS, N_SIGNALS = 5, len(SIGNAL_SYSTEM)
 #: still or in a lone epoch); opt-in, not among the shipped recipe's inputs (:data:`RECIPE_INPUTS`).
 CHANNELS = {"res": 1, "los": 3, "pr_sigma": 2, "cn0": 2, "dres": 2, "arc": 1, "cmd": 2, "carrier": 3,
             "system": N_SYSTEMS + 1, "signal": N_SIGNALS + 1, "heading": 3}
-#: The shipped recipe's inputs: every group but the opt-in "heading" (tried, no gain on the GSDC drives:
-#: experiments/results/feature_ablation.md).
+#: The shipped recipe's inputs: every group but the opt-in "heading" (tried: worse on the GSDC drives and the
+#: Pixel5, experiments/results/feature_ablation.md).
 RECIPE_INPUTS = tuple(c for c in CHANNELS if c != "heading")
 #: Version 2's groups and widths (its pr_sigma has no flag: every 2021 file reports one).
 CHANNELS_V2 = {"res": 1, "los": 3, "pr_sigma": 1, "cn0": 2, "dres": 2, "arc": 1}
-#: Groups a file may lack (with a present flag as their last channel but one, see :func:`context_channels`).
+#: Groups a file may lack, each with a present flag (:data:`FLAG_CHANNEL`, see :func:`context_channels`).
 OPTIONAL_GROUPS = ("pr_sigma", "cn0", "cmd", "carrier", "heading")
 #: Each optional group's "present" channel within the group, and the groups bounded by construction (the
 #: guard checks no range on them).

@@ -272,12 +272,22 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     # everything but the epoch count shapes the run: a resumed run must draw what an uninterrupted one would
     for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss", "batch",
                 "lr", "betas", "warmup_epochs", "val_frac", "wls_max_err", "signals", "output", "dropout"):
-        if blob["config"].get(key) != now.get(key):
+        if _resume_view(blob["config"], key) != _resume_view(now, key):
             raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
                                   f"({blob['config'].get(key)!r} in checkpoint vs {now.get(key)!r} now)")
     model.load_state_dict(blob["model_state"])
     opt.load_state_dict(blob["optimizer_state"])
     return model, opt, int(blob["epoch"]), list(blob["history"])
+
+
+def _resume_view(config: dict, key: str):
+    """What of a run config's ``key`` a resumed run must match: the dropout rates only of the groups the run
+    reads (a checkpoint written before a new input group existed has no rate for it, and needs none)."""
+    value = config.get(key)
+    if key != "dropout" or not isinstance(value, dict):
+        return value
+    used = set((config.get("features") or {}).get("inputs") or ())
+    return {g: r for g, r in value.items() if g in used}
 
 
 def validation_inputs(va: dict, fcfg: FeatureConfig) -> dict | None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from fusion.geometry import geodetic2ecef, ned2ecef_vec
+from learned.guard import feature_guard
 from learned.context import HEADING_WINDOW_S, relative_azimuth, travel_heading
 from learned.features import FeatureConfig, context_channels
 from learned.toy import toy_trace
@@ -58,8 +59,9 @@ def test_relative_azimuth_of_satellites_ahead_and_to_the_side():
     tr.mask[:] = True
     s, c, moving = relative_azimuth(tr, pos, t)
     assert moving[3:].all() and not moving[:2].any()
-    rel = np.degrees(np.arctan2(s[5], c[5]))
-    np.testing.assert_allclose(rel, [0.0, -90.0, 180.0, 90.0, 0.0, -45.0], atol=0.5)
+    rel = np.arctan2(s[5], c[5])
+    want = np.radians([0.0, -90.0, 180.0, 90.0, 0.0, -45.0])
+    np.testing.assert_allclose(np.degrees(np.angle(np.exp(1j * (rel - want)))), 0.0, atol=0.5)
     assert (s[~moving] == 0).all() and (c[~moving] == 0).all()
     ctx = {"heading_ok": tr.mask & moving[:, None], "rel_sin": s, "rel_cos": c}
     x = context_channels(ctx, tr.mask, FeatureConfig(inputs=("res", "los", "heading")),
@@ -87,3 +89,34 @@ def test_a_network_trained_with_heading_reads_it_and_guards_it(tmp_path):
     wls = solve_wls(tr)
     c = Corrector.load(out).predict(tr, wls.pos, wls.valid)
     assert np.isfinite(c.mean_ecef[wls.valid]).all()
+
+
+def test_heading_is_each_epochs_own_and_causal_on_a_long_drive():
+    """Two hours due east along a parallel (1.6 degrees of longitude): every heading is east in its own local
+    frame, and the first hour's headings do not change when the second hour is appended."""
+    t = np.arange(7200.0)
+    lon = -122.1 + t * 20.0 / (111_320.0 * np.cos(np.radians(37.4)))
+    pos = geodetic2ecef(np.c_[np.full_like(t, 37.4), lon, np.full_like(t, 10.0)])
+    heading, moving = travel_heading(t, pos)
+    assert moving[3:].all()
+    np.testing.assert_allclose(np.degrees(heading[3:]), 90.0, atol=0.01)
+    early, m_early = travel_heading(t[:3600], pos[:3600])
+    np.testing.assert_array_equal(m_early, moving[:3600])
+    np.testing.assert_allclose(early[m_early], heading[:3600][m_early], atol=1e-9)
+
+
+def test_the_guard_reads_heading_as_missing_where_training_never_had_it_and_checks_no_range():
+    cfg = FeatureConfig(inputs=("res", "los", "heading"))
+    mask = np.ones((4, 5), bool)
+    x = np.zeros((4, 5, cfg.n_inputs))
+    flag = cfg.slices()["heading"].start
+    x[..., flag], x[..., flag + 1], x[..., flag + 2] = 1.0, 0.6, -0.8
+    x[0, :, flag] = 0.0                                           # standing still: absent
+    lo, hi = np.zeros(cfg.n_inputs), np.ones(cfg.n_inputs)
+    hi[flag] = 0.0                                                # trained without a heading
+    missing, core, counts = feature_guard(x, mask, {"lo": lo.tolist(), "hi": hi.tolist()}, cfg)
+    np.testing.assert_array_equal(missing["heading"], mask & (x[..., flag] > 0.5))
+    assert counts["meas_heading_unseen_in_training"] == 15 and not core.any()
+    hi[flag] = 1.0                                                # trained with one: a cosine of -0.8 is no
+    missing, _, counts = feature_guard(x, mask, {"lo": lo.tolist(), "hi": hi.tolist()}, cfg)   # range miss
+    assert not np.any(missing.get("heading", False)) and "meas_heading_out_of_range" not in counts

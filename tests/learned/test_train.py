@@ -75,6 +75,21 @@ def test_resume_with_more_epochs_keeps_the_default_warmup(tiny, tmp_path):
         setup(TrainConfig(epochs=40, seed=1, warmup_epochs=4), tmp_path / "w.pt.last", True, torch.device("cpu"))
 
 
+def test_resume_needs_only_the_dropout_rates_of_the_groups_read(tiny, tmp_path):
+    """A checkpoint written before an input group existed has no dropout rate for it and still resumes; a
+    changed rate of a group the run reads still refuses."""
+    tr, va = tiny
+    cfg = dict(seed=1, features=FeatureConfig(inputs=("res", "los", "cn0")))
+    train(tr, va, TrainConfig(epochs=1, **cfg), tmp_path / "d.pt", progress=False)
+    blob = torch.load(tmp_path / "d.pt.last", weights_only=True)
+    del blob["config"]["dropout"]["heading"]                       # as written before "heading" existed
+    torch.save(blob, tmp_path / "d.pt.last")
+    _, _, start, _ = setup(TrainConfig(epochs=2, **cfg), tmp_path / "d.pt.last", True, torch.device("cpu"))
+    assert start == 1
+    with pytest.raises(CheckpointError, match="'dropout' differs"):
+        setup(TrainConfig(epochs=2, dropout={"cn0": 0.9}, **cfg), tmp_path / "d.pt.last", True, torch.device("cpu"))
+
+
 def test_training_learns_and_no_augment_differs(tmp_path):
     """On toy data with NLOS-like biases (+50..200 m on about one satellite per epoch) the learned-weight
     WLS must clearly beat plain WLS at the validation samples' WLS solutions after a few epochs."""

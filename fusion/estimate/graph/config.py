@@ -85,8 +85,8 @@ class GraphConfig:
     # this power (learned.infer.graph_sigma). The head is trained on one epoch's error; a smoother needs the
     # satellites it finds bad (multipath, reflections: errors that last) down-weighted further. On the GSDC
     # drives the learned part's gain is a shift of each whole drive (experiments/results/bias_share.md), flat
-    # in the power from 2 to 5 (three seeds' fold networks, pooled fused 3.70 / 3.69 / 3.70 / 3.71 m at
-    # 2 / 3 / 4 / 5); where the gain is inside the trace it grows with it: smartLoc, never trained on,
+    # in the power from 3 to 5 (three seeds' fold networks, pooled fused 3.700 / 3.703 / 3.713 m at 3 / 4 / 5;
+    # 3.74 m at 1 with robust_k 2); where the gain is inside the trace it grows with it: smartLoc, never trained on,
     # 31.1 / 27.4 / 26.2 / 25.8 m at 1 / 3 / 4 / 5 (mean of six fold networks), held-out simulated city
     # traces 2.51 / 2.26 / 2.12 m at 3 / 4 / 5 (experiments/results/sigma_power.md). 4: the canyon's gain
     # without a cost on the GSDC drives or the suburban simulated traces.
