@@ -152,6 +152,8 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
     at, start = learned_guess_and_start(trace, wls, opts)
     # the solve with the learned inputs starts from the first solve's solution (one network pass)
     res = fuse(trace, wls, opts, learned=graph_inputs(corrector, trace, wls, opts, at), start=start)
+    if opts.graph.prior_at == "graph":
+        res.info["unlearned_pos"] = at          # the first solve: nothing learned (its sigma calibration)
     if res.cov is not None and res.valid.any():
         # the graph's marginals, scaled per NED axis as measured on unseen drives (ones if not calibrated)
         ok = res.valid

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fusion.geometry import ecef2ned_cov, elevation_azimuth, line_of_sight, ned2ecef_cov
+from fusion.geometry import ecef2ned_cov, ecef2ned_vec, elevation_azimuth, line_of_sight, ned2ecef_cov
 from fusion.trace import Trace
 
 #: whitened residuals beyond this many sigmas count as this many (a gross outlier is the robust
@@ -50,7 +50,9 @@ class SigmaCalibration:
     trace's own factor), snapshot the share of the one-epoch least-squares variance added before scaling
     (:func:`snapshot_var`: what time-correlated errors leave after a smoother's averaging), factor_from
     whose residuals make F: "own" (the mode's pseudoranges at its own positions, with its own noise) or
-    "wls" (the shared WLS solution's: one measure of the environment for every mode)."""
+    "wls" (the shared WLS solution's: one measure of the environment for every mode); disagreement the share
+    of the windowed mean squared difference, per NED axis, between the mode's positions and the same graph's
+    solve without anything learned, added last (:func:`disagreement_var`; the learned modes only)."""
 
     a: tuple[float, float, float] = (1.0, 1.0, 1.0)
     b: float = 1.0
@@ -59,6 +61,7 @@ class SigmaCalibration:
     min_dof: float = 10.0
     snapshot: float = 0.0
     factor_from: str = "own"
+    disagreement: float = 0.0
 
 
 def fitted_positions(mode: str, info: dict) -> bool:
@@ -77,8 +80,8 @@ DEFAULTS: dict[str, SigmaCalibration] = {
                             snapshot=0.3),
     "fused-nodnn": SigmaCalibration(a=(1.1498, 1.4317, 1.3176), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(1.6298, 1.8151, 1.6391), b=1.5, floor_m=(0.5, 0.5, 0.0), window_s=300.0,
-                              snapshot=0.3),
+    "fused": SigmaCalibration(a=(1.0511, 1.2999, 0.7369), b=1.5, floor_m=(0.5, 0.5, 0.0), window_s=300.0,
+                              snapshot=0.3, disagreement=2.0),
 }
 
 
@@ -192,10 +195,11 @@ def track_factor(trace: Trace, pos: np.ndarray, sel: np.ndarray, sigma: np.ndarr
 
 
 def calibrate_cov(cov_ecef: np.ndarray, pos: np.ndarray, factor: np.ndarray, cal: SigmaCalibration,
-                  snap_var: np.ndarray | None = None) -> np.ndarray:
-    """``a * F^b * (C + snapshot * diag(snap_var)) + diag(floor^2)`` per NED axis at ``pos`` (E,3):
-    cov_ecef (E,3,3) [m^2], factor (E,), snap_var (E,3) NED [m^2] (:func:`snapshot_var`; NaN or None: 0).
-    Rows with a NaN position or covariance are returned as they were."""
+                  snap_var: np.ndarray | None = None, dis_var: np.ndarray | None = None) -> np.ndarray:
+    """``a * F^b * (C + snapshot * diag(snap_var)) + diag(floor^2) + disagreement * diag(dis_var)`` per NED axis
+    at ``pos`` (E,3): cov_ecef (E,3,3) [m^2], factor (E,), snap_var (E,3) NED [m^2] (:func:`snapshot_var`),
+    dis_var (E,3) NED [m^2] (:func:`disagreement_var`; either NaN or None: 0). Rows with a NaN position or
+    covariance are returned as they were."""
     cov = np.array(cov_ecef, float, copy=True)
     ok = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(pos).all(axis=1) & np.isfinite(factor)
     if not ok.any():
@@ -207,8 +211,27 @@ def calibrate_cov(cov_ecef: np.ndarray, pos: np.ndarray, factor: np.ndarray, cal
         ned = ned + cal.snapshot * np.nan_to_num(snap_var[ok])[:, :, None] * np.eye(3)
     s = np.sqrt(np.asarray(cal.a, float)[None, :] * np.maximum(factor[ok], 1e-6)[:, None] ** cal.b)   # (N,3)
     ned = ned * s[:, :, None] * s[:, None, :] + np.eye(3) * np.asarray(cal.floor_m, float) ** 2
+    if dis_var is not None and cal.disagreement > 0:
+        # not scaled by the factor: where the learned inputs moved the solution, the truth is no closer to
+        # either answer than they are to each other, whatever the residuals say
+        ned = ned + cal.disagreement * np.nan_to_num(dis_var[ok])[:, :, None] * np.eye(3)
     cov[ok] = ned2ecef_cov(ned, pos[ok])
     return cov
+
+
+def disagreement_var(t_s: np.ndarray, pos: np.ndarray, ref: np.ndarray, window_s: float) -> np.ndarray:
+    """(E,3) NED mean squared difference [m^2] between positions ``pos`` (E,3) ECEF and ``ref`` (E,3) ECEF
+    over a centred window of ``window_s`` seconds (times ``t_s`` (E,) ascending; rows where either is NaN
+    count in no window; an epoch whose window holds none gets 0)."""
+    ok = np.isfinite(pos).all(axis=1) & np.isfinite(ref).all(axis=1)
+    sq = np.zeros((len(t_s), 3))
+    if ok.any():
+        sq[ok] = ecef2ned_vec(pos[ok] - ref[ok], pos[ok]) ** 2
+    c = np.vstack([np.zeros((1, 3)), np.cumsum(sq, axis=0)])
+    n = np.r_[0, np.cumsum(ok)]
+    lo = np.searchsorted(t_s, t_s - window_s / 2, side="left")
+    hi = np.searchsorted(t_s, t_s + window_s / 2, side="right")
+    return (c[hi] - c[lo]) / np.maximum(n[hi] - n[lo], 1)[:, None]
 
 
 def wls_track(trace: Trace, wls, elev_mask_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -221,14 +244,15 @@ def wls_track(trace: Trace, wls, elev_mask_deg: float) -> tuple[np.ndarray, np.n
 
 def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np.ndarray,
                      bias: np.ndarray | None = None, cal: SigmaCalibration | None = None,
-                     wls: tuple | None = None):
+                     wls: tuple | None = None, unlearned: np.ndarray | None = None):
     """A mode's :class:`~fusion.run_types.ModeResult` with its covariance calibrated in place (positions
     untouched) and the factor's median in ``info["variance_factor_p50"]``.
 
     sel, sigma, bias (E,S): the mode's own pseudorange slots, sigmas and biases (its snapshot covariance,
     and its factor where ``cal.factor_from == "own"``); wls: :func:`wls_track` (the factor where
-    ``cal.factor_from == "wls"``); cal: :data:`DEFAULTS` of ``mode`` unless given. A result without a
-    covariance is returned as it is."""
+    ``cal.factor_from == "wls"``); cal: :data:`DEFAULTS` of ``mode`` unless given; unlearned (E,3) ECEF: the
+    same graph solved without anything learned (its :func:`disagreement_var`; None: no such term). A result
+    without a covariance is returned as it is."""
     if result.cov is None or not np.asarray(result.valid).any():
         return result
     cal = cal or DEFAULTS[mode]
@@ -239,7 +263,10 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
         f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof,
                          fitted=fitted_positions(mode, result.info))
     snap = snapshot_var(trace, pos, sel, sigma) if cal.snapshot > 0 else None
-    result.cov = calibrate_cov(result.cov, pos, f, cal, snap)
+    dis = None
+    if cal.disagreement > 0 and unlearned is not None:
+        dis = disagreement_var(trace.t_ms.astype(float) / 1000.0, pos, unlearned, cal.window_s)
+    result.cov = calibrate_cov(result.cov, pos, f, cal, snap, dis)
     result.info["variance_factor_p50"] = float(np.median(f[np.asarray(result.valid, bool)]))
     return result
 
@@ -259,12 +286,14 @@ def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndar
 
 def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     """Graph modes: :func:`calibrate_result` with the graph's own pseudorange noise (``info["pr_noise"]``:
-    slots, sigmas, biases, each (E,S), left there by the solve) and the shared WLS solution ``wls``, when
+    slots, sigmas, biases, each (E,S), left there by the solve), the shared WLS solution ``wls`` and, for
+    ``fused``, its solve without anything learned (``info["unlearned_pos"]``, (E,3)), when
     ``opts.sigma_calibration``."""
     noise = result.info.get("pr_noise")
     if not getattr(opts, "sigma_calibration", False) or noise is None:
         return result
-    result = calibrate_result(result, trace, mode, *noise, wls=wls_track(trace, wls, opts.elev_mask_deg))
+    result = calibrate_result(result, trace, mode, *noise, wls=wls_track(trace, wls, opts.elev_mask_deg),
+                              unlearned=result.info.get("unlearned_pos"))
     return scale_bridged(result, opts.graph.bridged_sigma_scale, opts.graph.bridged_sigma_scale_down)
 
 

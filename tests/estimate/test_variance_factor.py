@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from fusion.estimate.variance_factor import (DEFAULTS, SigmaCalibration, calibrate_cov, epoch_chi2, snapshot_var,
-                                             whitened_residuals, windowed_factor)
-from fusion.geometry import ecef2ned_cov, geodetic2ecef, line_of_sight, ned2ecef_cov
+from fusion.estimate.variance_factor import (DEFAULTS, SigmaCalibration, calibrate_cov, disagreement_var, epoch_chi2,
+                                             snapshot_var, whitened_residuals, windowed_factor)
+from fusion.geometry import ecef2ned_cov, geodetic2ecef, line_of_sight, ned2ecef_cov, ned2ecef_vec
 from fusion.trace import Trace
 
 
@@ -112,6 +112,25 @@ def test_calibrate_cov_scales_per_axis_and_adds_the_floor():
     assert np.allclose(out[0], [2.0, 16.0, 55.0])
 
 
+def test_disagreement_adds_the_windowed_squared_difference_unscaled():
+    pos = geodetic2ecef(np.array([[37.4, -122.1, 10.0]] * 5))
+    shift = np.array([[3.0, 0.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 0.0], [np.nan] * 3, [1.0, 1.0, 2.0]])
+    ref = pos - ned2ecef_vec(np.nan_to_num(shift), pos)
+    ref[3] = np.nan                                                   # no unlearned solve there
+    t = np.arange(5.0)
+    dis = disagreement_var(t, pos, ref, window_s=2.0)                 # epochs k-1..k+1
+    np.testing.assert_allclose(dis[0], [4.5, 8.0, 0.0], atol=1e-9)    # (9 + 0) / 2, (0 + 16) / 2
+    np.testing.assert_allclose(dis[3], [0.5, 0.5, 2.0], atol=1e-9)    # epochs 2 and 4 only
+    np.testing.assert_allclose(disagreement_var(t, pos, ref, 100.0)[2], [2.5, 4.25, 1.0], atol=1e-9)
+    cov = ned2ecef_cov(np.tile(np.diag([1.0, 4.0, 9.0]), (5, 1, 1)), pos)
+    cal = SigmaCalibration(a=(1.0, 2.0, 3.0), b=1.0, floor_m=(0.0, 0.0, 1.0), disagreement=2.0)
+    out = np.diagonal(ecef2ned_cov(calibrate_cov(cov, pos, np.full(5, 2.0), cal, dis_var=dis), pos), axis1=1, axis2=2)
+    np.testing.assert_allclose(out, [2.0, 16.0, 55.0] + 2.0 * dis)
+    off = SigmaCalibration(a=(1.0, 2.0, 3.0), b=1.0, floor_m=(0.0, 0.0, 1.0))
+    out = np.diagonal(ecef2ned_cov(calibrate_cov(cov, pos, np.full(5, 2.0), off, dis_var=dis), pos), axis1=1, axis2=2)
+    np.testing.assert_allclose(out, np.tile([2.0, 16.0, 55.0], (5, 1)))
+
+
 @pytest.fixture(scope="module")
 def short_trace(shipped_trace_dir):
     from fusion.prepare.load import load_trace
@@ -133,6 +152,30 @@ def test_calibration_changes_sigmas_only(short_trace):
         assert np.isfinite(on[m].cov[ok]).all(), m
         assert on[m].info["variance_factor_p50"] > 0, m
     assert set(DEFAULTS) == set(modes)
+
+
+def test_fused_widens_by_its_disagreement_with_the_unlearned_solve(short_trace):
+    """The fused mode keeps its first, unlearned solve; a calibration with a disagreement share adds that
+    share of the windowed squared difference to the variances and moves no position."""
+    from dataclasses import replace
+    from fusion.estimate.variance_factor import calibrate_result
+    from fusion.modes import run_modes
+    from fusion.run_types import RunOptions
+    raw = run_modes(short_trace, ["fused"], RunOptions(sigma_calibration=False))["fused"]
+    ref = raw.info["unlearned_pos"]
+    assert ref.shape == raw.pos.shape and np.isfinite(ref[raw.valid]).all()
+    assert 0 < np.nanmax(np.linalg.norm(raw.pos - ref, axis=1)) < 50.0          # the learned inputs moved it
+    sel, sigma, bias = raw.info["pr_noise"]
+    cals = {d: replace(DEFAULTS["fused"], disagreement=d) for d in (0.0, 2.0)}
+    out = {}
+    for d, cal in cals.items():
+        r = run_modes(short_trace, ["fused"], RunOptions(sigma_calibration=False))["fused"]
+        out[d] = calibrate_result(r, short_trace, "fused", sel, sigma, bias, cal=cal, unlearned=ref)
+        assert out[d].pos.tobytes() == raw.pos.tobytes()
+    ok = raw.valid
+    ned = {d: np.diagonal(ecef2ned_cov(o.cov[ok], o.pos[ok]), axis1=1, axis2=2) for d, o in out.items()}
+    dis = disagreement_var(short_trace.t_ms / 1000.0, raw.pos, ref, cals[2.0].window_s)[ok]
+    np.testing.assert_allclose(ned[2.0] - ned[0.0], 2.0 * dis, rtol=1e-6, atol=1e-9)
 
 
 def test_metrics_json_reports_the_calibrated_sigmas(short_trace, tmp_path):
