@@ -52,7 +52,7 @@ class SigmaCalibration:
     whose residuals make F: "own" (the mode's pseudoranges at its own positions, with its own noise) or
     "wls" (the shared WLS solution's: one measure of the environment for every mode); disagreement the share
     of the windowed mean squared difference, per NED axis, between the mode's positions and the same graph's
-    solve without anything learned, added last (:func:`disagreement_var`; the learned modes only)."""
+    solve without anything learned, added last (:func:`disagreement_var`; fused only: no other mode has one)."""
 
     a: tuple[float, float, float] = (1.0, 1.0, 1.0)
     b: float = 1.0
