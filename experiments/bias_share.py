@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from experiments.learned_raw_logs import LOGS  # noqa: E402
-from fusion.eval.metrics import trace_errors  # noqa: E402
+from fusion.eval.metrics import summarize, trace_errors  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
@@ -31,10 +31,10 @@ MODES = ("fused-nodnn", "fused")
 
 
 def score(ne: list[np.ndarray]) -> float:
-    """GSDC score [m] (mean of the 50th and 95th percentile horizontal error) of (E,2) N/E errors pooled."""
-    h = np.hypot(*np.concatenate(ne).T)
-    h = h[np.isfinite(h)]
-    return float((np.percentile(h, 50) + np.percentile(h, 95)) / 2)
+    """GSDC score [m] of (E,2) N/E errors pooled (:func:`fusion.eval.metrics.summarize`; the down axis plays
+    no part in it)."""
+    e = np.concatenate(ne)
+    return float(summarize(np.c_[e, np.zeros(len(e))])["gsdc_score"])
 
 
 def demeaned(ne: np.ndarray) -> np.ndarray:

@@ -121,9 +121,10 @@ def context_wls(trace: Trace, elev_mask_deg: float) -> WlsResult:
     return solve_initial(trace, RunOptions(elev_mask_deg=elev_mask_deg, wls_robust=False))
 
 
-def slot_context(trace: Trace, wls: WlsResult, elev_mask_deg: float = 10.0) -> SlotContext:
+def slot_context(trace: Trace, wls: WlsResult, elev_mask_deg: float = 10.0, heading: bool = True) -> SlotContext:
     """The context of every slot of ``trace`` (E epochs, S slots) given its WLS solution (``elev_mask_deg``:
-    the mask of the reference-signal WLS that measures inter-system biases)."""
+    the mask of the reference-signal WLS that measures inter-system biases). ``heading`` False: the relative
+    azimuths are left absent (a network that does not read them need not pay for them)."""
     t_s = trace.t_ms.astype(float) / 1000.0
     step_ok = np.r_[False, np.diff(t_s) <= MAX_STEP_S] & ~np.asarray(trace.clock_reset, bool)
     keys = _slot_keys(trace)
@@ -140,7 +141,10 @@ def slot_context(trace: Trace, wls: WlsResult, elev_mask_deg: float = 10.0) -> S
     reported = m if trace.pr_sigma_ok is None else m & trace.pr_sigma_ok
     cmd, cmd_ok = code_minus_doppler(trace, prev, t_s)
     has_adr = trace.adr_ok is not None
-    rel_sin, rel_cos, heading_ok = relative_azimuth(trace, np.where(valid[:, None], wls.pos, np.nan), t_s)
+    if heading:
+        rel_sin, rel_cos, heading_ok = relative_azimuth(trace, np.where(valid[:, None], wls.pos, np.nan), t_s)
+    else:
+        rel_sin, rel_cos, heading_ok = np.zeros(m.shape), np.zeros(m.shape), np.zeros(m.shape[0], bool)
     return SlotContext(pr_sigma=np.where(m, trace.pr_sigma, 1.0), cn0=np.where(m, cn0, 0.0),
                        dres=np.where(prev_ok, dres, 0.0), prev_ok=prev_ok, arc_s=arc, pr_sigma_ok=reported,
                        signal=np.where(m, trace.signal, 0).astype(np.int64),

@@ -182,7 +182,8 @@ class Corrector:
             wls = context_wls(screened, self.features.elev_mask_deg)
             if drop is not None:
                 wls.resid = np.where(drop, np.nan, wls.resid)
-            self._ctx_cache = (trace, drop, slot_context(trace, wls, self.features.elev_mask_deg).as_dict())
+            ctx = slot_context(trace, wls, self.features.elev_mask_deg, heading="heading" in self.features.inputs)
+            self._ctx_cache = (trace, drop, ctx.as_dict())
         return self._ctx_cache[2]
 
     def _asked(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray, elev: float,

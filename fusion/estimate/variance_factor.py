@@ -170,6 +170,16 @@ def epoch_chi2(z: np.ndarray, clip: float = CLIP_SIGMAS) -> np.ndarray:
     return np.nansum(np.minimum(z ** 2, clip ** 2), axis=1)
 
 
+def centred_sums(t_s: np.ndarray, x: np.ndarray, window_s: float) -> np.ndarray:
+    """Sums of ``x`` (E, ...) over the epochs within +-window_s/2 of each epoch (t_s (E,) ascending [s]), by
+    running sums: O(E) whatever the spacing of the epochs."""
+    x = np.asarray(x, float)
+    c = np.concatenate([np.zeros((1,) + x.shape[1:]), np.cumsum(x, axis=0)])
+    lo = np.searchsorted(t_s, t_s - window_s / 2, side="left")
+    hi = np.searchsorted(t_s, t_s + window_s / 2, side="right")
+    return c[hi] - c[lo]
+
+
 def windowed_factor(t_s: np.ndarray, chi2: np.ndarray, dof: np.ndarray, window_s: float,
                     min_dof: float = 10.0) -> np.ndarray:
     """(E,) variance factor per epoch: sum of chi2 / sum of dof over epochs within +-window_s/2 of it.
@@ -177,12 +187,9 @@ def windowed_factor(t_s: np.ndarray, chi2: np.ndarray, dof: np.ndarray, window_s
     t_s (E,) ascending times [s]; chi2, dof (E,). A window with fewer than ``min_dof`` degrees of
     freedom takes the whole trace's factor; a trace without any takes 1."""
     chi2 = np.where(dof > 0, chi2, 0.0)
-    c = np.r_[0.0, np.cumsum(chi2)]
-    d = np.r_[0.0, np.cumsum(dof, dtype=float)]
-    lo = np.searchsorted(t_s, t_s - window_s / 2, side="left")
-    hi = np.searchsorted(t_s, t_s + window_s / 2, side="right")
-    wc, wd = c[hi] - c[lo], d[hi] - d[lo]
-    whole = c[-1] / d[-1] if d[-1] >= min_dof else 1.0
+    wc, wd = centred_sums(t_s, np.c_[chi2, dof], window_s).T
+    total_c, total_d = float(np.sum(chi2)), float(np.sum(dof))
+    whole = total_c / total_d if total_d >= min_dof else 1.0
     return np.where(wd >= min_dof, wc / np.maximum(wd, 1e-12), whole)
 
 
@@ -224,14 +231,12 @@ def disagreement_var(t_s: np.ndarray, pos: np.ndarray, ref: np.ndarray, window_s
     over a centred window of ``window_s`` seconds (times ``t_s`` (E,) ascending; rows where either is NaN
     count in no window; an epoch whose window holds none gets 0)."""
     ok = np.isfinite(pos).all(axis=1) & np.isfinite(ref).all(axis=1)
-    sq = np.zeros((len(t_s), 3))
+    sq = np.zeros((len(t_s), 4))
     if ok.any():
-        sq[ok] = ecef2ned_vec(pos[ok] - ref[ok], pos[ok]) ** 2
-    c = np.vstack([np.zeros((1, 3)), np.cumsum(sq, axis=0)])
-    n = np.r_[0, np.cumsum(ok)]
-    lo = np.searchsorted(t_s, t_s - window_s / 2, side="left")
-    hi = np.searchsorted(t_s, t_s + window_s / 2, side="right")
-    return (c[hi] - c[lo]) / np.maximum(n[hi] - n[lo], 1)[:, None]
+        sq[ok, :3] = ecef2ned_vec(pos[ok] - ref[ok], pos[ok]) ** 2
+    sq[:, 3] = ok
+    s = centred_sums(t_s, sq, window_s)
+    return s[:, :3] / np.maximum(s[:, 3], 1.0)[:, None]
 
 
 def wls_track(trace: Trace, wls, elev_mask_deg: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
