@@ -1,6 +1,11 @@
-"""Broadcast navigation files: RINEX 3 mixed / single-system (``*_MN.rnx``, ``*_GN.rnx``, a
-BeiDou ``.21f``, ...), RINEX 2 GPS (``.n``) and GLONASS (``.g``), gzip too (files are found by
-their header, :mod:`fusion.io.discover`).
+"""Broadcast navigation files: RINEX 4 (the IGS merged ``BRD400DLR_S_*_MN.rnx``), RINEX 3 mixed /
+single-system (``*_MN.rnx``, ``*_GN.rnx``, a BeiDou ``.21f``, ...), RINEX 2 GPS (``.n``) and GLONASS
+(``.g``), gzip too (files are found by their header, :mod:`fusion.io.discover`).
+
+RINEX 4 wraps each record in a frame (``> EPH G01 LNAV``, ``> ION G01 LNAV``, ``> STO ...``, ``> EOP ...``)
+whose ephemeris body is RINEX 3's; the Klobuchar coefficients move from the header into GPS ``ION`` frames.
+The messages modelled here are those RINEX 3 carries (GPS / QZSS LNAV, Galileo I/NAV and F/NAV, BeiDou D1 /
+D2, GLONASS FDMA); the modernised ones (CNAV, CNV1-3) and SBAS / NavIC are skipped and counted.
 
 :func:`read_nav` keeps every system we model: Keplerian records of GPS, QZSS, Galileo and BeiDou
 in one :class:`~fusion.io.nav_records.GpsNav` (keyed by ``sat_id``), GLONASS state vectors in a
@@ -34,6 +39,8 @@ from fusion.trace import count_skip
 DEFAULT_FIT_H = {"G": 4.0, "J": 4.0, "E": 8.0, "C": 12.0}
 #: Lines per record (first line included) in RINEX 3 navigation files, by system letter.
 _R3_RECORD_LINES = {"G": 8, "E": 8, "C": 8, "J": 8, "I": 8, "R": 4, "S": 4}
+#: RINEX 4 ephemeris messages whose body is the RINEX 3 record above, by system letter.
+_V4_MESSAGES = {"G": ("LNAV",), "J": ("LNAV",), "E": ("INAV", "FNAV"), "C": ("D1", "D2"), "R": ("FDMA",)}
 _KEPLER = ("G", "J", "E", "C")
 #: Android constellation type and svid offset per RINEX system letter.
 _CTYPE = {"G": 1, "R": 3, "J": 4, "C": 5, "E": 6}
@@ -143,8 +150,8 @@ def _header(lines: list[str], path: Path) -> _Header:
         version = float(lines[0][:9])
     except ValueError:
         raise DataError(f"{path}:1: cannot read RINEX version {lines[0][:9]!r}") from None
-    if version >= 4 or version < 2:
-        raise DataError(f"{path}:1: RINEX navigation version {version} is not supported (2.x or 3.x)")
+    if version >= 5 or version < 2:
+        raise DataError(f"{path}:1: RINEX navigation version {version} is not supported (2.x, 3.x or 4.x)")
     file_type = lines[0][20:21].upper()
     # RINEX 2: type N is GPS, G is GLONASS; RINEX 3: type N with the system in column 41.
     system = {"N": "G", "G": "R"}.get(file_type, "") if version < 3 else (lines[0][40:41].upper() or "M")
@@ -155,6 +162,8 @@ def _header(lines: list[str], path: Path) -> _Header:
         label = ln[60:].strip()
         if label == "END OF HEADER":
             klob = np.r_[alpha, beta] if alpha is not None and beta is not None else None
+            if version >= 4:
+                klob = _v4_klobuchar(_frames(lines, no + 1, path), path)
             return _Header(version, file_type, system, no + 1, klob, leap)
         if label in ("ION ALPHA", "ION BETA") or (label == "IONOSPHERIC CORR" and ln[:4] in ("GPSA", "GPSB")):
             start = 2 if label.startswith("ION ") else 5
@@ -173,6 +182,8 @@ def _records(lines: list[str], head: _Header, path: Path, skipped: dict[str, int
              ) -> list[tuple[str, int, int, list[float]]]:
     """(system letter, svid, toc in the system's own time [ms], values) per Keplerian or GLONASS
     record; other systems are skipped and counted."""
+    if head.version >= 4:
+        return _v4_records(_frames(lines, head.body, path), path, skipped)
     out = []
     i, n = head.body, len(lines)
     while i < n:
@@ -196,6 +207,56 @@ def _records(lines: list[str], head: _Header, path: Path, skipped: dict[str, int
             count_skip(skipped, f"records_{sys_letter}_not_modelled", 1)
         i += span
     return out
+
+
+def _frames(lines: list[str], body: int, path: Path) -> list[tuple[int, list[str], list[str]]]:
+    """RINEX 4 frames from line ``body`` on: (0-based line of the marker, marker fields such as
+    ``["EPH", "G01", "LNAV"]``, the lines up to the next marker, blank ones dropped)."""
+    out: list[tuple[int, list[str], list[str]]] = []
+    for i in range(body, len(lines)):
+        line = lines[i]
+        if line.startswith(">"):
+            out.append((i, line[1:].split(), []))
+        elif line.strip():
+            if not out:
+                raise DataError(f"{path}:{i + 1}: expected a RINEX 4 record marker ('> EPH ...'), got {line[:20]!r}")
+            out[-1][2].append(line)
+    return out
+
+
+def _v4_records(frames: list, path: Path, skipped: dict[str, int]) -> list[tuple[str, int, int, list[float]]]:
+    """The modelled ephemerides of RINEX 4 frames (:data:`_V4_MESSAGES`), read as RINEX 3 records (a
+    GLONASS FDMA body of 4.01 on carries a fifth line, read past here); other messages skipped and counted."""
+    out = []
+    for i, fields, body in frames:
+        if not fields or fields[0] != "EPH":
+            continue                      # ION (read by the header), STO, EOP: nothing to model
+        if len(fields) < 3 or not fields[1][:1].isalpha():
+            raise DataError(f"{path}:{i + 1}: cannot read the record marker {'> ' + ' '.join(fields)!r}")
+        sys_letter, msg = fields[1][0].upper(), fields[2].upper()
+        if msg not in _V4_MESSAGES.get(sys_letter, ()):
+            count_skip(skipped, f"records_{sys_letter}_{msg}_not_modelled", 1)
+            continue
+        n_lines = _R3_RECORD_LINES[sys_letter]
+        if len(body) < n_lines:
+            raise DataError(f"{path}:{i + 1}: truncated ephemeris record ({len(body)} of {n_lines} lines present)")
+        if body[0][:1].upper() != sys_letter:
+            raise DataError(f"{path}:{i + 2}: record of {body[0][:3]!r} under the marker for {fields[1]!r}")
+        out.append(_record(body[:n_lines], sys_letter, 3.0, path, i + 2))
+    return out
+
+
+def _v4_klobuchar(frames: list, path: Path) -> np.ndarray | None:
+    """(8,) GPS alpha0..3, beta0..3 of the first GPS LNAV ``ION`` frame, or None. Its first line is the
+    transmission time and three coefficients (from column 24), then four and one (from column 5)."""
+    for i, fields, body in frames:
+        if fields[:1] == ["ION"] and len(fields) >= 3 and fields[1][:1] == "G" and fields[2] == "LNAV":
+            if len(body) < 3:
+                raise DataError(f"{path}:{i + 1}: truncated ION record ({len(body)} of 3 lines present)")
+            vals = _fields(body[0], 23, 3, path, i + 2) + _fields(body[1], 4, 4, path, i + 3) + \
+                _fields(body[2], 4, 1, path, i + 4)
+            return np.array(vals)
+    return None
 
 
 def _record_span(lines: list[str], i: int, n_lines: int) -> int:
@@ -371,7 +432,7 @@ def _leap_at_gps_ms(t_ms: int) -> int:
 
 
 def read_rinex_nav(path: str | Path) -> GpsNav:
-    """GPS records only of a RINEX 2.x GPS or 3.x (GPS / mixed) navigation file (the simulator's
+    """GPS records only of a RINEX 2.x GPS or 3.x / 4.x (GPS / mixed) navigation file (the simulator's
     view). Raises :class:`DataError` (naming the file and line) for unreadable files, unsupported
     versions, truncated records, or a file without a single healthy GPS record."""
     path = Path(path)

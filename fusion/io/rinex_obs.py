@@ -1,4 +1,4 @@
-"""RINEX 3.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``; gzip and
+"""RINEX 3.0x / 4.0x and 2.10-2.12 observation files (``.obs``, ``.YYo``, ``*_MO.rnx``; gzip and
 Hatanaka-compressed ``.crx`` / ``.YYd`` too, told by content) -> :class:`RawObs`.
 
 Every constellation is read; observation codes are mapped onto :data:`fusion.trace.SIGNALS`
@@ -8,7 +8,8 @@ RINEX writes a missing observation as blank or 0.0; both read as NaN. LLI bit 0 
 the previous observation) on a phase sets ``adr_slip``. Epoch flag 1 (power failure) sets
 ``clock_reset``; flags 2-5 (event / header records) and 6 (cycle-slip records) are skipped and
 counted. RINEX 2 records are located by :mod:`fusion.io.rinex2_obs` and their two-character types
-mapped to RINEX 3 codes; other versions are refused with a one-line error. Hatanaka (CRINEX)
+mapped to RINEX 3 codes; RINEX 4 observation records are RINEX 3.05's (its new header lines are
+ignored); other versions are refused with a one-line error. Hatanaka (CRINEX)
 files are expanded first (:mod:`fusion.io.text_open`, PyPI ``hatanaka``).
 
 Speed: the body is read as one byte buffer and every observation field is gathered into a
@@ -126,9 +127,9 @@ def _parse_header(text: bytes, path: Path) -> ObsHeader:
         raise DataError(f"{path}:1: cannot read the RINEX version from {first[:9]!r}") from None
     if first[20:21] != "O":
         raise DataError(f"{path}:1: file type {first[20:21]!r} is not 'O' (observation)")
-    if not (3.0 <= head.version < 4.0 or 2.10 <= head.version < 2.2):
+    if not (3.0 <= head.version < 5.0 or 2.10 <= head.version < 2.2):
         raise DataError(f"{path}:1: RINEX version {head.version} observation files are not supported "
-                        "(RINEX 3.0x and 2.10-2.12; convert others with gfzrnx or RTKLIB convbin)")
+                        "(RINEX 4.0x, 3.0x and 2.10-2.12; convert others with gfzrnx or RTKLIB convbin)")
     system, types_v2 = "", []
     for no, line in enumerate(lines, start=1):
         label = line[60:].strip()
@@ -269,7 +270,7 @@ def epoch_fields(m: np.ndarray, head: ObsHeader, path: Path,
 
     m: (K, 35) uint8 epoch lines.  line_no: (K,) their file line numbers (for errors).
     """
-    cols = dict(EPOCH_COLUMNS[int(head.version)])
+    cols = dict(EPOCH_COLUMNS[min(int(head.version), 3)])    # RINEX 4 epoch lines are RINEX 3's
     sec_cols = cols.pop("sec")
     v, bad = {}, np.zeros(m.shape[0], bool)
     for name, (a, b) in cols.items():

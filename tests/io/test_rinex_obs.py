@@ -7,6 +7,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from fusion.errors import DataError
@@ -86,6 +87,16 @@ def test_fixture_time_flags_and_glonass():
 def test_gzip_same_as_plain(tmp_path):
     gz = _write(tmp_path, gzip.compress(FIXTURE.read_bytes()), "x_MO.rnx.gz")
     assert read_rinex_obs(gz).frame.equals(read_rinex_obs(FIXTURE).frame)
+
+
+def test_rinex4_same_as_rinex3(tmp_path):
+    """RINEX 4 observation records are RINEX 3.05's; its new header lines are passed over."""
+    lines = _lines()
+    v4 = [f"{'4.02':>9s}" + lines[0][9:],
+          "10.1234/a-doi                                               DOI                 \n",
+          "CC BY 4.0                                                   LICENSE OF USE      \n"] + lines[1:]
+    a, b = read_rinex_obs(FIXTURE).frame, read_rinex_obs(_write(tmp_path, "".join(v4))).frame
+    pd.testing.assert_frame_equal(a, b)
 
 
 def test_corrupt_gzip_is_one_line_error(tmp_path):

@@ -10,7 +10,7 @@ import pytest
 
 from fusion.errors import DataError
 from fusion.io.clk import read_clk
-from fusion.io.rinex_nav import GAMMA_L5, default_nav_path, read_nav
+from fusion.io.rinex_nav import GAMMA_L5, default_nav_path, read_nav, read_rinex_nav
 from fusion.nav.glonass import glonass_state, select_glonass
 from fusion.nav.orbits import sat_state
 from fusion.nav.sat_states import broadcast_states
@@ -142,16 +142,88 @@ def test_malformed_navigation(tmp_path):
     sbas.write_text("\n".join(lines[:body] + ["S20 2023 03 14 00 00 00 0.0 0.0 0.0"] + ["     0.0"] * 3) + "\n")
     with pytest.raises(DataError, match="no GPS, QZSS, Galileo, BeiDou or GLONASS records"):
         read_nav(sbas)
-    v4 = tmp_path / "v4.rnx"
-    v4.write_text("     4.00           N: GNSS NAV DATA    M: MIXED            RINEX VERSION / TYPE\n")
-    with pytest.raises(DataError, match="version 4.0 is not supported"):
-        read_nav(v4)
+    v5 = tmp_path / "v5.rnx"
+    v5.write_text("     5.00           N: GNSS NAV DATA    M: MIXED            RINEX VERSION / TYPE\n")
+    with pytest.raises(DataError, match="version 5.0 is not supported"):
+        read_nav(v5)
     gzbad = tmp_path / "x_MN.rnx.gz"
     gzbad.write_bytes(b"not gzip")
     with pytest.raises(DataError, match="corrupt gzip navigation file"):
         read_nav(gzbad)
     with pytest.raises(DataError, match="not found"):
         read_nav(tmp_path / "none.rnx")
+
+
+def _as_rinex4(lines: list[str], version: str = "4.01") -> list[str]:
+    """The RINEX 3 mixed fixture rewritten as RINEX 4: Klobuchar in an ION frame, each record in an EPH frame
+    (Galileo's message from its data-source field, BeiDou GEO D2), GLONASS with the 4.01 fifth line, and the
+    frames a reader must pass over (STO, EOP, a GPS CNAV ephemeris)."""
+    body = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    head = [f"{version:>9s}           N: GNSS NAV DATA    M: MIXED            RINEX VERSION / TYPE"]
+    head += [ln for ln in lines[1:body] if "IONOSPHERIC CORR" not in ln]
+    alpha = [float(lines[1][5 + 12 * k: 17 + 12 * k]) for k in range(4)]
+    beta = [float(lines[2][5 + 12 * k: 17 + 12 * k]) for k in range(4)]
+    num = lambda vals: "".join(f"{v:19.12e}" for v in vals)  # noqa: E731
+    out = head + ["> STO G01 LNAV", "    2023 03 13 23 48 00 GPUT", "     " + num([1.7e5, 0.0, 0.0, 0.0])[1:],
+                  "> ION G01 LNAV", "    2023 03 13 23 48 00" + num(alpha[:3]), "    " + num(alpha[3:] + beta[:3]),
+                  "    " + num(beta[3:])]
+    recs, cur = [], None
+    for ln in lines[body:]:
+        if ln[:1].strip():
+            cur = [ln]
+            recs.append(cur)
+        elif ln.strip():
+            cur.append(ln)
+    for rec in recs:
+        sys_letter, prn = rec[0][0], int(rec[0][1:3])
+        if sys_letter == "E":
+            src = int(float(rec[5][23:42]))
+            msg = "FNAV" if src & 2 else "INAV"
+        else:
+            msg = {"G": "LNAV", "J": "LNAV", "R": "FDMA", "C": "D2" if prn <= 5 else "D1"}[sys_letter]
+        out += [f"> EPH {rec[0][:3]} {msg}"] + rec[:4 if sys_letter == "R" else 8]
+        if sys_letter == "R":
+            out.append("     " + num([0.0, 0.0, 0.0, 0.0])[1:])
+    gps = next(r for r in recs if r[0][0] == "G")
+    out += ["> EPH G05 CNAV"] + [gps[0]] + ["     " + num([9.0] * 4)[1:]] * 8
+    out += ["> EOP G05 CNVX", "    2023 03 14 00 00 00" + num([0.0] * 3)] + ["    " + num([0.0] * 3)] * 2
+    return out
+
+
+def test_rinex4_matches_rinex3(tmp_path, mixed):
+    """A RINEX 4 file gives the records, Klobuchar and leap seconds of the same file in RINEX 3; the
+    modernised messages are skipped and counted, the other frames passed over."""
+    v4 = tmp_path / "BRD400DLR_S_20230730000_01D_MN.rnx"
+    v4.write_text("\n".join(_as_rinex4(MIXED.read_text().splitlines())) + "\n")
+    nav = read_nav(v4)
+    assert nav.systems() == mixed.systems() and nav.leap_s == mixed.leap_s
+    np.testing.assert_array_equal(nav.klobuchar, mixed.klobuchar)
+    for k in ("sat_id", "toc_ms", "toe_ms", "msg"):
+        np.testing.assert_array_equal(getattr(nav.kepler, k), getattr(mixed.kepler, k))
+    for k, v in mixed.kepler.params.items():
+        np.testing.assert_array_equal(nav.kepler.params[k], v, err_msg=k)
+    for k in ("svid", "toe_ms", "pos", "vel", "acc", "tau", "gamma", "k"):
+        np.testing.assert_array_equal(getattr(nav.glonass, k), getattr(mixed.glonass, k))
+    assert nav.skipped.get("records_G_CNAV_not_modelled") == 1
+    assert read_rinex_nav(v4).toe_ms.size == np.sum(mixed.kepler.sat_id // 1000 == 1)
+
+
+def test_rinex4_malformed(tmp_path):
+    good = _as_rinex4(MIXED.read_text().splitlines(), "4.00")
+    body = next(i for i, ln in enumerate(good) if "END OF HEADER" in ln) + 1
+    cases = {
+        "stray": (good[:body] + ["G01 2023 03 14 00 00 00"] + good[body:], r"expected a RINEX 4 record marker"),
+        "trunc": (good + ["> EPH E11 INAV", "E11 2023 03 14 00 10 00" + " 0.0" * 3], r"truncated ephemeris record \(1 of 8"),
+        "wrong": ([ln.replace("> EPH G", "> EPH E", 1).replace("LNAV", "INAV") if ln.startswith("> EPH G") else ln
+                   for ln in good],
+                  r"record of 'G\d\d' under the marker for 'E\d\d'"),
+        "ion": (good[:body] + ["> ION G01 LNAV", "    2023 03 13 23 48 00 1.0"] + good[body + 7:], r"truncated ION record"),
+    }
+    for name, (lines, match) in cases.items():
+        p = tmp_path / f"{name}_MN.rnx"
+        p.write_text("\n".join(lines) + "\n")
+        with pytest.raises(DataError, match=rf"{name}_MN\.rnx:\d+: {match}"):
+            read_nav(p)
 
 
 def test_gps_broadcast_vs_precise_states(shared_data):
