@@ -82,7 +82,7 @@ def mode_record(trace, res, sel, sigma, bias, fitted: bool) -> dict:
     ok = res.valid & np.isfinite(res.cov).all(axis=(1, 2))
     var[ok] = np.diagonal(ecef2ned_cov(res.cov[ok], res.pos[ok]), axis1=1, axis2=2)
     z, dof = whitened_residuals(trace, pos, sel, sigma, bias, fitted)
-    ref = res.info.get("unlearned_pos")          # fused: the same graph solved without anything learned
+    ref = res.info.get("unlearned_pos")          # dnn: the WLS it corrected; fused: the graph solved unlearned
     return {"err": err, "var": var, "chi2": epoch_chi2(z), "dof": dof, "snap": snapshot_var(trace, pos, sel, sigma),
             "pos": pos, "ref": np.full_like(pos, np.nan) if ref is None else ref}
 
@@ -191,10 +191,11 @@ def miss(frac: np.ndarray) -> float:
 
 #: b stops at 1.5: the textbook covariance follows the variance factor with b = 1, and a steeper law fitted
 #: on the narrow spread of the training drives would be extrapolated on a city drive's much larger factors.
-#: "disagreement": the share of the learned-against-unlearned difference (fused only, tuned last; 0 elsewhere).
+#: "disagreement": the share of the learned-against-unlearned difference (the learned modes dnn and fused, tuned
+#: last; 0 elsewhere).
 GRID = {"window_s": (15.0, 60.0, 300.0), "b": (0.0, 0.5, 1.0, 1.5), "floor_h": (0.0, 0.5, 1.0),
         "floor_v": (0.0, 1.0, 2.0), "c": (0.0, 0.03, 0.3), "source": ("own", "wls"),
-        "disagreement": (0.0, 1.0, 2.0, 4.0)}
+        "disagreement": (0.0, 0.5, 1.0, 2.0, 4.0)}
 
 
 def disagreement(d: dict, mode: str, window_s: float) -> np.ndarray:
@@ -249,7 +250,7 @@ def tune_mode(data: dict, mode: str) -> tuple[SigmaCalibration, dict, float]:
             pen, cov = cross_validate(data, base, mode, w, b, fl, src)
             if best is None or pen < best[0]:
                 best = (pen, cov, w, b, fl, c, src, 0.0)
-    if mode == "fused":
+    if mode in LEARNED:
         # the disagreement share on top of the setting chosen without it: left free together with the rest,
         # the grid trades the residuals' level for the floor and the disagreement (a N/E/D 0.24-0.31 with
         # the WLS factor), which no longer grows with the residuals of a city the tuning drives do not show

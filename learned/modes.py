@@ -42,6 +42,7 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     pos, valid = np.asarray(wls.pos, float), np.asarray(wls.valid, bool)
     cov, too_few, c = None, 0, None
     drop, pos = fault_screen(trace, wls, opts)
+    guess = np.where(valid[:, None], pos, np.nan)
     for _ in range(max(1, int(opts.dnn_passes))):
         c = corrector.predict(trace, pos, valid, elev_mask_deg=opts.elev_mask_deg, output=opts.dnn_output,
                               drop=drop)
@@ -53,8 +54,10 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
             "guard_shrunk": c.info["epochs_guard_shrunk"], "guard_off": c.info["epochs_guard_off"],
             "meas_fault_screened": int(np.sum(drop)),
             # flat, so that metrics.json (which keeps scalar info) and the report carry them
-            **{f"learned_{k}": v for k, v in c.info.items()}}
-    return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls)
+            **{f"learned_{k}": v for k, v in c.info.items()},
+            "unlearned_pos": guess}       # what the network corrected: the robust WLS (its sigma calibration)
+    return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls,
+                              unlearned=guess)
 
 
 def fault_screen(trace: Trace, wls: WlsResult, opts: RunOptions) -> tuple[np.ndarray, np.ndarray]:

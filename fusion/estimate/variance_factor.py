@@ -51,8 +51,9 @@ class SigmaCalibration:
     (:func:`snapshot_var`: what time-correlated errors leave after a smoother's averaging), factor_from
     whose residuals make F: "own" (the mode's pseudoranges at its own positions, with its own noise) or
     "wls" (the shared WLS solution's: one measure of the environment for every mode); disagreement the share
-    of the windowed mean squared difference, per NED axis, between the mode's positions and the same graph's
-    solve without anything learned, added last (:func:`disagreement_var`; fused only: no other mode has one)."""
+    of the windowed mean squared difference, per NED axis, between a learned mode's positions and its answer
+    without anything learned, added last (:func:`disagreement_var`): for ``dnn`` the robust WLS it corrected,
+    for ``fused`` the same graph solved without the network (the unlearned modes have none)."""
 
     a: tuple[float, float, float] = (1.0, 1.0, 1.0)
     b: float = 1.0
@@ -76,8 +77,8 @@ def fitted_positions(mode: str, info: dict) -> bool:
 #: (pooled, unseen-drive) calibration.
 DEFAULTS: dict[str, SigmaCalibration] = {
     "wls": SigmaCalibration(a=(1.0615, 1.0661, 1.18), b=1.5, window_s=15.0, snapshot=0.3),
-    "dnn": SigmaCalibration(a=(1.4478, 1.3567, 1.8347), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
-                            snapshot=0.3),
+    "dnn": SigmaCalibration(a=(0.9648, 0.9772, 1.4809), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+                            snapshot=0.3, disagreement=0.5),
     "fused-nodnn": SigmaCalibration(a=(1.1498, 1.4317, 1.3176), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
     "fused": SigmaCalibration(a=(1.0511, 1.2999, 0.7369), b=1.5, floor_m=(0.5, 0.5, 0.0), window_s=300.0,
@@ -276,17 +277,20 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     return result
 
 
-def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndarray | None = None):
+def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndarray | None = None,
+                       unlearned: np.ndarray | None = None):
     """``wls`` / ``dnn``: :func:`calibrate_result` with the physical sigma model at the mode's own positions
-    (``used`` (E,S): the slots the solver kept, e.g. WLS after fault exclusion) and the shared WLS
-    solution ``wls``, when ``opts.sigma_calibration``."""
+    (``used`` (E,S): the slots the solver kept, e.g. WLS after fault exclusion), the shared WLS solution
+    ``wls`` and, for ``dnn``, the WLS positions it corrected (``unlearned`` (E,3) ECEF), when
+    ``opts.sigma_calibration``."""
     if not getattr(opts, "sigma_calibration", False) or result.cov is None:
         return result
     sel, sigma = sigma_model(trace, np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan),
                              opts.elev_mask_deg)
     cal = DEFAULTS[mode]
     track = wls_track(trace, wls, opts.elev_mask_deg) if cal.factor_from == "wls" else None   # else unused
-    return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma, cal=cal, wls=track)
+    return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma, cal=cal, wls=track,
+                            unlearned=unlearned)
 
 
 def calibrate_graph(result, trace: Trace, mode: str, opts, wls):

@@ -178,6 +178,30 @@ def test_fused_widens_by_its_disagreement_with_the_unlearned_solve(short_trace):
     np.testing.assert_allclose(ned[2.0] - ned[0.0], 2.0 * dis, rtol=1e-6, atol=1e-9)
 
 
+def test_dnn_widens_by_its_disagreement_with_the_wls_it_corrected(short_trace, monkeypatch):
+    """The dnn mode keeps the robust WLS positions it corrected; its disagreement share adds that share of the
+    windowed squared difference to the variances and moves no position."""
+    from dataclasses import replace
+    from fusion.modes import run_modes, solve_initial
+    from fusion.run_types import RunOptions
+    raw = run_modes(short_trace, ["dnn"], RunOptions(sigma_calibration=False))["dnn"]
+    ref, ok = raw.info["unlearned_pos"], raw.valid
+    wls = solve_initial(short_trace, RunOptions())
+    same = (ref[ok] == wls.pos[ok]).all(axis=1)
+    assert same.mean() > 0.95                   # the fault screen repairs a few epochs' guesses, no more
+    assert 0 < np.nanmax(np.linalg.norm(raw.pos[ok] - ref[ok], axis=1)) < 50.0
+    assert DEFAULTS["dnn"].disagreement > 0
+    out = {}
+    for d in (0.0, 0.5):
+        monkeypatch.setitem(DEFAULTS, "dnn", replace(DEFAULTS["dnn"], disagreement=d))
+        out[d] = run_modes(short_trace, ["dnn"], RunOptions())["dnn"]
+        assert out[d].pos.tobytes() == raw.pos.tobytes()
+    ned = {d: np.diagonal(ecef2ned_cov(o.cov[ok], o.pos[ok]), axis1=1, axis2=2) for d, o in out.items()}
+    dis = disagreement_var(short_trace.t_ms / 1000.0, np.where(ok[:, None], raw.pos, np.nan), ref,
+                           DEFAULTS["dnn"].window_s)[ok]
+    np.testing.assert_allclose(ned[0.5] - ned[0.0], 0.5 * dis, rtol=1e-6, atol=1e-9)
+
+
 def test_metrics_json_reports_the_calibrated_sigmas(short_trace, tmp_path):
     from fusion.eval.metrics import mode_metrics, trace_errors, within_sigma
     from fusion.io.estimates import write_outputs
