@@ -19,11 +19,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from experiments.sigma_calibration import (MODES, TESTS, base_var, disagreement, factor, fmt, load, scaled,  # noqa: E402
+from experiments.sigma_calibration import (BAND, MODES, TESTS, base_var, calibrated_var, fmt, load,  # noqa: E402
                                            with_snapshot, within)
 from fusion.estimate.variance_factor import DEFAULTS  # noqa: E402
-
-BAND = (0.55, 0.80)
 
 
 def outside(cov: np.ndarray) -> int:
@@ -41,9 +39,7 @@ def mode_rows(data: dict, mode: str) -> tuple[list[str], int, int, int]:
         if name in TESTS:
             continue
         err = d[f"{mode}/err"]
-        extra = cal.disagreement * disagreement(d, mode, cal.window_s) if cal.disagreement else 0.0
-        var = scaled(base[name], factor(d, mode, cal.window_s, cal.factor_from), cal.a, cal.b,
-                     np.asarray(cal.floor_m), extra)
+        var = calibrated_var(d, base[name], mode, cal)
         mean = np.nanmean(err, axis=0)
         a, b = within(err, var), within(err - mean, var)
         as_is, demeaned, n = as_is + outside(a), demeaned + outside(b), n + 3

@@ -55,7 +55,7 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
             "meas_fault_screened": int(np.sum(drop)),
             # flat, so that metrics.json (which keeps scalar info) and the report carry them
             **{f"learned_{k}": v for k, v in c.info.items()},
-            "unlearned_pos": guess}       # what the network corrected: the robust WLS (its sigma calibration)
+            "unlearned_pos": guess}       # what the network corrected: the WLS (its sigma calibration)
     return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls,
                               unlearned=guess)
 

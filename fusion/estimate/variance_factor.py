@@ -52,8 +52,9 @@ class SigmaCalibration:
     whose residuals make F: "own" (the mode's pseudoranges at its own positions, with its own noise) or
     "wls" (the shared WLS solution's: one measure of the environment for every mode); disagreement the share
     of the windowed mean squared difference, per NED axis, between a learned mode's positions and its answer
-    without anything learned, added last (:func:`disagreement_var`): for ``dnn`` the robust WLS it corrected,
-    for ``fused`` the same graph solved without the network (the unlearned modes have none)."""
+    without anything learned, added last (:func:`disagreement_var`): for ``dnn`` the WLS it corrected (robust
+    unless ``--wls-plain``), for ``fused`` the same graph solved without the network (the unlearned modes have
+    none)."""
 
     a: tuple[float, float, float] = (1.0, 1.0, 1.0)
     b: float = 1.0
@@ -257,8 +258,9 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     sel, sigma, bias (E,S): the mode's own pseudorange slots, sigmas and biases (its snapshot covariance,
     and its factor where ``cal.factor_from == "own"``); wls: :func:`wls_track` (the factor where
     ``cal.factor_from == "wls"``); cal: :data:`DEFAULTS` of ``mode`` unless given; unlearned (E,3) ECEF: the
-    same graph solved without anything learned (its :func:`disagreement_var`; None: no such term). A result
-    without a covariance is returned as it is."""
+    mode's answer without the network (dnn: the WLS it corrected; fused: the same graph solved without the
+    learned inputs), for its :func:`disagreement_var` (None: no such term). A result without a covariance is
+    returned as it is."""
     if result.cov is None or not np.asarray(result.valid).any():
         return result
     cal = cal or DEFAULTS[mode]

@@ -124,6 +124,7 @@ class _Header:
     body: int
     klobuchar: np.ndarray | None
     leap_s: int | None
+    frames: list | None = None          # RINEX 4: the body's frames (:func:`_frames`)
 
 
 # ---------------------------------------------------------------------------- lines and header
@@ -162,9 +163,13 @@ def _header(lines: list[str], path: Path) -> _Header:
         label = ln[60:].strip()
         if label == "END OF HEADER":
             klob = np.r_[alpha, beta] if alpha is not None and beta is not None else None
-            if version >= 4:
-                klob = _v4_klobuchar(_frames(lines, no + 1, path), path)
-            return _Header(version, file_type, system, no + 1, klob, leap)
+            frames = _frames(lines, no + 1, path) if version >= 4 else None
+            if frames is not None:
+                # RINEX 4 moved the coefficients into ION frames; a writer that kept the header lines too
+                # still counts where the body has none
+                ion = _v4_klobuchar(frames, path)
+                klob = ion if ion is not None else klob
+            return _Header(version, file_type, system, no + 1, klob, leap, frames)
         if label in ("ION ALPHA", "ION BETA") or (label == "IONOSPHERIC CORR" and ln[:4] in ("GPSA", "GPSB")):
             start = 2 if label.startswith("ION ") else 5
             vals = np.array([_num(ln[start + 12 * k: start + 12 * (k + 1)], path, no + 1) for k in range(4)])
@@ -182,8 +187,8 @@ def _records(lines: list[str], head: _Header, path: Path, skipped: dict[str, int
              ) -> list[tuple[str, int, int, list[float]]]:
     """(system letter, svid, toc in the system's own time [ms], values) per Keplerian or GLONASS
     record; other systems are skipped and counted."""
-    if head.version >= 4:
-        return _v4_records(_frames(lines, head.body, path), path, skipped)
+    if head.frames is not None:
+        return _v4_records(head.frames, path, skipped)
     out = []
     i, n = head.body, len(lines)
     while i < n:
@@ -211,16 +216,20 @@ def _records(lines: list[str], head: _Header, path: Path, skipped: dict[str, int
 
 def _frames(lines: list[str], body: int, path: Path) -> list[tuple[int, list[str], list[str]]]:
     """RINEX 4 frames from line ``body`` on: (0-based line of the marker, marker fields such as
-    ``["EPH", "G01", "LNAV"]``, the lines up to the next marker, blank ones dropped)."""
+    ``["EPH", "G01", "LNAV"]``, the lines up to the next marker). A blank line inside a frame stays (a
+    record's spare fields may be written as one); blank lines at a frame's end are dropped."""
     out: list[tuple[int, list[str], list[str]]] = []
     for i in range(body, len(lines)):
         line = lines[i]
         if line.startswith(">"):
             out.append((i, line[1:].split(), []))
-        elif line.strip():
-            if not out:
-                raise DataError(f"{path}:{i + 1}: expected a RINEX 4 record marker ('> EPH ...'), got {line[:20]!r}")
+        elif out:
             out[-1][2].append(line)
+        elif line.strip():
+            raise DataError(f"{path}:{i + 1}: expected a RINEX 4 record marker ('> EPH ...'), got {line[:20]!r}")
+    for _, _, frame in out:
+        while frame and not frame[-1].strip():
+            frame.pop()
     return out
 
 
@@ -240,7 +249,7 @@ def _v4_records(frames: list, path: Path, skipped: dict[str, int]) -> list[tuple
         n_lines = _R3_RECORD_LINES[sys_letter]
         if len(body) < n_lines:
             raise DataError(f"{path}:{i + 1}: truncated ephemeris record ({len(body)} of {n_lines} lines present)")
-        if body[0][:1].upper() != sys_letter:
+        if body[0][:3].replace(" ", "0").upper() != fields[1].upper():
             raise DataError(f"{path}:{i + 2}: record of {body[0][:3]!r} under the marker for {fields[1]!r}")
         out.append(_record(body[:n_lines], sys_letter, 3.0, path, i + 2))
     return out
@@ -250,7 +259,7 @@ def _v4_klobuchar(frames: list, path: Path) -> np.ndarray | None:
     """(8,) GPS alpha0..3, beta0..3 of the first GPS LNAV ``ION`` frame, or None. Its first line is the
     transmission time and three coefficients (from column 24), then four and one (from column 5)."""
     for i, fields, body in frames:
-        if fields[:1] == ["ION"] and len(fields) >= 3 and fields[1][:1] == "G" and fields[2] == "LNAV":
+        if fields[:1] == ["ION"] and len(fields) >= 3 and fields[1][:1].upper() == "G" and fields[2].upper() == "LNAV":
             if len(body) < 3:
                 raise DataError(f"{path}:{i + 1}: truncated ION record ({len(body)} of 3 lines present)")
             vals = _fields(body[0], 23, 3, path, i + 2) + _fields(body[1], 4, 4, path, i + 3) + \
@@ -443,7 +452,7 @@ def read_rinex_nav(path: str | Path) -> GpsNav:
     skipped: dict[str, int] = {}
     recs = _records(lines, head, path, skipped)
     count_skip(skipped, "non_gps_records", sum(r[0] != "G" for r in recs))
-    for k in [k for k in skipped if k.startswith("records_")]:
+    for k in [k for k in skipped if k.startswith("records_") and not k.startswith("records_G_")]:
         count_skip(skipped, "non_gps_records", skipped.pop(k))
     recs = [r for r in recs if r[0] == "G" and 1 <= r[1] <= 32]
     if not recs:

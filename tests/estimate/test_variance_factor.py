@@ -184,20 +184,24 @@ def test_dnn_widens_by_its_disagreement_with_the_wls_it_corrected(short_trace, m
     from dataclasses import replace
     from fusion.modes import run_modes, solve_initial
     from fusion.run_types import RunOptions
-    raw = run_modes(short_trace, ["dnn"], RunOptions(sigma_calibration=False))["dnn"]
+    from learned.modes import fault_screen
+    mask = short_trace.mask.copy()
+    mask[10, np.flatnonzero(mask[10])[2:]] = False                  # two satellites: no WLS there
+    trace = replace(short_trace, mask=mask)
+    raw = run_modes(trace, ["dnn"], RunOptions(sigma_calibration=False))["dnn"]
     ref, ok = raw.info["unlearned_pos"], raw.valid
-    wls = solve_initial(short_trace, RunOptions())
-    same = (ref[ok] == wls.pos[ok]).all(axis=1)
-    assert same.mean() > 0.95                   # the fault screen repairs a few epochs' guesses, no more
+    wls = solve_initial(trace, RunOptions())
+    np.testing.assert_array_equal(ref[ok], fault_screen(trace, wls, RunOptions())[1][ok])   # its guess
+    assert not wls.valid[10] and np.isnan(ref[10]).all()
     assert 0 < np.nanmax(np.linalg.norm(raw.pos[ok] - ref[ok], axis=1)) < 50.0
     assert DEFAULTS["dnn"].disagreement > 0
     out = {}
     for d in (0.0, 0.5):
         monkeypatch.setitem(DEFAULTS, "dnn", replace(DEFAULTS["dnn"], disagreement=d))
-        out[d] = run_modes(short_trace, ["dnn"], RunOptions())["dnn"]
+        out[d] = run_modes(trace, ["dnn"], RunOptions())["dnn"]
         assert out[d].pos.tobytes() == raw.pos.tobytes()
     ned = {d: np.diagonal(ecef2ned_cov(o.cov[ok], o.pos[ok]), axis1=1, axis2=2) for d, o in out.items()}
-    dis = disagreement_var(short_trace.t_ms / 1000.0, np.where(ok[:, None], raw.pos, np.nan), ref,
+    dis = disagreement_var(trace.t_ms / 1000.0, np.where(ok[:, None], raw.pos, np.nan), ref,
                            DEFAULTS["dnn"].window_s)[ok]
     np.testing.assert_allclose(ned[0.5] - ned[0.0], 0.5 * dis, rtol=1e-6, atol=1e-9)
 

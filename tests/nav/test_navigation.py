@@ -157,7 +157,8 @@ def test_malformed_navigation(tmp_path):
 def _as_rinex4(lines: list[str], version: str = "4.01") -> list[str]:
     """The RINEX 3 mixed fixture rewritten as RINEX 4: Klobuchar in an ION frame, each record in an EPH frame
     (Galileo's message from its data-source field, BeiDou GEO D2), GLONASS with the 4.01 fifth line, and the
-    frames a reader must pass over (STO, EOP, a GPS CNAV ephemeris)."""
+    frames a reader must pass over (STO, a Galileo NeQuick ION frame before the GPS one, EOP, a GPS CNAV and an
+    SBAS ephemeris)."""
     body = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
     head = [f"{version:>9s}           N: GNSS NAV DATA    M: MIXED            RINEX VERSION / TYPE"]
     head += [ln for ln in lines[1:body] if "IONOSPHERIC CORR" not in ln]
@@ -165,6 +166,7 @@ def _as_rinex4(lines: list[str], version: str = "4.01") -> list[str]:
     beta = [float(lines[2][5 + 12 * k: 17 + 12 * k]) for k in range(4)]
     num = lambda vals: "".join(f"{v:19.12e}" for v in vals)  # noqa: E731
     out = head + ["> STO G01 LNAV", "    2023 03 13 23 48 00 GPUT", "     " + num([1.7e5, 0.0, 0.0, 0.0])[1:],
+                  "> ION E08 IFNV", "    2023 03 13 23 48 00" + num([41.0, -0.1, 0.001]), "    " + num([0.0]),
                   "> ION G01 LNAV", "    2023 03 13 23 48 00" + num(alpha[:3]), "    " + num(alpha[3:] + beta[:3]),
                   "    " + num(beta[3:])]
     recs, cur = [], None
@@ -172,7 +174,7 @@ def _as_rinex4(lines: list[str], version: str = "4.01") -> list[str]:
         if ln[:1].strip():
             cur = [ln]
             recs.append(cur)
-        elif ln.strip():
+        elif cur is not None:
             cur.append(ln)
     for rec in recs:
         sys_letter, prn = rec[0][0], int(rec[0][1:3])
@@ -186,16 +188,22 @@ def _as_rinex4(lines: list[str], version: str = "4.01") -> list[str]:
             out.append("     " + num([0.0, 0.0, 0.0, 0.0])[1:])
     gps = next(r for r in recs if r[0][0] == "G")
     out += ["> EPH G05 CNAV"] + [gps[0]] + ["     " + num([9.0] * 4)[1:]] * 8
+    out += ["> EPH S36 SBAS", "S36 2023 03 14 00 00 00" + num([0.0] * 3)] + ["    " + num([0.0] * 4)] * 3
     out += ["> EOP G05 CNVX", "    2023 03 14 00 00 00" + num([0.0] * 3)] + ["    " + num([0.0] * 3)] * 2
     return out
 
 
-def test_rinex4_matches_rinex3(tmp_path, mixed):
-    """A RINEX 4 file gives the records, Klobuchar and leap seconds of the same file in RINEX 3; the
-    modernised messages are skipped and counted, the other frames passed over."""
+def test_rinex4_matches_rinex3(tmp_path):
+    """A RINEX 4 file gives the records, Klobuchar and leap seconds of the same file in RINEX 3 (a record whose
+    last line is blank included); the modernised messages are skipped and counted, the other frames passed over."""
+    lines = MIXED.read_text().splitlines()
+    first_gps = next(i for i, ln in enumerate(lines) if ln.startswith("G"))
+    lines[first_gps + 7] = " " * 40                 # its spare line written blank
+    v3 = tmp_path / "blank_MN.rnx"
+    v3.write_text("\n".join(lines) + "\n")
     v4 = tmp_path / "BRD400DLR_S_20230730000_01D_MN.rnx"
-    v4.write_text("\n".join(_as_rinex4(MIXED.read_text().splitlines())) + "\n")
-    nav = read_nav(v4)
+    v4.write_text("\n".join(_as_rinex4(lines)) + "\n")
+    mixed, nav = read_nav(v3), read_nav(v4)
     assert nav.systems() == mixed.systems() and nav.leap_s == mixed.leap_s
     np.testing.assert_array_equal(nav.klobuchar, mixed.klobuchar)
     for k in ("sat_id", "toc_ms", "toe_ms", "msg"):
@@ -204,20 +212,43 @@ def test_rinex4_matches_rinex3(tmp_path, mixed):
         np.testing.assert_array_equal(nav.kepler.params[k], v, err_msg=k)
     for k in ("svid", "toe_ms", "pos", "vel", "acc", "tau", "gamma", "k"):
         np.testing.assert_array_equal(getattr(nav.glonass, k), getattr(mixed.glonass, k))
-    assert nav.skipped.get("records_G_CNAV_not_modelled") == 1
-    assert read_rinex_nav(v4).toe_ms.size == np.sum(mixed.kepler.sat_id // 1000 == 1)
+    assert nav.skipped.get("records_G_CNAV_not_modelled") == 1 and nav.skipped.get("records_S_SBAS_not_modelled") == 1
+    gps = read_rinex_nav(v4)
+    assert gps.toe_ms.size == np.sum(mixed.kepler.sat_id // 1000 == 1)
+    assert gps.skipped.get("records_G_CNAV_not_modelled") == 1      # a GPS record, not counted as another system's
+
+
+def test_rinex4_klobuchar_from_the_gps_ion_frame(tmp_path):
+    """Klobuchar comes from the GPS LNAV ION frame (signs and all), not from a Galileo or BeiDou one before it;
+    without one, from header lines a writer kept."""
+    lines = _as_rinex4(MIXED.read_text().splitlines())
+    i = lines.index("> ION G01 LNAV")
+    want = [2.3e-08, 0.0, -1.2e-07, 1.2e-07, 1.35e05, -8.2e04, 6.5e04, -4.6e05]
+    num = lambda vals: "".join(f"{v:19.12e}" for v in vals)  # noqa: E731
+    lines[i + 1:i + 4] = ["    2024 02 17 00 18 54" + num(want[:3]), "    " + num(want[3:7]), "    " + num(want[7:])]
+    lines.insert(i, "> ION C19 CNVX")
+    lines.insert(i + 1, "    2024 02 17 00 00 00" + num([9.0, 9.0, 9.0]))
+    p = tmp_path / "ion_MN.rnx"
+    p.write_text("\n".join(lines) + "\n")
+    np.testing.assert_array_equal(read_nav(p).klobuchar, want)
+    j = lines.index("> ION G01 LNAV")
+    header_ion = MIXED.read_text().splitlines()[1:3]                # the GPSA / GPSB IONOSPHERIC CORR lines
+    p.write_text("\n".join(lines[:1] + header_ion + lines[1:j] + lines[j + 4:]) + "\n")
+    np.testing.assert_array_equal(read_nav(p).klobuchar, read_nav(MIXED).klobuchar)
 
 
 def test_rinex4_malformed(tmp_path):
     good = _as_rinex4(MIXED.read_text().splitlines(), "4.00")
     body = next(i for i, ln in enumerate(good) if "END OF HEADER" in ln) + 1
+    ion = good.index("> ION G01 LNAV")
     cases = {
         "stray": (good[:body] + ["G01 2023 03 14 00 00 00"] + good[body:], r"expected a RINEX 4 record marker"),
         "trunc": (good + ["> EPH E11 INAV", "E11 2023 03 14 00 10 00" + " 0.0" * 3], r"truncated ephemeris record \(1 of 8"),
         "wrong": ([ln.replace("> EPH G", "> EPH E", 1).replace("LNAV", "INAV") if ln.startswith("> EPH G") else ln
                    for ln in good],
                   r"record of 'G\d\d' under the marker for 'E\d\d'"),
-        "ion": (good[:body] + ["> ION G01 LNAV", "    2023 03 13 23 48 00 1.0"] + good[body + 7:], r"truncated ION record"),
+        "prn": ([ln.replace("> EPH C05", "> EPH C15") for ln in good], r"record of 'C05' under the marker for 'C15'"),
+        "ion": (good[:ion + 2] + good[ion + 4:], r"truncated ION record \(1 of 3"),
     }
     for name, (lines, match) in cases.items():
         p = tmp_path / f"{name}_MN.rnx"
