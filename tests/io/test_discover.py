@@ -50,6 +50,9 @@ def test_kinds_by_content(tmp_path):
     g.write_bytes(gzip.compress(default_nav_path().read_bytes()))
     assert (rinex_kind(g).kind, rinex_kind(g).system) == ("nav", "G")      # RINEX 2 GPS, gzipped
     assert rinex_kind(P5_HEAD).kind == "obs"
+    v4 = tmp_path / "BRD400DLR_S_20230730000_01D_MN.rnx"
+    v4.write_text("     4.01           N: GNSS NAV DATA    M: MIXED            RINEX VERSION / TYPE\n")
+    assert rinex_kind(v4) == rinex_kind(v4).__class__("nav", "M", 4.01)                # RINEX 4, the IGS merge
     (tmp_path / "notes.txt").write_text("hello\n")
     assert rinex_kind(tmp_path / "notes.txt") is None and rinex_kind(tmp_path / "absent") is None
 
