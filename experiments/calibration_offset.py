@@ -57,8 +57,8 @@ def main() -> int:
         return 1
     for mode in MODES:
         rows, as_is, demeaned, n = mode_rows(data, mode)
-        print(f"## {mode}\n\n{as_is} of {n} drive-axes outside {BAND[0]:.2f}-{BAND[1]:.2f} as they are, {demeaned} with "
-              f"each drive's mean error removed\n")
+        print(f"## {mode}\n\n{as_is} of {n} drive-axes outside {BAND[0]:.2f}-{BAND[1]:.2f} as they are, "
+              f"{demeaned} with each drive's mean error removed\n")
         print("| trace | mean error N / E / D [m] | within 1 sigma | mean removed |\n|---|---|---|---|")
         print("\n".join(rows) + "\n")
     return 0
