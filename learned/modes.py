@@ -12,7 +12,7 @@ from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
 from fusion.estimate.variance_factor import calibrate_graph, calibrate_snapshot
 from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, TRACE_DEFAULTS, WlsResult, solve_wls_arrays
-from fusion.geometry import ecef2ned_cov, ned2ecef_cov
+from fusion.geometry import ecef2ned_cov, ecef2ned_vec, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
 from fusion.trace import Trace
 from learned.infer import Corrector
@@ -55,9 +55,21 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
             "meas_fault_screened": int(np.sum(drop)),
             # flat, so that metrics.json (which keeps scalar info) and the report carry them
             **{f"learned_{k}": v for k, v in c.info.items()},
+            **learned_move(pos, guess, valid),
             "unlearned_pos": guess}       # what the network corrected: the WLS (its sigma calibration)
     return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls,
                               unlearned=guess)
+
+
+def learned_move(pos: np.ndarray, unlearned: np.ndarray, valid: np.ndarray) -> dict[str, float]:
+    """How far the network moved a mode's solution from its answer without it: the median and 95th percentile
+    horizontal distance [m] (``learned_move_h_p50_m``, ``learned_move_h_p95_m``; none where no epoch has both).
+    pos, unlearned (E,3) ECEF; valid (E,) bool."""
+    ok = np.asarray(valid, bool) & np.isfinite(pos).all(axis=1) & np.isfinite(unlearned).all(axis=1)
+    if not ok.any():
+        return {}
+    h = np.linalg.norm(ecef2ned_vec(pos[ok] - unlearned[ok], pos[ok])[:, :2], axis=1)
+    return {"learned_move_h_p50_m": float(np.median(h)), "learned_move_h_p95_m": float(np.percentile(h, 95))}
 
 
 def fault_screen(trace: Trace, wls: WlsResult, opts: RunOptions) -> tuple[np.ndarray, np.ndarray]:
@@ -157,6 +169,7 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
     res = fuse(trace, wls, opts, learned=graph_inputs(corrector, trace, wls, opts, at), start=start)
     if opts.graph.prior_at == "graph":
         res.info["unlearned_pos"] = at          # the first solve: nothing learned (its sigma calibration)
+        res.info.update(learned_move(res.pos, at, res.valid))
     if res.cov is not None and res.valid.any():
         # the graph's marginals, scaled per NED axis as measured on unseen drives (ones if not calibrated)
         ok = res.valid

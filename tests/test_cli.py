@@ -219,6 +219,10 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
                         "info": info})
     assert "sigmas of 70 pseudorange rates (2 likely outliers)" in text
     assert "5 with inputs outside the training range and 9 of constellations it never saw" in text
+    info.update(learned_move_h_p50_m=0.814, learned_move_h_p95_m=2.5)
+    text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
+                        "info": info})
+    assert "moved the solution by 0.81 m horizontally at the median epoch (2.50 m at the 95th percentile)" in text
 
 
 def test_incremental_runs_say_they_have_no_covariance(shipped_trace_dir, tmp_path, capsys):

@@ -32,6 +32,12 @@ def learned_words(info: dict) -> str:
             f"{g.get('epochs_guard_off', 0)}")
 
 
+def move_words(info: dict) -> str:
+    """How far the network moved the solution from the answer without it, in words."""
+    return (f"the network moved the solution by {info['learned_move_h_p50_m']:.2f} m horizontally at the median "
+            f"epoch ({info.get('learned_move_h_p95_m', 0.0):.2f} m at the 95th percentile) from the answer without it")
+
+
 def doppler_head_words(info: dict) -> str:
     """What the learned Doppler head and its guard did, in words."""
     g = {k: int(info.get(f"learned_doppler_{k}", 0)) for k in ("sigmas", "unseen_system", "out_of_range",
@@ -48,7 +54,8 @@ def bridged_words(info: dict) -> str:
 
 
 #: what a mode's learned parts did, in words, where its info has the key
-LEARNED_WORDS = (("learned_epochs_asked", learned_words), ("learned_doppler_sigmas", doppler_head_words))
+LEARNED_WORDS = (("learned_epochs_asked", learned_words), ("learned_move_h_p50_m", move_words),
+                 ("learned_doppler_sigmas", doppler_head_words))
 
 
 def run_summary(record: dict) -> str:

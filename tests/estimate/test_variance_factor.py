@@ -10,7 +10,7 @@ import pytest
 
 from fusion.estimate.variance_factor import (DEFAULTS, SigmaCalibration, calibrate_cov, disagreement_var, epoch_chi2,
                                              snapshot_var, whitened_residuals, windowed_factor)
-from fusion.geometry import ecef2ned_cov, geodetic2ecef, line_of_sight, ned2ecef_cov, ned2ecef_vec
+from fusion.geometry import ecef2ned_cov, ecef2ned_vec, geodetic2ecef, line_of_sight, ned2ecef_cov, ned2ecef_vec
 from fusion.trace import Trace
 
 
@@ -194,6 +194,9 @@ def test_dnn_widens_by_its_disagreement_with_the_wls_it_corrected(short_trace, m
     np.testing.assert_array_equal(ref[ok], fault_screen(trace, wls, RunOptions())[1][ok])   # its guess
     assert not wls.valid[10] and np.isnan(ref[10]).all()
     assert 0 < np.nanmax(np.linalg.norm(raw.pos[ok] - ref[ok], axis=1)) < 50.0
+    h = np.linalg.norm(ecef2ned_vec(raw.pos[ok] - ref[ok], raw.pos[ok])[:, :2], axis=1)      # what the run says
+    assert raw.info["learned_move_h_p50_m"] == pytest.approx(np.median(h))
+    assert raw.info["learned_move_h_p95_m"] == pytest.approx(np.percentile(h, 95))
     assert DEFAULTS["dnn"].disagreement > 0
     out = {}
     for d in (0.0, 0.5):
