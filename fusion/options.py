@@ -28,7 +28,7 @@ def add_nav_options(p: argparse.ArgumentParser) -> None:
     """``--nav``, ``--sp3``, ``--clk``: where RINEX / GnssLogger traces get their satellite orbits and
     clocks (read by :func:`options_from_args`, or by ``gnssfuse train`` as they are)."""
     p.add_argument("--nav", type=Path, nargs="+", default=(), metavar="FILE",
-                   help="RINEX / GnssLogger traces: broadcast navigation file(s), RINEX 2 or 3, any name "
+                   help="RINEX / GnssLogger traces: broadcast navigation file(s), RINEX 2, 3 or 4, any name "
                         "(found by their header; gzip too); default: those in the trace folder or supplemental/")
     p.add_argument("--sp3", type=Path, default=None, metavar="FILE",
                    help="RINEX / GnssLogger traces: precise orbits (SP3) instead of broadcast ones")

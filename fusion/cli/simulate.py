@@ -66,7 +66,7 @@ def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
                          "auto: device_gnss when the trace has either")
     ap.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ap.add_argument("--nav", type=Path, default=None, metavar="FILE",
-                    help="the simulator's ephemerides: one RINEX 2/3 nav file (default: the shipped GPS one)")
+                    help="the simulator's ephemerides: one RINEX 2/3/4 nav file (default: the shipped GPS one)")
     ap.add_argument("--trajectory", type=Path, default=None,
                     help="replay this GSDC 2021 ground_truth.csv (re-timed to --start) instead")
     ap.add_argument("--trajectory-height-error", type=float, default=GSDC2021_TRUTH_HEIGHT_ERROR_M,

@@ -73,7 +73,7 @@ class ObsHeader:
 
 def read_rinex_obs(path: str | Path, glonass_channels: dict[int, int] | None = None, *,
                    slot_table: bool = True) -> RawObs:
-    """Read a RINEX 3.0x (or 2.10-2.12) observation file (plain, gzip or Hatanaka) into the raw contract.
+    """Read a RINEX 3.0x / 4.0x (or 2.10-2.12) observation file (plain, gzip or Hatanaka) into the raw contract.
 
     glonass_channels: slot -> frequency channel k, for slots the header's ``GLONASS SLOT / FRQ #``
     lacks (e.g. from navigation records); ``slot_table``: then the known channel of each slot
