@@ -53,8 +53,7 @@ def in_canyon(trace: Trace, model: CanyonModel, seed: int) -> tuple[Trace, dict[
     real = trace.mask
     blocked = real & (c["cls"] == BLOCKED)
     bent = real & (c["cls"] != LOS) & ~blocked
-    changed = np.zeros_like(real)
-    changed[1:] = (c["cls"][1:] != c["cls"][:-1]) & (trace.sat_id[1:] == trace.sat_id[:-1])
+    changed = class_changed(trace, c["cls"])
     out = replace(trace, pr=trace.pr + np.where(bent, c["delay_m"], 0.0), mask=real & ~blocked,
                   cn0=None if trace.cn0 is None else np.where(bent, trace.cn0 - c["loss_db"], trace.cn0),
                   prr=None if trace.prr is None else trace.prr + np.where(bent, c["rate_err_mps"], 0.0),
@@ -62,6 +61,20 @@ def in_canyon(trace: Trace, model: CanyonModel, seed: int) -> tuple[Trace, dict[
                   adr_slip=None if trace.adr_slip is None else trace.adr_slip | changed)
     n = max(int(real.sum()), 1)
     return out, {"blocked": blocked.sum() / n, "reflected": bent.sum() / n}
+
+
+def class_changed(trace: Trace, cls: np.ndarray) -> np.ndarray:
+    """(E,S) bool: the slot's satellite and signal had another class (:func:`classify`) in its previous epoch
+    (slots are packed per epoch, so a measurement is followed by its satellite and signal, not its slot)."""
+    ident = trace.sat_id.astype(np.int64) * 64 + trace.signal
+    last: dict[int, int] = {}
+    out = np.zeros(trace.mask.shape, bool)
+    for e in range(trace.n_epochs):
+        for s in np.flatnonzero(trace.mask[e]):
+            k = int(ident[e, s])
+            out[e, s] = k in last and last[k] != cls[e, s]
+            last[k] = int(cls[e, s])
+    return out
 
 
 def scores(trace: Trace, opts: RunOptions) -> dict[str, float]:
