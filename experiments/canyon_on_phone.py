@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from fusion.eval.metrics import mode_metrics  # noqa: E402
-from fusion.geometry import ecef2ned_vec, line_of_sight, elevation_azimuth  # noqa: E402
+from fusion.geometry import elevation_azimuth, line_of_sight  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
