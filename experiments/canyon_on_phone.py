@@ -66,14 +66,14 @@ def in_canyon(trace: Trace, model: CanyonModel, seed: int) -> tuple[Trace, dict[
 def class_changed(trace: Trace, cls: np.ndarray) -> np.ndarray:
     """(E,S) bool: the slot's satellite and signal had another class (:func:`classify`) in its previous epoch
     (slots are packed per epoch, so a measurement is followed by its satellite and signal, not its slot)."""
-    ident = trace.sat_id.astype(np.int64) * 64 + trace.signal
-    last: dict[int, int] = {}
+    e, s = np.nonzero(trace.mask)
+    ident = trace.sat_id[e, s].astype(np.int64) * 64 + trace.signal[e, s]
+    order = np.lexsort((e, ident))                         # each measurement after its predecessor
+    same = ident[order][1:] == ident[order][:-1]
+    c = cls[e, s][order]
     out = np.zeros(trace.mask.shape, bool)
-    for e in range(trace.n_epochs):
-        for s in np.flatnonzero(trace.mask[e]):
-            k = int(ident[e, s])
-            out[e, s] = k in last and last[k] != cls[e, s]
-            last[k] = int(cls[e, s])
+    nxt = order[1:][same & (c[1:] != c[:-1])]
+    out[e[nxt], s[nxt]] = True
     return out
 
 

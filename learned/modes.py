@@ -57,8 +57,7 @@ def estimate_dnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
             **{f"learned_{k}": v for k, v in c.info.items()},
             **learned_move(pos, guess, valid),
             "unlearned_pos": guess}       # what the network corrected: the WLS (its sigma calibration)
-    return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls,
-                              unlearned=guess)
+    return calibrate_snapshot(ModeResult(pos=pos, valid=valid, cov=cov, info=info), trace, "dnn", opts, wls)
 
 
 def learned_move(pos: np.ndarray, unlearned: np.ndarray, valid: np.ndarray) -> dict[str, float]:

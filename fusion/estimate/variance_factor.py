@@ -279,11 +279,10 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     return result
 
 
-def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndarray | None = None,
-                       unlearned: np.ndarray | None = None):
+def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndarray | None = None):
     """``wls`` / ``dnn``: :func:`calibrate_result` with the physical sigma model at the mode's own positions
     (``used`` (E,S): the slots the solver kept, e.g. WLS after fault exclusion), the shared WLS solution
-    ``wls`` and, for ``dnn``, the WLS positions it corrected (``unlearned`` (E,3) ECEF), when
+    ``wls`` and, for ``dnn``, the WLS positions it corrected (``info["unlearned_pos"]``, (E,3)), when
     ``opts.sigma_calibration``."""
     if not getattr(opts, "sigma_calibration", False) or result.cov is None:
         return result
@@ -292,7 +291,7 @@ def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndar
     cal = DEFAULTS[mode]
     track = wls_track(trace, wls, opts.elev_mask_deg) if cal.factor_from == "wls" else None   # else unused
     return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma, cal=cal, wls=track,
-                            unlearned=unlearned)
+                            unlearned=result.info.get("unlearned_pos"))
 
 
 def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
