@@ -13,7 +13,6 @@ nothing learned or solved sees it. Seeded street layouts; GSDC score [m].
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -22,7 +21,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
+from few_satellites import NAV, PIXEL5  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.geometry import elevation_azimuth, line_of_sight  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
@@ -32,9 +33,6 @@ from fusion.run_types import RunOptions  # noqa: E402
 from fusion.sim.canyon import BLOCKED, LOS, CanyonModel, classify, street_layout  # noqa: E402
 from fusion.trace import Trace  # noqa: E402
 
-SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
-PIXEL5 = SHARED / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5"
-NAV = SHARED / "ephemeris/gps_nav/hour1180.21n"
 
 
 def in_canyon(trace: Trace, model: CanyonModel, seed: int) -> tuple[Trace, dict[str, float]]:

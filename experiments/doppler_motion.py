@@ -24,8 +24,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from canyon_on_phone import NAV, PIXEL5, in_canyon  # noqa: E402
-from few_satellites import thinned  # noqa: E402
+from canyon_on_phone import in_canyon  # noqa: E402
+from few_satellites import NAV, PIXEL5, thinned  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402

@@ -10,7 +10,6 @@ simulated city traces.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -19,7 +18,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
+from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
@@ -27,9 +28,6 @@ from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.trace import SIGNALS, Trace  # noqa: E402
 
-SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
-PIXEL5 = SHARED / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5"
-NAV = SHARED / "ephemeris/gps_nav/hour1180.21n"
 PRECISE = SHARED / "ephemeris/precise"
 SECOND = [SIGNALS.index(s) for s in ("GPS_L5", "GAL_E5A", "QZS_J5", "GPS_L2", "GAL_E5B", "BDS_B2I", "QZS_J2")]
 MODES = ("fused-nodnn", "fused")
