@@ -8,7 +8,7 @@ roof edge, adds the extra path to the pseudorange and the carrier, its rate to t
 C/N0; the carrier's chain breaks where a satellite changes class (a slip). The truth places the streets only;
 nothing learned or solved sees it. Seeded street layouts; GSDC score [m].
 
-    python experiments/canyon_on_phone.py [--seeds 0 1 2] [--height 15 60]
+    python experiments/canyon_on_phone.py [--seeds 0 1 2] [--height 15 60] [--width 15 35] [--no-doppler-jump]
 """
 from __future__ import annotations
 
@@ -35,22 +35,31 @@ from fusion.trace import Trace  # noqa: E402
 
 
 
+def canyon_classes(trace: Trace, model: CanyonModel, seed: int) -> dict[str, np.ndarray]:
+    """:func:`fusion.sim.canyon.classify` of every slot (E,S) of ``trace`` from seeded streets of ``model``
+    laid along its true track."""
+    rng = np.random.default_rng(seed)
+    start = np.zeros(trace.n_epochs, bool)
+    start[0] = True
+    layout = street_layout(trace.truth, start, model, rng)
+    vel_ne = np.gradient(layout["ne"], trace.t_ms / 1000.0, axis=0)
+    _, los = line_of_sight(trace.sat_pos, trace.truth)
+    el, az = elevation_azimuth(los, trace.truth)
+    return classify(el, az, layout, vel_ne, model, cols=trace.sat_id)
+
+
+def reflected(trace: Trace, c: dict[str, np.ndarray]) -> np.ndarray:
+    """(E,S) bool real slots that arrive reflected or bent (not blocked, not line of sight) by classes ``c``."""
+    return trace.mask & (c["cls"] != LOS) & (c["cls"] != BLOCKED)
+
+
 def in_canyon(trace: Trace, model: CanyonModel, seed: int) -> tuple[Trace, dict[str, float]]:
     """``trace`` seen from streets of ``model`` along its true track (module docstring), and the shares of its
     measurements blocked and reflected or bent."""
-    rng = np.random.default_rng(seed)
-    E = trace.n_epochs
-    start = np.zeros(E, bool)
-    start[0] = True
-    layout = street_layout(trace.truth, start, model, rng)
-    t = trace.t_ms / 1000.0
-    vel_ne = np.gradient(layout["ne"], t, axis=0)
-    _, los = line_of_sight(trace.sat_pos, trace.truth)
-    el, az = elevation_azimuth(los, trace.truth)
-    c = classify(el, az, layout, vel_ne, model, cols=trace.sat_id)
+    c = canyon_classes(trace, model, seed)
     real = trace.mask
     blocked = real & (c["cls"] == BLOCKED)
-    bent = real & (c["cls"] != LOS) & ~blocked
+    bent = reflected(trace, c)
     changed = class_changed(trace, c["cls"])
     out = replace(trace, pr=trace.pr + np.where(bent, c["delay_m"], 0.0), mask=real & ~blocked,
                   cn0=None if trace.cn0 is None else np.where(bent, trace.cn0 - c["loss_db"], trace.cn0),
@@ -93,8 +102,13 @@ def main() -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--height", type=float, nargs=2, default=(15.0, 60.0), help="building heights [m], lo hi")
     p.add_argument("--width", type=float, nargs=2, default=(15.0, 35.0), help="street widths [m], lo hi")
+    p.add_argument("--no-doppler-jump", action="store_true",
+                   help="the Doppler sees the drift state itself, without the jump the log shows "
+                        "(GraphConfig.doppler_jump_from_log off)")
     args = p.parse_args()
     opts = RunOptions(signals=None, nav=(NAV,), sigma_calibration=False)
+    if args.no_doppler_jump:
+        opts = replace(opts, graph=replace(opts.graph, doppler_jump_from_log=False))
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
     model = CanyonModel(height_m=tuple(args.height), width_m=tuple(args.width))
     rows = [("as logged", {"blocked": 0.0, "reflected": 0.0}, scores(trace, opts))]

@@ -131,7 +131,8 @@ def main() -> int:
     base = RunOptions(signals=None, nav=(NAV,))
     trace, poor = thinned(load_trace(PIXEL5, min_sats=1, **load_options(base)), args.keep, args.seed)
     rows_of("Pixel5 RINEX (test)", trace, poor,
-            {"pseudoranges only": {"use_doppler": False, "use_carrier": False}, "Doppler + carrier": {}},
+            {"pseudoranges only": {"use_doppler": False, "use_carrier": False}, "Doppler + carrier": {},
+             "Doppler + carrier, no drift jump": {"doppler_jump_from_log": False}},
             base, ["wls", "fused-nodnn", "fused"])
     if training:
         fit_table(training)

@@ -10,6 +10,9 @@ measure what they buy on real logs.
 ``--held-out`` writes eight traces no network is trained on, for tuning graph settings where the learned part
 acts inside the trace: four other drives' tracks (never replayed in training), seeds 101-108,
 ``/tmp/simho/ho-<scenario>-<seed>/SimPhone/``.
+
+``--scenarios deep --first-seed 200`` writes the same tracks through the ``deep`` high-rise scenario (seeds
+201-204; with ``--held-out``, ``--first-seed 300``: 301-304), traces that are not part of the shipped recipe.
 """
 from __future__ import annotations
 
@@ -37,10 +40,14 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--epochs", type=int, default=1200)
     p.add_argument("--held-out", action="store_true", help="the eight held-out traces instead of the training ones")
+    p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), help="simulator scenarios, each track through each")
+    p.add_argument("--first-seed", type=int, default=None, help="seeds count up from the one after this "
+                   f"(default {0} for training, {HELD_OUT_SEED} held out)")
     args = p.parse_args(argv)
     tracks, seed, prefix = (HELD_OUT_TRACKS, HELD_OUT_SEED, "ho") if args.held_out else (TRACKS, 0, "sim")
+    seed = seed if args.first_seed is None else args.first_seed
     for track in tracks:
-        for scenario in SCENARIOS:
+        for scenario in args.scenarios:
             seed += 1
             gt = SHARED / "gsdc2021" / "trajectories" / track / "Pixel4" / "ground_truth.csv"
             rc = cli(["simulate", "--out", str(args.out), "--scenario", scenario, "--trajectory", str(gt),

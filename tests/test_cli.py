@@ -212,7 +212,11 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "asked at 10 epochs, 80 measurements" in text and "3 measurements with inputs outside" in text
     assert "12 measurements of signals it cannot read" in text and "switched off in 1" in text
     assert "4 epochs bridged" in text and "longest stretch 4 s" in text
-    assert "Doppler head" not in text
+    assert "Doppler head" not in text and "drift of its own" not in text
+    info.update(doppler_drift_jump_mps=0.471)
+    text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
+                        "info": info})
+    assert "jumps by 0.47 m/s from epoch to epoch: each epoch's Doppler got a drift of its own" in text
     info.update(learned_doppler_sigmas=70, learned_doppler_out_of_range=5, learned_doppler_unseen_system=9,
                 learned_doppler_likely_outliers=2)
     text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},

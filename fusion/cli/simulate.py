@@ -58,7 +58,7 @@ def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
     ap.add_argument("--max-sats", type=int, default=None,
                     help="signals per epoch at most, 0 = all (default 10; scenarios: all)")
     ap.add_argument("--scenario", choices=sorted(SCENARIOS), default=None,
-                    help="multi-constellation preset with C/N0, Doppler and street canyons: open, suburban, urban")
+                    help="multi-constellation preset with C/N0, Doppler and street canyons: open, suburban, urban, deep")
     ap.add_argument("--constellations", default=None,
                     help="GPS,GLO,GAL,BDS or all (default GPS; scenarios all); no records in --nav: synthetic")
     ap.add_argument("--format", choices=FORMATS, default="auto",

@@ -1,4 +1,4 @@
-"""Simulator settings: :class:`SimConfig` and the scenario presets (open sky, suburban, urban canyon).
+"""Simulator settings: :class:`SimConfig` and the scenario presets (open sky, suburban, urban canyon, deep high-rise canyon).
 
 The default :class:`SimConfig` is the original GPS-L1 simulator (fixed noise sigma, no C/N0, no
 buildings); :func:`scenario_config` returns the multi-constellation settings with C/N0, C/N0-driven
@@ -100,11 +100,14 @@ SCENARIOS = {
                      multipath=MultipathModel(scale_m=1.0)),
     "urban": dict(canyon=CanyonModel(height_m=(15.0, 60.0), width_m=(15.0, 35.0), gap_prob=0.15),
                   multipath=MultipathModel(scale_m=1.5)),
+    # a high-rise core: most of the sky blocked, often fewer than four satellites in view
+    "deep": dict(canyon=CanyonModel(height_m=(30.0, 100.0), width_m=(12.0, 25.0), gap_prob=0.1),
+                 multipath=MultipathModel(scale_m=1.5)),
 }
 
 
 def scenario_config(name: str, **overrides) -> SimConfig:
-    """The :class:`SimConfig` of scenario ``name`` (``open``, ``suburban``, ``urban``): GPS, GLONASS,
+    """The :class:`SimConfig` of scenario ``name`` (``open``, ``suburban``, ``urban``, ``deep``): GPS, GLONASS,
     Galileo and BeiDou with GPS L5 and Galileo E5a (a dual-frequency phone), all tracked signals
     (no cap), C/N0 with DLL code noise, Doppler, 10 deg elevation mask, plus the scenario's
     buildings and multipath; ``overrides`` replace any field."""

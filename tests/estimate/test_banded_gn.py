@@ -48,12 +48,20 @@ def _two_systems():
     return tr, solve_wls(tr)
 
 
+def _jumping(trace):
+    """``trace`` whose Doppler drift jumps by 0.6 m/s from epoch to epoch (a phone's, as the Pixel5's): the
+    graph gives each epoch's Doppler a drift of its own."""
+    jump = np.random.default_rng(5).normal(0.0, 0.6, trace.n_epochs)
+    return replace(trace, prr=np.where(trace.prr_ok, trace.prr + jump[:, None], trace.prr))
+
+
 def _cases(raw_sim, doppler_sim):
     prior = truth_prior(2.0)
     two, two_wls = _two_systems()
     syn = synth_trace(E=60)
     return {
         "doppler+carrier": (raw_sim[0], raw_sim[1], GraphConfig(), None),
+        "doppler drift jumps": (_jumping(raw_sim[0]), raw_sim[1], GraphConfig(), None),
         "doppler only": (doppler_sim[0], doppler_sim[1], GraphConfig(), None),
         "isb+prior cauchy": (two, two_wls, GraphConfig(), prior),
         "isb+prior huber": (two, two_wls, GraphConfig(robust="huber", prior_robust="huber"), prior),
@@ -71,12 +79,13 @@ def _inputs(trace, wls, cfg, provider):
     return prepare_inputs(trace, wls, cfg, 10.0, learned)
 
 
-@pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
-                                  "random walk", "no drift states", "level prior",
+@pytest.mark.parametrize("case", ["doppler+carrier", "doppler drift jumps", "doppler only", "isb+prior cauchy",
+                                  "isb+prior huber", "random walk", "no drift states", "level prior",
                                   "level prior, no Doppler", "own robust scales"])
 def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
+    assert (inp.doppler_jump_mps > 0) == (case == "doppler drift jumps")
     vec = vector_graph(trace, inp, cfg)
     pieces = graph_pieces(trace, inp, cfg)
     graph, values = pieces.graph(), pieces.values()
@@ -88,8 +97,8 @@ def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
         assert banded_gn.cost(vec.system, x) == pytest.approx(graph.error(to_values(vec.layout, x)), rel=1e-9)
 
 
-@pytest.mark.parametrize("case", ["doppler+carrier", "doppler only", "isb+prior cauchy", "isb+prior huber",
-                                  "random walk", "no drift states", "level prior",
+@pytest.mark.parametrize("case", ["doppler+carrier", "doppler drift jumps", "doppler only", "isb+prior cauchy",
+                                  "isb+prior huber", "random walk", "no drift states", "level prior",
                                   "level prior, no Doppler", "own robust scales"])
 def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]

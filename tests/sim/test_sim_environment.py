@@ -230,6 +230,14 @@ def test_carrier_follows_the_reflected_path(urban):
     assert np.abs(resid[tr.adr_ok]).max() < 0.05
 
 
+def test_the_deep_canyon_blocks_more_of_the_sky_than_the_urban_one(nav, urban):
+    deep = simulate(n_epochs=600, nav=nav, seed=21, config=scenario_config("deep", carrier=True))
+    per_epoch = {name: r.trace.mask.sum(axis=1).mean() for name, r in (("urban", urban), ("deep", deep))}
+    assert per_epoch["deep"] < 0.8 * per_epoch["urban"]
+    # the same drive, the same receiver: only the buildings differ
+    np.testing.assert_allclose(deep.trace.truth, urban.trace.truth)
+
+
 # ------------------------------------------------------------------------------ output and read-back
 def test_device_gnss_round_trip_and_wls(tmp_path, urban, open_sky):
     from fusion.estimate.wls import solve_wls

@@ -23,13 +23,14 @@ import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_cc, displacement_factor_xxu,
-                                           doppler_factor_vcd, drift_prior_factor_cd, drift_walk_factor_cdcd,
+                                           doppler_drift_factor_jd, doppler_factor_vcd, drift_prior_factor_cd,
+                                           drift_walk_factor_cdcd,
                                            isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
                                            pseudorange_factor_xc, pseudorange_factor_xci, scalar_robust_models,
                                            tdcp_factor_linearised, zero_point)
-from fusion.estimate.graph.inputs import EpochInputs, motion_only
-from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
-                                        isb_key, pos_key, vel_key)
+from fusion.estimate.graph.inputs import EpochInputs, doppler_drift_epochs, motion_only
+from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, doppler_drift_key,
+                                        drift_key, isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import motion_model
 from fusion.estimate.graph.raw_inputs import carrier_rows
 from fusion.geometry import C_LIGHT
@@ -137,6 +138,8 @@ def add_clocks(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: np.nd
     if inp.use_drift:
         d = clock_s + inp.clock_drift_mps[ks] * DRIFT_HORIZON_S / C_LIGHT
         p.doubles += [(int(k), drift_key(int(k)), float(v)) for k, v in zip(ks, d)]
+        own = doppler_drift_epochs(inp)[ks]
+        p.doubles += [(int(k), doppler_drift_key(int(k)), float(v)) for k, v in zip(ks[own], d[own])]
     if inp.isb.new is None:
         return
     new_k, new_g = np.nonzero(inp.isb.new[ks])
@@ -192,16 +195,22 @@ def add_clock_links(p: GraphPieces, inp: EpochInputs, cfg: GraphConfig, epochs: 
     p.dense += range(first, len(p.factors))
 
 
-def add_dopplers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) -> None:
-    """A robust Doppler factor per used slot (on v(k), c(k), d(k))."""
+def add_dopplers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray,
+                 lin: gtsam.Values) -> None:
+    """A robust Doppler factor per used slot (on v(k), c(k), d(k); or on the drift the Doppler sees, j(k), tied
+    to d(k) by the epoch's white jump, :attr:`EpochInputs.doppler_jump_mps`)."""
     keep = np.zeros(trace.n_epochs, bool)
     keep[epochs] = True
     ks, ss = np.nonzero(inp.raw.doppler & keep[:, None])
     prr = trace.prr[ks, ss] - inp.raw.prr_bias[ks, ss]
     models = scalar_robust_models(cfg.robust, cfg.rate_robust_k, inp.raw.prr_sigma[ks, ss])
     sat_pos, sat_vel, rx = trace.sat_pos[ks, ss], trace.sat_vel[ks, ss], inp.init_pos[ks]
-    p.add(ks, [doppler_factor_vcd(k, r, sat_pos[i], sat_vel[i], rx[i], models[i])
+    own = doppler_drift_epochs(inp) & keep
+    p.add(ks, [doppler_factor_vcd(k, r, sat_pos[i], sat_vel[i], rx[i], models[i],
+                                  doppler_drift_key(k) if own[k] else None)
                for i, (k, r) in enumerate(zip(ks.tolist(), prr.tolist()))])
+    js = np.flatnonzero(own)
+    p.add(js, [doppler_drift_factor_jd(int(k), inp.doppler_jump_mps, lin) for k in js])
 
 
 def add_carriers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray,
@@ -287,6 +296,8 @@ def linearisation_point(inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) 
     lin = zero_point([f(k) for k in ks for f in points])
     if inp.use_drift:
         lin.insert(zero_point([f(k) for k in ks for f in (clock_key, drift_key)], "double"))
+        lin.insert(zero_point([doppler_drift_key(int(k)) for k in np.flatnonzero(doppler_drift_epochs(inp) & inp.keep)],
+                              "double"))
     return lin
 
 
@@ -300,7 +311,7 @@ def graph_pieces(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> GraphPiece
     add_pseudoranges(p, trace, inp, cfg, epochs)
     add_clock_links(p, inp, cfg, epochs, lin)
     if inp.raw is not None:
-        add_dopplers(p, trace, inp, cfg, epochs)
+        add_dopplers(p, trace, inp, cfg, epochs, lin)
         if inp.raw.has_tdcp:               # a trace may have Doppler but no carrier phase at all
             add_carriers(p, trace, inp, cfg, epochs, lin)
     add_priors(p, inp, cfg, epochs)

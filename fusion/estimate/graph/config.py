@@ -222,6 +222,10 @@ class GraphConfig:
     drift_clock_rw_no_doppler_m: float = 5.0
     drift_rw_mps: float = 0.2
     drift_start_sigma_mps: float = 1000.0
+    # Where Doppler is used and the log shows the drift jumping from epoch to epoch beyond drift_rw_mps, each
+    # epoch's Doppler sees the drift plus a white jump of the size the log shows, which the clock does not
+    # integrate (fusion.estimate.graph.drift_noise; derived from each log, not tuned).
+    doppler_jump_from_log: bool = True
     # The carrier factors are linearised at the initial (WLS) track and keep that point (see
     # factors.tdcp_factor_uqq): the error this leaves is ~1e-4 of the WLS error per second of epoch gap.
     # tdcp_relinearise moves that point to the batch solution and polishes with a few warm iterations (one

@@ -18,8 +18,8 @@ import gtsam
 import numpy as np
 
 from fusion.errors import GeometryError
-from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, isb_key,
-                                        pos_key, vel_key)
+from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, doppler_drift_key,
+                                        drift_key, isb_key, pos_key, vel_key)
 from fusion.geometry import C_LIGHT, OMEGA_E
 
 
@@ -107,7 +107,7 @@ def velocity_prior_factor_v(k: int, vel: np.ndarray, sigma_mps: float) -> gtsam.
 
 
 def doppler_factor_vcd(k: int, prr_mps: float, sat_pos: np.ndarray, sat_vel: np.ndarray, rx_guess: np.ndarray,
-                       model: gtsam.noiseModel.Base) -> gtsam.DopplerFactor:
+                       model: gtsam.noiseModel.Base, drift: int | None = None) -> gtsam.DopplerFactor:
     """Doppler (pseudorange rate) of one satellite at epoch ``k``:
     ``prr = los . (sat_vel - v(k)) + OMEGA_E/c rate term + c * drift(k)``, in GTSAM's C++ factor.
 
@@ -115,8 +115,9 @@ def doppler_factor_vcd(k: int, prr_mps: float, sat_pos: np.ndarray, sat_vel: np.
     :mod:`fusion.estimate.graph.keys`). prr_mps already has the satellite clock drift removed, so
     GTSAM's satellite-drift argument is 0; it wants ``-wavelength * doppler``, hence ``-prr`` with a
     unit wavelength. sat_pos, sat_vel (3,) ECEF at transmit time; rx_guess (3,) the receiver position
-    fixing the line of sight (metres of position error turn it by ~1e-7 rad); model 1-D [m/s]."""
-    return gtsam.DopplerFactor(vel_key(k), clock_key(k), drift_key(k), -float(prr_mps), 1.0,
+    fixing the line of sight (metres of position error turn it by ~1e-7 rad); model 1-D [m/s]; drift: the key
+    of the drift the Doppler sees (None: ``drift_key(k)``; :func:`doppler_drift_factor_jd`)."""
+    return gtsam.DopplerFactor(vel_key(k), clock_key(k), drift_key(k) if drift is None else drift, -float(prr_mps), 1.0,
                                np.asarray(sat_pos, float), np.asarray(sat_vel, float),
                                np.asarray(rx_guess, float), DRIFT_HORIZON_S, 0.0, model)
 
@@ -248,6 +249,13 @@ def drift_walk_factor_cdcd(j: int, k: int, sigma_mps: float, lin: gtsam.Values |
     """Drift random walk: drift(k) - drift(j) ~ N(0, sigma^2), sigma in m/s."""
     keys = [drift_key(k), clock_key(k), drift_key(j), clock_key(j)]
     return _linear_factor(keys, [1.0, -1.0, -1.0, 1.0], sigma_mps * DRIFT_HORIZON_S / C_LIGHT, lin)
+
+
+def doppler_drift_factor_jd(k: int, sigma_mps: float, lin: gtsam.Values | None = None
+                            ) -> gtsam.LinearContainerFactor:
+    """The drift the Doppler of epoch ``k`` sees is the clock's drift plus a white jump:
+    doppler_drift(k) - drift(k) ~ N(0, sigma^2), sigma in m/s (both held as :func:`drift_key` is)."""
+    return _linear_factor([doppler_drift_key(k), drift_key(k)], [1.0, -1.0], sigma_mps * DRIFT_HORIZON_S / C_LIGHT, lin)
 
 
 def drift_prior_factor_cd(k: int, drift_mps: float, sigma_mps: float, lin: gtsam.Values | None = None

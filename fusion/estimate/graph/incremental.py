@@ -27,7 +27,8 @@ def isam2(cfg: GraphConfig, carrier: bool = False) -> gtsam.ISAM2:
     # propagate its updates (0.001 s = 300 km), so thresholds are per variable type, in their units.
     thr = gtsam.ISAM2ThresholdMap()
     for sym, dim, scale in (("x", 3, 1.0), ("v", 3, 1.0), ("c", 1, 1.0 / C_LIGHT), ("d", 1, 1.0 / C_LIGHT),
-                            ("u", 3, 1.0), ("q", 1, 1.0), ("i", 1, 1.0), ("h", 2, 0.01)):  # h: odometry heading [rad, rad/s]
+                            ("j", 1, 1.0 / C_LIGHT), ("u", 3, 1.0), ("q", 1, 1.0), ("i", 1, 1.0),
+                            ("h", 2, 0.01)):  # h: odometry heading [rad, rad/s]
         thr.insert((sym, np.full(dim, relin * scale)))
     params.setRelinearizeThreshold(thr)
     params.setOptimizationParams(gtsam.ISAM2GaussNewtonParams(wildfire))

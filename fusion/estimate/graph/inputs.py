@@ -12,6 +12,7 @@ from fusion.errors import GeometryError
 from fusion.estimate.graph.clock import clock_chain
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.consistency import raise_pseudorange_sigmas, raise_raw_sigmas
+from fusion.estimate.graph.drift_noise import doppler_jump, drift_change
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
 from fusion.estimate.graph.odometry import OdometryFactors, odometry_factors
 from fusion.estimate.graph.priors import LearnedGraphInputs, Priors, clean_priors
@@ -38,7 +39,9 @@ class EpochInputs:
     pr_bias (E,S) [m] subtracted from each pseudorange (a slot-noise provider's bias, else 0); raw: the
     Doppler and carrier factors (:class:`RawInputs`); clock_drift_mps (E,) starting drift [m/s] and
     clock_span_s (E,) [s] along each clock link (for drift states); use_drift: the clock chain has drift
-    states (GraphConfig.clock_drift_states).
+    states (GraphConfig.clock_drift_states); doppler_jump_mps: the white jump of the drift each epoch's
+    Doppler sees beyond the clock's walk [m/s] (0: none, the Doppler sees the drift state itself;
+    :mod:`fusion.estimate.graph.drift_noise`).
     """
 
     init_pos: np.ndarray
@@ -64,6 +67,14 @@ class EpochInputs:
     clock_span_s: np.ndarray | None = None
     odometry: OdometryFactors | None = None
     use_drift: bool = False
+    doppler_jump_mps: float = 0.0
+
+
+def doppler_drift_epochs(inp: EpochInputs) -> np.ndarray:
+    """(E,) bool kept epochs whose Doppler sees a drift of its own (:attr:`EpochInputs.doppler_jump_mps` > 0)."""
+    if inp.raw is None or inp.doppler_jump_mps <= 0:
+        return np.zeros(inp.keep.shape, bool)
+    return (inp.raw.doppler & inp.keep[:, None]).any(axis=1)
 
 
 def pseudorange_gap(inp: EpochInputs) -> np.ndarray:
@@ -243,6 +254,9 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
         if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():
             inp.dropped.update({f"learned_{k}": v for k, v in learned.doppler_noise(trace, inp).items()})
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
+        if cfg.doppler_jump_from_log and inp.use_drift and inp.raw.doppler.any():
+            inp.doppler_jump_mps = doppler_jump(drift_change(trace, inp), cfg)
+            inp.dropped["doppler_drift_jump_mps"] = round(inp.doppler_jump_mps, 3)
     inp.dropped.update(raise_pseudorange_sigmas(trace, inp, cfg.pseudorange_check_window_s))
     if cfg.use_odometry:
         inp.odometry = odometry_factors(trace, init_pos, wls_ok, pos_link, comp, keep, cfg)

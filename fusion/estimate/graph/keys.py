@@ -12,6 +12,9 @@
   ``(c(k), d(k))`` and ``dt = DRIFT_HORIZON_S`` it sees exactly ``drift(k)``: the Doppler factor stays
   in C++ (a Python ``CustomFactor`` per satellite would be far slower) and the drift is still a state
   of its own, chained by a random walk (:mod:`fusion.estimate.graph.factors`);
+- ``doppler_drift_key(k)``: the drift as epoch ``k``'s Doppler sees it, held as ``drift_key`` is (graphs whose
+  log shows a drift that jumps from epoch to epoch, :mod:`fusion.estimate.graph.drift_noise`): the drift plus a
+  white jump of that epoch, which the Doppler factors take and the clock does not integrate;
 - ``disp_key(k)``: the receiver displacement ``x(k) - x(k-1)`` [m] (graphs with carrier phase only),
   on which the time-differenced carrier factor acts (see :func:`~fusion.estimate.graph.factors.tdcp_factor_uqq`);
 - ``carrier_clock_key(k)``: the receiver clock as the carrier phase sees it [m], up to a constant per
@@ -28,7 +31,7 @@ ISB_STRIDE = 16
 
 #: symbol character -> what it keys, for error messages
 KEY_NAMES = {"x": "position", "c": "receiver clock", "v": "velocity", "i": "inter-system bias",
-             "d": "receiver clock drift", "u": "displacement since the previous epoch", "q": "carrier clock"}
+             "d": "receiver clock drift", "j": "receiver clock drift as the Doppler sees it", "u": "displacement since the previous epoch", "q": "carrier clock"}
 
 #: the drift key holds the clock this far ahead [s]; see the module docstring
 DRIFT_HORIZON_S = 1.0
@@ -57,6 +60,11 @@ def isb_key(comp: int, group: int) -> int:
 def drift_key(k: int) -> int:
     """Key of the receiver clock drift at epoch ``k``, held as ``c(k) + drift(k) * DRIFT_HORIZON_S`` [s]."""
     return gtsam.symbol("d", k)
+
+
+def doppler_drift_key(k: int) -> int:
+    """Key of the drift as epoch ``k``'s Doppler sees it, held as :func:`drift_key` is [s]."""
+    return gtsam.symbol("j", k)
 
 
 def disp_key(k: int) -> int:

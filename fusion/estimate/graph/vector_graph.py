@@ -22,11 +22,11 @@ from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
 from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, level_sigma
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import range_and_gradient
-from fusion.estimate.graph.inputs import EpochInputs, motion_only
+from fusion.estimate.graph.inputs import EpochInputs, doppler_drift_epochs, motion_only
 from fusion.estimate.graph.isb import isb_label
 from fusion.estimate.graph.marginals import information_marginals
-from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key,
-                                        isb_key, pos_key, vel_key)
+from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, doppler_drift_key,
+                                        drift_key, isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import START_VEL_SIGMA_MPS, motion_model
 from fusion.estimate.graph.raw_inputs import carrier_rows, doppler_rows_at
 from fusion.geometry import C_LIGHT
@@ -34,7 +34,8 @@ from fusion.trace import Trace
 
 #: per-epoch variables in their order inside an epoch: name, dimension, GTSAM key, GTSAM unit per metre
 EPOCH_VARS = (("pos", 3, pos_key, 1.0), ("vel", 3, vel_key, 1.0), ("clk", 1, clock_key, 1.0 / C_LIGHT),
-              ("drift", 1, drift_key, 1.0 / C_LIGHT), ("disp", 3, disp_key, 1.0), ("qclk", 1, carrier_clock_key, 1.0))
+              ("drift", 1, drift_key, 1.0 / C_LIGHT), ("jdrift", 1, doppler_drift_key, 1.0 / C_LIGHT),
+              ("disp", 3, disp_key, 1.0), ("qclk", 1, carrier_clock_key, 1.0))
 _I3 = np.eye(3)
 
 
@@ -68,6 +69,7 @@ def epoch_variables(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     ks = clocked_epochs(inp, epochs)
     has["clk"][ks] = True
     has["drift"][ks] = inp.use_drift
+    has["jdrift"] = doppler_drift_epochs(inp)
     if inp.raw is not None:
         carrier = carrier_epochs(trace, inp)
         has["disp"] = carrier
@@ -106,7 +108,9 @@ def initial_state(trace: Trace, inp: EpochInputs, lay: Layout) -> np.ndarray:
     _put(x, st["vel"], inp.init_vel)
     _put(x, st["clk"], inp.init_clock_m[:, None])
     if (st["drift"] >= 0).any():
-        _put(x, st["drift"], (inp.init_clock_m + inp.clock_drift_mps * DRIFT_HORIZON_S)[:, None])
+        drift = (inp.init_clock_m + inp.clock_drift_mps * DRIFT_HORIZON_S)[:, None]
+        _put(x, st["drift"], drift)
+        _put(x, st["jdrift"], drift)
     prev = np.r_[inp.init_pos[:1], inp.init_pos[:-1]]
     _put(x, st["disp"], inp.init_pos - prev)
     _put(x, st["qclk"], inp.init_clock_m[:, None])
@@ -219,14 +223,21 @@ def isb_blocks(inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:
 
 
 def doppler_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:
-    """The robust Doppler factors on v(k), c(k), d(k): GTSAM's ``DopplerFactor``, linear in them."""
-    raw = inp.raw
+    """The robust Doppler factors on v(k), c(k) and d(k) (or the drift the Doppler sees, j(k), tied to d(k) by
+    the epoch's white jump): GTSAM's ``DopplerFactor``, linear in them."""
+    raw, st = inp.raw, lay.start
     ks, ss = np.nonzero(raw.doppler & inp.keep[:, None])
     grad, rhs = doppler_rows_at(trace, raw, inp.init_pos, ks, ss)
     H = DRIFT_HORIZON_S
-    cols = np.concatenate([_cols(lay.start["vel"], ks, 3), lay.start["clk"][ks, None], lay.start["drift"][ks, None]], 1)
+    drift = np.where(st["jdrift"] >= 0, st["jdrift"], st["drift"])
+    cols = np.concatenate([_cols(st["vel"], ks, 3), st["clk"][ks, None], drift[ks, None]], 1)
     coeffs = np.concatenate([grad, np.full((len(ks), 1), -1.0 / H), np.full((len(ks), 1), 1.0 / H)], 1)
-    return [scalar_blocks(cols, coeffs, rhs, raw.prr_sigma[ks, ss], cfg.robust, cfg.rate_robust_k)]
+    out = [scalar_blocks(cols, coeffs, rhs, raw.prr_sigma[ks, ss], cfg.robust, cfg.rate_robust_k)]
+    js = np.flatnonzero(st["jdrift"] >= 0)
+    if len(js):
+        out.append(scalar_blocks(np.stack([st["jdrift"][js], st["drift"][js]], 1), np.tile([1.0, -1.0], (len(js), 1)),
+                                 np.zeros(len(js)), inp.doppler_jump_mps * H))
+    return out
 
 
 def carrier_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: Layout) -> list[Blocks]:

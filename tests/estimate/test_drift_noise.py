@@ -1,0 +1,105 @@
+"""The clock drift as the log's own Doppler shows it (fusion.estimate.graph.drift_noise): measured without
+truth, and where it jumps from epoch to epoch, a variable of each epoch's Doppler that the clock does not
+integrate."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.drift_noise import doppler_jump, drift_change
+from fusion.estimate.graph.fuse import fuse
+from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+from fusion.modes import solve_initial
+from fusion.run_types import RunOptions
+from fusion.sim.simulate import SimConfig, simulate
+
+
+@pytest.fixture(scope="module")
+def nav():
+    return read_rinex_nav(default_nav_path())
+
+
+def doppler_trace(nav, drift_walk: float, seed: int = 3):
+    """A simulated GPS drive with Doppler whose receiver clock drift walks ``drift_walk`` m/s per sqrt(s)."""
+    cfg = SimConfig(doppler=True, clock_drift_rw_mps=drift_walk)
+    return simulate(n_epochs=240, nav=nav, seed=seed, config=cfg).trace
+
+
+def change_of(trace, cfg: GraphConfig = GraphConfig()):
+    return drift_change(trace, prepare_inputs(trace, solve_initial(trace, RunOptions()), cfg))
+
+
+def with_common_jumps(trace, sigma: float, seed: int = 0):
+    """``trace`` with white noise of ``sigma`` [m/s] common to each epoch's Dopplers (a phone's drift that jumps
+    from one epoch to the next while its Dopplers agree with each other)."""
+    jump = np.random.default_rng(seed).normal(0.0, sigma, trace.n_epochs)
+    return dataclasses.replace(trace, prr=np.where(trace.prr_ok, trace.prr + jump[:, None], trace.prr))
+
+
+def test_a_steady_clock_gets_no_jump(nav):
+    change = change_of(doppler_trace(nav, 0.02))
+    assert change is not None and change < GraphConfig().drift_rw_mps
+    assert doppler_jump(change, GraphConfig()) == 0.0
+
+
+def test_a_walking_drift_is_measured(nav):
+    assert 0.6 < change_of(doppler_trace(nav, 0.8)) < 1.0
+
+
+def test_a_drift_that_jumps_each_epoch_is_measured_beyond_the_doppler_noise(nav):
+    trace = doppler_trace(nav, 0.02)
+    # white jumps of 0.5 m/s change the drift by 0.71 m/s from one epoch to the next; the estimate errs low
+    # (the fits' noise it takes off is the stated sigmas', raised where the fits show more, never lowered)
+    change = change_of(with_common_jumps(trace, 0.5))
+    assert 0.4 < change < 0.85
+    assert 0.25 < doppler_jump(change, GraphConfig()) < 0.6
+    # noise of each Doppler on its own is the fits' business, not the clock's
+    rng = np.random.default_rng(1)
+    noisy = dataclasses.replace(trace, prr=trace.prr + rng.normal(0.0, 0.5, trace.prr.shape),
+                                prr_sigma=np.full(trace.prr.shape, 0.5))
+    assert doppler_jump(change_of(noisy), GraphConfig()) == 0.0
+
+
+def test_the_jump_is_what_the_walk_leaves_of_the_change():
+    assert doppler_jump(0.7, GraphConfig()) == pytest.approx(np.sqrt((0.7 ** 2 - 0.2 ** 2) / 2))
+    assert doppler_jump(0.15, GraphConfig()) == 0.0
+    assert doppler_jump(None, GraphConfig()) == 0.0
+
+
+def test_too_few_dopplers_give_no_estimate(nav):
+    trace = doppler_trace(nav, 0.8)
+    few = np.cumsum(trace.prr_ok, axis=1) <= 5                 # five Dopplers an epoch: no spare to tell noise
+    assert change_of(dataclasses.replace(trace, prr_ok=trace.prr_ok & few)) is None
+    inp = prepare_inputs(trace, solve_initial(trace, RunOptions()), GraphConfig(use_doppler=False))
+    assert drift_change(trace, inp) is None and inp.doppler_jump_mps == 0.0
+
+
+def test_the_graph_gives_the_doppler_a_drift_of_its_own_and_reports_it(nav):
+    trace = with_common_jumps(doppler_trace(nav, 0.02), 0.5)
+    wls = solve_initial(trace, RunOptions())
+    inp = prepare_inputs(trace, wls, GraphConfig())
+    assert 0.25 < inp.doppler_jump_mps < 0.6
+    res = fuse(trace, wls, RunOptions(), cfg=GraphConfig())
+    assert res.info["doppler_drift_jump_mps"] == pytest.approx(inp.doppler_jump_mps, abs=1e-3)
+    without = fuse(trace, wls, RunOptions(), cfg=GraphConfig(doppler_jump_from_log=False))
+    assert "doppler_drift_jump_mps" not in without.info
+    err = [np.linalg.norm(r.pos - trace.truth, axis=1).mean() for r in (res, without)]
+    assert np.abs(res.pos - without.pos).max() > 1e-3
+    assert err[0] < err[1]                    # the jumps no longer leak into the velocity
+    # incremental (ISAM2) builds the same variables
+    inc = fuse(trace, wls, RunOptions(), cfg=GraphConfig(incremental=True))
+    assert inc.valid.all() and np.linalg.norm(inc.pos - trace.truth, axis=1).mean() < 2 * err[0]
+
+
+def test_a_steady_clock_keeps_the_graph_it_had(nav):
+    trace = doppler_trace(nav, 0.02)
+    wls = solve_initial(trace, RunOptions())
+    a = fuse(trace, wls, RunOptions(), cfg=GraphConfig())
+    b = fuse(trace, wls, RunOptions(), cfg=GraphConfig(doppler_jump_from_log=False))
+    assert a.info["doppler_drift_jump_mps"] == 0.0
+    np.testing.assert_allclose(a.pos, b.pos, rtol=0.0, atol=1e-9)
+
