@@ -20,7 +20,6 @@ tuned: a log whose drift is as steady as the configured walk keeps the graph it 
 """
 from __future__ import annotations
 
-from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np

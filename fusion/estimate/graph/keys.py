@@ -31,7 +31,8 @@ ISB_STRIDE = 16
 
 #: symbol character -> what it keys, for error messages
 KEY_NAMES = {"x": "position", "c": "receiver clock", "v": "velocity", "i": "inter-system bias",
-             "d": "receiver clock drift", "j": "receiver clock drift as the Doppler sees it", "u": "displacement since the previous epoch", "q": "carrier clock"}
+             "d": "receiver clock drift", "j": "receiver clock drift as the Doppler sees it",
+             "u": "displacement since the previous epoch", "q": "carrier clock"}
 
 #: the drift key holds the clock this far ahead [s]; see the module docstring
 DRIFT_HORIZON_S = 1.0
