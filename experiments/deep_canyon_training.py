@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from feature_ablation import RAW, pooled, raw_scores  # noqa: E402
+from feature_ablation import RAW, print_runs, raw_scores  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
@@ -71,17 +71,7 @@ def main() -> int:
             group = "deep" if "-deep-" in path.parent.name else "ordinary"
             sims.setdefault(f"held-out sims, {group}", []).append(load(path, every))
     cols = [f"{log} {fold}" for log in RAW for fold in ("AB", "CD")] + list(sims)
-    print("| run | GSDC fused-nodnn | GSDC fused | fused / fused-nodnn | "
-          + " | ".join(f"{c}: fused (x fused-nodnn)" for c in cols) + " |")
-    print("|---|---|---|---|" + "---|" * len(cols))
-    for item in args.runs:
-        label, run = item.split("=", 1)
-        run = Path(run)
-        g = pooled(run)
-        s = {**raw_scores(run, raw), **sim_scores(run, sims)}
-        cells = " | ".join(f"{s[c][0]:.2f} ({s[c][0] / s[c][1]:.3f})" for c in cols)
-        print(f"| {label} | {g['fused-nodnn']:.2f} | {g['fused']:.2f} | {g['fused'] / g['fused-nodnn']:.3f} | {cells} |",
-              flush=True)
+    print_runs(args.runs, cols, lambda run: {**raw_scores(run, raw), **sim_scores(run, sims)}, digits=3)
     return 0
 
 

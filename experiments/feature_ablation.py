@@ -68,6 +68,26 @@ def raw_scores(run: Path, loaded: dict) -> dict[str, tuple[float, float]]:
     return out
 
 
+def print_runs(runs: list[str], cols: list[str], scores, extra: tuple[str, object] | None = None,
+               digits: int = 2) -> None:
+    """One Markdown row per ``LABEL=RUN_FOLDER`` of ``runs``: the label, an ``extra`` column (header, function of
+    the run folder; None: none), the pooled GSDC ``fused-nodnn`` / ``fused`` and their ratio, and per column of
+    ``cols`` the ``fused`` score (its ratio to ``fused-nodnn`` to ``digits``) from ``scores(run)`` -> {col:
+    (fused, fused-nodnn)}."""
+    head = f"| run | {extra[0]} |" if extra else "| run |"
+    print(head + " GSDC fused-nodnn | GSDC fused | fused / fused-nodnn | "
+          + " | ".join(f"{c}: fused (x fused-nodnn)" for c in cols) + " |")
+    print("|---|" + ("---|" if extra else "") + "---|---|---|" + "---|" * len(cols))
+    for item in runs:
+        label, run = item.split("=", 1)
+        run = Path(run)
+        g, s = pooled(run), scores(run)
+        cells = " | ".join(f"{s[c][0]:.2f} ({s[c][0] / s[c][1]:.{digits}f})" for c in cols)
+        first = f"| {label} | {extra[1](run)} |" if extra else f"| {label} |"
+        print(f"{first} {g['fused-nodnn']:.2f} | {g['fused']:.2f} | {g['fused'] / g['fused-nodnn']:.3f} | {cells} |",
+              flush=True)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("runs", nargs="+", help="LABEL=RUN_FOLDER")
@@ -78,17 +98,7 @@ def main() -> int:
         trace = load_trace(path, min_sats=1, **load_options(base))
         loaded[log] = (trace, solve_initial(trace, base), base)
     cols = [f"{log} {fold}" for log in RAW for fold in ("AB", "CD")]
-    print("| run | left out | GSDC fused-nodnn | GSDC fused | fused / fused-nodnn | "
-          + " | ".join(f"{c}: fused (x fused-nodnn)" for c in cols) + " |")
-    print("|---|---|---|---|---|" + "---|" * len(cols))
-    for item in args.runs:
-        label, run = item.split("=", 1)
-        run = Path(run)
-        g = pooled(run)
-        raw = raw_scores(run, loaded)
-        cells = " | ".join(f"{raw[c][0]:.2f} ({raw[c][0] / raw[c][1]:.2f})" for c in cols)
-        print(f"| {label} | {left_out(run)} | {g['fused-nodnn']:.2f} | {g['fused']:.2f} | "
-              f"{g['fused'] / g['fused-nodnn']:.3f} | {cells} |", flush=True)
+    print_runs(args.runs, cols, lambda run: raw_scores(run, loaded), extra=("left out", left_out))
     return 0
 
 
