@@ -11,9 +11,9 @@
 3. **How steady is the phone's clock drift?** The drift of each epoch's least-squares fit of velocity and drift
    to its Doppler (at least six, at the WLS position: no truth), the robust spread of its change from one
    epoch to the next per sqrt(s), less what the fits' own noise explains; against the graph's drift walk
-   (``GraphConfig.drift_rw_mps``); and the graph with Doppler given a drift walk of that estimate and a clock
-   link widened by it (``GraphConfig.drift_walk_from_log``, :mod:`fusion.estimate.graph.drift_noise`): the model
-   the log itself asks for, nothing tuned. The other columns keep the configured walk.
+   (``GraphConfig.drift_rw_mps``); and the graph whose Dopplers see the drift plus a white jump of the size the
+   log shows (``GraphConfig.doppler_jump_from_log``, :mod:`fusion.estimate.graph.drift_noise`): the model the
+   log itself asks for, nothing tuned. The other columns are without the jump.
 
 The truth places the streets and scores; nothing solved sees it. GSDC score [m].
 
@@ -84,7 +84,7 @@ def robust_var(x: np.ndarray) -> float:
     return float((MAD_TO_SIGMA * np.median(np.abs(x - np.median(x)))) ** 2)
 
 
-def drift_jitter(trace: Trace, opts: RunOptions) -> tuple[float, float]:
+def drift_steadiness(trace: Trace, opts: RunOptions) -> tuple[float, float]:
     """The clock drift's epoch-to-epoch change [m/s per sqrt(s)] from the log alone (check 3): its robust sigma
     as the one-epoch fits give it, and that less the fits' own noise
     (:func:`fusion.estimate.graph.drift_noise.drift_change`, what the graph takes)."""
@@ -101,7 +101,7 @@ def main() -> int:
     args = p.parse_args()
     opts = RunOptions(signals=None, nav=(NAV,), sigma_calibration=False)
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
-    raw, jitter = drift_jitter(trace, opts)
+    raw, jitter = drift_steadiness(trace, opts)
     steady = {"doppler_jump_from_log": True}
     print("| Pixel5 | pseudoranges only | + Doppler | + Doppler, reflected ones removed (oracle) "
           "| + Doppler, non-robust loss | + Doppler, seeing the drift's jumps |")
