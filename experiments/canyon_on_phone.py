@@ -84,8 +84,9 @@ def class_changed(trace: Trace, cls: np.ndarray) -> np.ndarray:
     return out
 
 
-def scores(trace: Trace, opts: RunOptions) -> dict[str, float]:
-    """GSDC score of wls; fused-nodnn with pseudoranges only, + Doppler, + carrier, + both; fused with both."""
+def scores(trace: Trace, opts: RunOptions) -> tuple[dict[str, float], str]:
+    """GSDC score of wls; fused-nodnn with pseudoranges only, + Doppler, + carrier, + both; fused with both;
+    and the Doppler drift jump the graph with both took from the log [m/s] ("-": none taken)."""
     wls = solve_initial(trace, opts)
     out = {"wls": run_modes(trace, ["wls"], opts, wls=wls)["wls"]}
     for name, doppler, carrier in (("pseudoranges only", False, False), ("+ Doppler", True, False),
@@ -94,7 +95,8 @@ def scores(trace: Trace, opts: RunOptions) -> dict[str, float]:
         out[f"fused-nodnn, {name}"] = run_modes(trace, ["fused-nodnn"], o, wls=wls)["fused-nodnn"]
     both = run_modes(trace, ["fused-nodnn", "fused"], opts, wls=wls)
     out.update({"fused-nodnn, + Doppler and carrier": both["fused-nodnn"], "fused, + Doppler and carrier": both["fused"]})
-    return {k: mode_metrics(trace, r)["gsdc_score"] for k, r in out.items()}
+    jump = both["fused-nodnn"].info.get("doppler_drift_jump_mps")
+    return {k: mode_metrics(trace, r)["gsdc_score"] for k, r in out.items()}, "-" if jump is None else f"{jump:.2f}"
 
 
 def main() -> int:
@@ -111,15 +113,16 @@ def main() -> int:
         opts = replace(opts, graph=replace(opts.graph, doppler_jump_from_log=False))
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
     model = CanyonModel(height_m=tuple(args.height), width_m=tuple(args.width))
-    rows = [("as logged", {"blocked": 0.0, "reflected": 0.0}, scores(trace, opts))]
+    rows = [("as logged", {"blocked": 0.0, "reflected": 0.0}, *scores(trace, opts))]
     for seed in args.seeds:
         canyon, share = in_canyon(trace, model, seed)
-        rows.append((f"canyon, streets seed {seed}", share, scores(canyon, opts)))
+        rows.append((f"canyon, streets seed {seed}", share, *scores(canyon, opts)))
     keys = list(rows[0][2])
-    print("| Pixel5 RINEX | blocked | reflected or bent | " + " | ".join(keys) + " |")
-    print("|---|---|---|" + "---|" * len(keys))
-    for name, share, s in rows:
-        print(f"| {name} | {share['blocked']:.2f} | {share['reflected']:.2f} | " + " | ".join(f"{s[k]:.2f}" for k in keys) + " |")
+    print("| Pixel5 RINEX | blocked | reflected or bent | Doppler drift jump [m/s] | " + " | ".join(keys) + " |")
+    print("|---|---|---|---|" + "---|" * len(keys))
+    for name, share, s, jump in rows:
+        print(f"| {name} | {share['blocked']:.2f} | {share['reflected']:.2f} | {jump} | "
+              + " | ".join(f"{s[k]:.2f}" for k in keys) + " |")
     return 0
 
 

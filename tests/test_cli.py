@@ -216,7 +216,11 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     info.update(doppler_drift_jump_mps=0.471)
     text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
                         "info": info})
-    assert "jumps by 0.47 m/s from epoch to epoch: each epoch's Doppler got a drift of its own" in text
+    assert "jumps around its course by 0.47 m/s (1 sigma) each epoch: each epoch's Doppler got a drift of its own" in text
+    info.update(doppler_drift_jump_mps=None)           # too few well-known epochs to tell: nothing said
+    text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
+                        "info": info})
+    assert "drift of its own" not in text
     info.update(learned_doppler_sigmas=70, learned_doppler_out_of_range=5, learned_doppler_unseen_system=9,
                 learned_doppler_likely_outliers=2)
     text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},

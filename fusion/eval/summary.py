@@ -73,8 +73,9 @@ def run_summary(record: dict) -> str:
         lines.append("sigmas raised where the measurements disagreed among themselves beyond them: "
                      + ", ".join(f"{n} {k}" for k, n in raised.items() if n) + " (metrics.json 'info')")
     if info.get("doppler_drift_jump_mps"):
-        lines.append(f"the receiver clock's drift, as the Doppler shows it, jumps by {info['doppler_drift_jump_mps']:.2f} "
-                     "m/s from epoch to epoch: each epoch's Doppler got a drift of its own")
+        lines.append("the receiver clock's drift, as the Doppler shows it, jumps around its course by "
+                     f"{info['doppler_drift_jump_mps']:.2f} m/s (1 sigma) each epoch: each epoch's Doppler got a "
+                     "drift of its own")
     if info.get("epochs_bridged"):
         lines.append(bridged_words(info))
     m = record.get("metrics") or {}

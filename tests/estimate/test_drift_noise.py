@@ -72,10 +72,43 @@ def test_the_jump_is_what_the_walk_leaves_of_the_change():
 
 def test_too_few_dopplers_give_no_estimate(nav):
     trace = doppler_trace(nav, 0.8)
-    few = np.cumsum(trace.prr_ok, axis=1) <= 5                 # five Dopplers an epoch: no spare to tell noise
-    assert change_of(dataclasses.replace(trace, prr_ok=trace.prr_ok & few)) is None
+    few = dataclasses.replace(trace, prr_ok=trace.prr_ok & (np.cumsum(trace.prr_ok, axis=1) <= 5))
+    inp = prepare_inputs(few, solve_initial(few, RunOptions()), GraphConfig())
+    # five Dopplers an epoch leave one spare for four unknowns: the fits need two
+    assert drift_change(few, inp) is None
+    assert inp.doppler_jump_mps == 0.0 and inp.dropped["doppler_drift_jump_mps"] is None   # unknown, not steady
     inp = prepare_inputs(trace, solve_initial(trace, RunOptions()), GraphConfig(use_doppler=False))
     assert drift_change(trace, inp) is None and inp.doppler_jump_mps == 0.0
+
+
+def test_drift_steps_at_clock_resets_are_not_jumps(nav):
+    trace = doppler_trace(nav, 0.02)
+    reset = np.arange(trace.n_epochs) % 2 == 1                  # the clock steps at every other epoch
+    step = 5.0 * np.cumsum(reset)
+    stepped = dataclasses.replace(trace, clock_reset=reset,
+                                  prr=np.where(trace.prr_ok, trace.prr + step[:, None], trace.prr))
+    assert change_of(stepped) < GraphConfig().drift_rw_mps
+
+
+def test_the_jump_follows_the_epoch_interval(nav):
+    cfg = SimConfig(doppler=True, clock_drift_rw_mps=0.02)
+    trace = with_common_jumps(simulate(n_epochs=300, rate_hz=2.0, nav=nav, seed=4, config=cfg).trace, 0.5)
+    inp = prepare_inputs(trace, solve_initial(trace, RunOptions()), GraphConfig())
+    assert inp.doppler_jump_mps == pytest.approx(doppler_jump(drift_change(trace, inp), GraphConfig(), 0.5))
+    # at 10 Hz the same change per sqrt(s) is a jump sqrt(10) times smaller than at 1 Hz
+    assert doppler_jump(1.0, GraphConfig(), 0.1) == pytest.approx(doppler_jump(1.0, GraphConfig()) / np.sqrt(10))
+
+
+def test_the_jump_factor_is_one_sigma_at_its_sigma():
+    import gtsam
+    from fusion.estimate.graph.factors import doppler_drift_factor_jd
+    from fusion.estimate.graph.keys import DRIFT_HORIZON_S, doppler_drift_key, drift_key
+    from fusion.geometry import C_LIGHT
+    values = gtsam.Values()
+    values.insert(drift_key(7), 1e-3)
+    values.insert(doppler_drift_key(7), 1e-3 + 0.4 * DRIFT_HORIZON_S / C_LIGHT)    # the drift + 0.4 m/s
+    assert doppler_drift_factor_jd(7, 0.4).error(values) == pytest.approx(0.5, rel=1e-6)
+    assert doppler_drift_factor_jd(7, 0.2).error(values) == pytest.approx(2.0, rel=1e-6)
 
 
 def test_the_graph_gives_the_doppler_a_drift_of_its_own_and_reports_it(nav):

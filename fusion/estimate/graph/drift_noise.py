@@ -38,7 +38,8 @@ MIN_DOPPLERS = 6
 MIN_PAIRS = 30
 #: epochs count whose fit knows the drift to this (1 sigma) [m/s] or better: where a street leaves only high
 #: satellites the drift and the vertical velocity are hard to tell apart, and such an epoch's drift says
-#: nothing of the clock (twice the configured walk, so that a faster walk still shows above the noise)
+#: nothing of the clock (twice the default walk, GraphConfig.drift_rw_mps, so that a jump beyond it shows
+#: above the fits' noise)
 KNOWN_SD_MPS = 0.4
 
 
@@ -84,10 +85,11 @@ def drift_change(trace: Trace, inp: EpochInputs) -> float | None:
     return float(np.sqrt(max(spread ** 2 - noise, 0.0)))
 
 
-def doppler_jump(change: float | None, cfg: GraphConfig) -> float:
+def doppler_jump(change: float | None, cfg: GraphConfig, interval_s: float = 1.0) -> float:
     """The white jump [m/s] of the drift each epoch's Doppler sees beyond the clock's walk, from the log's drift
-    ``change`` (:func:`drift_change`): what of ``change^2 = drift_rw_mps^2 + 2 jump^2`` the configured walk
-    leaves (a white jump shows twice in a difference); 0 where the walk explains it all or nothing is known."""
+    ``change`` [m/s per sqrt(s)] (:func:`drift_change`) between epochs ``interval_s`` apart: what of
+    ``change^2 = drift_rw_mps^2 + 2 jump^2 / interval_s`` the configured walk leaves (a white jump shows twice
+    in a difference, and the change is per sqrt(s)); 0 where the walk explains it all or nothing is known."""
     if change is None:
         return 0.0
-    return float(np.sqrt(max(change ** 2 - cfg.drift_rw_mps ** 2, 0.0) / 2.0))
+    return float(np.sqrt(max(change ** 2 - cfg.drift_rw_mps ** 2, 0.0) * interval_s / 2.0))

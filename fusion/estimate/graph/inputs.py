@@ -255,8 +255,10 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
             inp.dropped.update({f"learned_{k}": v for k, v in learned.doppler_noise(trace, inp).items()})
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
         if cfg.doppler_jump_from_log and inp.use_drift and inp.raw.doppler.any():
-            inp.doppler_jump_mps = doppler_jump(drift_change(trace, inp), cfg)
-            inp.dropped["doppler_drift_jump_mps"] = round(inp.doppler_jump_mps, 3)
+            change, linked = drift_change(trace, inp), dt[pos_link]
+            inp.doppler_jump_mps = doppler_jump(change, cfg, float(np.median(linked)) if linked.size else 1.0)
+            # None: the log has too few epochs whose drift is well known to tell (not: a steady clock)
+            inp.dropped["doppler_drift_jump_mps"] = None if change is None else round(inp.doppler_jump_mps, 3)
     inp.dropped.update(raise_pseudorange_sigmas(trace, inp, cfg.pseudorange_check_window_s))
     if cfg.use_odometry:
         inp.odometry = odometry_factors(trace, init_pos, wls_ok, pos_link, comp, keep, cfg)

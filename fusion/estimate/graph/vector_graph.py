@@ -3,7 +3,8 @@
 :class:`~fusion.estimate.graph.banded_gn.Blocks` per kind for the whole trace.
 
 The state vector holds each epoch's variables together, epochs in time order (position, velocity,
-clock, drift, displacement, carrier clock), then the trace-wide inter-system biases. Clocks and drifts
+clock, drift, the drift its Doppler sees, displacement, carrier clock), then the trace-wide inter-system
+biases. Clocks and drifts
 are in metres here (GTSAM's keys hold seconds, :mod:`fusion.estimate.graph.keys`): a cost is the same in
 either unit, and metres keep the normal equations at one scale. That both graphs have the same cost at
 any values is tested (``tests/estimate/test_banded_gn.py``), kind by kind.
