@@ -34,7 +34,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 from canyon_on_phone import canyon_classes, in_canyon, reflected  # noqa: E402
 from few_satellites import NAV, PIXEL5  # noqa: E402
-from fusion.estimate.graph.consistency import MAD_TO_SIGMA  # noqa: E402
+from fusion.estimate.graph.consistency import mad_sigma  # noqa: E402
 from fusion.estimate.graph.drift_noise import drift_change  # noqa: E402
 from fusion.estimate.graph.drift_noise import KNOWN_SD_MPS, epoch_drifts  # noqa: E402
 from fusion.estimate.graph.factors import doppler_rows  # noqa: E402
@@ -78,12 +78,6 @@ def doppler_spread(trace: Trace, vel: np.ndarray, at: np.ndarray) -> tuple[np.nd
     return np.where(n >= 2, hi - lo, np.nan), n
 
 
-def robust_var(x: np.ndarray) -> float:
-    """(MAD-based sigma)^2 of the finite values of x."""
-    x = x[np.isfinite(x)]
-    return float((MAD_TO_SIGMA * np.median(np.abs(x - np.median(x)))) ** 2)
-
-
 def drift_steadiness(trace: Trace, opts: RunOptions) -> tuple[float, float]:
     """The clock drift's epoch-to-epoch change [m/s per sqrt(s)] from the log alone (check 3): its robust sigma
     as the one-epoch fits give it, and that less the fits' own noise
@@ -92,7 +86,7 @@ def drift_steadiness(trace: Trace, opts: RunOptions) -> tuple[float, float]:
     inp = prepare_inputs(trace, wls, replace(opts.graph, use_carrier=False), opts.elev_mask_deg)
     drift, _ = epoch_drifts(trace, inp)
     dt = np.diff(trace.t_ms / 1000.0)
-    return float(np.sqrt(robust_var(np.diff(drift) / np.sqrt(dt)))), drift_change(trace, inp)
+    return mad_sigma(np.diff(drift) / np.sqrt(dt)), drift_change(trace, inp)
 
 
 def main() -> int:

@@ -59,13 +59,25 @@ def row_medians(x: np.ndarray) -> np.ndarray:
     return np.where(n > 0, 0.5 * (lo + hi), np.nan)
 
 
+def mad_sigma(x: np.ndarray) -> float:
+    """``1.4826 * median|x - median(x)|`` of the finite values of x (any shape): a Gaussian's sigma, robustly."""
+    x = x[np.isfinite(x)]
+    return float(MAD_TO_SIGMA * np.median(np.abs(x - np.median(x))))
+
+
+def weighted_lsq(A: np.ndarray, b: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every epoch's weighted least-squares fit of ``b = A x``: x (E,U) and (A^T W A)^-1 (E,U,U). A (E,S,U),
+    b, w (E,S) (weight 0: not used); a 1e-9 ridge keeps epochs with too few rows (or none) invertible."""
+    Aw = A * w[..., None]
+    N_inv = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + 1e-9 * np.eye(A.shape[2]))
+    return (N_inv @ (Aw * b[..., None]).sum(axis=1)[..., None])[..., 0], N_inv
+
+
 def _standardised(A: np.ndarray, b: np.ndarray, sig: np.ndarray, use: np.ndarray, w: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
     """One weighted least-squares pass of every epoch: z (E,S) the residuals / sigma / sqrt(1 - leverage)
     (NaN where not used) and each epoch's robust scale (E,1) of them. A (E,S,4), b, sig, w (E,S), use (E,S)."""
-    Aw = A * w[..., None]
-    N_inv = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + 1e-9 * np.eye(A.shape[2]))   # unused epochs too
-    x = (N_inv @ (Aw * b[..., None]).sum(axis=1)[..., None])[..., 0]
+    x, N_inv = weighted_lsq(A, b, w)
     lev = w * ((A @ N_inv) * A).sum(axis=2)
     r = b - (A @ x[..., None])[..., 0]
     z = np.where(use, r / sig / np.sqrt(np.clip(1.0 - lev, 0.05, None)), np.nan)
@@ -140,14 +152,20 @@ def padded_rows(shape: tuple[int, int], ks: np.ndarray, ss: np.ndarray, grad: np
     return G, B
 
 
+def doppler_system(trace: Trace, inp: EpochInputs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Doppler factors of the kept epochs as per-epoch linear systems ``b = G . v + drift`` at the initial
+    positions: G (E,S,3), b (E,S) (zero where unused) and use (E,S) bool."""
+    use = inp.raw.doppler & inp.keep[:, None]
+    ks, ss = np.nonzero(use)
+    G, B = padded_rows(use.shape, ks, ss, *doppler_rows_at(trace, inp.raw, inp.init_pos, ks, ss))
+    return G, B, use
+
+
 def doppler_fit(trace: Trace, inp: EpochInputs) -> np.ndarray:
     """z (E,S) of :func:`epoch_fit` for the Doppler factors of the kept epochs (velocity and clock drift, at the
     initial positions, with the sigmas ``inp.raw.prr_sigma``); NaN where none."""
-    raw = inp.raw
-    use = raw.doppler & inp.keep[:, None]
-    ks, ss = np.nonzero(use)
-    G, B = padded_rows(use.shape, ks, ss, *doppler_rows_at(trace, raw, inp.init_pos, ks, ss))
-    return epoch_fit(G, B, raw.prr_sigma, use)
+    G, B, use = doppler_system(trace, inp)
+    return epoch_fit(G, B, inp.raw.prr_sigma, use)
 
 
 def doppler_scale(trace: Trace, inp: EpochInputs, window_s: float) -> np.ndarray:

@@ -25,8 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fusion.estimate.graph.config import GraphConfig
-from fusion.estimate.graph.consistency import MAD_TO_SIGMA, padded_rows
-from fusion.estimate.graph.raw_inputs import doppler_rows_at
+from fusion.estimate.graph.consistency import doppler_system, mad_sigma, weighted_lsq
 from fusion.trace import Trace
 
 if TYPE_CHECKING:
@@ -48,19 +47,15 @@ def epoch_drifts(trace: Trace, inp: EpochInputs) -> tuple[np.ndarray, np.ndarray
     Doppler factors (``inp.raw``, at least ``MIN_DOPPLERS``), and (E,) its variance [(m/s)^2] scaled by the
     fit's residuals where they exceed its sigmas (a-posteriori variance factor, floored at 1): NaN elsewhere.
     Least squares, not a robust fit: a reflected path's Doppler left in raises the variance with the residuals,
-    where a robust fit would set it aside, report a small variance and still leave part of it in the drift."""
-    use = inp.raw.doppler & inp.keep[:, None]
+    where a robust fit would set it aside, report a small variance and still leave part of it in the drift.
+    Epochs whose Dopplers span fewer directions (two frequencies of few satellites) get a huge variance, and
+    :func:`drift_change` leaves them out."""
+    G, b, use = doppler_system(trace, inp)
     enough = use.sum(axis=1) >= MIN_DOPPLERS
     use &= enough[:, None]
-    ks, ss = np.nonzero(use)
-    G, b = padded_rows(use.shape, ks, ss, *doppler_rows_at(trace, inp.raw, inp.init_pos, ks, ss))
     A = np.where(use[..., None], np.concatenate([G, np.ones(use.shape + (1,))], axis=2), 0.0)
     w = np.where(use, 1.0 / inp.raw.prr_sigma ** 2, 0.0)
-    Aw = A * w[..., None]
-    # the ridge keeps epochs whose Dopplers span fewer directions (two frequencies of few satellites) invertible;
-    # their drift variance comes out huge, and drift_change leaves them out
-    cov = np.linalg.inv(np.swapaxes(Aw, 1, 2) @ A + np.where(enough, 1e-9, 1.0)[:, None, None] * np.eye(4))
-    x = (cov @ (np.swapaxes(Aw, 1, 2) @ b[..., None]))[..., 0]
+    x, cov = weighted_lsq(A, np.where(use, b, 0.0), w)
     r = b - (A @ x[..., None])[..., 0]
     s0 = np.maximum((w * r * r).sum(axis=1) / np.maximum(use.sum(axis=1) - 4, 1), 1.0)
     return np.where(enough, x[:, 3], np.nan), np.where(enough, cov[:, 3, 3] * s0, np.nan)
@@ -80,7 +75,7 @@ def drift_change(trace: Trace, inp: EpochInputs) -> float | None:
         return None
     root = np.sqrt(dt[pair])
     change = (drift[1:] - drift[:-1])[pair] / root
-    spread = MAD_TO_SIGMA * np.median(np.abs(change - np.median(change)))
+    spread = mad_sigma(change)
     noise = np.median((var[1:] + var[:-1])[pair] / dt[pair])
     return float(np.sqrt(max(spread ** 2 - noise, 0.0)))
 
