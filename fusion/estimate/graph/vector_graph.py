@@ -70,7 +70,7 @@ def epoch_variables(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs: np
     ks = clocked_epochs(inp, epochs)
     has["clk"][ks] = True
     has["drift"][ks] = inp.use_drift
-    has["jdrift"] = doppler_drift_epochs(inp)
+    has["jdrift"][epochs] = doppler_drift_epochs(inp)[epochs]
     if inp.raw is not None:
         carrier = carrier_epochs(trace, inp)
         has["disp"] = carrier
