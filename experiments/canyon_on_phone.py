@@ -9,6 +9,10 @@ C/N0; the carrier's chain breaks where a satellite changes class (a slip). The t
 nothing learned or solved sees it. Seeded street layouts; GSDC score [m].
 
     python experiments/canyon_on_phone.py [--seeds 0 1 2] [--height 15 60] [--width 15 35] [--no-doppler-jump]
+        [--sp3] [--signals GPS_L1,GLO_G1,GAL_E1]
+
+``--sp3``: CODE's multi-GNSS SP3/CLK (GPS, GLONASS and Galileo, every signal the log has unless ``--signals``
+names some) instead of the broadcast GPS file.
 """
 from __future__ import annotations
 
@@ -24,10 +28,11 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from few_satellites import NAV, PIXEL5  # noqa: E402
+from pixel5_table import ORBITS  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.geometry import elevation_azimuth, line_of_sight  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
-from fusion.options import load_options  # noqa: E402
+from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.sim.canyon import BLOCKED, LOS, CanyonModel, classify, street_layout  # noqa: E402
@@ -107,8 +112,12 @@ def main() -> int:
     p.add_argument("--no-doppler-jump", action="store_true",
                    help="the Doppler sees the drift state itself, without the jump the log shows "
                         "(GraphConfig.doppler_jump_from_log off)")
+    p.add_argument("--sp3", action="store_true", help="multi-GNSS SP3/CLK instead of broadcast GPS")
+    p.add_argument("--signals", default=None, help="signals to read (default: every signal the orbits cover)")
     args = p.parse_args()
-    opts = RunOptions(signals=None, nav=(NAV,), sigma_calibration=False)
+    orbits = ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"] if args.sp3 else {"nav": (NAV,)}
+    signals = None if args.signals is None else parse_signals(args.signals)
+    opts = RunOptions(signals=signals, sigma_calibration=False, **orbits)
     if args.no_doppler_jump:
         opts = replace(opts, graph=replace(opts.graph, doppler_jump_from_log=False))
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
