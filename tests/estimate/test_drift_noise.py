@@ -66,10 +66,10 @@ def test_a_drift_that_jumps_each_epoch_is_measured_beyond_the_doppler_noise(nav)
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_epochs_that_barely_know_the_drift_do_not_hide_its_jumps(nav, seed):
-    # half the epochs' Dopplers ten times noisier (and said to be): their fits know the drift to ~0.9 m/s, their
-    # changes swamp the spread and their variances the noise taken off it, and the 0.5 m/s jumps would vanish
-    # into them (an estimate of 0 with every epoch counted); counting only epochs that know the drift to
-    # KNOWN_SD_MPS keeps the jumps in sight
+    # half the epochs' Dopplers ten times noisier (and said to be): their fits know the drift to ~2.7 m/s (the
+    # others' to ~0.3), their changes swamp the spread and their variances the noise taken off it, and the
+    # 0.5 m/s jumps would vanish into them (an estimate of 0 with every epoch counted); counting only epochs
+    # that know the drift to KNOWN_SD_MPS keeps the jumps in sight
     trace = with_common_jumps(doppler_trace(nav, 0.02), 0.5)
     rng = np.random.default_rng(seed)
     scale = np.where(rng.random(trace.n_epochs) < 0.5, 10.0, 1.0)[:, None]
