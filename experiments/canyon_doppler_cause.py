@@ -32,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from canyon_on_phone import canyon_classes, in_canyon, reflected  # noqa: E402
+from canyon_on_phone import DEEP, canyon_classes, in_canyon, reflected  # noqa: E402
 from few_satellites import NAV, PIXEL5  # noqa: E402
 from fusion.estimate.graph.consistency import mad_sigma  # noqa: E402
 from fusion.estimate.graph.drift_noise import drift_change  # noqa: E402
@@ -44,10 +44,7 @@ from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
-from fusion.sim.canyon import CanyonModel  # noqa: E402
 from fusion.trace import Trace  # noqa: E402
-
-DEEP = CanyonModel(height_m=(30.0, 100.0), width_m=(12.0, 25.0))
 
 
 def graph(trace: Trace, opts: RunOptions, wls, doppler: bool, **cfg):

@@ -32,12 +32,14 @@ from pixel5_table import ORBITS  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.geometry import elevation_azimuth, line_of_sight  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
-from fusion.options import load_options, parse_signals  # noqa: E402
+from fusion.options import add_signals_option, load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.sim.canyon import BLOCKED, LOS, CanyonModel, classify, street_layout  # noqa: E402
 from fusion.trace import Trace  # noqa: E402
 
+#: the deep canyon of the experiments (``--height 30 100 --width 12 25``): a high-rise core
+DEEP = CanyonModel(height_m=(30.0, 100.0), width_m=(12.0, 25.0))
 
 
 def canyon_classes(trace: Trace, model: CanyonModel, seed: int) -> dict[str, np.ndarray]:
@@ -113,11 +115,10 @@ def main() -> int:
                    help="the Doppler sees the drift state itself, without the jump the log shows "
                         "(GraphConfig.doppler_jump_from_log off)")
     p.add_argument("--sp3", action="store_true", help="multi-GNSS SP3/CLK instead of broadcast GPS")
-    p.add_argument("--signals", default=None, help="signals to read (default: every signal the orbits cover)")
+    add_signals_option(p, "default: every signal the orbits cover")
     args = p.parse_args()
     orbits = ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"] if args.sp3 else {"nav": (NAV,)}
-    signals = None if args.signals is None else parse_signals(args.signals)
-    opts = RunOptions(signals=signals, sigma_calibration=False, **orbits)
+    opts = RunOptions(signals=parse_signals(args.signals), sigma_calibration=False, **orbits)
     if args.no_doppler_jump:
         opts = replace(opts, graph=replace(opts.graph, doppler_jump_from_log=False))
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))

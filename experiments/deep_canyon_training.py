@@ -42,14 +42,18 @@ def load(path: Path, base: RunOptions) -> tuple:
     return trace, solve_initial(trace, base), base
 
 
+def unlearned(trace, wls, base: RunOptions) -> float:
+    """``fused-nodnn``'s score [m]: nothing learned, the same for every run."""
+    return mode_metrics(trace, run_modes(trace, ["fused-nodnn"], base, wls=wls)["fused-nodnn"])["gsdc_score"]
+
+
 def sim_scores(run: Path, sims: dict[str, list[tuple]]) -> dict[str, tuple[float, float]]:
-    """Per group of simulated traces: the mean ``fused`` and ``fused-nodnn`` scores [m] over its traces and
-    both fold networks."""
+    """Per group of simulated traces (trace, WLS, options, ``fused-nodnn`` score): the mean ``fused`` and
+    ``fused-nodnn`` scores [m] over its traces and both fold networks."""
     out = {}
     for group, loaded in sims.items():
         fused, nodnn = [], []
-        for trace, wls, base in loaded:
-            plain = mode_metrics(trace, run_modes(trace, ["fused-nodnn"], base, wls=wls)["fused-nodnn"])["gsdc_score"]
+        for trace, wls, base, plain in loaded:
             for fold in ("AB", "CD"):
                 res = run_modes(trace, ["fused"], replace(base, weights=run / f"fold_{fold}.pt"), wls=wls)["fused"]
                 fused.append(mode_metrics(trace, res)["gsdc_score"])
@@ -69,7 +73,8 @@ def main() -> int:
     for folder in args.sims:
         for path in sorted(folder.glob("*/SimPhone")):
             group = "deep" if "-deep-" in path.parent.name else "ordinary"
-            sims.setdefault(f"held-out sims, {group}", []).append(load(path, every))
+            loaded = load(path, every)
+            sims.setdefault(f"held-out sims, {group}", []).append((*loaded, unlearned(*loaded)))
     cols = [f"{log} {fold}" for log in RAW for fold in ("AB", "CD")] + list(sims)
     print_runs(args.runs, cols, lambda run: {**raw_scores(run, raw), **sim_scores(run, sims)}, digits=3)
     return 0

@@ -64,12 +64,12 @@ def main() -> int:
     print("| traces | added jump [m/s] | " + " | ".join(VARIANTS) + " | jump taken [m/s] |")
     print("|---|---|" + "---|" * (len(VARIANTS) + 1))
     for group in ("ordinary", "deep"):
-        mine = [q for q in paths if ("-deep-" in q.parent.name) == (group == "deep")]
+        mine = [load_trace(q, min_sats=1, **load_options(opts)) for q in paths
+                if ("-deep-" in q.parent.name) == (group == "deep")]
         for thin in (False, True):
             for added in (0.0, args.jump):
                 rows, jumps = [], []
-                for k, q in enumerate(mine):
-                    trace = load_trace(q, min_sats=1, **load_options(opts))
+                for k, trace in enumerate(mine):
                     trace = thinned(trace, 3, k)[0] if thin else trace
                     s, j = scores(with_jumps(trace, added, k) if added else trace, opts)
                     rows.append(s)

@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from canyon_on_phone import in_canyon  # noqa: E402
+from canyon_on_phone import DEEP, in_canyon  # noqa: E402
 from few_satellites import NAV, PIXEL5, thinned  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
@@ -79,7 +79,7 @@ def canyon() -> None:
     opts = RunOptions(signals=None, nav=(NAV,), sigma_calibration=False)
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
     rows = {"as logged": scores(trace, opts)}
-    for label, model in (("canyon", CanyonModel()), ("deep canyon", CanyonModel(height_m=(30, 100), width_m=(12, 25)))):
+    for label, model in (("canyon", CanyonModel()), ("deep canyon", DEEP)):
         for seed in (0, 1, 2):
             rows[f"{label}, streets seed {seed}"] = scores(in_canyon(trace, model, seed)[0], opts)
     table("Pixel5 RINEX (test trace, reported), broadcast GPS L1 + L5", rows)

@@ -20,7 +20,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
+from few_satellites import NAV, PIXEL5  # noqa: E402
+from pixel5_table import ORBITS  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
@@ -28,7 +29,6 @@ from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.trace import SIGNALS, Trace  # noqa: E402
 
-PRECISE = SHARED / "ephemeris/precise"
 SECOND = [SIGNALS.index(s) for s in ("GPS_L5", "GAL_E5A", "QZS_J5", "GPS_L2", "GAL_E5B", "BDS_B2I", "QZS_J2")]
 MODES = ("fused-nodnn", "fused")
 
@@ -56,8 +56,8 @@ def main() -> int:
     ap.add_argument("--sim", type=Path, help="a folder of simulated city traces (*/SimPhone), every signal")
     args = ap.parse_args()
     runs = [("Pixel5, broadcast GPS", PIXEL5, RunOptions(signals=None, nav=(NAV,), sigma_calibration=False)),
-            ("Pixel5, SP3/CLK", PIXEL5, RunOptions(signals=None, nav=(NAV,), sigma_calibration=False,
-                                                   sp3=next(PRECISE.glob("*ORB.SP3")), clk=next(PRECISE.glob("*CLK.CLK"))))]
+            ("Pixel5, SP3/CLK", PIXEL5, RunOptions(signals=None, sigma_calibration=False,
+                                                   **ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"]))]
     if args.sim:
         runs += [(f.parent.name, f, RunOptions(signals=("all",), sigma_calibration=False))
                  for f in sorted(args.sim.glob("*/SimPhone"))]

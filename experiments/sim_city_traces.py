@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     p.add_argument("--held-out", action="store_true", help="the eight held-out traces instead of the training ones")
     p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), help="simulator scenarios, each track through each")
     p.add_argument("--first-seed", type=int, default=None, help="seeds count up from the one after this "
-                   f"(default {0} for training, {HELD_OUT_SEED} held out)")
+                   f"(default 0 for training, {HELD_OUT_SEED} held out)")
     args = p.parse_args(argv)
     tracks, seed, prefix = (HELD_OUT_TRACKS, HELD_OUT_SEED, "ho") if args.held_out else (TRACKS, 0, "sim")
     seed = seed if args.first_seed is None else args.first_seed

@@ -296,8 +296,7 @@ def linearisation_point(inp: EpochInputs, cfg: GraphConfig, epochs: np.ndarray) 
     lin = zero_point([f(k) for k in ks for f in points])
     if inp.use_drift:
         lin.insert(zero_point([f(k) for k in ks for f in (clock_key, drift_key)], "double"))
-        lin.insert(zero_point([doppler_drift_key(int(k)) for k in np.flatnonzero(doppler_drift_epochs(inp) & inp.keep)],
-                              "double"))
+        lin.insert(zero_point([doppler_drift_key(int(k)) for k in epochs[doppler_drift_epochs(inp)[epochs]]], "double"))
     return lin
 
 
