@@ -30,17 +30,12 @@ from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
+from fusion.sim.doppler_carrier import with_drift_jumps  # noqa: E402
 from fusion.trace import Trace  # noqa: E402
 
 VARIANTS = {"pseudoranges only": {"use_doppler": False, "use_carrier": False},
             "Doppler + carrier, no jump": {"doppler_jump_from_log": False},
             "Doppler + carrier, the log's jump": {}}
-
-
-def with_jumps(trace: Trace, sigma: float, seed: int) -> Trace:
-    """``trace`` with white noise of ``sigma`` [m/s] common to each epoch's Dopplers."""
-    jump = np.random.default_rng(seed).normal(0.0, sigma, trace.n_epochs)
-    return replace(trace, prr=np.where(trace.prr_ok, trace.prr + jump[:, None], trace.prr))
 
 
 def scores(trace: Trace, opts: RunOptions) -> tuple[dict[str, float], float | None]:
@@ -71,7 +66,7 @@ def main() -> int:
                 rows, jumps = [], []
                 for k, trace in enumerate(mine):
                     trace = thinned(trace, 3, k)[0] if thin else trace
-                    s, j = scores(with_jumps(trace, added, k) if added else trace, opts)
+                    s, j = scores(with_drift_jumps(trace, added, k) if added else trace, opts)
                     rows.append(s)
                     jumps.append(np.nan if j is None else j)
                 mean = {v: np.mean([r[v] for r in rows]) for v in VARIANTS}

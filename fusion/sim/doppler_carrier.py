@@ -14,6 +14,7 @@ a fresh ambiguity and sets ``adr_slip`` in that epoch's slot.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -22,6 +23,15 @@ from fusion.geometry import range_rate
 
 if TYPE_CHECKING:  # the config lives with the simulator that imports this module
     from fusion.sim.config import SimConfig
+    from fusion.trace import Trace
+
+
+def with_drift_jumps(trace: Trace, sigma_mps: float, seed: int) -> Trace:
+    """``trace`` with white noise of ``sigma_mps`` common to each epoch's Dopplers: a phone's clock drift as its
+    Doppler shows it, jumping from epoch to epoch while the Dopplers agree with each other (the Pixel5's,
+    :mod:`fusion.estimate.graph.drift_noise`); seeded."""
+    jump = np.random.default_rng(seed).normal(0.0, sigma_mps, trace.n_epochs)
+    return replace(trace, prr=np.where(trace.prr_ok, trace.prr + jump[:, None], trace.prr))
 
 
 def receiver_velocity(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray) -> np.ndarray:

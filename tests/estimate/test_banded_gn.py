@@ -20,6 +20,7 @@ from fusion.estimate.wls import solve_wls
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
+from fusion.sim.doppler_carrier import with_drift_jumps
 from fusion.sim.simulate import SimConfig, simulate
 from tests.estimate.test_graph import _two_system_trace, synth_trace, truth_prior
 
@@ -48,20 +49,13 @@ def _two_systems():
     return tr, solve_wls(tr)
 
 
-def _jumping(trace):
-    """``trace`` whose Doppler drift jumps by 0.6 m/s from epoch to epoch (a phone's, as the Pixel5's): the
-    graph gives each epoch's Doppler a drift of its own."""
-    jump = np.random.default_rng(5).normal(0.0, 0.6, trace.n_epochs)
-    return replace(trace, prr=np.where(trace.prr_ok, trace.prr + jump[:, None], trace.prr))
-
-
 def _cases(raw_sim, doppler_sim):
     prior = truth_prior(2.0)
     two, two_wls = _two_systems()
     syn = synth_trace(E=60)
     return {
         "doppler+carrier": (raw_sim[0], raw_sim[1], GraphConfig(), None),
-        "doppler drift jumps": (_jumping(raw_sim[0]), raw_sim[1], GraphConfig(), None),
+        "doppler drift jumps": (with_drift_jumps(raw_sim[0], 0.6, seed=5), raw_sim[1], GraphConfig(), None),
         "doppler only": (doppler_sim[0], doppler_sim[1], GraphConfig(), None),
         "isb+prior cauchy": (two, two_wls, GraphConfig(), prior),
         "isb+prior huber": (two, two_wls, GraphConfig(robust="huber", prior_robust="huber"), prior),

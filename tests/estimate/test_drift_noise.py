@@ -15,6 +15,7 @@ from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
+from fusion.sim.doppler_carrier import with_drift_jumps
 from fusion.sim.simulate import SimConfig, simulate
 
 
@@ -33,13 +34,6 @@ def change_of(trace, cfg: GraphConfig = GraphConfig()):
     return drift_change(trace, prepare_inputs(trace, solve_initial(trace, RunOptions()), cfg))
 
 
-def with_common_jumps(trace, sigma: float, seed: int = 0):
-    """``trace`` with white noise of ``sigma`` [m/s] common to each epoch's Dopplers (a phone's drift that jumps
-    from one epoch to the next while its Dopplers agree with each other)."""
-    jump = np.random.default_rng(seed).normal(0.0, sigma, trace.n_epochs)
-    return dataclasses.replace(trace, prr=np.where(trace.prr_ok, trace.prr + jump[:, None], trace.prr))
-
-
 def test_a_steady_clock_gets_no_jump(nav):
     change = change_of(doppler_trace(nav, 0.02))
     assert change is not None and change < GraphConfig().drift_rw_mps
@@ -54,7 +48,7 @@ def test_a_drift_that_jumps_each_epoch_is_measured_beyond_the_doppler_noise(nav)
     trace = doppler_trace(nav, 0.02)
     # white jumps of 0.5 m/s change the drift by 0.71 m/s from one epoch to the next; the estimate errs low
     # (the fits' noise it takes off is the stated sigmas', raised where the fits show more, never lowered)
-    change = change_of(with_common_jumps(trace, 0.5))
+    change = change_of(with_drift_jumps(trace, 0.5, seed=0))
     assert 0.4 < change < 0.85
     assert 0.25 < doppler_jump(change, GraphConfig()) < 0.6
     # noise of each Doppler on its own is the fits' business, not the clock's
@@ -70,7 +64,7 @@ def test_epochs_that_barely_know_the_drift_do_not_hide_its_jumps(nav, seed):
     # others' to ~0.3), their changes swamp the spread and their variances the noise taken off it, and the
     # 0.5 m/s jumps would vanish into them (an estimate of 0 with every epoch counted); counting only epochs
     # that know the drift to KNOWN_SD_MPS keeps the jumps in sight
-    trace = with_common_jumps(doppler_trace(nav, 0.02), 0.5)
+    trace = with_drift_jumps(doppler_trace(nav, 0.02), 0.5, seed=0)
     rng = np.random.default_rng(seed)
     scale = np.where(rng.random(trace.n_epochs) < 0.5, 10.0, 1.0)[:, None]
     noise = rng.normal(0.0, 1.0, trace.prr.shape) * trace.prr_sigma * (scale - 1.0)
@@ -107,7 +101,7 @@ def test_drift_steps_at_clock_resets_are_not_jumps(nav):
 
 def test_the_jump_follows_the_epoch_interval(nav):
     cfg = SimConfig(doppler=True, clock_drift_rw_mps=0.02)
-    trace = with_common_jumps(simulate(n_epochs=300, rate_hz=2.0, nav=nav, seed=4, config=cfg).trace, 0.5)
+    trace = with_drift_jumps(simulate(n_epochs=300, rate_hz=2.0, nav=nav, seed=4, config=cfg).trace, 0.5, seed=0)
     inp = prepare_inputs(trace, solve_initial(trace, RunOptions()), GraphConfig())
     assert inp.doppler_jump_mps == pytest.approx(doppler_jump(drift_change(trace, inp), GraphConfig(), 0.5))
     # at 10 Hz the same change per sqrt(s) is a jump sqrt(10) times smaller than at 1 Hz
@@ -127,7 +121,7 @@ def test_the_jump_factor_is_one_sigma_at_its_sigma():
 
 
 def test_the_graph_gives_the_doppler_a_drift_of_its_own_and_reports_it(nav):
-    trace = with_common_jumps(doppler_trace(nav, 0.02), 0.5)
+    trace = with_drift_jumps(doppler_trace(nav, 0.02), 0.5, seed=0)
     wls = solve_initial(trace, RunOptions())
     inp = prepare_inputs(trace, wls, GraphConfig())
     assert 0.25 < inp.doppler_jump_mps < 0.6
