@@ -28,27 +28,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from feature_ablation import RAW, print_runs, raw_scores  # noqa: E402
+from feature_ablation import RAW, load, print_runs, raw_scores  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
-from fusion.modes import run_modes, solve_initial  # noqa: E402
-from fusion.options import load_options, parse_signals  # noqa: E402
-from fusion.prepare.load import load_trace  # noqa: E402
+from fusion.modes import run_modes  # noqa: E402
+from fusion.options import parse_signals  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 
 
-def load(path: Path, base: RunOptions) -> tuple:
-    """(trace, its WLS, the options) of one log, every signal the options name."""
-    trace = load_trace(path, min_sats=1, **load_options(base))
-    return trace, solve_initial(trace, base), base
-
-
-def unlearned(trace, wls, base: RunOptions) -> float:
-    """``fused-nodnn``'s score [m]: nothing learned, the same for every run."""
-    return mode_metrics(trace, run_modes(trace, ["fused-nodnn"], base, wls=wls)["fused-nodnn"])["gsdc_score"]
-
-
 def sim_scores(run: Path, sims: dict[str, list[tuple]]) -> dict[str, tuple[float, float]]:
-    """Per group of simulated traces (trace, WLS, options, ``fused-nodnn`` score): the mean ``fused`` and
+    """Per group of simulated traces (:func:`feature_ablation.load`'s tuples): the mean ``fused`` and
     ``fused-nodnn`` scores [m] over its traces and both fold networks."""
     out = {}
     for group, loaded in sims.items():
@@ -73,8 +61,7 @@ def main() -> int:
     for folder in args.sims:
         for path in sorted(folder.glob("*/SimPhone")):
             group = "deep" if "-deep-" in path.parent.name else "ordinary"
-            loaded = load(path, every)
-            sims.setdefault(f"held-out sims, {group}", []).append((*loaded, unlearned(*loaded)))
+            sims.setdefault(f"held-out sims, {group}", []).append(load(path, every))
     cols = [f"{log} {fold}" for log in RAW for fold in ("AB", "CD")] + list(sims)
     print_runs(args.runs, cols, lambda run: {**raw_scores(run, raw), **sim_scores(run, sims)}, digits=3)
     return 0

@@ -56,11 +56,18 @@ def left_out(run: Path) -> str:
     return ", ".join(g for g in CHANNELS if g not in kept) or "nothing"
 
 
+def load(path: Path, base: RunOptions) -> tuple:
+    """(trace, its WLS, the options, ``fused-nodnn``'s score [m]) of one log: nothing learned, so the last is
+    the same for every run and solved once."""
+    trace = load_trace(path, min_sats=1, **load_options(base))
+    wls = solve_initial(trace, base)
+    return trace, wls, base, mode_metrics(trace, run_modes(trace, ["fused-nodnn"], base, wls=wls)["fused-nodnn"])["gsdc_score"]
+
+
 def raw_scores(run: Path, loaded: dict) -> dict[str, tuple[float, float]]:
-    """Per raw log and fold network: (fused score, fused-nodnn score) [m]."""
+    """Per raw log (:func:`load`'s tuples) and fold network: (fused score, fused-nodnn score) [m]."""
     out = {}
-    for log, (trace, wls, base) in loaded.items():
-        nodnn = mode_metrics(trace, run_modes(trace, ["fused-nodnn"], base, wls=wls)["fused-nodnn"])["gsdc_score"]
+    for log, (trace, wls, base, nodnn) in loaded.items():
         for fold in ("AB", "CD"):
             opts = replace(base, weights=run / f"fold_{fold}.pt")
             res = run_modes(trace, ["fused"], opts, wls=wls)["fused"]
@@ -92,11 +99,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("runs", nargs="+", help="LABEL=RUN_FOLDER")
     args = p.parse_args()
-    loaded = {}
-    for log, (path, kw) in RAW.items():
-        base = RunOptions(signals=None, **kw)
-        trace = load_trace(path, min_sats=1, **load_options(base))
-        loaded[log] = (trace, solve_initial(trace, base), base)
+    loaded = {log: load(path, RunOptions(signals=None, **kw)) for log, (path, kw) in RAW.items()}
     cols = [f"{log} {fold}" for log in RAW for fold in ("AB", "CD")]
     print_runs(args.runs, cols, lambda run: raw_scores(run, loaded), extra=("left out", left_out))
     return 0
