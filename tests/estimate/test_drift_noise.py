@@ -34,6 +34,21 @@ def change_of(trace, cfg: GraphConfig = GraphConfig()):
     return drift_change(trace, prepare_inputs(trace, solve_initial(trace, RunOptions()), cfg))
 
 
+def test_the_simulated_drift_jump_is_one_seeded_offset_per_epoch_on_its_dopplers_alone(nav):
+    trace = doppler_trace(nav, 0.02)
+    ok = trace.prr_ok.copy()
+    ok[::7, 0] = False                                   # slots without a Doppler keep their (unused) value
+    trace = dataclasses.replace(trace, prr_ok=ok)
+    jumped = with_drift_jumps(trace, 0.5, seed=3)
+    step = np.where(ok, jumped.prr - trace.prr, np.nan)
+    has = ok.any(axis=1)
+    assert np.nanmax(step[has], axis=1) - np.nanmin(step[has], axis=1) == pytest.approx(0.0, abs=1e-9)
+    assert 0.43 < np.nanstd(np.nanmean(step[has], axis=1)) < 0.57             # 240 epochs of sigma 0.5
+    assert np.array_equal(jumped.prr[~ok], trace.prr[~ok])
+    assert np.array_equal(with_drift_jumps(trace, 0.5, seed=3).prr, jumped.prr)
+    assert not np.array_equal(with_drift_jumps(trace, 0.5, seed=4).prr, jumped.prr)
+
+
 def test_a_steady_clock_gets_no_jump(nav):
     change = change_of(doppler_trace(nav, 0.02))
     assert change is not None and change < GraphConfig().drift_rw_mps
