@@ -4,8 +4,9 @@ Four folds of three drives, grouped by date so that neighbouring days never stra
 a network is trained on the other nine drives (``learned.train``, the shipped recipe unless options say
 otherwise) and every mode runs on the fold's unseen drives with the honest protocol (guess from WLS or the
 graph, clock estimated, no truth): ``wls``, ``dnn`` (learned-weight least squares), ``dnn-paper`` (the
-paper's correction head), ``fused-nodnn``, ``fused`` and its ablations ``fused-prior`` (learned prior only)
-and ``fused-sigmas`` (learned per-satellite sigmas only), and ``wls-prunc`` (a non-learned reference: WLS
+paper's correction head), ``fused-nodnn``, ``fused`` and its ablations ``fused-prior`` (learned prior only),
+``fused-sigmas`` (learned per-satellite sigmas only) and ``fused-nobias`` (the per-satellite head's sigmas
+without its biases, the prior kept), and ``wls-prunc`` (a non-learned reference: WLS
 weighted by the phone's reported pseudorange uncertainty). Printed and written to ``<out>/crossval.md``:
 per-fold and pooled GSDC score, p50, p95, MAE N/E/D, and the share of errors within 1 and 2 sigma per axis,
 both with each checkpoint's own calibration and cross-fitted (the scale fitted on the other folds' unseen
@@ -62,6 +63,7 @@ MODES = {
     "dnn": ("dnn", {"dnn_output": "wls"}), "dnn-paper": ("dnn", {"dnn_output": "correction"}),
     "fused-nodnn": ("fused-nodnn", {}), "fused": ("fused", {}),
     "fused-prior": ("fused", {"learned_sigmas": False}), "fused-sigmas": ("fused", {"learned_prior": False}),
+    "fused-nobias": ("fused", {"learned_bias": False}),
 }
 CALIBRATED = ("dnn", "fused")
 

@@ -1,8 +1,10 @@
 """The learned part on logs the 2021 training files do not resemble: the Pixel5 RINEX test trace (C/N0, no
 reported sigma, GPS broadcast navigation) and smartLoc Berlin (u-blox in a street canyon: C/N0, reported
 sigma, GPS + GLONASS). Neither was trained or tuned on. Per log: wls, dnn, fused-nodnn, fused, and fused's
-parts alone (fused-prior: the learned prior only; fused-sigmas: the learned per-satellite sigmas only), with
-the guard's counts (what it handed to the physical model, or read as missing / unknown, and why).
+parts alone (fused-prior: the learned prior only; fused-sigmas: the learned per-satellite sigmas only;
+fused-nobias: fused without the per-satellite head's biases), with the guard's counts (what it handed to the
+physical model, or read as missing / unknown, and why). ``--traces`` adds other trace folders (read with every
+signal, e.g. held-out simulated city traces).
 
     python experiments/learned_raw_logs.py [--weights W.pt] > experiments/results/learned_raw_logs.md
 """
@@ -17,11 +19,13 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
+from crossval import MODES as CROSSVAL_MODES  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
-from fusion.options import load_options  # noqa: E402
+from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -30,9 +34,10 @@ LOGS = {
                                      dict(nav=(SHARED / "ephemeris/gps_nav/hour1180.21n",), signals=None)),
     "smartLoc Berlin Potsdamer Platz": (SHARED / "smartloc/Berlin_Potsdamer_Platz", dict(signals=None)),
 }
-#: label -> (pipeline mode, RunOptions changes)
-MODES = {"wls": ("wls", {}), "dnn": ("dnn", {}), "fused-nodnn": ("fused-nodnn", {}), "fused": ("fused", {}),
-         "fused-prior": ("fused", {"learned_sigmas": False}), "fused-sigmas": ("fused", {"learned_prior": False})}
+#: label -> (pipeline mode, RunOptions changes); dnn with the checkpoint's own output (the paper's head for
+#: feature version 2 weights)
+MODES = {"wls": CROSSVAL_MODES["wls"], "dnn": ("dnn", {}),
+         **{k: CROSSVAL_MODES[k] for k in ("fused-nodnn", "fused", "fused-prior", "fused-sigmas", "fused-nobias")}}
 GUARD_KEYS = ("epochs_guard_off", "epochs_guard_shrunk", "meas_out_of_range", "meas_cn0_unseen_in_training",
               "meas_signal_unseen_in_training", "meas_pr_sigma_out_of_range", "meas_unseen_signal")
 
@@ -40,20 +45,24 @@ GUARD_KEYS = ("epochs_guard_off", "epochs_guard_shrunk", "meas_out_of_range", "m
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--weights", type=Path, default=None, help="checkpoint (default: the shipped weights)")
-    p.add_argument("--logs", default=",".join(LOGS), help="which logs (comma-separated labels)")
+    p.add_argument("--logs", default=",".join(LOGS), help="which logs (comma-separated labels; '' for none)")
+    p.add_argument("--traces", nargs="*", type=Path, default=[], help="more trace folders, read with every signal")
+    p.add_argument("--modes", default=",".join(MODES), help="which modes (comma-separated labels)")
     args = p.parse_args(argv)
+    logs = {name: LOGS[name] for name in filter(None, args.logs.split(","))}
+    logs |= {str(t): (t, dict(signals=parse_signals("all"))) for t in args.traces}
     print(f"weights: {args.weights or 'shipped'}\n")
     print("| log | mode | GSDC score [m] | h p50 | h p95 | epochs | s | guard |")
     print("|---|---|---|---|---|---|---|---|")
-    for name in args.logs.split(","):
-        path, kw = LOGS[name]
+    for name, (path, kw) in logs.items():
         if not path.exists():
             print(f"| {name} | (not present: {path}) | | | | | | |")
             continue
         base = RunOptions(weights=args.weights, **kw)
         trace = load_trace(path, min_sats=1, **load_options(base))
         wls = solve_initial(trace, base)
-        for label, (mode, change) in MODES.items():
+        for label in args.modes.split(","):
+            mode, change = MODES[label]
             t0 = time.perf_counter()
             res = run_modes(trace, [mode], replace(base, **change), wls=wls)[mode]
             dt = time.perf_counter() - t0

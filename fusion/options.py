@@ -87,6 +87,8 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-learned-prior", action="store_true", help="fused: without the network's position prior")
     p.add_argument("--no-learned-sigmas", action="store_true",
                    help="fused: without the per-satellite head's pseudorange sigmas and biases")
+    p.add_argument("--no-learned-bias", action="store_true",
+                   help="fused: the per-satellite head's pseudorange sigmas without its biases")
     p.add_argument("--no-learned-doppler", action="store_true",
                    help="fused: without the Doppler head's pseudorange-rate sigmas (the physical model's)")
     p.add_argument("--dnn-output", choices=("wls", "correction"), default=None,
@@ -114,7 +116,8 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,
-                      learned_sigmas=not args.no_learned_sigmas, learned_doppler=not args.no_learned_doppler,
+                      learned_sigmas=not args.no_learned_sigmas,
+                      learned_bias=not args.no_learned_bias, learned_doppler=not args.no_learned_doppler,
                       dnn_output=args.dnn_output,
                       sigma_calibration=not args.raw_sigmas, nav=tuple(args.nav), sp3=args.sp3, clk=args.clk,
                       iono_free=args.iono_free, graph=graph_config(args))
@@ -131,6 +134,7 @@ MODE_FLAGS = (("incremental", "--incremental", False, ("fused-nodnn", "fused")),
               ("dnn_passes", "--dnn-passes", 1, ("dnn",)),
               ("no_learned_prior", "--no-learned-prior", False, ("fused",)),
               ("no_learned_sigmas", "--no-learned-sigmas", False, ("fused",)),
+              ("no_learned_bias", "--no-learned-bias", False, ("fused",)),
               ("no_learned_doppler", "--no-learned-doppler", False, ("fused",)),
               ("dnn_output", "--dnn-output", None, ("dnn",)))
 

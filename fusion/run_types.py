@@ -32,6 +32,7 @@ class RunOptions:
     # fused mode: which learned parts enter the graph (the report isolates what each adds)
     learned_prior: bool = True           # the network's position prior per epoch
     learned_sigmas: bool = True          # the per-satellite head's pseudorange sigma and bias
+    learned_bias: bool = True            # ... its bias (off: the head's sigmas alone)
     learned_doppler: bool = True         # the Doppler head's pseudorange-rate sigmas (where the weights have one)
     dnn_output: str | None = None        # "wls" | "correction"; None: the checkpoint's
     # reported covariances follow each mode's windowed a-posteriori variance factor

@@ -144,7 +144,8 @@ def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
                  at: np.ndarray | None = None) -> LearnedGraphInputs:
     """The network's one pass at :func:`learned_guess` under the run's elevation mask: the position prior
     and the per-measurement sigmas and biases the graph uses (``opts.learned_prior`` /
-    ``opts.learned_sigmas`` / ``opts.learned_doppler`` switch each off), and what the guard did (info keys ``learned_*``).
+    ``opts.learned_sigmas`` / ``opts.learned_bias`` / ``opts.learned_doppler`` switch each off), and what the guard
+    did (info keys ``learned_*``).
     at: (E,3) that guess if already made."""
     at = learned_guess(trace, wls, opts) if at is None else at
     out = corrector.graph_inputs(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg,
@@ -154,6 +155,8 @@ def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
         out.prior_mean = out.prior_cov = out.prior_ok = None
     if not opts.learned_sigmas:
         out.pr_sigma = out.pr_bias = None
+    if not opts.learned_bias:
+        out.pr_bias = None                      # the graph then subtracts nothing from the pseudoranges
     if not opts.learned_doppler:
         out.doppler_noise = None
     return out

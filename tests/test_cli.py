@@ -64,10 +64,11 @@ def test_learned_part_flags_reach_the_run_options():
 
     o = parse_run_options([])
     assert o.learned_prior and o.learned_sigmas and o.dnn_output is None
-    assert o.learned_doppler
+    assert o.learned_doppler and o.learned_bias
     o = parse_run_options(["--no-learned-prior", "--no-learned-sigmas", "--no-learned-doppler", "--dnn-output",
                            "correction"])
     assert not o.learned_prior and not o.learned_sigmas and not o.learned_doppler and o.dnn_output == "correction"
+    assert o.learned_bias and not parse_run_options(["--no-learned-bias"]).learned_bias
     with pytest.raises(SystemExit):                  # an unknown output head is refused by the parser
         parse_run_options(["--dnn-output", "direct"])
 

@@ -350,8 +350,8 @@ def test_fuse_with_a_provider_without_opinion_is_the_plain_graph(biased_trace):
 
 
 def test_fused_mode_switches_each_learned_part(tmp_path):
-    """RunOptions.learned_prior / learned_sigmas switch the network's prior and its slot noise in the fused
-    mode; with both off it is the no-prior graph, and dnn_output picks the dnn mode's output."""
+    """RunOptions.learned_prior / learned_sigmas / learned_bias switch the network's prior, its slot noise and
+    that noise's bias in the fused mode; with both off it is the no-prior graph, and dnn_output picks the dnn mode's output."""
     from fusion.estimate.graph.fuse import estimate_fused_nodnn
     from fusion.run_types import RunOptions
     from learned.modes import estimate_dnn, estimate_fused
@@ -368,6 +368,10 @@ def test_fused_mode_switches_each_learned_part(tmp_path):
     assert np.abs(sig.pos - nodnn.pos).max() > 1e-3
     pri = estimate_fused(tr, wls, RunOptions(weights=ckpt, learned_sigmas=False))
     assert pri.info["priors_used"] > 0 and pri.info.get("learned_sigmas", 0) == 0
+    # the sigmas without the biases: as many learned sigmas, another solution
+    unbiased = estimate_fused(tr, wls, RunOptions(weights=ckpt, learned_prior=False, learned_bias=False))
+    assert unbiased.info["learned_sigmas"] == sig.info["learned_sigmas"]
+    assert np.abs(unbiased.pos - sig.pos).max() > 1e-3 and np.abs(unbiased.pos - nodnn.pos).max() > 1e-3
     d_w = estimate_dnn(tr, wls, RunOptions(weights=ckpt))
     d_c = estimate_dnn(tr, wls, RunOptions(weights=ckpt, dnn_output="correction"))
     assert d_w.info["output"] == "wls" and d_c.info["output"] == "correction"
