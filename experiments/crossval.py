@@ -114,7 +114,7 @@ def recipe(args, data: dict) -> TrainConfig:
     return TrainConfig(epochs=args.epochs, batch=args.batch, seed=args.seed, data=data, loss=w,
                        guess_mix=parse_guess_mix(args.guess_mix), output="wls", dropout=parse_dropout(args.dropout),
                        features=FeatureConfig(version=args.feature_version, inputs=tuple(inputs.split(","))),
-                       signals=args.signals)
+                       signals=args.signals, init=args.init)
 
 
 def eval_drive(drive: str, ckpt: Path, args) -> dict:
@@ -226,6 +226,8 @@ def parse_args(argv=None):
     p.add_argument("--dropout", default=None, help="feature dropout rates (gnssfuse train --dropout)")
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
     p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")
+    p.add_argument("--init", type=Path, default=None,
+                   help="each fold's network starts from this checkpoint's weights (pre-training, gnssfuse train --init)")
     p.add_argument("--from-results", action="store_true",
                    help="no training or evaluation: reprint the tables of <out>/results.pkl (and store calibration)")
     p.add_argument("--store-calibration", type=Path, default=None, help="write pooled unseen scales into this checkpoint")

@@ -62,7 +62,7 @@ from learned.data import build_samples
 from learned.features import FeatureConfig
 from learned.forward import outputs, take
 from learned.graph_check import FOLDS, MARGIN as GRAPH_MARGIN, graph_decision, graph_errors
-from learned.guard import input_ranges
+from learned.guard import input_ranges, widened_ranges
 from learned.infer import SHIPPED_WEIGHTS
 from learned.selfcheck import BLOCK, CRITERION, EVERY, MARGIN, criteria, decide, heldout_inputs, split
 from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
@@ -209,14 +209,6 @@ def adaptation_samples(taught: list[Teacher], signals: tuple[str, ...], cfg: Ada
     for key, n in zip(keys, np.bincount(samples.trace, minlength=len(keys))):
         counts[key]["samples"] = int(n)
     return samples, counts
-
-
-def widened_ranges(base: dict | None, new: dict | None) -> dict | None:
-    """The guard's ranges covering both the base's training inputs and the adaptation's."""
-    if not base or not new:
-        return base or new
-    return {"lo": [min(a, b) for a, b in zip(base["lo"], new["lo"])],
-            "hi": [max(a, b) for a, b in zip(base["hi"], new["hi"])]}
 
 
 def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | None = None,

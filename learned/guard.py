@@ -36,6 +36,15 @@ def input_ranges(x: torch.Tensor, mask: torch.Tensor) -> dict:
     return {"lo": [float(a) for a in q[0]], "hi": [float(a) for a in q[1]]}
 
 
+def widened_ranges(base: dict | None, new: dict | None) -> dict | None:
+    """The guard's ranges covering both a base network's training inputs and those it was fine-tuned on
+    (an adaptation's, or the real data after pre-training)."""
+    if not base or not new:
+        return base or new
+    return {"lo": [min(a, b) for a, b in zip(base["lo"], new["lo"])],
+            "hi": [max(a, b) for a, b in zip(base["hi"], new["hi"])]}
+
+
 def slot_out_of_range(x: np.ndarray, mask: np.ndarray, ranges: dict | None) -> np.ndarray:
     """(N,S) bool: real slots of inputs ``x`` (N,S,F) with a channel outside the widened training range."""
     if not ranges:

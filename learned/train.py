@@ -42,7 +42,7 @@ from learned.features import (CATEGORY_GROUPS, OPTIONAL_GROUPS, FeatureConfig, c
 from learned.heads import report_sigma
 from learned.losses import gaussian_nll, position_loss, sat_nll
 from learned.forward import OUTPUTS, outputs, predict_all, take
-from learned.guard import input_ranges
+from learned.guard import input_ranges, widened_ranges
 from learned.model import build_model
 
 #: Feature chunk size when regenerating a whole epoch's inputs (bounded memory on any device).
@@ -93,6 +93,9 @@ class TrainConfig:
     # (pr_sigma: as in RINEX, which reports none; the physical model then starts from C/N0 or a default);
     # per slot, the chance that the constellation / signal reads as unknown
     dropout: dict = field(default_factory=lambda: dict(DEFAULT_DROPOUT))
+    # a checkpoint whose weights start the run (pre-training elsewhere, e.g. on simulated traces); None:
+    # weights drawn from the seed. The optimiser starts afresh either way.
+    init: str | None = None
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
@@ -107,6 +110,7 @@ class TrainConfig:
             "wls_jitter": self.wls_jitter, "wls_max_err": self.wls_max_err, "signals": list(self.signals),
             "loss": vars(self.loss).copy(), "output": self.output,
             **({"dropout": dict(self.dropout)} if self.features.version > 2 else {}),
+            **({"init": str(self.init)} if self.init is not None else {}),
         }
 
 
@@ -261,6 +265,8 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     model = build_model(cfg.model, **cfg.to_checkpoint_config()["model"]["hparams"]).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=cfg.betas)
     if not resume:
+        if cfg.init is not None:
+            start_from(model, Path(cfg.init), cfg, device)
         return model, opt, 0, []
     if not last.is_file():
         raise CheckpointError(f"{last}: no checkpoint to resume from")
@@ -278,6 +284,21 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     model.load_state_dict(blob["model_state"])
     opt.load_state_dict(blob["optimizer_state"])
     return model, opt, int(blob["epoch"]), list(blob["history"])
+
+
+def start_from(model, path: Path, cfg: TrainConfig, device) -> None:
+    """Load the weights of checkpoint ``path`` into ``model`` (in place): the start of a run that fine-tunes
+    a pre-trained network. Its network and inputs must be this run's (:class:`CheckpointError` naming the
+    file and what differs otherwise)."""
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no checkpoint to start from")
+    blob = read_checkpoint(path, map_location=device)
+    now = cfg.to_checkpoint_config()
+    for key in ("model", "features"):
+        if blob["config"].get(key) != now[key]:
+            raise CheckpointError(f"{path}: cannot start from it, its {key!r} differs "
+                                  f"({blob['config'].get(key)!r} in checkpoint vs {now[key]!r} now)")
+    model.load_state_dict(blob["model_state"])
 
 
 def _resume_view(config: dict, key: str):
@@ -323,6 +344,10 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
     ckpt_cfg = dict(cfg.to_checkpoint_config(), world_size=dist.world_size())
     at_wls = validation_inputs(tr, cfg.features)       # the training inputs where dnn asks: the OOD guard's ranges
     ckpt_cfg["input_ranges"] = input_ranges(at_wls["x"], at_wls["mask"]) if at_wls is not None else None
+    if cfg.init is not None:
+        # the network has seen its pre-training's inputs too: the guard must not hand those to the physical model
+        ckpt_cfg["input_ranges"] = widened_ranges(read_checkpoint(cfg.init)["config"].get("input_ranges"),
+                                                  ckpt_cfg["input_ranges"])
     bar = progress_bar(cfg, start) if progress and dist.is_main() else None
     for epoch in range(start, cfg.epochs):
         rec = run_epoch(model, opt, tr, va, cfg, epoch)

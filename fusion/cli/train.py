@@ -40,6 +40,9 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
                    help="feature dropout (feature version 3): group=rate pairs, e.g. pr_sigma=0.25,signal=0.1; "
                         "groups not named keep the recipe's rates (learned/weights/TRAINING.md)")
     p.add_argument("--resume", action="store_true", help="continue from <out>.last")
+    p.add_argument("--init", type=Path, default=None, metavar="CKPT",
+                   help="start from this checkpoint's weights (pre-trained, e.g. on simulated traces; same network "
+                        "and inputs) instead of the seed's")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="training device (default cpu)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the split, augmentation and model")
     p.add_argument("--model", default="set", choices=("set", "deepsets"),

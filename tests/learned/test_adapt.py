@@ -13,7 +13,8 @@ import fusion.io.truth
 from fusion.cli import main as cli
 from fusion.errors import GnssfuseError
 from fusion.prepare.load import load_trace
-from learned.adapt import AdaptConfig, adapt, widened_ranges
+from learned.adapt import AdaptConfig, adapt
+from learned.guard import widened_ranges
 from learned.checkpoint import read_checkpoint
 from learned.data import Samples
 from learned.infer import SHIPPED_WEIGHTS, Corrector

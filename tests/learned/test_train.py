@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fusion.errors import CheckpointError, DataError
-from learned.checkpoint import read_checkpoint
+from learned.checkpoint import load_model, read_checkpoint, save_checkpoint
 from learned.data import build_samples, check_not_forbidden, split_random
 from learned.features import CHANNELS, FEATURE_VERSION, RECIPE_INPUTS, FeatureConfig
 from learned.infer import Corrector
@@ -62,6 +62,31 @@ def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
             train(tr, va, TrainConfig(epochs=3, **cfg, **changed), tmp_path / "part.pt", resume=True, progress=False)
     with pytest.raises(CheckpointError, match="no checkpoint to resume"):
         train(tr, va, TrainConfig(epochs=1), tmp_path / "none.pt", resume=True, progress=False)
+
+
+def test_a_run_starts_from_a_pretrained_network_and_says_so(tiny, tmp_path):
+    tr, va = tiny
+    pre = tmp_path / "pre.pt"
+    train(tr, va, TrainConfig(epochs=1, seed=3), pre, progress=False)
+    started, *_ = setup(TrainConfig(epochs=1, seed=5, init=str(pre)), tmp_path / "x.pt.last", False, "cpu")
+    fresh, *_ = setup(TrainConfig(epochs=1, seed=5), tmp_path / "x.pt.last", False, "cpu")
+    assert _same(started.state_dict(), _weights(pre)) and not _same(fresh.state_dict(), _weights(pre))
+    # pre-trained on inputs wider than the fine-tuning data's: the guard keeps the pre-training's ranges
+    model, blob = load_model(pre)
+    cfg = blob["config"]
+    wide = {"lo": [v - 50.0 for v in cfg["input_ranges"]["lo"]], "hi": [v + 50.0 for v in cfg["input_ranges"]["hi"]]}
+    save_checkpoint(pre, model, {**cfg, "input_ranges": wide})
+    train(tr, va, TrainConfig(epochs=1, seed=5, init=str(pre)), tmp_path / "tuned.pt", progress=False)
+    tuned = read_checkpoint(tmp_path / "tuned.pt")
+    assert tuned["config"]["init"] == str(pre) and not _same(tuned["model_state"], _weights(pre))
+    assert tuned["config"]["input_ranges"] == wide
+    train(tr, va, TrainConfig(epochs=1, seed=5), tmp_path / "fresh.pt", progress=False)
+    assert read_checkpoint(tmp_path / "fresh.pt")["config"]["input_ranges"] != wide
+    other = FeatureConfig(inputs=RECIPE_INPUTS)                # another network's inputs: refused, naming the file
+    with pytest.raises(CheckpointError, match=r"pre\.pt: cannot start from it, its '(model|features)' differs"):
+        setup(TrainConfig(epochs=1, init=str(pre), features=other), tmp_path / "x.pt.last", False, "cpu")
+    with pytest.raises(CheckpointError, match="no checkpoint to start from"):
+        setup(TrainConfig(epochs=1, init=str(tmp_path / "none.pt")), tmp_path / "x.pt.last", False, "cpu")
 
 
 def test_resume_with_more_epochs_keeps_the_default_warmup(tiny, tmp_path):
@@ -173,6 +198,11 @@ def test_cli_inputs_output_and_loss_options(tmp_path, capsys):
     assert cfg["output"] == "correction" and cfg["loss"] == {"correction": 1.0, "sat": 0.0, "wls": 0.5,
                                                              "wls_scale": 5.0, "shrink": 1.0}
     assert Corrector.load(out).output == "correction"
+    tuned = tmp_path / "tuned.pt"                             # --init: fine-tune it, the same network and inputs
+    assert main(["--data", "toy", "--sim-traces", "2", "--sim-epochs", "40", "--epochs", "1", "--out", str(tuned),
+                 "--quiet", "--threads", "1", "--inputs", "res,los,cn0", "--output", "correction",
+                 "--val-split", "random", "--init", str(out)]) == 0
+    assert read_checkpoint(tuned)["config"]["init"] == str(out)
     capsys.readouterr()
     with pytest.raises(DataError, match="--loss: unknown term 'nll'"):
         parse_loss("nll=1")
