@@ -1,6 +1,8 @@
-"""What simulated high-rise canyons in the training data buy the learned part: fold networks of
-``experiments/crossval.py --two-fold`` runs, with and without ``--extra /tmp/simdeep/*/SimPhone``, scored on
-everything none of them trained on.
+"""What a change to the training data buys the learned part, on everything none of the networks trained on.
+
+The fold networks of ``experiments/crossval.py --two-fold`` runs, e.g. with and without ``--extra
+/tmp/simdeep/*/SimPhone`` (simulated high-rise canyons added) or ``--init PRETRAINED.pt`` (pre-training on
+simulated traces, ``experiments/results/pretraining.md``), scored on
 
 - the GSDC drives, pooled over the unseen folds (each run's ``crossval.md``);
 - smartLoc Berlin (a real deep urban canyon, never trained on) and the Pixel5 RINEX test trace (GPS broadcast,
@@ -13,7 +15,8 @@ everything none of them trained on.
     python experiments/crossval.py ... --extra /tmp/sim/*/SimPhone /tmp/simdeep/*/SimPhone --seed S --out RUN
     python experiments/deep_canyon_training.py --sims /tmp/simho /tmp/simdeepho -- base=RUN0 deep=RUN1 ...
 
-One Markdown row per run: ``fused`` [m] and its ratio to ``fused-nodnn`` (the same graph without the network).
+One Markdown row per run: ``fused`` [m] and its ratio to ``fused-nodnn`` (the same graph without the network);
+then, where labels differ only in a trailing ``_s<seed>``, each recipe's mean over its seeds.
 """
 from __future__ import annotations
 

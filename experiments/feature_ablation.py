@@ -23,6 +23,8 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
@@ -85,14 +87,36 @@ def print_runs(runs: list[str], cols: list[str], scores, extra: tuple[str, objec
     print(head + " GSDC fused-nodnn | GSDC fused | fused / fused-nodnn | "
           + " | ".join(f"{c}: fused (x fused-nodnn)" for c in cols) + " |")
     print("|---|" + ("---|" if extra else "") + "---|---|---|" + "---|" * len(cols))
+    rows = {}
     for item in runs:
         label, run = item.split("=", 1)
         run = Path(run)
         g, s = pooled(run), scores(run)
+        rows[label] = [(g["fused"], g["fused-nodnn"])] + [s[c] for c in cols]
         cells = " | ".join(f"{s[c][0]:.2f} ({s[c][0] / s[c][1]:.{digits}f})" for c in cols)
         first = f"| {label} | {extra[1](run)} |" if extra else f"| {label} |"
         print(f"{first} {g['fused-nodnn']:.2f} | {g['fused']:.2f} | {g['fused'] / g['fused-nodnn']:.3f} | {cells} |",
               flush=True)
+    print_seed_means(rows, cols, digits)
+
+
+def print_seed_means(rows: dict[str, list[tuple[float, float]]], cols: list[str], digits: int) -> None:
+    """Where several runs differ only in a trailing ``_s<seed>`` of their labels, one more table: per recipe the
+    mean over its seeds of each ``fused`` score and of its ratio to ``fused-nodnn``. rows: label -> [(fused,
+    fused-nodnn) for the pooled GSDC drives, then per column of ``cols``]."""
+    groups: dict[str, list[list[tuple[float, float]]]] = {}
+    for label, values in rows.items():
+        groups.setdefault(re.sub(r"_s\d+$", "", label), []).append(values)
+    if len(groups) == len(rows):
+        return
+    print("\n| recipe (runs) | GSDC fused (x fused-nodnn) | "
+          + " | ".join(f"{c}: fused (x fused-nodnn)" for c in cols) + " |")
+    print("|---|---|" + "---|" * len(cols))
+    for name, runs in groups.items():
+        pairs = np.array(runs)                                   # (runs, 1 + columns, 2)
+        score, ratio = pairs[..., 0].mean(axis=0), (pairs[..., 0] / pairs[..., 1]).mean(axis=0)
+        cells = [f"{score[0]:.2f} ({ratio[0]:.3f})"] + [f"{a:.2f} ({r:.{digits}f})" for a, r in zip(score[1:], ratio[1:])]
+        print(f"| {name} ({len(runs)}) | " + " | ".join(cells) + " |", flush=True)
 
 
 def main() -> int:
