@@ -227,7 +227,8 @@ def parse_args(argv=None):
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
     p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")
     p.add_argument("--init", type=Path, default=None,
-                   help="each fold's network starts from this checkpoint's weights (pre-training, gnssfuse train --init)")
+                   help="each fold's network starts from this checkpoint's weights (pre-training; gnssfuse train "
+                        "--init)")
     p.add_argument("--from-results", action="store_true",
                    help="no training or evaluation: reprint the tables of <out>/results.pkl (and store calibration)")
     p.add_argument("--store-calibration", type=Path, default=None, help="write pooled unseen scales into this checkpoint")

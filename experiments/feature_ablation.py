@@ -115,7 +115,8 @@ def print_seed_means(rows: dict[str, list[tuple[float, float]]], cols: list[str]
     for name, runs in groups.items():
         pairs = np.array(runs)                                   # (runs, 1 + columns, 2)
         score, ratio = pairs[..., 0].mean(axis=0), (pairs[..., 0] / pairs[..., 1]).mean(axis=0)
-        cells = [f"{score[0]:.2f} ({ratio[0]:.3f})"] + [f"{a:.2f} ({r:.{digits}f})" for a, r in zip(score[1:], ratio[1:])]
+        cells = [f"{score[0]:.2f} ({ratio[0]:.3f})"]
+        cells += [f"{a:.2f} ({r:.{digits}f})" for a, r in zip(score[1:], ratio[1:])]
         print(f"| {name} ({len(runs)}) | " + " | ".join(cells) + " |", flush=True)
 
 

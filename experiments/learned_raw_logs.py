@@ -1,10 +1,10 @@
 """The learned part on logs the 2021 training files do not resemble: the Pixel5 RINEX test trace (C/N0, no
 reported sigma, GPS broadcast navigation) and smartLoc Berlin (u-blox in a street canyon: C/N0, reported
-sigma, GPS + GLONASS). Neither was trained or tuned on. Per log: wls, dnn, fused-nodnn, fused, and fused's
-parts alone (fused-prior: the learned prior only; fused-sigmas: the learned per-satellite sigmas only;
-fused-nobias: fused without the per-satellite head's biases), with the guard's counts (what it handed to the
-physical model, or read as missing / unknown, and why). ``--traces`` adds other trace folders (read with every
-signal, e.g. held-out simulated city traces).
+sigma, GPS + GLONASS). No network trains on either (smartLoc serves to choose graph settings; the Pixel5 is a
+test trace). Per log: wls, dnn, fused-nodnn, fused, and fused's parts alone (fused-prior: the learned prior
+only; fused-sigmas: the learned per-satellite sigmas only; fused-nobias: fused without the per-satellite head's
+biases), with the guard's counts (what it handed to the physical model, or read as missing / unknown, and why).
+``--traces`` adds other trace folders (read with every signal, e.g. held-out simulated city traces).
 
     python experiments/learned_raw_logs.py [--weights W.pt] > experiments/results/learned_raw_logs.md
 """

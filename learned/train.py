@@ -95,7 +95,7 @@ class TrainConfig:
     dropout: dict = field(default_factory=lambda: dict(DEFAULT_DROPOUT))
     # a checkpoint whose weights start the run (pre-training elsewhere, e.g. on simulated traces); None:
     # weights drawn from the seed. The optimiser starts afresh either way.
-    init: str | None = None
+    init: str | Path | None = None
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs

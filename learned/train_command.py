@@ -98,7 +98,7 @@ def config_from_args(args, desc: dict) -> TrainConfig:
                        val_frac=args.val_frac, device=args.device, features=features, data=desc, guess_mix=mix,
                        wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate,
                        loss=parse_loss(args.loss), output=args.output, dropout=parse_dropout(args.dropout),
-                       signals=signals_of(args), init=getattr(args, "init", None))
+                       signals=signals_of(args), init=args.init)
 
 
 def signals_of(args) -> tuple[str, ...]:

@@ -351,7 +351,8 @@ def test_fuse_with_a_provider_without_opinion_is_the_plain_graph(biased_trace):
 
 def test_fused_mode_switches_each_learned_part(tmp_path):
     """RunOptions.learned_prior / learned_sigmas / learned_bias switch the network's prior, its slot noise and
-    that noise's bias in the fused mode; with both off it is the no-prior graph, and dnn_output picks the dnn mode's output."""
+    that noise's bias in the fused mode; with the prior and the slot noise off it is the no-prior graph, and
+    dnn_output picks the dnn mode's output."""
     from fusion.estimate.graph.fuse import estimate_fused_nodnn
     from fusion.run_types import RunOptions
     from learned.modes import estimate_dnn, estimate_fused
