@@ -266,7 +266,7 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=cfg.betas)
     if not resume:
         if cfg.init is not None:
-            start_from(model, Path(cfg.init), cfg, device)
+            model.load_state_dict(pretrained_state(Path(cfg.init), cfg, device))
         return model, opt, 0, []
     if not last.is_file():
         raise CheckpointError(f"{last}: no checkpoint to resume from")
@@ -286,10 +286,10 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     return model, opt, int(blob["epoch"]), list(blob["history"])
 
 
-def start_from(model, path: Path, cfg: TrainConfig, device) -> None:
-    """Load the weights of checkpoint ``path`` into ``model`` (in place): the start of a run that fine-tunes
-    a pre-trained network. Its network and inputs must be this run's (:class:`CheckpointError` naming the
-    file and what differs otherwise)."""
+def pretrained_state(path: Path, cfg: TrainConfig, device) -> dict:
+    """The weights of checkpoint ``path`` (a state dict on ``device``): the start of a run that fine-tunes a
+    pre-trained network. Its network and inputs must be this run's (:class:`CheckpointError` naming the file
+    and what differs otherwise)."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint to start from")
     blob = read_checkpoint(path, map_location=device)
@@ -298,7 +298,7 @@ def start_from(model, path: Path, cfg: TrainConfig, device) -> None:
         if blob["config"].get(key) != now[key]:
             raise CheckpointError(f"{path}: cannot start from it, its {key!r} differs "
                                   f"({blob['config'].get(key)!r} in checkpoint vs {now[key]!r} now)")
-    model.load_state_dict(blob["model_state"])
+    return blob["model_state"]
 
 
 def _resume_view(config: dict, key: str):

@@ -21,7 +21,7 @@ from learned.data import (Samples, build_samples, load_real_traces, simulated_tr
                           split_traces)
 from learned.features import CHANNELS_V2, RECIPE_INPUTS, FeatureConfig
 from learned.model import build_model, count_parameters
-from learned.train import DEFAULT_DROPOUT, LossWeights, TrainConfig, train
+from learned.train import DEFAULT_DROPOUT, LossWeights, TrainConfig, pretrained_state, train
 
 #: Inputs of the shipped recipe: the paper's (residual, line of sight) and every context channel but the opt-in
 #: heading.
@@ -133,6 +133,8 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse train", progress: bool =
         torch.set_num_threads(args.threads)
     sources = [s for item in args.data for s in item.split(",") if s]
     cfg = config_from_args(args, {})         # option errors before any data is loaded
+    if cfg.init is not None:
+        pretrained_state(Path(cfg.init), cfg, "cpu")     # ... a checkpoint that cannot start this run too
     samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
                                        seed=args.seed, elev_mask_deg=args.elev_mask,
                                        with_graph=cfg.guess_mix.get("graph", 0.0) > 0,

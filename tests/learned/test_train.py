@@ -203,6 +203,9 @@ def test_cli_inputs_output_and_loss_options(tmp_path, capsys):
                  "--quiet", "--threads", "1", "--inputs", "res,los,cn0", "--output", "correction",
                  "--val-split", "random", "--init", str(out)]) == 0
     assert read_checkpoint(tuned)["config"]["init"] == str(out)
+    # a checkpoint that cannot start the run is refused before any data is read (this data does not exist)
+    with pytest.raises(CheckpointError, match="paper.pt: cannot start from it, its 'model' differs"):
+        main(["--data", str(tmp_path / "nope"), "--epochs", "1", "--out", str(tmp_path / "x.pt"), "--init", str(out)])
     capsys.readouterr()
     with pytest.raises(DataError, match="--loss: unknown term 'nll'"):
         parse_loss("nll=1")
