@@ -49,6 +49,10 @@ def main(argv=None) -> int:
     p.add_argument("--traces", nargs="*", type=Path, default=[], help="more trace folders, read with every signal")
     p.add_argument("--modes", default=",".join(MODES), help="which modes (comma-separated labels)")
     args = p.parse_args(argv)
+    for flag, given, known in (("--logs", args.logs, LOGS), ("--modes", args.modes, MODES)):
+        unknown = [x for x in filter(None, given.split(",")) if x not in known]
+        if unknown:
+            p.error(f"{flag}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
     logs = {name: LOGS[name] for name in filter(None, args.logs.split(","))}
     logs |= {str(t): (t, dict(signals=parse_signals("all"))) for t in args.traces}
     print(f"weights: {args.weights or 'shipped'}\n")
