@@ -19,6 +19,9 @@ Quicker, on a busy machine: ``--two-fold`` (two folds of six drives), ``--modes 
 ``--epochs 8``; ``--feature-version 2`` trains the previous release's recipe on the same folds, and
 ``--weights CKPT`` evaluates one checkpoint on every fold (in-sample if it was trained on them);
 ``--reuse --graph-config G.toml`` re-evaluates the fold networks with other graph settings.
+``--ensemble-of RUN1 RUN2 ...`` evaluates, per fold, the ensemble of those runs' fold networks
+(:mod:`learned.ensemble`; a manifest ``<out>/fold_<F>.json`` per fold), and ``--store-calibration`` then
+takes an ensemble manifest (the shipped weights are one).
 """
 from __future__ import annotations
 
@@ -140,8 +143,14 @@ def eval_drive(drive: str, ckpt: Path, args) -> dict:
     return out
 
 
+def ensemble_fold(fold: str, args) -> Path:
+    """The manifest of the ``--ensemble-of`` runs' networks for ``fold``."""
+    from learned.ensemble import write_manifest
+    return write_manifest(args.out / f"fold_{fold}.json", [r / f"fold_{fold}.pt" for r in args.ensemble_of])
+
+
 def run_fold(fold: str, args) -> dict:
-    ckpt = args.weights or train_fold(fold, args)
+    ckpt = args.weights or (ensemble_fold(fold, args) if args.ensemble_of else train_fold(fold, args))
     return {d: eval_drive(d, ckpt, args) for d in fold_table(args)[fold]}
 
 
@@ -229,6 +238,8 @@ def parse_args(argv=None):
     p.add_argument("--init", type=Path, default=None,
                    help="each fold's network starts from this checkpoint's weights (pre-training; gnssfuse train "
                         "--init)")
+    p.add_argument("--ensemble-of", type=Path, nargs="*", default=[],
+                   help="cross-validation folders (one per seed) whose fold networks are evaluated as ensembles")
     p.add_argument("--from-results", action="store_true",
                    help="no training or evaluation: reprint the tables of <out>/results.pkl (and store calibration)")
     p.add_argument("--store-calibration", type=Path, default=None, help="write pooled unseen scales into this checkpoint")
@@ -262,12 +273,22 @@ def main(argv=None) -> int:
     scales = pooled_scales(results)
     (args.out / "scales.json").write_text(json.dumps(scales, indent=1))
     if args.store_calibration:
-        from learned.calibrate import store_calibration
-        from learned.checkpoint import read_checkpoint
-        cal = dict(read_checkpoint(args.store_calibration)["config"].get("calibration") or {})
-        store_calibration(args.store_calibration, {**cal, **{f"unseen_{k}": v for k, v in scales.items()}})
+        store_unseen(args.store_calibration, scales)
         print(f"stored unseen-drive scales in {args.store_calibration}")
     return 0
+
+
+def store_unseen(path: Path, scales: dict) -> None:
+    """Write the pooled unseen-drive ``scales`` (mode -> :func:`learned.calibrate.sigma_scale` dict) into the
+    checkpoint or ensemble manifest at ``path`` as ``unseen_<mode>``."""
+    unseen = {f"unseen_{k}": v for k, v in scales.items()}
+    from learned.ensemble import is_manifest, store_ensemble_calibration
+    if is_manifest(path):
+        store_ensemble_calibration(path, unseen)
+        return
+    from learned.calibrate import store_calibration
+    from learned.checkpoint import read_checkpoint
+    store_calibration(path, {**dict(read_checkpoint(path)["config"].get("calibration") or {}), **unseen})
 
 
 if __name__ == "__main__":

@@ -3,9 +3,9 @@ beat one network? Per cross-validation fold, each seed's network and the ensembl
 ``fused`` on the fold's unseen GSDC drives (pooled GSDC score over both folds), on smartLoc Berlin (never
 trained on) and on the Pixel5 RINEX with GPS broadcast navigation (a test trace, reported only).
 
-The ensemble combines the graph inputs of its members (:func:`combine`): geometric mean of the per-satellite
-sigmas, mean biases, mean prior with the members' spread added to the mean of their covariances; an epoch's
-prior is used only where every member gives one.
+The ensemble is the product's (:mod:`learned.ensemble`): geometric mean of the per-satellite sigmas, mean
+biases, mean prior with the members' spread added to the mean of their covariances; an epoch's prior is used
+only where every member gives one.
 
     python experiments/crossval.py --data ../shared/data/gsdc2021/train --two-fold --out /tmp/cvs<k> \\
         --epochs 8 --jobs 2 --dropout pr_sigma=0.25 --modes fused-nodnn,fused --extra /tmp/sim/*/SimPhone \\
@@ -27,41 +27,18 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 import learned.modes  # noqa: E402
 from crossval import FOLDS2  # noqa: E402
-from fusion.estimate.graph.priors import LearnedGraphInputs  # noqa: E402
 from fusion.eval.metrics import summarize, trace_errors  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
+from learned.ensemble import Ensemble  # noqa: E402
 from learned.infer import Corrector  # noqa: E402
 
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
 TRAIN = SHARED / "gsdc2021/train"
 RAW = {"smartLoc": (SHARED / "smartloc/Berlin_Potsdamer_Platz", {}),
        "Pixel5": (TRAIN / "2021-04-28-US-MTV-1/Pixel5", {"nav": (SHARED / "ephemeris/gps_nav/hour1180.21n",)})}
-
-
-def combine(outs: list[LearnedGraphInputs]) -> LearnedGraphInputs:
-    """The members' graph inputs (E epochs, S slots) as one: geometric-mean sigmas (E,S), mean biases,
-    mean prior (E,3) with covariance (E,3,3) the mean of theirs plus the members' spread around it."""
-    mean = np.mean([o.prior_mean for o in outs], axis=0)
-    spread = np.mean([np.einsum("ei,ej->eij", d, d) for d in (np.nan_to_num(o.prior_mean - mean) for o in outs)],
-                     axis=0)
-    return LearnedGraphInputs(prior_mean=mean, prior_cov=np.mean([o.prior_cov for o in outs], axis=0) + spread,
-                              prior_ok=np.logical_and.reduce([o.prior_ok for o in outs]),
-                              pr_sigma=np.exp(np.mean([np.log(o.pr_sigma) for o in outs], axis=0)),
-                              pr_bias=np.mean([o.pr_bias for o in outs], axis=0),
-                              doppler_noise=outs[0].doppler_noise, info=outs[0].info)
-
-
-class Ensemble:
-    """Stands in for a :class:`Corrector` in ``fused``: each member asked once, the answers combined."""
-
-    def __init__(self, members: list[Corrector]):
-        self.members, self.var_scale = members, members[0].var_scale
-
-    def graph_inputs(self, *args, **kwargs) -> LearnedGraphInputs:
-        return combine([m.graph_inputs(*args, **kwargs) for m in self.members])
 
 
 def fused_errors(trace, wls, opts: RunOptions, corrector) -> np.ndarray:

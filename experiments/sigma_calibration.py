@@ -66,8 +66,12 @@ SMARTLOC = ("smartLoc Berlin", SHARED / "smartloc/Berlin_Potsdamer_Platz", {"sig
 
 
 def jobs(fold_weights: Path) -> list[tuple[str, Path, dict, Path | None]]:
-    """(name, folder, RunOptions changes, weights) for every trace: training drives with their fold's network."""
-    out = [(d, GSDC / d / "Pixel4", {}, fold_weights / f"fold_{NET_FOLD[f]}.pt") for f, ds in FOLDS.items() for d in ds]
+    """(name, folder, RunOptions changes, weights) for every trace: training drives with their fold's network
+    (``fold_<F>.json``, an ensemble manifest, where there is one; else ``fold_<F>.pt``)."""
+    def fold(f: str) -> Path:
+        ens = fold_weights / f"fold_{NET_FOLD[f]}.json"
+        return ens if ens.is_file() else fold_weights / f"fold_{NET_FOLD[f]}.pt"
+    out = [(d, GSDC / d / "Pixel4", {}, fold(f)) for f, ds in FOLDS.items() for d in ds]
     out.append((SMARTLOC[0], SMARTLOC[1], SMARTLOC[2], None))
     out += [(n, p, kw, None) for n, (p, kw) in TESTS.items()]
     return out

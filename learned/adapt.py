@@ -63,6 +63,7 @@ from learned.features import FeatureConfig
 from learned.forward import outputs, take
 from learned.graph_check import FOLDS, MARGIN as GRAPH_MARGIN, graph_decision, graph_errors
 from learned.guard import input_ranges, widened_ranges
+from learned.ensemble import is_manifest, member_paths, read_manifest, write_manifest
 from learned.infer import SHIPPED_WEIGHTS
 from learned.selfcheck import BLOCK, CRITERION, EVERY, MARGIN, criteria, decide, heldout_inputs, split
 from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
@@ -219,22 +220,17 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     weights unchanged when no epoch beats them by the margin or the graph check (:func:`check_in_graph`)
     finds the graph placed no better (``record["decision"] == "declined"``). The teachers are solved in
     ``jobs`` processes or on the Dask cluster at ``scheduler`` (:func:`teachers`); the fine-tuning and the
-    graph check run here.
-    Returns the adaptation record stored in its config (``config["adapted"]``)."""
+    graph check run here. An ensemble (:mod:`learned.ensemble`) is adapted member by member on the same
+    samples (its teacher is the ensemble): ``out`` is then a manifest, its members written beside it.
+    Returns the adaptation record stored in its config (``config["adapted"]``; an ensemble's: the record of
+    the whole, each member's own in its checkpoint)."""
     cfg, opts = cfg or AdaptConfig(), opts or RunOptions()
-    weights = Path(weights) if weights is not None else SHIPPED_WEIGHTS
-    model, blob = load_model(weights)             # a bad checkpoint fails before any log is solved
-    base = blob["config"]
-    tcfg = train_config(base, cfg)
+    weights, out = Path(weights) if weights is not None else SHIPPED_WEIGHTS, Path(out)
+    bases, outs = member_paths(weights, out)
+    models = [load_model(b) for b in bases]      # a bad checkpoint fails before any log is solved
+    tcfg = train_config(models[0][1]["config"], cfg)
     t0 = time.perf_counter()
-    if cfg.teacher not in TEACHERS:
-        raise DataError(f"teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
-    if not (cfg.loo >= 0 and cfg.agree >= 0 and cfg.loo + cfg.agree > 0):
-        raise DataError(f"need loo >= 0 and agree >= 0, not both 0 (got {cfg.loo}, {cfg.agree})")
-    if cfg.block < 1 or cfg.every < 2:
-        raise DataError(f"the self-check needs block >= 1 and every >= 2 (got {cfg.block}, {cfg.every})")
-    if cfg.graph_check and cfg.graph_folds < 2:
-        raise DataError(f"the graph check needs at least 2 satellite folds (got {cfg.graph_folds})")
+    check_config(cfg)
     # the teacher's trust threshold (max_teacher_sigma_m) was set on the graph's raw marginals
     teacher_opts = replace(opts, elev_mask_deg=cfg.elev_mask_deg, weights=weights, sigma_calibration=False)
     taught = teachers([str(p) for p in paths], teacher_opts, cfg.max_epochs, cfg.teacher, jobs, progress, scheduler)
@@ -244,21 +240,56 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
         log(f"teacher ({cfg.teacher}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
             f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
     train_s, held_s = split(samples, cfg.block, cfg.every)
-    start = copy.deepcopy(model.state_dict())
-    history, ranges, check = fine_tune(model, train_s, tcfg, cfg, held_s, progress)
-    record = {"from": weights.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
-              "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "anchor": cfg.anchor,
-              "part": cfg.part, "widen": cfg.widen, "agree": cfg.agree,
-              "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
-              "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
-              "train_s": round(sum(h["time_s"] for h in history), 1), **check}
-    write_adapted(out, model, base, record, ranges if cfg.widen else None, history)
+    done = []
+    for (model, blob), base_path, o in zip(models, bases, outs):
+        start = copy.deepcopy(model.state_dict())
+        history, ranges, check = fine_tune(model, train_s, tcfg, cfg, held_s, progress)
+        record = {"from": base_path.name, "teacher": cfg.teacher, "max_teacher_sigma_m": cfg.max_teacher_sigma_m,
+                  "epochs": cfg.epochs, "lr": cfg.lr, "loo": cfg.loo, "anchor": cfg.anchor,
+                  "part": cfg.part, "widen": cfg.widen, "agree": cfg.agree,
+                  "batch": cfg.batch, "seed": cfg.seed, "max_epochs": cfg.max_epochs,
+                  "traces": counts, "samples": len(samples), "teacher_s": round(t_teacher, 1),
+                  "train_s": round(sum(h["time_s"] for h in history), 1), **check}
+        ranges = ranges if cfg.widen else None
+        write_adapted(o, model, blob["config"], record, ranges, history)
+        done.append((model, blob["config"], o, start, record, history, ranges))
+    if is_manifest(weights):
+        write_manifest(out, outs, read_manifest(weights)[1])
+    record = whole_record(weights, [d[4] for d in done])
     if record["decision"] == "accepted" and cfg.graph_check:
         check_in_graph(out, weights, [t.trace for t in taught], teacher_opts, cfg, record, log)
-        if record["decision"] == "declined":
-            model.load_state_dict(start)
-            write_adapted(out, model, base, record, None, history)
+        for model, base, o, start, rec, history, ranges in done:
+            if rec is not record:
+                rec["graph_check"] = record["graph_check"]
+            if record["decision"] == "declined":
+                rec.update(decision="declined", best_epoch=0, reason=record["reason"])
+                model.load_state_dict(start)
+            write_adapted(o, model, base, rec, ranges, history)       # widens only where still accepted
     return record
+
+
+def check_config(cfg: AdaptConfig) -> None:
+    """One-line errors for settings no adaptation can use."""
+    if cfg.teacher not in TEACHERS:
+        raise DataError(f"teacher must be one of {', '.join(TEACHERS)}, got {cfg.teacher!r}")
+    if not (cfg.loo >= 0 and cfg.agree >= 0 and cfg.loo + cfg.agree > 0):
+        raise DataError(f"need loo >= 0 and agree >= 0, not both 0 (got {cfg.loo}, {cfg.agree})")
+    if cfg.block < 1 or cfg.every < 2:
+        raise DataError(f"the self-check needs block >= 1 and every >= 2 (got {cfg.block}, {cfg.every})")
+    if cfg.graph_check and cfg.graph_folds < 2:
+        raise DataError(f"the graph check needs at least 2 satellite folds (got {cfg.graph_folds})")
+
+
+def whole_record(weights: Path, records: list[dict]) -> dict:
+    """One network's record, or an ensemble's: accepted when any member's self-check accepted (the graph
+    check then judges the whole), with each member's decision under ``members``."""
+    if len(records) == 1 and not is_manifest(weights):
+        return records[0]
+    kept = [r for r in records if r["decision"] == "accepted"]
+    rec = dict(kept[0] if kept else records[0], **{"from": weights.name})
+    rec["reason"] = "; ".join(f"member {i}: {r['reason']}" for i, r in enumerate(records))
+    rec["members"] = [{k: r[k] for k in ("from", "decision", "best_epoch", "heldout")} for r in records]
+    return rec
 
 
 def write_adapted(out: str | Path, model: torch.nn.Module, base: dict, record: dict, ranges: dict | None,

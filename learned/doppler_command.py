@@ -1,10 +1,11 @@
 """What ``gnssfuse train-doppler`` does once :mod:`fusion.cli.train_doppler` has parsed its arguments: load the
 traces, gather the head's rows (:mod:`learned.doppler_train`), fit, and write the head into a copy of the base
-checkpoint (its ``.npz`` twin too)."""
+checkpoint (its ``.npz`` twin too), or into every member of an ensemble."""
 from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -16,6 +17,7 @@ from fusion.run_types import RunOptions
 from learned.checkpoint import load_model, save_checkpoint
 from learned.data import check_not_forbidden
 from learned.doppler_train import HeadConfig, fit, head_dict, trace_rows
+from learned.ensemble import is_manifest, member_paths, read_manifest, write_manifest
 from learned.infer import SHIPPED_WEIGHTS
 
 
@@ -54,15 +56,19 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse train-doppler", progress
         torch.set_num_threads(args.threads)
     opts = RunOptions(elev_mask_deg=args.elev_mask, signals=parse_signals(args.signals) or "all",
                       nav=tuple(args.nav), sp3=args.sp3, clk=args.clk)
-    base = args.weights or SHIPPED_WEIGHTS
-    model, blob = load_model(base)           # a bad base fails before the traces are read
+    base = Path(args.weights or SHIPPED_WEIGHTS)
+    bases, outs = member_paths(base, Path(args.out))
+    models = [load_model(b) for b in bases]  # a bad base fails before the traces are read
     rows, names = gather(args, opts)
     cfg = HeadConfig(hidden=args.hidden, epochs=args.epochs, lr=args.lr, seed=args.seed)
     report = None if args.quiet else (lambda loss: print(f"  epoch loss {loss:.4f}", file=sys.stderr))
     net, hist = fit(rows, cfg, report)
     head = head_dict(net, rows, cfg, names)
-    save_checkpoint(args.out, model, dict(blob["config"], doppler_head=head), epoch=blob.get("epoch", 0),
-                    history=blob.get("history", []))
+    for (model, blob), out in zip(models, outs):     # an ensemble's members share the one head
+        save_checkpoint(out, model, dict(blob["config"], doppler_head=head), epoch=blob.get("epoch", 0),
+                        history=blob.get("history", []))
+    if is_manifest(base):
+        write_manifest(args.out, outs, read_manifest(base)[1])
     print(f"{prog}: {len(rows['err'])} Doppler measurements from {len(names)} traces, final loss {hist[-1]:.4f}; "
           f"head for {', '.join(head['systems'])} written into {args.out}")
     return 0

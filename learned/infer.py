@@ -28,8 +28,8 @@ from learned.npnet import KINDS, NpNet, as_net
 from learned.npz_weights import check_config, load_for_inference
 
 
-#: Weights shipped with the package (see learned/weights/TRAINING.md).
-SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.pt"
+#: Weights shipped with the package: an ensemble's manifest (:mod:`learned.ensemble`; learned/weights/TRAINING.md).
+SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.json"
 #: Training signal set assumed for checkpoints that do not record one (all were GPS L1 only).
 DEFAULT_SIGNALS = ("GPS_L1",)
 #: Epochs per forward pass at inference (bounded memory; 2,000-epoch traces go in one chunk).
@@ -145,9 +145,12 @@ class Corrector:
 
     @classmethod
     def load(cls, path: str | Path | None = None, device: str = "cpu", calibrated: bool = True) -> "Corrector":
-        """The checkpoint at ``path`` (.pt or its .npz twin; None: the shipped weights), without torch when
-        the .npz is there."""
+        """The checkpoint at ``path`` (.pt or its .npz twin, or an ensemble's .json manifest,
+        :mod:`learned.ensemble`; None: the shipped weights), without torch when the .npz is there."""
         path = SHIPPED_WEIGHTS if path is None else Path(path)
+        if path.suffix == ".json":
+            from learned.ensemble import Ensemble
+            return Ensemble.load(path, device=device, calibrated=calibrated)
         if path.is_dir():
             raise CheckpointError(f"{path}: a folder, not a checkpoint file (e.g. {path / SHIPPED_WEIGHTS.name})")
         if not path.is_file():

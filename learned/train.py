@@ -292,6 +292,8 @@ def pretrained_state(path: Path, cfg: TrainConfig, device) -> dict:
     and what differs otherwise)."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint to start from")
+    if path.suffix == ".json":
+        raise CheckpointError(f"{path}: an ensemble manifest; a run starts from one network (one of its members)")
     blob = read_checkpoint(path, map_location=device)
     now = cfg.to_checkpoint_config()
     for key in ("model", "features"):

@@ -152,12 +152,12 @@ def test_jobs_and_scheduler_exclude_each_other(tmp_path, shipped_trace_dir, caps
 
 def test_adapt_teachers_on_a_cluster_give_the_checkpoint_of_one_process(tmp_path, shipped_trace_dir, cluster,
                                                                          capsys, monkeypatch):
-    from tests.learned.test_adapt import FEW, _copy_trace, _same_checkpoint
+    from tests.learned.test_adapt import FEW, ONE, _copy_trace, _same_checkpoint
 
     two = [_copy_trace(shipped_trace_dir, tmp_path / "a"), _copy_trace(shipped_trace_dir, tmp_path / "b")]
     monkeypatch.chdir(tmp_path)                 # relative paths, which the workers cannot resolve as given
     rel = [str(p.relative_to(tmp_path)) for p in two]
-    common = ["adapt", *rel, "--max-epochs", str(FEW), "--epochs", "1", "--quiet"]
+    common = ["adapt", *rel, "--weights", str(ONE), "--max-epochs", str(FEW), "--epochs", "1", "--quiet"]
     assert main([*common, "--out", "one.pt"]) == 0
     assert main([*common, "--out", "dask.pt", "--scheduler", cluster]) == 0
     assert _same_checkpoint(tmp_path / "one.pt", tmp_path / "dask.pt")

@@ -17,9 +17,12 @@ from learned.adapt import AdaptConfig, adapt
 from learned.guard import widened_ranges
 from learned.checkpoint import read_checkpoint
 from learned.data import Samples
+from learned.ensemble import read_manifest
 from learned.infer import SHIPPED_WEIGHTS, Corrector
 from learned.selfcheck import decide, holdout_mask, split
 
+#: One network of the shipped ensemble: most tests adapt one, the ensemble's own are at the end.
+ONE = read_manifest(SHIPPED_WEIGHTS)[0][0]
 #: A few hundred epochs of the shipped trace keep every adaptation here to seconds.
 FEW = 150
 
@@ -69,8 +72,8 @@ def test_never_reads_ground_truth(shipped_trace_dir, tmp_path, monkeypatch):
             if hasattr(mod, name):
                 monkeypatch.setattr(mod, name, boom)
     cfg = AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0)      # accepted: the graph check runs too
-    rec = adapt([with_tripwire], tmp_path / "a.pt", cfg=cfg)
-    adapt([without], tmp_path / "b.pt", cfg=cfg)
+    rec = adapt([with_tripwire], tmp_path / "a.pt", weights=ONE, cfg=cfg)
+    adapt([without], tmp_path / "b.pt", weights=ONE, cfg=cfg)
     assert _same_checkpoint(tmp_path / "a.pt", tmp_path / "b.pt")
     assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4"] and rec["samples"] > 0
     assert rec["graph_check"]["measurements"] > 0
@@ -79,7 +82,7 @@ def test_never_reads_ground_truth(shipped_trace_dir, tmp_path, monkeypatch):
 def test_seeded_and_reproducible(shipped_trace_dir, tmp_path):
     runs = {}
     for tag, seed in (("a", 3), ("b", 3), ("c", 4)):      # margin -1: keep the epoch whatever the self-check says
-        adapt([shipped_trace_dir], tmp_path / f"{tag}.pt",
+        adapt([shipped_trace_dir], tmp_path / f"{tag}.pt", weights=ONE,
               cfg=AdaptConfig(epochs=1, max_epochs=FEW, seed=seed, margin=-1.0, graph_margin=-1.0, part="all",
                               agree=1.0))
         runs[tag] = tmp_path / f"{tag}.pt"
@@ -91,17 +94,17 @@ def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, cap
     out = tmp_path / "w.pt"
     # --margin -1: accepted whatever the self-check says, so that the weights do move (the decline is
     # tested on its own)
-    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", "300", "--epochs", "1", "--out", str(out),
+    assert cli(["adapt", "--weights", str(ONE), str(shipped_trace_dir), "--max-epochs", "300", "--epochs", "1", "--out", str(out),
                 "--threads", "1", "--margin", "-1", "--graph-margin", "-1"]) == 0
     said = capsys.readouterr().out
     assert "without ground truth" in said and "2021-04-28-US-MTV-1/Pixel4" in said
-    base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
+    base, new = read_checkpoint(ONE), read_checkpoint(out)
     rec = new["config"]["adapted"][-1]
-    assert rec["teacher"] == "fused" and rec["loo"] == 1.0 and rec["epochs"] == 1 and rec["from"] == SHIPPED_WEIGHTS.name
+    assert rec["teacher"] == "fused" and rec["loo"] == 1.0 and rec["epochs"] == 1 and rec["from"] == ONE.name
     assert rec["part"] == "sat" and rec["agree"] == 0.0 and rec["decision"] == "accepted"
     # the first line says what became of it; by default the per-satellite head moves, and nothing else
     assert said.splitlines()[0].startswith("adapted") and "graph check: held-out satellites' error" in said
-    assert _differing(SHIPPED_WEIGHTS, out) == {"sat_head.weight", "sat_head.bias"}
+    assert _differing(ONE, out) == {"sat_head.weight", "sat_head.bias"}
     c = rec["traces"]["2021-04-28-US-MTV-1/Pixel4"]
     assert c["epochs"] == 300 and 0 < c["teacher_trusted"] <= c["teacher_solved"] <= 300
     assert not c["doppler"] and not c["carrier"]          # GSDC 2021 derived files carry neither
@@ -118,14 +121,14 @@ def test_cli_end_to_end_and_run_uses_the_result(shipped_trace_dir, tmp_path, cap
 
 def test_adapting_an_adapted_checkpoint_keeps_both_records(shipped_trace_dir, tmp_path):
     cfg = AdaptConfig(epochs=1, max_epochs=FEW)
-    adapt([shipped_trace_dir], tmp_path / "one.pt", cfg=cfg)
+    adapt([shipped_trace_dir], tmp_path / "one.pt", weights=ONE, cfg=cfg)
     adapt([shipped_trace_dir], tmp_path / "two.pt", weights=tmp_path / "one.pt",
           cfg=AdaptConfig(epochs=1, max_epochs=FEW, teacher="fused-nodnn", loo=0.0, agree=1.0, part="all"))
     recs = read_checkpoint(tmp_path / "two.pt")["config"]["adapted"]
-    assert [(r["from"], r["teacher"], r["loo"]) for r in recs] == [(SHIPPED_WEIGHTS.name, "fused", 1.0),
+    assert [(r["from"], r["teacher"], r["loo"]) for r in recs] == [(ONE.name, "fused", 1.0),
                                                                    ("one.pt", "fused-nodnn", 0.0)]
     with pytest.raises(GnssfuseError, match="teacher must be one of"):
-        adapt([shipped_trace_dir], tmp_path / "x.pt", cfg=AdaptConfig(teacher="wls"))
+        adapt([shipped_trace_dir], tmp_path / "x.pt", weights=ONE, cfg=AdaptConfig(teacher="wls"))
 
 
 def test_widened_ranges():
@@ -150,7 +153,7 @@ def test_widened_ranges():
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "hold only 20 epochs in all, fewer than a held-out block"),
 ])
 def test_bad_arguments_are_one_line_errors(shipped_trace_dir, tmp_path, capsys, extra, words):
-    assert cli(["adapt", str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), *extra]) == 2
+    assert cli(["adapt", "--weights", str(ONE), str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("gnssfuse adapt: error:") and words in err and "\n" not in err
     assert not (tmp_path / "w.pt").exists()
@@ -164,7 +167,7 @@ def test_bad_paths_are_one_line_errors(shipped_trace_dir, tmp_path, capsys):
              ([str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), "--weights", str(bad_ckpt)],
               "bad.pt")]
     for argv, words in cases:
-        assert cli(["adapt", *argv]) == 2
+        assert cli(["adapt", "--weights", str(ONE), *argv]) == 2
         err = capsys.readouterr().err.strip()
         assert words in err and "\n" not in err, err
 
@@ -203,8 +206,8 @@ def test_leave_one_out_loss_wants_a_large_sigma_for_the_satellite_the_others_ref
 def test_teachers_in_worker_processes_match_in_process(shipped_trace_dir, tmp_path):
     two = [_copy_trace(shipped_trace_dir, tmp_path / "a"), _copy_trace(shipped_trace_dir, tmp_path / "b")]
     cfg = AdaptConfig(epochs=1, max_epochs=FEW)
-    rec = adapt(two, tmp_path / "j1.pt", cfg=cfg, jobs=1)
-    adapt(two, tmp_path / "j2.pt", cfg=cfg, jobs=2)
+    rec = adapt(two, tmp_path / "j1.pt", weights=ONE, cfg=cfg, jobs=1)
+    adapt(two, tmp_path / "j2.pt", weights=ONE, cfg=cfg, jobs=2)
     # two logs of the same name are both recorded
     assert list(rec["traces"]) == ["2021-04-28-US-MTV-1/Pixel4", "2021-04-28-US-MTV-1/Pixel4 #2"]
     assert sum(c["samples"] for c in rec["traces"].values()) == rec["samples"]
@@ -212,7 +215,7 @@ def test_teachers_in_worker_processes_match_in_process(shipped_trace_dir, tmp_pa
 
 
 def test_a_log_too_short_to_hold_a_block_out_is_declined_saying_so(shipped_trace_dir, tmp_path, capsys):
-    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", "40", "--epochs", "1", "--out",
+    assert cli(["adapt", "--weights", str(ONE), str(shipped_trace_dir), "--max-epochs", "40", "--epochs", "1", "--out",
                 str(tmp_path / "w.pt"), "--threads", "1"]) == 0
     said = capsys.readouterr().out
     assert "DECLINED" in said and "fewer than two blocks of --block 60" in said
@@ -220,12 +223,12 @@ def test_a_log_too_short_to_hold_a_block_out_is_declined_saying_so(shipped_trace
 
 def test_declined_adaptation_writes_the_base_weights_and_says_why(shipped_trace_dir, tmp_path, capsys):
     out = tmp_path / "w.pt"            # no epoch can lower the held-out error by 99 %: declined
-    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--epochs", "2", "--margin", "0.99",
+    assert cli(["adapt", "--weights", str(ONE), str(shipped_trace_dir), "--max-epochs", str(FEW), "--epochs", "2", "--margin", "0.99",
                 "--part", "all", "--agree", "1", "--out", str(out), "--threads", "1"]) == 0
     said = capsys.readouterr().out.splitlines()
     assert said[0].startswith("adaptation DECLINED") and "base weights" in said[0] and "margin 99.00%" in said[0]
-    assert _differing(SHIPPED_WEIGHTS, out) == set()          # every tensor, dtype and value
-    base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
+    assert _differing(ONE, out) == set()          # every tensor, dtype and value
+    base, new = read_checkpoint(ONE), read_checkpoint(out)
     assert new["config"]["input_ranges"] == base["config"]["input_ranges"]   # the guard is not loosened
     rec = new["config"]["adapted"][-1]
     assert rec["decision"] == "declined" and rec["best_epoch"] == 0 and "gain" in rec["reason"]
@@ -234,15 +237,16 @@ def test_declined_adaptation_writes_the_base_weights_and_says_why(shipped_trace_
 
 
 def test_accepted_adaptation_keeps_the_best_epoch_and_moves_only_the_chosen_part(shipped_trace_dir, tmp_path):
-    rec = adapt([shipped_trace_dir], tmp_path / "sat.pt", cfg=AdaptConfig(epochs=2, max_epochs=FEW, margin=-1.0,
-                                                                          lr=1e-2, graph_check=False))
+    rec = adapt([shipped_trace_dir], tmp_path / "sat.pt", weights=ONE,
+                cfg=AdaptConfig(epochs=2, max_epochs=FEW, margin=-1.0, lr=1e-2, graph_check=False))
     assert rec["decision"] == "accepted" and rec["best_epoch"] == 1 + int(np.argmin(rec["heldout"][1:]))
-    assert _differing(SHIPPED_WEIGHTS, tmp_path / "sat.pt") == {"sat_head.weight", "sat_head.bias"}
-    rec = adapt([shipped_trace_dir], tmp_path / "all.pt",
+    assert _differing(ONE, tmp_path / "sat.pt") == {"sat_head.weight", "sat_head.bias"}
+    rec = adapt([shipped_trace_dir], tmp_path / "all.pt", weights=ONE,
                 cfg=AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0, part="all", agree=1.0, graph_check=False))
-    assert len(_differing(SHIPPED_WEIGHTS, tmp_path / "all.pt")) > 10
+    assert len(_differing(ONE, tmp_path / "all.pt")) > 10
     with pytest.raises(GnssfuseError, match="part must be one of"):
-        adapt([shipped_trace_dir], tmp_path / "x.pt", cfg=AdaptConfig(epochs=1, max_epochs=FEW, part="trunk"))
+        adapt([shipped_trace_dir], tmp_path / "x.pt", weights=ONE,
+              cfg=AdaptConfig(epochs=1, max_epochs=FEW, part="trunk"))
 
 
 def test_scale_anchor_ignores_what_the_consistency_checks_and_pulls_what_it_cannot():
@@ -293,7 +297,7 @@ def test_decide():
 @pytest.mark.parametrize("bad", [{"block": 0}, {"every": 1}])
 def test_the_api_refuses_a_self_check_that_holds_nothing_out(bad, shipped_trace_dir, tmp_path):
     with pytest.raises(GnssfuseError, match="block >= 1 and every >= 2"):
-        adapt([shipped_trace_dir], tmp_path / "w.pt", cfg=AdaptConfig(max_epochs=FEW, **bad))
+        adapt([shipped_trace_dir], tmp_path / "w.pt", weights=ONE, cfg=AdaptConfig(max_epochs=FEW, **bad))
 
 
 def test_the_command_line_defaults_are_the_apis(tmp_path):
@@ -304,3 +308,38 @@ def test_the_command_line_defaults_are_the_apis(tmp_path):
                  "every", "graph_check", "graph_margin"):
         assert getattr(args, name) == getattr(cfg, name), name
     assert args.max_teacher_sigma == cfg.max_teacher_sigma_m and args.elev_mask == cfg.elev_mask_deg
+
+
+def test_an_ensemble_is_adapted_member_by_member_into_a_manifest(shipped_trace_dir, tmp_path, capsys):
+    """The default weights are the shipped ensemble: its adaptation is an ensemble too, each member fine-tuned
+    on the same teacher's samples, the manifest written last with the base's calibration."""
+    from learned.ensemble import Ensemble
+    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--out", str(tmp_path / "w.pt")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "give --out a .json" in err and "\n" not in err and not (tmp_path / "w.pt").exists()
+    out = tmp_path / "w.json"
+    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--epochs", "1", "--out", str(out),
+                "--threads", "1", "--margin", "-1", "--graph-margin", "-1"]) == 0
+    said = capsys.readouterr().out
+    assert said.startswith(f"adapted {SHIPPED_WEIGHTS.name}") and "member 2:" in said
+    bases, cal = read_manifest(SHIPPED_WEIGHTS)
+    members, new_cal = read_manifest(out)
+    assert [m.name for m in members] == [f"w_m{i}.pt" for i in range(len(bases))] and new_cal == cal
+    for b, m in zip(bases, members):
+        rec = read_checkpoint(m)["config"]["adapted"][-1]
+        assert rec["from"] == b.name and rec["decision"] == "accepted" and rec["graph_check"]["measurements"] > 0
+        assert _differing(b, m) == {"sat_head.weight", "sat_head.bias"}
+    assert isinstance(Corrector.load(out), Ensemble)
+    assert cli(["run", str(shipped_trace_dir), "--mode", "fused", "--weights", str(out),
+                "--out", str(tmp_path / "run")]) == 0
+
+
+def test_an_ensemble_the_graph_check_declines_keeps_every_base_member(shipped_trace_dir, tmp_path):
+    rec = adapt([shipped_trace_dir], tmp_path / "w.json",
+                cfg=AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0, graph_margin=0.99, lr=1e-2))
+    assert rec["decision"] == "declined" and "graph check" in rec["reason"] and len(rec["members"]) == len(read_manifest(SHIPPED_WEIGHTS)[0])
+    for b, m in zip(read_manifest(SHIPPED_WEIGHTS)[0], read_manifest(tmp_path / "w.json")[0]):
+        assert _differing(b, m) == set()
+        new = read_checkpoint(m)["config"]
+        assert new["adapted"][-1]["decision"] == "declined"
+        assert new["input_ranges"] == read_checkpoint(b)["config"]["input_ranges"]

@@ -157,10 +157,11 @@ def test_a_trace_without_truth_or_doppler_cannot_train_the_head():
 
 def test_a_checkpoint_carries_the_head_into_the_fused_mode(trained, tmp_path):
     from learned.checkpoint import load_model, save_checkpoint
+    from learned.ensemble import read_manifest
     from learned.infer import SHIPPED_WEIGHTS, Corrector
 
     head, _ = trained
-    model, blob = load_model(SHIPPED_WEIGHTS)
+    model, blob = load_model(read_manifest(SHIPPED_WEIGHTS)[0][0])
     path = save_checkpoint(tmp_path / "w.pt", model, dict(blob["config"], doppler_head=head))
     assert Corrector.load(path).doppler is not None
     assert Corrector.load(SHIPPED_WEIGHTS).doppler is None or "doppler_head" in blob["config"]
@@ -176,31 +177,46 @@ def test_a_checkpoint_carries_the_head_into_the_fused_mode(trained, tmp_path):
 def test_train_doppler_writes_the_head_into_a_copy_of_the_weights(tmp_path, capsys):
     from fusion.cli import main as cli
     from learned.checkpoint import read_checkpoint
-    from learned.infer import SHIPPED_WEIGHTS
+    from learned.ensemble import read_manifest
+    from learned.infer import SHIPPED_WEIGHTS, Corrector
     from learned.npz_weights import read_npz
 
     assert cli(["simulate", "--out", str(tmp_path / "sim"), "--scenario", "suburban", "--epochs", "120",
                 "--seed", "3", "--collection", "drive"]) == 0
+    bases, cal = read_manifest(SHIPPED_WEIGHTS)
     out = tmp_path / "w.pt"
-    assert cli(["train-doppler", str(tmp_path / "sim"), "--out", str(out), "--epochs", "2", "--threads", "1",
-                "--quiet"]) == 0
+    assert cli(["train-doppler", str(tmp_path / "sim"), "--weights", str(bases[1]), "--out", str(out),
+                "--epochs", "2", "--threads", "1", "--quiet"]) == 0
     assert "written into" in capsys.readouterr().out
-    base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
+    base, new = read_checkpoint(bases[1]), read_checkpoint(out)
     assert all((new["model_state"][k] == v).all() for k, v in base["model_state"].items())
     head = check_head(new["config"]["doppler_head"], out)
     assert head["trained_on"] == ["drive/SimPhone"] and head["recipe"]["epochs"] == 2
     assert read_npz(out.with_suffix(".npz"))[1]["doppler_head"] == head
+    # the shipped ensemble (the default): the same head into every member, the manifest's calibration kept
+    assert cli(["train-doppler", str(tmp_path / "sim"), "--out", str(tmp_path / "e.pt"), "--quiet"]) == 2
+    assert "give --out a .json" in capsys.readouterr().err
+    ens = tmp_path / "e.json"
+    assert cli(["train-doppler", str(tmp_path / "sim"), "--out", str(ens), "--epochs", "2", "--threads", "1",
+                "--quiet"]) == 0
+    members, new_cal = read_manifest(ens)
+    assert [m.name for m in members] == [f"e_m{i}.pt" for i in range(len(bases))] and new_cal == cal
+    for b, m in zip(bases, members):
+        blob = read_checkpoint(m)
+        assert blob["config"]["doppler_head"] == head
+        assert all((blob["model_state"][k] == v).all() for k, v in read_checkpoint(b)["model_state"].items())
+    assert Corrector.load(ens).doppler is not None
 
 
 def test_train_doppler_refuses_test_traces_and_logs_without_doppler_in_one_line(shipped_trace_dir, tmp_path, capsys):
     from fusion.cli import main as cli
 
-    assert cli(["train-doppler", str(shipped_trace_dir), "--out", str(tmp_path / "w.pt"), "--quiet"]) == 2
+    assert cli(["train-doppler", str(shipped_trace_dir), "--out", str(tmp_path / "w.json"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "held-out test trace" in err
     # the simulator's default output is the GSDC 2021 derived format: pseudoranges, no Doppler
     assert cli(["simulate", "--out", str(tmp_path / "sim"), "--epochs", "30", "--seed", "1"]) == 0
     capsys.readouterr()
-    assert cli(["train-doppler", str(tmp_path / "sim"), "--out", str(tmp_path / "w.pt"), "--quiet"]) == 2
+    assert cli(["train-doppler", str(tmp_path / "sim"), "--out", str(tmp_path / "w.json"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "lacks Doppler" in err

@@ -12,7 +12,11 @@ from fusion.prepare.load import load_trace
 from learned.adapt import AdaptConfig, adapt
 from learned.checkpoint import read_checkpoint
 from learned.graph_check import CAP, graph_decision, heldout_residuals, satellite_folds
+from learned.ensemble import read_manifest
 from learned.infer import SHIPPED_WEIGHTS
+
+#: One network of the shipped ensemble.
+ONE = read_manifest(SHIPPED_WEIGHTS)[0][0]
 
 FEW = 150
 
@@ -67,11 +71,11 @@ def test_the_default_margin_tolerates_one_percent():
 
 def test_a_graph_check_that_fails_writes_the_base_weights_and_says_why(shipped_trace_dir, tmp_path, capsys):
     out = tmp_path / "w.pt"      # the self-check keeps anything (-1); no adaptation gains 99 % in the graph
-    assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--epochs", "1", "--margin", "-1",
+    assert cli(["adapt", str(shipped_trace_dir), "--weights", str(ONE), "--max-epochs", str(FEW), "--epochs", "1", "--margin", "-1",
                 "--graph-margin", "0.99", "--lr", "1e-2", "--out", str(out), "--threads", "1"]) == 0
     said = capsys.readouterr().out.splitlines()[0]
     assert said.startswith("adaptation DECLINED") and "graph check" in said
-    base, new = read_checkpoint(SHIPPED_WEIGHTS), read_checkpoint(out)
+    base, new = read_checkpoint(ONE), read_checkpoint(out)
     assert all(np.array_equal(base["model_state"][k], new["model_state"][k]) for k in base["model_state"])
     assert new["config"]["input_ranges"] == base["config"]["input_ranges"]
     rec = new["config"]["adapted"][-1]
@@ -82,7 +86,7 @@ def test_a_graph_check_that_fails_writes_the_base_weights_and_says_why(shipped_t
 
 def test_the_api_refuses_a_graph_check_without_folds(shipped_trace_dir, tmp_path):
     with pytest.raises(GnssfuseError, match="at least 2 satellite folds"):
-        adapt([shipped_trace_dir], tmp_path / "w.pt", cfg=AdaptConfig(max_epochs=FEW, graph_folds=1))
+        adapt([shipped_trace_dir], tmp_path / "w.pt", weights=ONE, cfg=AdaptConfig(max_epochs=FEW, graph_folds=1))
 
 
 def test_graph_errors_are_paired_and_skip_a_fold_any_graph_cannot_solve(trace, monkeypatch):

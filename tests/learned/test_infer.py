@@ -1,6 +1,8 @@
 """Inference, the pipeline mode, calibration and checkpoint loading errors."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -264,7 +266,7 @@ def test_shipped_weights_on_held_out_trace(shared_data):
     assert r.valid.sum() >= 0.98 * wls.valid.sum()
     step = np.linalg.norm(r.pos[r.valid] - wls.pos[r.valid], axis=1)
     assert np.median(step) < 30.0                # corrections are metre-level, not wild
-    assert read_checkpoint(SHIPPED_WEIGHTS)["config"]["features"]["version"] >= 1
+    assert Corrector.load().config["features"]["version"] >= 1
 
 
 def test_predict_rejects_bad_shapes_with_our_error():
@@ -276,45 +278,59 @@ def test_predict_rejects_bad_shapes_with_our_error():
 
 
 def test_shipped_weights_load_run_and_match_training_md(shipped_trace_dir):
-    """The shipped checkpoint loads without /work/shared, is a product (median-clock) model, corrects
-    the shipped trace from WLS, and its stored config is the recipe learned/weights/TRAINING.md states."""
+    """The shipped ensemble loads without /work/shared; each member is a product (median-clock) model whose
+    stored config is the recipe learned/weights/TRAINING.md states, seed, best epoch and data included; the
+    ensemble carries its own unseen-drive calibration and corrects the shipped trace from WLS."""
     from fusion.prepare.load import load_trace
     from fusion.estimate.wls import solve_wls
-    from learned.model import count_parameters
+    from learned.ensemble import Ensemble
 
     corr = Corrector.load()
+    assert isinstance(corr, Ensemble) and len(corr.members) >= 2
+    doc = (SHIPPED_WEIGHTS.parent / "TRAINING.md").read_text()
+    command = " ".join(doc.replace("\\\n", " ").split())
+    seeds = [m.config["seed"] for m in corr.members]
+    assert len(set(seeds)) == len(seeds) and f"for SEED in {' '.join(map(str, seeds))};" in command
+    for m in corr.members:
+        _check_member_recipe(m, doc, command)
+    cal = json.loads(SHIPPED_WEIGHTS.read_text())["calibration"]
+    assert set(cal) == {"unseen_dnn", "unseen_fused"}
+    for k, v in cal.items():
+        assert f"{' / '.join(f'{x:.2f}' for x in v['scale_ned'])}" in command, k
+    tr = load_trace(shipped_trace_dir).select(np.arange(60))
+    wls = solve_wls(tr)
+    c = corr.predict(tr, wls.pos, wls.valid)
+    assert c.valid.sum() >= 0.9 * wls.valid.sum() and c.info["members"] == len(corr.members)
+    assert np.median(np.linalg.norm(c.corr_ned[c.valid], axis=1)) < 30.0
+
+
+def _check_member_recipe(corr: Corrector, doc: str, command: str) -> None:
+    from learned.model import count_parameters
+    from learned.train_command import default_inputs
+
     cfg = corr.config
     assert corr.features.clock == "median" and corr.signals[0] == "GPS_L1"
-    doc = (SHIPPED_WEIGHTS.parent / "TRAINING.md").read_text()
     if corr.signals != ("GPS_L1",):                       # trained on more signals: the recipe says so
-        assert " --signals all " in " ".join(doc.replace("\\\n", " ").split())
-    assert f"{count_parameters(corr.model):,} parameters" in doc
+        assert " --signals all " in command
+    model, blob = load_model(corr.path)
+    assert f"{count_parameters(model):,} parameters" in doc
     mix = ",".join(f"{k}={v:g}" for k, v in cfg["guess_mix"].items())
-    command = " ".join(doc.replace("\\\n", " ").split())
     for flag in (f"--epochs {cfg['epochs']}", f"--eta {cfg['eta']:g}", f"--guess-mix {mix}",
-                 f"--wls-jitter {cfg['wls_jitter']:g}", f"--val-split {cfg['data']['val_split']}",
-                 f"--seed {cfg['seed']}"):
+                 f"--wls-jitter {cfg['wls_jitter']:g}", f"--val-split {cfg['data']['val_split']}", "--seed $SEED"):
         assert f" {flag} " in command, flag
     if "sim" in cfg["data"]:            # simulated traces in the data: their count and length too
         for flag in (f"--sim-traces {cfg['data']['sim']['traces']}",
                      f"--sim-epochs {cfg['data']['sim']['epochs_per_trace']}"):
             assert f" {flag} " in command, flag
     # the new options appear when they differ from the CLI defaults
-    from learned.train_command import default_inputs
     if ",".join(cfg["features"]["inputs"]) != default_inputs(corr.features.version):
         assert f" --inputs {','.join(cfg['features']['inputs'])} " in command
     if cfg["output"] != "wls":
         assert f" --output {cfg['output']} " in command
     assert corr.features.inputs == tuple(cfg["features"]["inputs"]) and cfg["input_ranges"] is not None
     assert set(cfg["calibration"]) >= {"wls", "correction"}
-    best = read_checkpoint(SHIPPED_WEIGHTS)["epoch"]
-    assert f"**{best} of {cfg['epochs']}**" in doc
-    assert f"{cfg['data']['n_train']:,} train / {cfg['data']['n_val']:,} validation" in doc
-    tr = load_trace(shipped_trace_dir).select(np.arange(60))
-    wls = solve_wls(tr)
-    c = corr.predict(tr, wls.pos, wls.valid)
-    assert c.valid.sum() >= 0.9 * wls.valid.sum()
-    assert np.median(np.linalg.norm(c.corr_ned[c.valid], axis=1)) < 30.0
+    assert f"seed {cfg['seed']}: best validation epoch **{blob['epoch']} of {cfg['epochs']}**" in command
+    assert f"{cfg['data']['n_train']:,} train / {cfg['data']['n_val']:,} validation" in command
 
 
 def test_shipped_weights_beat_their_baselines_on_the_held_out_shipped_trace(shipped_trace_dir):

@@ -28,20 +28,22 @@ def test_run_mode_never_imports_torch(shipped_trace_dir, tmp_path, mode):
     assert (tmp_path / "o" / "metrics.json").is_file() or (tmp_path / "o").is_dir()
 
 
-def test_shipped_npz_is_the_shipped_pt():
-    """The .npz twin was exported from the .pt that ships beside it (hash recorded), with equal tensors."""
-    torch = pytest.importorskip("torch")
+@pytest.mark.parametrize("member", [0, 1, 2])
+def test_shipped_npz_is_the_shipped_pt(member):
+    """Each shipped member's .npz twin was exported from the .pt beside it (hash recorded), with equal tensors."""
+    pytest.importorskip("torch")
     from learned.checkpoint import read_checkpoint
+    from learned.ensemble import read_manifest
     from learned.infer import SHIPPED_WEIGHTS
     from learned.npz_weights import file_sha256, npz_path_for, read_npz
-    weights, config, sha = read_npz(npz_path_for(SHIPPED_WEIGHTS))
-    assert sha == file_sha256(SHIPPED_WEIGHTS)
-    blob = read_checkpoint(SHIPPED_WEIGHTS)
+    pt = read_manifest(SHIPPED_WEIGHTS)[0][member]
+    weights, config, sha = read_npz(npz_path_for(pt))
+    assert sha == file_sha256(pt)
+    blob = read_checkpoint(pt)
     assert config == blob["config"] | {}
     assert set(weights) == set(blob["model_state"])
     for k, v in blob["model_state"].items():
         np.testing.assert_array_equal(weights[k], v.float().numpy())
-    assert torch is not None
 
 
 def test_stale_npz_falls_back_to_the_pt(tmp_path):
@@ -92,9 +94,10 @@ def test_an_install_without_torch_runs_fused_and_says_what_training_needs(shippe
 def test_a_pt_without_its_npz_and_without_torch_is_a_one_line_error(tmp_path):
     import shutil
 
+    from learned.ensemble import read_manifest
     from learned.infer import SHIPPED_WEIGHTS
     pt = tmp_path / "copy.pt"
-    shutil.copy(SHIPPED_WEIGHTS, pt)                       # no .npz beside it
+    shutil.copy(read_manifest(SHIPPED_WEIGHTS)[0][0], pt)  # no .npz beside it
     proc = _without_torch(f"""
         from learned.infer import Corrector
         try:
