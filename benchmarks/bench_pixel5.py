@@ -1,5 +1,6 @@
 """Pixel5 RINEX trace (2021-04-28-US-MTV-1/Pixel5) from raw observations: RINEX parse time, our
-``wls`` and ``fused-nodnn`` whole-process times and GSDC scores, and RTKLIB ``rnx2rtkp -p 0``
+``wls``, ``fused-nodnn`` and ``fused`` (the shipped ensemble, and one of its networks) whole-process times and
+GSDC scores, and RTKLIB ``rnx2rtkp -p 0``
 (single point, its defaults) time and score, all in the same run with the same navigation file.
 
 Whole process = a fresh ``python -m fusion.cli run`` (interpreter start, imports, RINEX + nav
@@ -116,6 +117,11 @@ def _commands(tmp: Path, t_ms: np.ndarray, quick: bool) -> dict:
     cmds = {"RTKLIB rnx2rtkp -p 0": lambda: _rtklib(tmp, t_ms)}
     for mode in ("wls",) if quick else ("wls", "fused-nodnn", "fused"):
         cmds[f"gnssfuse run --mode {mode}"] = lambda mode=mode: _ours(mode, tmp / mode, t_ms)
+    if not quick:
+        # the shipped weights are an ensemble of three networks: what asking one of them would cost
+        one = ["--weights", str(REPO / "learned/weights/gnssfuse_dnn_m0.pt")]
+        cmds["gnssfuse run --mode fused, one network of the ensemble"] = (
+            lambda: _ours("fused", tmp / "fused_one", t_ms, one))
     if not quick and (PRECISE / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3").is_file():
         # multi-constellation: SP3 orbits/clocks for GPS, GLONASS, Galileo (nav: Klobuchar, TGD)
         for mode in ("wls", "fused-nodnn", "fused"):

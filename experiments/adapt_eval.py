@@ -37,6 +37,8 @@ from fusion.modes import run_modes  # noqa: E402
 from fusion.options import parse_signals  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.adapt import AdaptConfig, adapt  # noqa: E402
+from learned.ensemble import is_manifest  # noqa: E402
+from learned.infer import SHIPPED_WEIGHTS  # noqa: E402
 
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
 TRAIN = SHARED / "gsdc2021/train"
@@ -57,21 +59,25 @@ DEFAULT_LOGS = list(LOGS)[:4]
 
 def fold_weights(name: str, folder: Path | None) -> Path | None:
     """With ``--fold-weights DIR``: the two-fold cross-validation network that never saw this GSDC drive
-    (``DIR/fold_AB.pt`` for the AB drives, ...); None (the shipped weights) otherwise."""
+    (``DIR/fold_AB.json``, an ensemble, where there is one, else ``DIR/fold_AB.pt``, for the AB drives, ...);
+    None (the shipped weights) otherwise."""
     drive = name.split("/")[0]
     fold = next((f for f, drives in FOLDS2.items() if drive in drives), None) if folder else None
-    return None if fold is None else folder / f"fold_{fold}.pt"
+    if fold is None:
+        return None
+    return folder / f"fold_{fold}.json" if (folder / f"fold_{fold}.json").is_file() else folder / f"fold_{fold}.pt"
 
 
 def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path, base: Path | None = None, signals=None) -> dict:
     opts = RunOptions(signals=signals, nav=tuple(nav), weights=base)
     t0 = time.perf_counter()
     path = log_path(name)
-    rec = adapt([path], folder / "w.pt", weights=base, cfg=cfg, opts=opts)
+    out = folder / ("w.json" if is_manifest(base or SHIPPED_WEIGHTS) else "w.pt")    # an ensemble adapts to one
+    rec = adapt([path], out, weights=base, cfg=cfg, opts=opts)
     t_adapt = time.perf_counter() - t0
     trace = load_trace(path, signals=signals, min_sats=1, raw_sources=RawSources(tuple(nav)))
     shipped = run_modes(trace, ["fused-nodnn", "fused"], opts)
-    adapted = run_modes(trace, ["fused"], RunOptions(signals=signals, nav=tuple(nav), weights=folder / "w.pt"))["fused"]
+    adapted = run_modes(trace, ["fused"], RunOptions(signals=signals, nav=tuple(nav), weights=out))["fused"]
     score = {k: mode_metrics(trace, r)["gsdc_score"] for k, r in shipped.items()}
     score["adapted"] = mode_metrics(trace, adapted)["gsdc_score"]
     c = next(iter(rec["traces"].values()))

@@ -17,6 +17,7 @@ members must read the same features and signals; the Doppler head is the first m
 """
 from __future__ import annotations
 
+import copy
 import json
 import os
 from pathlib import Path
@@ -109,6 +110,7 @@ class Ensemble(Corrector):
             if m.features != first.features or m.signals != first.signals or m.output != first.output:
                 raise CheckpointError(f"{path}: member {m.path} reads other features, signals or output than "
                                       f"{first.path}; an ensemble's members share one recipe")
+        members = [copy.copy(m) for m in members]          # the caller's correctors keep their own scales
         for m in members:
             m.var_scale = dict(m.var_scale, **{k: np.ones(3) for k in UNSEEN})
         self.members, self.path, self.model = members, path, None
@@ -179,7 +181,8 @@ def combine(outs: list[Correction], guess: np.ndarray, scale_ned: np.ndarray = n
     res.bias = np.mean([o.bias for o in outs], axis=0)
     res.base = outs[0].base
     res.trust = np.where(valid, np.min([o.trust for o in outs], axis=0), np.nan)
-    res.info = {k: max(int((o.info or {}).get(k, 0)) for o in outs) for k in (outs[0].info or {})}
+    keys = dict.fromkeys(k for o in outs for k in (o.info or {}))       # every member's reasons, in order
+    res.info = {k: max(int((o.info or {}).get(k, 0)) for o in outs) for k in keys}
     res.info["members"] = len(outs)
     return res
 

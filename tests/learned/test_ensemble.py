@@ -159,3 +159,16 @@ def test_manifest_command(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "ends in .json" in err[0] and "share one recipe" in err[1]
     assert not (tmp_path / "f.json").exists()
+
+
+def test_guard_counts_are_every_members_reasons_at_their_most():
+    tr, init, valid = _trace()
+    ranges = {"lo": [-1e-6] * 4, "hi": [1e-6] * 4}
+    own = {"unseen_dnn": {"scale_ned": [3.0, 3.0, 3.0]}}
+    a = Corrector(ShiftNet([1.0, 0.0, 0.0]), _config(calibration=own))
+    b = Corrector(ShiftNet([1.0, 0.0, 0.0]), _config(input_ranges=ranges))
+    got = Ensemble([a, b]).predict(tr, init, valid).info
+    ia, ib = a.predict(tr, init, valid).info, b.predict(tr, init, valid).info
+    assert set(got) == set(ia) | set(ib) | {"members"}
+    assert all(got[k] == max(ia.get(k, 0), ib.get(k, 0)) for k in set(ia) | set(ib))
+    np.testing.assert_allclose(a.var_scale["unseen_dnn"], 9.0)       # the member given keeps its own scale
