@@ -227,6 +227,9 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
     cfg, opts = cfg or AdaptConfig(), opts or RunOptions()
     weights, out = Path(weights) if weights is not None else SHIPPED_WEIGHTS, Path(out)
     bases, outs = member_paths(weights, out)
+    if {o.resolve() for o in outs} & {b.resolve() for b in bases}:
+        raise DataError(f"{out}: would overwrite the base weights, which the graph check compares the adaptation "
+                        "with; give --out another name")
     models = [load_model(b) for b in bases]      # a bad checkpoint fails before any log is solved
     tcfg = train_config(models[0][1]["config"], cfg)
     t0 = time.perf_counter()

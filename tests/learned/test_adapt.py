@@ -317,6 +317,10 @@ def test_an_ensemble_is_adapted_member_by_member_into_a_manifest(shipped_trace_d
     assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--out", str(tmp_path / "w.pt")]) == 2
     err = capsys.readouterr().err.strip()
     assert "give --out a .json" in err and "\n" not in err and not (tmp_path / "w.pt").exists()
+    base = tmp_path / "base.pt"                      # a copy: were the check missing, nothing shipped is lost
+    shutil.copy(ONE, base)
+    with pytest.raises(GnssfuseError, match="would overwrite the base weights"):
+        adapt([shipped_trace_dir], base, weights=base, cfg=AdaptConfig(max_epochs=FEW))
     out = tmp_path / "w.json"
     assert cli(["adapt", str(shipped_trace_dir), "--max-epochs", str(FEW), "--epochs", "1", "--out", str(out),
                 "--threads", "1", "--margin", "-1", "--graph-margin", "-1"]) == 0
