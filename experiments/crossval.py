@@ -190,6 +190,7 @@ def tables(results: dict) -> str:
             s = pooled(results, folds, label)
             lines.append(f"| {name} | {label} | {s['gsdc_score']:.2f} | {s['h_p50']:.2f} | {s['h_p95']:.2f} | "
                          f"{s['mae_n']:.2f} | {s['mae_e']:.2f} | {s['mae_d']:.2f} | {s['n']} |")
+    lines += ["", *drive_table(results)]
     lines += ["", "| mode | calibration | within 1 sigma N / E / D | within 2 sigma N / E / D | n |", "|---|---|---|---|---|"]
     for label in (m for m in CALIBRATED if m in labels(results)):
         for how, c in (("checkpoint's", coverage(results, list(results), label)),
@@ -197,6 +198,24 @@ def tables(results: dict) -> str:
             lines.append(f"| {label} | {how} | {' / '.join(f'{v:.2f}' for v in c['within_1sigma'])} | "
                          f"{' / '.join(f'{v:.2f}' for v in c['within_2sigma'])} | {c['n']} |")
     return "\n".join(lines)
+
+
+#: Per-drive ratios printed where both modes were run: (mode, its baseline).
+RATIOS = (("dnn", "wls"), ("fused", "fused-nodnn"))
+
+
+def drive_table(results: dict) -> list[str]:
+    """Markdown lines: GSDC score per unseen drive and mode, and the :data:`RATIOS` between them."""
+    have = labels(results)
+    ratios = [(m, b) for m, b in RATIOS if m in have and b in have]
+    lines = ["| fold | drive | " + " | ".join(have) + "".join(f" | {m} / {b}" for m, b in ratios) + " |",
+             "|---|---|" + "---|" * (len(have) + len(ratios))]
+    for f in results:
+        for d in results[f]:
+            g = {m: summarize(results[f][d][m]["err"])["gsdc_score"] for m in have}
+            lines.append(f"| {f} | {d} | " + " | ".join(f"{g[m]:.2f}" for m in have)
+                         + "".join(f" | {g[m] / g[b]:.3f}" for m, b in ratios) + " |")
+    return lines
 
 
 def labels(results: dict) -> list[str]:
