@@ -3,7 +3,7 @@
 Each seed's network makes its own errors where the data say little (a drive unlike the training drives, a
 signal seen only in simulation); their average makes fewer, and their disagreement is uncertainty one
 network's covariance cannot show (``experiments/results/ensemble.md``: three seeds' fold networks together
-beat every one of them on the unseen GSDC drives, smartLoc and the Pixel5).
+beat every one of them on the unseen GSDC drives, and their mean on smartLoc and the Pixel5).
 
 On disk an ensemble is a small JSON manifest beside ordinary checkpoints (each usable on its own)::
 
