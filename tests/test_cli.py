@@ -259,6 +259,8 @@ def test_the_report_says_per_mode_what_the_learned_parts_and_the_motion_model_di
     assert "fused: Doppler head: sigmas of 70 pseudorange rates" in text and "wls:" not in text
     assert "fused-nodnn: 120 epochs bridged by the motion model alone" in text and "longest stretch 95 s" in text
     assert "fused: 120" not in text and "fused: 0 epochs bridged" not in text
+    from fusion.eval.summary import learned_words
+    assert learned_words({**info, "learned_members": 3}).startswith("ensemble of 3 networks (guard counts: the most")
 
 
 # ---------------------------------------------------------------------------- start-up and exit cost of `run`

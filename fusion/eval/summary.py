@@ -24,7 +24,8 @@ def skip_words(skipped: dict[str, int]) -> str:
 def learned_words(info: dict) -> str:
     """What the network and its guard did (a mode's ``learned_*`` info), in words."""
     g = {k[len("learned_"):]: int(v) for k, v in info.items() if k.startswith("learned_") and isinstance(v, (int, float))}
-    return (f"network: asked at {g.get('epochs_asked', 0)} epochs, {g.get('meas_asked', 0)} measurements; its guard "
+    who = f"ensemble of {g['members']} networks (guard counts: the most of any)" if g.get("members") else "network"
+    return (f"{who}: asked at {g.get('epochs_asked', 0)} epochs, {g.get('meas_asked', 0)} measurements; its guard "
             f"gave the physical sigma model {g.get('meas_out_of_range', 0)} measurements with inputs outside the "
             f"training range; {g.get('meas_unseen_signal', 0)} measurements of signals it cannot read left to the "
             f"graph's own model; "
