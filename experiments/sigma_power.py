@@ -3,7 +3,7 @@ RINEX test trace (GPS broadcast navigation; reported only) and smartLoc Berlin (
 network, ``fused-nodnn`` once and ``fused`` at each power; the GSDC drives' figures come from
 ``experiments/crossval.py --reuse --graph-config`` (``experiments/results/sigma_power.md``).
 
-    python experiments/sigma_power.py --powers 1,2,3,4 [--weights A.pt B.pt ...]
+    python experiments/sigma_power.py --powers 1,2,3,4 [--weights A.pt B.pt ...] [--traces DIR ...] [--no-logs]
 """
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ sys.path.insert(0, str(REPO))
 from experiments.learned_raw_logs import LOGS  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
-from fusion.options import load_options  # noqa: E402
+from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 
@@ -39,11 +39,16 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--powers", default="1,2,3,4")
     p.add_argument("--weights", type=Path, nargs="*", default=[None], help="checkpoints (default: the shipped one)")
+    p.add_argument("--traces", nargs="*", type=Path, default=[],
+                   help="more trace folders, read with every signal (e.g. held-out simulated city traces)")
+    p.add_argument("--no-logs", action="store_true", help="only the --traces, not the Pixel5 and smartLoc")
     args = p.parse_args(argv)
     powers = [float(x) for x in args.powers.split(",")]
     print("| log | weights | fused-nodnn | " + " | ".join(f"fused, power {x:g}" for x in powers) + " |")
     print("|---|---|---|" + "---|" * len(powers))
-    for name, (path, kw) in LOGS.items():
+    logs = {} if args.no_logs else dict(LOGS)
+    logs |= {str(t): (t, dict(signals=parse_signals("all"))) for t in args.traces}
+    for name, (path, kw) in logs.items():
         if not path.exists():
             continue
         for w in args.weights:
