@@ -292,6 +292,7 @@ def whole_record(weights: Path, records: list[dict]) -> dict:
     rec = dict(kept[0] if kept else records[0], **{"from": weights.name})
     rec["reason"] = "; ".join(f"member {i}: {r['reason']}" for i, r in enumerate(records))
     rec["members"] = [{k: r[k] for k in ("from", "decision", "best_epoch", "heldout")} for r in records]
+    rec["train_s"] = round(sum(r["train_s"] for r in records), 1)          # every member's fine-tuning
     return rec
 
 

@@ -329,10 +329,13 @@ def test_an_ensemble_is_adapted_member_by_member_into_a_manifest(shipped_trace_d
     bases, cal = read_manifest(SHIPPED_WEIGHTS)
     members, new_cal = read_manifest(out)
     assert [m.name for m in members] == [f"w_m{i}.pt" for i in range(len(bases))] and new_cal == cal
+    train_s = 0.0
     for b, m in zip(bases, members):
         rec = read_checkpoint(m)["config"]["adapted"][-1]
         assert rec["from"] == b.name and rec["decision"] == "accepted" and rec["graph_check"]["measurements"] > 0
         assert _differing(b, m) == {"sat_head.weight", "sat_head.bias"}
+        train_s += rec["train_s"]
+    assert f"training {train_s:.0f} s" in said        # the whole ensemble's fine-tuning, not one member's
     assert isinstance(Corrector.load(out), Ensemble)
     assert cli(["run", str(shipped_trace_dir), "--mode", "fused", "--weights", str(out),
                 "--out", str(tmp_path / "run")]) == 0
