@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from crossval import FOLDS2  # noqa: E402
+from crossval import FOLDS2, fold_network  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.prepare.raw_load import RawSources  # noqa: E402
@@ -65,9 +65,7 @@ def fold_weights(name: str, folder: Path | None) -> Path | None:
     None (the shipped weights) otherwise."""
     drive = name.split("/")[0]
     fold = next((f for f, drives in FOLDS2.items() if drive in drives), None) if folder else None
-    if fold is None:
-        return None
-    return folder / f"fold_{fold}.json" if (folder / f"fold_{fold}.json").is_file() else folder / f"fold_{fold}.pt"
+    return None if fold is None else fold_network(folder, fold)
 
 
 def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path, base: Path | None = None, signals=None) -> dict:

@@ -149,6 +149,13 @@ def ensemble_fold(fold: str, args) -> Path:
     return write_manifest(args.out / f"fold_{fold}.json", [r / f"fold_{fold}.pt" for r in args.ensemble_of])
 
 
+def fold_network(folder: Path, fold: str) -> Path:
+    """The weights a cross-validation folder holds for ``fold``: the ensemble manifest ``fold_<F>.json``
+    (``--ensemble-of``) where there is one, else the network ``fold_<F>.pt``."""
+    ens = folder / f"fold_{fold}.json"
+    return ens if ens.is_file() else folder / f"fold_{fold}.pt"
+
+
 def run_fold(fold: str, args) -> dict:
     ckpt = args.weights or (ensemble_fold(fold, args) if args.ensemble_of else train_fold(fold, args))
     return {d: eval_drive(d, ckpt, args) for d in fold_table(args)[fold]}

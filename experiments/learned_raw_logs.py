@@ -38,6 +38,11 @@ LOGS = {
 #: feature version 2 weights)
 MODES = {"wls": CROSSVAL_MODES["wls"], "dnn": ("dnn", {}),
          **{k: CROSSVAL_MODES[k] for k in ("fused-nodnn", "fused", "fused-prior", "fused-sigmas", "fused-nobias")}}
+def trace_logs(traces: list[Path]) -> dict[str, tuple[Path, dict]]:
+    """``--traces`` folders as logs (label -> (folder, RunOptions changes)), each read with every signal."""
+    return {str(t): (t, dict(signals=parse_signals("all"))) for t in traces}
+
+
 GUARD_KEYS = ("epochs_guard_off", "epochs_guard_shrunk", "meas_out_of_range", "meas_cn0_unseen_in_training",
               "meas_signal_unseen_in_training", "meas_pr_sigma_out_of_range", "meas_unseen_signal")
 
@@ -54,7 +59,7 @@ def main(argv=None) -> int:
         if unknown:
             p.error(f"{flag}: unknown {', '.join(unknown)} (known: {', '.join(known)})")
     logs = {name: LOGS[name] for name in filter(None, args.logs.split(","))}
-    logs |= {str(t): (t, dict(signals=parse_signals("all"))) for t in args.traces}
+    logs |= trace_logs(args.traces)
     print(f"weights: {args.weights or 'shipped'}\n")
     print("| log | mode | GSDC score [m] | h p50 | h p95 | epochs | s | guard |")
     print("|---|---|---|---|---|---|---|---|")

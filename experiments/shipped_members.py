@@ -8,12 +8,12 @@ traces are reported, never used to choose.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
@@ -22,14 +22,11 @@ from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.ensemble import read_manifest  # noqa: E402
 from learned.infer import SHIPPED_WEIGHTS  # noqa: E402
+from learned_raw_logs import LOGS as RAW_LOGS, SHARED  # noqa: E402
 
-SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
 TRAIN = SHARED / "gsdc2021/train"
-#: label -> (folder, RunOptions changes)
-LOGS = {"Pixel5 RINEX (broadcast GPS)": (TRAIN / "2021-04-28-US-MTV-1/Pixel5",
-                                          {"signals": None, "nav": (SHARED / "ephemeris/gps_nav/hour1180.21n",)}),
-        "smartLoc Berlin": (SHARED / "smartloc/Berlin_Potsdamer_Platz", {"signals": None}),
-        "MTV-1 Pixel4 (test)": (TRAIN / "2021-04-28-US-MTV-1/Pixel4", {}),
+#: label -> (folder, RunOptions changes): the raw logs of learned_raw_logs.py, then the GSDC test traces
+LOGS = {**RAW_LOGS, "MTV-1 Pixel4 (test)": (TRAIN / "2021-04-28-US-MTV-1/Pixel4", {}),
         "SJC-1 Pixel4 (test)": (TRAIN / "2021-04-28-US-SJC-1/Pixel4", {})}
 
 

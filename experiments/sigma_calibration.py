@@ -34,7 +34,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
+from crossval import fold_network  # noqa: E402
 from fusion.estimate.variance_factor import (SigmaCalibration, disagreement_var, epoch_chi2,  # noqa: E402
                                              fitted_positions, sigma_model, snapshot_var, whitened_residuals,
                                              windowed_factor)
@@ -68,10 +70,7 @@ SMARTLOC = ("smartLoc Berlin", SHARED / "smartloc/Berlin_Potsdamer_Platz", {"sig
 def jobs(fold_weights: Path) -> list[tuple[str, Path, dict, Path | None]]:
     """(name, folder, RunOptions changes, weights) for every trace: training drives with their fold's network
     (``fold_<F>.json``, an ensemble manifest, where there is one; else ``fold_<F>.pt``)."""
-    def fold(f: str) -> Path:
-        ens = fold_weights / f"fold_{NET_FOLD[f]}.json"
-        return ens if ens.is_file() else fold_weights / f"fold_{NET_FOLD[f]}.pt"
-    out = [(d, GSDC / d / "Pixel4", {}, fold(f)) for f, ds in FOLDS.items() for d in ds]
+    out = [(d, GSDC / d / "Pixel4", {}, fold_network(fold_weights, NET_FOLD[f])) for f, ds in FOLDS.items() for d in ds]
     out.append((SMARTLOC[0], SMARTLOC[1], SMARTLOC[2], None))
     out += [(n, p, kw, None) for n, (p, kw) in TESTS.items()]
     return out

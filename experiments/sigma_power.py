@@ -15,10 +15,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from experiments.learned_raw_logs import LOGS  # noqa: E402
+from experiments.learned_raw_logs import LOGS, trace_logs  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
-from fusion.options import load_options, parse_signals  # noqa: E402
+from fusion.options import load_options  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 
@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     print("| log | weights | fused-nodnn | " + " | ".join(f"fused, power {x:g}" for x in powers) + " |")
     print("|---|---|---|" + "---|" * len(powers))
     logs = {} if args.no_logs else dict(LOGS)
-    logs |= {str(t): (t, dict(signals=parse_signals("all"))) for t in args.traces}
+    logs |= trace_logs(args.traces)
     for name, (path, kw) in logs.items():
         if not path.exists():
             continue

@@ -243,7 +243,7 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
         log(f"teacher ({cfg.teacher}) on {len(taught)} log(s) in {t_teacher:.0f} s: {len(samples)} samples "
             f"where its horizontal sigma <= {cfg.max_teacher_sigma_m} m")
     train_s, held_s = split(samples, cfg.block, cfg.every)
-    done = []
+    done: list[Tuned] = []
     for (model, blob), base_path, o in zip(models, bases, outs):
         start = copy.deepcopy(model.state_dict())
         history, ranges, check = fine_tune(model, train_s, tcfg, cfg, held_s, progress)
@@ -255,20 +255,34 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
                   "train_s": round(sum(h["time_s"] for h in history), 1), **check}
         ranges = ranges if cfg.widen else None
         write_adapted(o, model, blob["config"], record, ranges, history)
-        done.append((model, blob["config"], o, start, record, history, ranges))
+        done.append(Tuned(model, blob["config"], o, start, record, history, ranges))
     if is_manifest(weights):
         write_manifest(out, outs, read_manifest(weights)[1])
-    record = whole_record(weights, [d[4] for d in done])
+    record = whole_record(weights, [t.record for t in done])
     if record["decision"] == "accepted" and cfg.graph_check:
         check_in_graph(out, weights, [t.trace for t in taught], teacher_opts, cfg, record, log)
-        for model, base, o, start, rec, history, ranges in done:
-            if rec is not record:
-                rec["graph_check"] = record["graph_check"]
+        for t in done:
+            if t.record is not record:
+                t.record["graph_check"] = record["graph_check"]
             if record["decision"] == "declined":
-                rec.update(decision="declined", best_epoch=0, reason=record["reason"])
-                model.load_state_dict(start)
-            write_adapted(o, model, base, rec, ranges, history)       # widens only where still accepted
+                t.record.update(decision="declined", best_epoch=0, reason=record["reason"])
+                t.model.load_state_dict(t.start)
+            write_adapted(t.out, t.model, t.base, t.record, t.ranges, t.history)   # widens only where still accepted
     return record
+
+
+@dataclass
+class Tuned:
+    """One network as fine-tuned: the model (at its kept epoch), the base's config, where it is written, the
+    base's weights (to go back to), its adaptation record, the training history and its inputs' ranges."""
+
+    model: torch.nn.Module
+    base: dict
+    out: Path
+    start: dict
+    record: dict
+    history: list[dict]
+    ranges: dict | None
 
 
 def check_config(cfg: AdaptConfig) -> None:
@@ -286,7 +300,7 @@ def check_config(cfg: AdaptConfig) -> None:
 def whole_record(weights: Path, records: list[dict]) -> dict:
     """One network's record, or an ensemble's: accepted when any member's self-check accepted (the graph
     check then judges the whole), with each member's decision under ``members``."""
-    if len(records) == 1 and not is_manifest(weights):
+    if not is_manifest(weights):
         return records[0]
     kept = [r for r in records if r["decision"] == "accepted"]
     rec = dict(kept[0] if kept else records[0], **{"from": weights.name})

@@ -148,9 +148,9 @@ class Corrector:
         """The checkpoint at ``path`` (.pt or its .npz twin, or an ensemble's .json manifest,
         :mod:`learned.ensemble`; None: the shipped weights), without torch when the .npz is there."""
         path = SHIPPED_WEIGHTS if path is None else Path(path)
-        if path.suffix == ".json":
-            from learned.ensemble import Ensemble
-            return Ensemble.load(path, device=device, calibrated=calibrated)
+        from learned import ensemble             # here: it builds on this module
+        if ensemble.is_manifest(path):
+            return ensemble.Ensemble.load(path, device=device, calibrated=calibrated)
         if path.is_dir():
             raise CheckpointError(f"{path}: a folder, not a checkpoint file (e.g. {path / SHIPPED_WEIGHTS.name})")
         if not path.is_file():

@@ -42,6 +42,7 @@ from learned.features import (CATEGORY_GROUPS, OPTIONAL_GROUPS, FeatureConfig, c
 from learned.heads import report_sigma
 from learned.losses import gaussian_nll, position_loss, sat_nll
 from learned.forward import OUTPUTS, outputs, predict_all, take
+from learned.ensemble import is_manifest
 from learned.guard import input_ranges, widened_ranges
 from learned.model import build_model
 
@@ -292,7 +293,7 @@ def pretrained_state(path: Path, cfg: TrainConfig, device) -> dict:
     and what differs otherwise)."""
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint to start from")
-    if path.suffix == ".json":
+    if is_manifest(path):
         raise CheckpointError(f"{path}: an ensemble manifest; a run starts from one network (one of its members)")
     blob = read_checkpoint(path, map_location=device)
     now = cfg.to_checkpoint_config()
