@@ -43,6 +43,9 @@ from fusion.trace import (SIGNALS, Trace, cn0_sigma_factor, count_skip, flags_si
 SIGMA_PR_M, CN0_REF, SIGMA_PR_MAX_M = 3.0, 35.0, 100.0
 #: Doppler and carrier-phase sigmas when the file gives none [m/s], [m].
 SIGMA_PRR_MPS, SIGMA_ADR_M = 0.1, 0.01
+#: GPS L1 stays the reference signal (:func:`_reference_rows`) while it can solve at least this share of the
+#: epochs the best other signal can solve alone: the reference of every log before, where it can serve.
+REF_SHARE = 0.5
 #: Plausible raw pseudoranges [m] (GNSS orbits: 19,000-26,000 km slant ranges, GEO up to 42,000 km).
 _PR_RANGE_M = (1.0e7, 5.0e7)
 
@@ -79,7 +82,7 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
     rows, st, epoch, t_ns = _epochs(rows, st, min_sats, skipped, raw)
     pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     rows = check_rates(rows, pr, epoch, raw.path, skipped)
-    ref = _reference_rows(rows)
+    ref = _reference_rows(rows, epoch)
     rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, ref, raw)
     el, az = _elev_az(st["pos"], rx[epoch])
     if getattr(nav, "klobuchar", None) is None:
@@ -244,11 +247,26 @@ def _events_since_previous(frame: pd.DataFrame, t_ns: np.ndarray) -> tuple[np.nd
     return flags_since_previous(reset, np.searchsorted(t_all, t_ns))
 
 
-def _reference_rows(rows: pd.DataFrame) -> np.ndarray:
-    """(N,) bool: rows of the reference signal (GPS L1 when present, else the most common one),
-    whose receiver clock the other signals' inter-signal biases are measured against."""
+def _reference_rows(rows: pd.DataFrame, epoch: np.ndarray) -> np.ndarray:
+    """(N,) bool: rows of the reference signal, whose receiver clock the other signals' inter-signal biases
+    are measured against: the one that can solve the most epochs alone (four or more of its satellites), GPS
+    L1 while it can solve at least :data:`REF_SHARE` of that many, GLONASS only when no other signal can (each
+    of its FDMA channels has a bias of its own). With only GPS L1 as reference, a canyon log whose GPS L1
+    rarely shows four satellites got no inter-signal biases at all, or no receiver guess, however many
+    satellites the other constellations showed (``experiments/sparse_reference.py``). epoch (N,): each row's
+    epoch index."""
     sig = rows["signal"].to_numpy(object)
-    ref = "GPS_L1" if (sig == "GPS_L1").any() else pd.Series(sig).mode().iloc[0]
+    per_epoch = pd.Series(1, index=pd.MultiIndex.from_arrays([sig, epoch])).groupby(level=[0, 1]).size()
+    solvable = (per_epoch >= 4).groupby(level=0).sum()
+    if solvable.max() == 0:
+        # no signal solves an epoch alone: the receiver guess falls back to the file's approximate position
+        ref = "GPS_L1" if (sig == "GPS_L1").any() else pd.Series(sig).mode().iloc[0]
+        return sig == ref
+    best = solvable.drop([s for s in solvable.index if str(s).startswith("GLO")], errors="ignore")
+    best = best if best.max() > 0 else solvable
+    ref = best.idxmax()
+    if solvable.get("GPS_L1", 0) >= REF_SHARE * best.max():
+        ref = "GPS_L1"
     return sig == ref
 
 
@@ -268,6 +286,11 @@ def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: n
         if raw.approx_pos is None:
             raise DataError(f"{raw.path}: no epoch could be solved for the approximate receiver position "
                             "the atmosphere models need")
+        if not ref.all():
+            # the header's position serves the atmosphere, but the other signals' biases (metres to hundreds
+            # on phones) would stay in their pseudoranges: kilometres of error, not a solution
+            raise DataError(f"{raw.path}: no signal has four satellites in any epoch of its own, so the biases "
+                            "between its signals cannot be measured")
         return np.broadcast_to(raw.approx_pos, (n_epochs, 3)).copy(), np.full(n_epochs, np.nan)
     near = good[np.clip(np.searchsorted(good, np.arange(n_epochs)), 0, good.size - 1)]
     prev = good[np.clip(np.searchsorted(good, np.arange(n_epochs)) - 1, 0, good.size - 1)]

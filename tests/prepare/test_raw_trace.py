@@ -244,3 +244,87 @@ def test_gnss_logger_log_matches_gsdc_derived(shared_data):
     assert dpos.max() < 0.005
     ref_pr = (ref["rawPrM"] + ref["satClkBiasM"] - ref["isrbM"] - ref["ionoDelayM"] - ref["tropoDelayM"]).to_numpy()
     assert np.abs(tr.pr[e, s] - ref_pr).max() < 0.5
+
+
+def _two_signals(nav, t, l1_prns, l5_prns, l5_bias_m):
+    """One epoch of exact GPS L1 pseudoranges of ``l1_prns`` and GPS L5 ones of ``l5_prns`` whose receiver
+    channel adds ``l5_bias_m`` (an inter-signal bias)."""
+    l1, _ = _synthetic(nav, P5_START, t, l1_prns)
+    l5, _ = _synthetic(nav, P5_START, t, l5_prns)
+    f5 = l5.frame.copy()
+    f5["signal"], f5["pr_m"] = "GPS_L5", f5["pr_m"] + l5_bias_m
+    cols = {c: np.r_[l1.frame[c].to_numpy(), f5[c].to_numpy()] for c in l1.frame.columns if c != "carrier_hz"}
+    return RawObs(frame=finish_raw(cols), path=Path("synthetic.obs"))
+
+
+def test_a_sparse_gps_l1_leaves_the_reference_to_a_signal_that_solves_alone(nav):
+    """GPS L1 with three satellites, L5 with six and a 25 m bias of its own: GPS L1 cannot solve the receiver
+    guess alone (before: no guess, the log refused), so L5 is the reference and GPS L1 gets the bias instead;
+    every corrected pseudorange then agrees with the geometry and one clock."""
+    t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
+    prns = _visible(nav, t)
+    assert len(prns) >= 6
+    raw = _two_signals(nav, t, prns[:3], prns[:6], l5_bias_m=25.0)
+    nav.klobuchar, klob = None, nav.klobuchar
+    try:
+        with pytest.warns(UserWarning, match="no ionosphere model"):
+            tr = raw_to_trace(raw, nav, signals=["GPS_L1", "GPS_L5"])
+    finally:
+        nav.klobuchar = klob
+    m = tr.mask[0]
+    from fusion.nav.atmosphere import tropo_delay
+    from fusion.geometry import ecef2geodetic, elevation_azimuth
+    rng, los = line_of_sight(tr.sat_pos[0][m], P5_START)
+    el, _ = elevation_azimuth(los, P5_START)
+    llh = ecef2geodetic(P5_START)
+    clock = tr.pr[0][m] + tropo_delay(llh[0], llh[2], el) - rng
+    l5 = tr.signal[0][m] == 1
+    # L5 keeps its own clock (bias included); GPS L1 is moved onto it: within the L5 group delay's metres
+    assert np.ptp(clock[l5]) < 5.0 and np.ptp(clock[~l5]) < 5.0
+    assert abs(np.median(clock[~l5]) - np.median(clock[l5])) < 3.0
+    assert np.median(clock[l5]) - 1234.5 == pytest.approx(25.0, abs=3.0)
+    w = solve_wls(tr, robust=False)
+    assert w.valid.all() and np.linalg.norm(w.pos - P5_START, axis=1).max() < 15.0
+
+
+def test_reference_signal_choice():
+    """GPS L1 while it solves at least half as many epochs alone as the best signal; else the best; GLONASS
+    (a bias per FDMA channel) only when nothing else solves an epoch alone."""
+    from fusion.prepare.raw_trace import _reference_rows
+
+    def rows(counts):             # signal -> satellites per epoch, over two epochs
+        sig, ep = [], []
+        for s, per in counts.items():
+            for e, n in enumerate(per):
+                sig += [s] * n
+                ep += [e] * n
+        return pd.DataFrame({"signal": np.array(sig, object)}), np.array(ep)
+
+    def ref(counts):
+        r, e = rows(counts)
+        chosen = set(r["signal"][_reference_rows(r, e)])
+        assert len(chosen) == 1
+        return chosen.pop()
+
+    assert ref({"GPS_L1": [6, 7], "GAL_E1": [8, 9]}) == "GPS_L1"
+    assert ref({"GPS_L1": [4, 3], "GAL_E1": [5, 6]}) == "GPS_L1"       # one of two: half
+    assert ref({"GPS_L1": [3, 3], "GAL_E1": [5, 6], "GLO_G1": [9, 9]}) == "GAL_E1"
+    assert ref({"GPS_L1": [3, 2], "GLO_G1": [5, 6]}) == "GLO_G1"
+    assert ref({"GPS_L1": [3, 2], "GAL_E1": [2, 3]}) == "GPS_L1"       # nothing solves alone: as before
+    assert ref({"BDS_B1I": [3, 3], "GAL_E1": [2, 2]}) == "BDS_B1I"     # ... the most common signal
+
+
+def test_signals_none_of_which_solves_alone_are_refused_not_left_biased(nav):
+    """Three GPS L1 and three L5 satellites with a 25 m L5 bias, and the header's approximate position:
+    the position serves the atmosphere models, but no signal measures the others' biases, which would stay in
+    the pseudoranges (kilometres of error on a phone log): one line naming the file. One signal alone needs
+    no bias and still loads from the header's position."""
+    t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
+    prns = _visible(nav, t)
+    raw = _two_signals(nav, t, prns[:3], prns[3:6], l5_bias_m=25.0)
+    raw.approx_pos = P5_START + 100.0
+    with pytest.raises(DataError, match="synthetic.obs: no signal has four satellites in any epoch of its own, "
+                                        "so the biases between its signals cannot be measured"):
+        raw_to_trace(raw, nav, signals=["GPS_L1", "GPS_L5"])
+    tr = raw_to_trace(raw, nav, signals=["GPS_L1"])
+    assert tr.n_epochs == 1 and tr.mask.sum() == 3
