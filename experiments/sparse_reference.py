@@ -51,12 +51,18 @@ def gps_l1_reference(rows: pd.DataFrame, epoch: np.ndarray) -> np.ndarray:
     return sig == ("GPS_L1" if (sig == "GPS_L1").any() else pd.Series(sig).mode().iloc[0])
 
 
+def no_multi_clock(sat_pos, pr, mask, group):
+    """Before there was no guess with a clock per signal."""
+    E, G = mask.shape[0], int(group.max()) + 1
+    return np.full((E, 3), np.nan), np.full((E, G), np.nan)
+
+
 def header_position_guess(guess):
-    """The receiver guess of before where no signal solves an epoch alone: the header's position, and no
+    """The receiver guess of before where the reference solved no epoch alone: the header's position, and no
     clock to measure the signals' biases against (so none is removed)."""
-    def receiver_guess(epoch, n_epochs, sat_pos, pr, ref, raw):
+    def receiver_guess(epoch, n_epochs, sat_pos, pr, ref, raw, sig):
         try:
-            return guess(epoch, n_epochs, sat_pos, pr, ref, raw)
+            return guess(epoch, n_epochs, sat_pos, pr, ref, raw, sig)
         except GnssfuseError:
             if raw.approx_pos is None:
                 raise
@@ -98,6 +104,7 @@ def main() -> int:
     header = "--header-position" in sys.argv[1:]
     warnings.simplefilter("ignore")
     select, now, guess = raw_trace._select_rows, raw_trace._reference_rows, raw_trace._receiver_guess
+    multi = raw_trace.multi_clock_positions
     print("| orbits | GPS L1 per epoch | reference | " + " | ".join(MODES) + " | refusal |")
     print("|---|---|---|" + "---|" * (len(MODES) + 1))
     try:
@@ -106,12 +113,15 @@ def main() -> int:
             for keep, first in THINNING:
                 raw_trace._select_rows = thinned(select, keep, first, header)
                 what = "all" if keep is None else f"{keep}" + (f" after the first {first} epochs" if first else "")
-                for name, rule, then in (("GPS L1 (before)", gps_l1_reference, header_position_guess(guess)),
-                                         ("most epochs alone (now)", now, guess)):
+                for name, rule, then, fallback in (
+                        ("GPS L1 (before)", gps_l1_reference, header_position_guess(guess), no_multi_clock),
+                        ("most epochs alone, else a clock per signal (now)", now, guess, multi)):
                     raw_trace._reference_rows, raw_trace._receiver_guess = rule, then
+                    raw_trace.multi_clock_positions = fallback
                     print(f"| {orbit} | {what} | {name} | {scores(opts)} |", flush=True)
     finally:
         raw_trace._select_rows, raw_trace._reference_rows, raw_trace._receiver_guess = select, now, guess
+        raw_trace.multi_clock_positions = multi
     return 0
 
 

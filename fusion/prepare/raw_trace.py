@@ -34,6 +34,7 @@ from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
 from fusion.nav.precise import precise_states
 from fusion.nav.sat_states import SIGNAL_CLASS, broadcast_states
+from fusion.prepare.multi_clock import multi_clock_positions
 from fusion.prepare.rate_check import check_rates
 from fusion.trace import (SIGNALS, Trace, cn0_sigma_factor, count_skip, flags_since_previous, pack_rows,
                           resolve_signals)
@@ -83,7 +84,7 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
     pr = rows["pr_m"].to_numpy() + C_LIGHT * st["clock_s"]
     rows = check_rates(rows, pr, epoch, raw.path, skipped)
     ref = _reference_rows(rows, epoch)
-    rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, ref, raw)
+    rx, clock_m = _receiver_guess(epoch, t_ns.size, st["pos"], pr, ref, raw, rows["signal"].to_numpy(object))
     el, az = _elev_az(st["pos"], rx[epoch])
     if getattr(nav, "klobuchar", None) is None:
         # SP3/CLK carry no ionosphere; uncorrected, L1 ranges are metres long, more at low elevation
@@ -271,17 +272,24 @@ def _reference_rows(rows: pd.DataFrame, epoch: np.ndarray) -> np.ndarray:
 
 
 def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: np.ndarray,
-                    ref: np.ndarray, raw: RawObs) -> tuple[np.ndarray, np.ndarray]:
-    """(E, 3) receiver position and (E,) clock [m] (NaN where unsolved) from a robust WLS on the
+                    ref: np.ndarray, raw: RawObs, sig: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(E, 3) receiver position and (E,) reference clock [m] (NaN where unsolved) from a robust WLS on the
     reference signal's clock-corrected pseudoranges (one clock: the other signals carry unknown
-    inter-signal biases); unsolved epochs take the nearest solved one's position.
+    inter-signal biases); where the reference solves no epoch alone, from a clock per signal
+    (:mod:`fusion.prepare.multi_clock`); unsolved epochs take the nearest solved one's position.
 
-    epoch: (N,) epoch per row; sat_pos: (N, 3); pr: (N,); ref: (N,) bool reference-signal rows.
+    epoch: (N,) epoch per row; sat_pos: (N, 3); pr: (N,); ref: (N,) bool reference-signal rows; sig (N,) each
+    row's signal.
     """
     packed = pack_rows(epoch[ref], n_epochs, {"sat_pos": sat_pos[ref], "pr": pr[ref]})
     w = solve_wls_arrays(packed["sat_pos"], packed["pr"], packed["mask"], elev_mask_deg=10.0, robust=True)
-    pos, clock = w.pos, w.clock_m
-    good = np.flatnonzero(w.valid)
+    pos, clock = np.where(w.valid[:, None], w.pos, np.nan), w.clock_m
+    if not w.valid.any() and not ref.all():
+        codes = pd.factorize(sig)[0]
+        packed = pack_rows(epoch, n_epochs, {"sat_pos": sat_pos, "pr": pr, "group": codes})
+        pos, clocks = multi_clock_positions(packed["sat_pos"], packed["pr"], packed["mask"], packed["group"])
+        clock = clocks[:, codes[np.flatnonzero(ref)[0]]]
+    good = np.flatnonzero(np.isfinite(pos).all(axis=1))
     if good.size == 0:
         if raw.approx_pos is None:
             raise DataError(f"{raw.path}: no epoch could be solved for the approximate receiver position "
@@ -289,8 +297,8 @@ def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: n
         if not ref.all():
             # the header's position serves the atmosphere, but the other signals' biases (metres to hundreds
             # on phones) would stay in their pseudoranges: kilometres of error, not a solution
-            raise DataError(f"{raw.path}: no signal has four satellites in any epoch of its own, so the biases "
-                            "between its signals cannot be measured")
+            raise DataError(f"{raw.path}: no epoch could be solved, by one signal alone or with a clock per "
+                            "signal, so the biases between its signals cannot be measured")
         return np.broadcast_to(raw.approx_pos, (n_epochs, 3)).copy(), np.full(n_epochs, np.nan)
     near = good[np.clip(np.searchsorted(good, np.arange(n_epochs)), 0, good.size - 1)]
     prev = good[np.clip(np.searchsorted(good, np.arange(n_epochs)) - 1, 0, good.size - 1)]

@@ -314,17 +314,43 @@ def test_reference_signal_choice():
     assert ref({"BDS_B1I": [3, 3], "GAL_E1": [2, 2]}) == "BDS_B1I"     # ... the most common signal
 
 
-def test_signals_none_of_which_solves_alone_are_refused_not_left_biased(nav):
-    """Three GPS L1 and three L5 satellites with a 25 m L5 bias, and the header's approximate position:
-    the position serves the atmosphere models, but no signal measures the others' biases, which would stay in
-    the pseudoranges (kilometres of error on a phone log): one line naming the file. One signal alone needs
-    no bias and still loads from the header's position."""
+def test_signals_none_of_which_solves_alone_get_a_clock_each(nav):
+    """Three GPS L1 and three L5 satellites, the L5 ones 25 m late: neither signal solves an epoch alone,
+    but with a clock each (five unknowns, six pseudoranges) the epoch gives the receiver guess, and the L5
+    bias is measured and removed against GPS L1 (before: no guess, the log refused)."""
     t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
     prns = _visible(nav, t)
     raw = _two_signals(nav, t, prns[:3], prns[3:6], l5_bias_m=25.0)
+    nav.klobuchar, klob = None, nav.klobuchar
+    try:
+        with pytest.warns(UserWarning, match="no ionosphere model"):
+            tr = raw_to_trace(raw, nav, signals=["GPS_L1", "GPS_L5"])
+    finally:
+        nav.klobuchar = klob
+    m = tr.mask[0]
+    from fusion.nav.atmosphere import tropo_delay
+    from fusion.geometry import ecef2geodetic, elevation_azimuth
+    rng, los = line_of_sight(tr.sat_pos[0][m], P5_START)
+    el, _ = elevation_azimuth(los, P5_START)
+    llh = ecef2geodetic(P5_START)
+    clock = tr.pr[0][m] + tropo_delay(llh[0], llh[2], el) - rng
+    l5 = tr.signal[0][m] == 1
+    assert l5.sum() == 3 and np.median(clock[~l5]) == pytest.approx(1234.5, abs=0.01)
+    assert abs(np.median(clock[l5]) - 1234.5) < 3.0           # the 25 m gone, to the L5 group delay's metres
+
+
+def test_signals_none_of_which_solves_an_epoch_are_refused_not_left_biased(nav):
+    """Three GPS L1 and two L5 satellites with a 25 m L5 bias, and the header's approximate position: no
+    epoch solves, alone or with a clock per signal (five unknowns, nothing to spare). The position would serve
+    the atmosphere models, but nothing measures the L5 bias, which would stay in the pseudoranges (kilometres
+    of error on a phone log): one line naming the file. One signal alone needs no bias and still loads from the
+    header's position."""
+    t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
+    prns = _visible(nav, t)
+    raw = _two_signals(nav, t, prns[:3], prns[3:5], l5_bias_m=25.0)
     raw.approx_pos = P5_START + 100.0
-    with pytest.raises(DataError, match="synthetic.obs: no signal has four satellites in any epoch of its own, "
-                                        "so the biases between its signals cannot be measured"):
+    with pytest.raises(DataError, match="synthetic.obs: no epoch could be solved, by one signal alone or with a "
+                                        "clock per signal, so the biases between its signals cannot be measured"):
         raw_to_trace(raw, nav, signals=["GPS_L1", "GPS_L5"])
     tr = raw_to_trace(raw, nav, signals=["GPS_L1"])
     assert tr.n_epochs == 1 and tr.mask.sum() == 3
