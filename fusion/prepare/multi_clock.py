@@ -29,7 +29,7 @@ def multi_clock_positions(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray,
     has none of it or is not solved).
 
     sat_pos (E,S,3), pr (E,S) [m], mask (E,S) bool, group (E,S) int in [0, G): each slot's signal."""
-    E, S = mask.shape
+    E = mask.shape[0]
     G = int(group[mask].max()) + 1 if mask.any() else 1
     onehot = (group[..., None] == np.arange(G)) & mask[..., None]              # (E,S,G)
     present = onehot.any(axis=1)                                                # (E,G)

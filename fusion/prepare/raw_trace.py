@@ -250,17 +250,17 @@ def _events_since_previous(frame: pd.DataFrame, t_ns: np.ndarray) -> tuple[np.nd
 
 def _reference_rows(rows: pd.DataFrame, epoch: np.ndarray) -> np.ndarray:
     """(N,) bool: rows of the reference signal, whose receiver clock the other signals' inter-signal biases
-    are measured against: the one that can solve the most epochs alone (four or more of its satellites), GPS
-    L1 while it can solve at least :data:`REF_SHARE` of that many, GLONASS only when no other signal can (each
-    of its FDMA channels has a bias of its own). With only GPS L1 as reference, a canyon log whose GPS L1
-    rarely shows four satellites got no inter-signal biases at all, or no receiver guess, however many
-    satellites the other constellations showed (``experiments/sparse_reference.py``). epoch (N,): each row's
-    epoch index."""
+    are measured against: the one that can solve the most epochs alone (four or more of its satellites in an
+    epoch), GPS L1 while it can solve at least :data:`REF_SHARE` of that many, GLONASS only when no other
+    signal can (each of its FDMA channels has a bias of its own). With GPS L1 as the only reference, a canyon
+    log whose GPS L1 rarely shows four satellites got no inter-signal biases, or no receiver guess, however
+    many satellites the other constellations showed (``experiments/sparse_reference.py``). epoch (N,): each
+    row's epoch index."""
     sig = rows["signal"].to_numpy(object)
     per_epoch = pd.Series(1, index=pd.MultiIndex.from_arrays([sig, epoch])).groupby(level=[0, 1]).size()
     solvable = (per_epoch >= 4).groupby(level=0).sum()
     if solvable.max() == 0:
-        # no signal solves an epoch alone: the receiver guess falls back to the file's approximate position
+        # no signal solves an epoch alone: the receiver guess takes a clock per signal (_receiver_guess)
         ref = "GPS_L1" if (sig == "GPS_L1").any() else pd.Series(sig).mode().iloc[0]
         return sig == ref
     best = solvable.drop([s for s in solvable.index if str(s).startswith("GLO")], errors="ignore")

@@ -10,7 +10,7 @@ RX = geodetic2ecef(np.array([[37.4, -122.1, 30.0]]))[0]
 
 
 def _sky(rng, n):
-    """(n,3) satellites 20,200 km up in random directions above 15 degrees at RX."""
+    """(n,3) satellites 20,200 km from RX in random directions 15-85 degrees above its horizon."""
     up = RX / np.linalg.norm(RX)
     east = np.cross([0.0, 0.0, 1.0], up)
     east /= np.linalg.norm(east)
