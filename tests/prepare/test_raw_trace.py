@@ -257,6 +257,24 @@ def _two_signals(nav, t, l1_prns, l5_prns, l5_bias_m):
     return RawObs(frame=finish_raw(cols), path=Path("synthetic.obs"))
 
 
+def _clocks_at_truth(nav, raw, signals):
+    """Load ``raw`` without the ionosphere model and return each first-epoch pseudorange minus its troposphere
+    and range from the truth (its clock as corrected, (K,)), and its signal index (K,)."""
+    from fusion.nav.atmosphere import tropo_delay
+    from fusion.geometry import ecef2geodetic, elevation_azimuth
+    nav.klobuchar, klob = None, nav.klobuchar
+    try:
+        with pytest.warns(UserWarning, match="no ionosphere model"):
+            tr = raw_to_trace(raw, nav, signals=signals)
+    finally:
+        nav.klobuchar = klob
+    m = tr.mask[0]
+    rng, los = line_of_sight(tr.sat_pos[0][m], P5_START)
+    el, _ = elevation_azimuth(los, P5_START)
+    llh = ecef2geodetic(P5_START)
+    return tr.pr[0][m] + tropo_delay(llh[0], llh[2], el) - rng, tr.signal[0][m], tr
+
+
 def test_a_sparse_gps_l1_leaves_the_reference_to_a_signal_that_solves_alone(nav):
     """GPS L1 with three satellites, L5 with six and a 25 m bias of its own: GPS L1 cannot solve the receiver
     guess alone (before: no guess, the log refused), so L5 is the reference and GPS L1 gets the bias instead;
@@ -265,20 +283,8 @@ def test_a_sparse_gps_l1_leaves_the_reference_to_a_signal_that_solves_alone(nav)
     prns = _visible(nav, t)
     assert len(prns) >= 6
     raw = _two_signals(nav, t, prns[:3], prns[:6], l5_bias_m=25.0)
-    nav.klobuchar, klob = None, nav.klobuchar
-    try:
-        with pytest.warns(UserWarning, match="no ionosphere model"):
-            tr = raw_to_trace(raw, nav, signals=["GPS_L1", "GPS_L5"])
-    finally:
-        nav.klobuchar = klob
-    m = tr.mask[0]
-    from fusion.nav.atmosphere import tropo_delay
-    from fusion.geometry import ecef2geodetic, elevation_azimuth
-    rng, los = line_of_sight(tr.sat_pos[0][m], P5_START)
-    el, _ = elevation_azimuth(los, P5_START)
-    llh = ecef2geodetic(P5_START)
-    clock = tr.pr[0][m] + tropo_delay(llh[0], llh[2], el) - rng
-    l5 = tr.signal[0][m] == 1
+    clock, sig, tr = _clocks_at_truth(nav, raw, ["GPS_L1", "GPS_L5"])
+    l5 = sig == 1
     # L5 keeps its own clock (bias included); GPS L1 is moved onto it: within the L5 group delay's metres
     assert np.ptp(clock[l5]) < 5.0 and np.ptp(clock[~l5]) < 5.0
     assert abs(np.median(clock[~l5]) - np.median(clock[l5])) < 3.0
@@ -321,20 +327,8 @@ def test_signals_none_of_which_solves_alone_get_a_clock_each(nav):
     t = gps_ms_from_calendar(2021, 4, 28, 12, 0, 0.0)
     prns = _visible(nav, t)
     raw = _two_signals(nav, t, prns[:3], prns[3:6], l5_bias_m=25.0)
-    nav.klobuchar, klob = None, nav.klobuchar
-    try:
-        with pytest.warns(UserWarning, match="no ionosphere model"):
-            tr = raw_to_trace(raw, nav, signals=["GPS_L1", "GPS_L5"])
-    finally:
-        nav.klobuchar = klob
-    m = tr.mask[0]
-    from fusion.nav.atmosphere import tropo_delay
-    from fusion.geometry import ecef2geodetic, elevation_azimuth
-    rng, los = line_of_sight(tr.sat_pos[0][m], P5_START)
-    el, _ = elevation_azimuth(los, P5_START)
-    llh = ecef2geodetic(P5_START)
-    clock = tr.pr[0][m] + tropo_delay(llh[0], llh[2], el) - rng
-    l5 = tr.signal[0][m] == 1
+    clock, sig, _ = _clocks_at_truth(nav, raw, ["GPS_L1", "GPS_L5"])
+    l5 = sig == 1
     assert l5.sum() == 3 and np.median(clock[~l5]) == pytest.approx(1234.5, abs=0.01)
     assert abs(np.median(clock[l5]) - 1234.5) < 3.0           # the 25 m gone, to the L5 group delay's metres
 
