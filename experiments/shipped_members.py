@@ -51,7 +51,8 @@ def main() -> int:
         opts = RunOptions(**kw)
         trace = load_trace(path, min_sats=1, **load_options(opts))
         wls = solve_initial(trace, opts)
-        scores[(log, "fused-nodnn")] = mode_metrics(trace, run_modes(trace, ["fused-nodnn"], opts, wls=wls)["fused-nodnn"])["gsdc_score"]
+        nodnn = run_modes(trace, ["fused-nodnn"], opts, wls=wls)["fused-nodnn"]
+        scores[(log, "fused-nodnn")] = mode_metrics(trace, nodnn)["gsdc_score"]
         for name, w in ws.items():
             res = run_modes(trace, ["fused"], RunOptions(weights=w, **kw), wls=wls)["fused"]
             scores[(log, name)] = mode_metrics(trace, res)["gsdc_score"]

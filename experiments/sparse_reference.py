@@ -82,7 +82,8 @@ def thinned(select, keep: int | None, whole_first: int, header: bool = False):
         l1 = np.flatnonzero(rows["signal"].to_numpy(object) == "GPS_L1")
         rank = rows.iloc[l1].groupby("t_ns").cumcount().to_numpy()
         t = rows["t_ns"].to_numpy()
-        late = t >= np.unique(t)[min(whole_first, np.unique(t).size - 1)] if whole_first else np.ones(t.size, bool)
+        epochs = np.unique(t)
+        late = t >= epochs[min(whole_first, epochs.size - 1)]       # whole_first 0: every epoch
         drop = np.zeros(len(rows), bool)
         drop[l1[rank >= keep]] = True
         return rows[~(drop & late)].reset_index(drop=True)

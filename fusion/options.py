@@ -61,7 +61,8 @@ def parse_signals(text: str | None) -> tuple[str, ...] | None:
 
 def add_run_options(p: argparse.ArgumentParser) -> None:
     """Options shared by ``gnssfuse run`` and ``gnssfuse evaluate`` (read by :func:`options_from_args`)."""
-    p.add_argument("--weights", type=Path, default=None, help="DNN checkpoint (.pt) or ensemble manifest (.json) (default: the shipped ensemble)")
+    p.add_argument("--weights", type=Path, default=None,
+                   help="DNN checkpoint (.pt) or ensemble manifest (.json) (default: the shipped ensemble)")
     add_signals_option(p, "default GPS_L1 for GSDC files, every signal with ephemerides for RINEX / GnssLogger logs")
     add_nav_options(p)
     p.add_argument("--iono-free", action="store_true",

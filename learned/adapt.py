@@ -63,7 +63,7 @@ from learned.features import FeatureConfig
 from learned.forward import outputs, take
 from learned.graph_check import FOLDS, MARGIN as GRAPH_MARGIN, graph_decision, graph_errors
 from learned.guard import input_ranges, widened_ranges
-from learned.ensemble import is_manifest, member_paths, read_manifest, write_manifest
+from learned.ensemble import is_manifest, member_paths, write_derived_manifest
 from learned.infer import SHIPPED_WEIGHTS
 from learned.selfcheck import BLOCK, CRITERION, EVERY, MARGIN, criteria, decide, heldout_inputs, split
 from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, make_inputs, sample_tensors
@@ -256,8 +256,7 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
         ranges = ranges if cfg.widen else None
         write_adapted(o, model, blob["config"], record, ranges, history)
         done.append(Tuned(model, blob["config"], o, start, record, history, ranges))
-    if is_manifest(weights):
-        write_manifest(out, outs, read_manifest(weights)[1])
+    write_derived_manifest(weights, out, outs)
     record = whole_record(weights, [t.record for t in done])
     if record["decision"] == "accepted" and cfg.graph_check:
         check_in_graph(out, weights, [t.trace for t in taught], teacher_opts, cfg, record, log)

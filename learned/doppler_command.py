@@ -17,7 +17,7 @@ from fusion.run_types import RunOptions
 from learned.checkpoint import load_model, save_checkpoint
 from learned.data import check_not_forbidden
 from learned.doppler_train import HeadConfig, fit, head_dict, trace_rows
-from learned.ensemble import is_manifest, member_paths, read_manifest, write_manifest
+from learned.ensemble import member_paths, write_derived_manifest
 from learned.infer import SHIPPED_WEIGHTS
 
 
@@ -67,8 +67,7 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse train-doppler", progress
     for (model, blob), out in zip(models, outs):     # an ensemble's members share the one head
         save_checkpoint(out, model, dict(blob["config"], doppler_head=head), epoch=blob.get("epoch", 0),
                         history=blob.get("history", []))
-    if is_manifest(base):
-        write_manifest(args.out, outs, read_manifest(base)[1])
+    write_derived_manifest(base, Path(args.out), outs)
     print(f"{prog}: {len(rows['err'])} Doppler measurements from {len(names)} traces, final loss {hist[-1]:.4f}; "
           f"head for {', '.join(head['systems'])} written into {args.out}")
     return 0

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from fusion.errors import CheckpointError, DataError
-from fusion.geometry import ned_rotation
+from fusion.geometry import ned2ecef_cov, ned2ecef_vec
 from learned.infer import Corrector, Correction, _calibration_scales
 
 FORMAT = "gnssfuse-ensemble"
@@ -97,6 +97,14 @@ def member_paths(weights: Path, out: Path) -> tuple[list[Path], list[Path]]:
                         ".json (the manifest; its members are written beside it)")
     bases = read_manifest(weights)[0]
     return bases, [out.with_name(f"{out.stem}_m{i}.pt") for i in range(len(bases))]
+
+
+def write_derived_manifest(weights: Path, out: Path, members: list[Path]) -> None:
+    """After a command wrote its changed copies of ``weights``' networks to ``members`` (:func:`member_paths`):
+    for an ensemble, its manifest ``out`` naming them, with the base ensemble's calibration; nothing for one
+    network."""
+    if is_manifest(weights):
+        write_manifest(out, members, read_manifest(weights)[1])
 
 
 class Ensemble(Corrector):
@@ -172,10 +180,9 @@ def combine(outs: list[Correction], guess: np.ndarray, scale_ned: np.ndarray = n
     res = Correction(np.full((E, 3), np.nan), np.full((E, 3, 3), np.nan), np.full((E, 3), np.nan),
                      np.full((E, 3, 3), np.nan), valid, outs[0].n_too_few)
     if valid.any():
-        R = ned_rotation(guess[valid])
         res.corr_ned[valid], res.cov_ned[valid] = corr[valid], cov[valid]
-        res.mean_ecef[valid] = guess[valid] + np.einsum("nji,nj->ni", R, corr[valid])
-        res.cov_ecef[valid] = np.einsum("nji,njk,nkl->nil", R, cov[valid], R)
+        res.mean_ecef[valid] = guess[valid] + ned2ecef_vec(corr[valid], guess[valid])
+        res.cov_ecef[valid] = ned2ecef_cov(cov[valid], guess[valid])
     with np.errstate(divide="ignore", invalid="ignore"):
         res.sigma = np.exp(np.mean([np.log(o.sigma) for o in outs], axis=0))
     res.bias = np.mean([o.bias for o in outs], axis=0)

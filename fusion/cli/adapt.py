@@ -19,8 +19,10 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description="Adapt the learned models to logs without ground truth "
                                 "(never reads a ground-truth file); use the result with run --weights.")
     p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR", help=TRACE_DIR_HELP)
-    p.add_argument("--out", type=Path, required=True, help="adapted checkpoint (.pt), or manifest (.json) when --weights is an ensemble")
-    p.add_argument("--weights", type=Path, default=None, help="base checkpoint (.pt) or ensemble manifest (.json) (default: the shipped ensemble)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="adapted checkpoint (.pt), or manifest (.json) when --weights is an ensemble")
+    p.add_argument("--weights", type=Path, default=None,
+                   help="base checkpoint (.pt) or ensemble manifest (.json) (default: the shipped ensemble)")
     p.add_argument("--epochs", type=int, default=5, help="passes over the logs (default 5); the best on the "
                    "held-out blocks is kept")
     p.add_argument("--lr", type=float, default=3e-4, help="learning rate (default 3e-4)")

@@ -15,8 +15,10 @@ def build_parser(prog: str = "gnssfuse train-doppler") -> argparse.ArgumentParse
     p = argparse.ArgumentParser(prog=prog, description="Train the learned Doppler head (each pseudorange rate's "
                                 "sigma) on traces with Doppler and ground truth; write it into a copy of --weights.")
     p.add_argument("trace_dirs", type=Path, nargs="+", metavar="TRACE_DIR", help=TRACE_DIR_HELP)
-    p.add_argument("--out", type=Path, required=True, help="checkpoint written: --weights with the Doppler head (a .json manifest for an ensemble)")
-    p.add_argument("--weights", type=Path, default=None, help="base checkpoint (.pt) or ensemble manifest (.json) (default: the shipped ensemble)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="checkpoint written: --weights with the Doppler head (a .json manifest for an ensemble)")
+    p.add_argument("--weights", type=Path, default=None,
+                   help="base checkpoint (.pt) or ensemble manifest (.json) (default: the shipped ensemble)")
     p.add_argument("--epochs", type=int, default=20, help="passes over the measurements (default 20)")
     p.add_argument("--hidden", type=int, default=32, help="width of the head's two hidden layers (default 32)")
     p.add_argument("--lr", type=float, default=1e-3, help="learning rate (default 1e-3)")

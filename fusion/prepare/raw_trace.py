@@ -283,7 +283,7 @@ def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: n
     """
     packed = pack_rows(epoch[ref], n_epochs, {"sat_pos": sat_pos[ref], "pr": pr[ref]})
     w = solve_wls_arrays(packed["sat_pos"], packed["pr"], packed["mask"], elev_mask_deg=10.0, robust=True)
-    pos, clock = np.where(w.valid[:, None], w.pos, np.nan), w.clock_m
+    pos, clock = w.pos, w.clock_m                    # NaN where not solved
     if not w.valid.any() and not ref.all():
         codes = pd.factorize(sig)[0]
         packed = pack_rows(epoch, n_epochs, {"sat_pos": sat_pos, "pr": pr, "group": codes})

@@ -34,7 +34,8 @@ class ShiftNet(nn.Module):
 
 
 def _config(**kw):
-    return TrainConfig(model="set", features=FeatureConfig(out_scale=1.0), output="correction").to_checkpoint_config() | kw
+    base = TrainConfig(model="set", features=FeatureConfig(out_scale=1.0), output="correction")
+    return base.to_checkpoint_config() | kw
 
 
 def _trace():
@@ -71,7 +72,8 @@ def test_one_network_twice_is_that_network():
     c, one = Ensemble([a, a]).predict(tr, init, valid), a.predict(tr, init, valid)
     for k in ("mean_ecef", "cov_ecef", "corr_ned", "cov_ned", "sigma", "bias", "trust"):
         np.testing.assert_allclose(getattr(c, k), getattr(one, k), atol=1e-9, err_msg=k)
-    g, g1 = Ensemble([a, a]).graph_inputs(tr, init, valid, sigma_power=4.0), a.graph_inputs(tr, init, valid, sigma_power=4.0)
+    g = Ensemble([a, a]).graph_inputs(tr, init, valid, sigma_power=4.0)
+    g1 = a.graph_inputs(tr, init, valid, sigma_power=4.0)
     np.testing.assert_allclose(g.pr_sigma, g1.pr_sigma, rtol=1e-9)
     np.testing.assert_array_equal(g.prior_ok, g1.prior_ok)
 
@@ -95,7 +97,8 @@ def test_ensemble_scale_replaces_the_members_unseen_scales():
     np.testing.assert_allclose(c.cov_ned[0], np.diag([4.0, 1.0, 9.0]), atol=1e-6)
     np.testing.assert_allclose(ens.var_scale["unseen_fused"], 2.25)
     # another output than the one the scale was fitted on keeps its own covariance
-    np.testing.assert_allclose(ens.predict(tr, init, valid, output="wls").cov_ned, a.predict(tr, init, valid, output="wls").cov_ned)
+    np.testing.assert_allclose(ens.predict(tr, init, valid, output="wls").cov_ned,
+                               a.predict(tr, init, valid, output="wls").cov_ned)
     with pytest.raises(CheckpointError, match="scale_ned"):
         Ensemble([a], {"unseen_dnn": {"scale_ned": [1.0, -1.0]}})
 
@@ -119,7 +122,7 @@ def test_manifest_round_trip_and_corrector_load(tmp_path):
     assert isinstance(ens, Ensemble) and len(ens.members) == 2
     np.testing.assert_allclose(ens.var_scale["unseen_dnn"], [1.0, 4.0, 1.0])
     tr, init, valid = _trace()
-    one = [Corrector.load(p).predict(tr, init, valid) for p in (tmp_path / "moved" / "m0.pt", tmp_path / "moved" / "m1.pt")]
+    one = [Corrector.load(tmp_path / "moved" / m).predict(tr, init, valid) for m in ("m0.pt", "m1.pt")]
     c = ens.predict(tr, init, valid)
     np.testing.assert_allclose(c.corr_ned, np.mean([o.corr_ned for o in one], axis=0), atol=1e-6)
 

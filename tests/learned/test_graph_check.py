@@ -71,8 +71,8 @@ def test_the_default_margin_tolerates_one_percent():
 
 def test_a_graph_check_that_fails_writes_the_base_weights_and_says_why(shipped_trace_dir, tmp_path, capsys):
     out = tmp_path / "w.pt"      # the self-check keeps anything (-1); no adaptation gains 99 % in the graph
-    assert cli(["adapt", str(shipped_trace_dir), "--weights", str(ONE), "--max-epochs", str(FEW), "--epochs", "1", "--margin", "-1",
-                "--graph-margin", "0.99", "--lr", "1e-2", "--out", str(out), "--threads", "1"]) == 0
+    assert cli(["adapt", str(shipped_trace_dir), "--weights", str(ONE), "--max-epochs", str(FEW), "--epochs", "1",
+                "--margin", "-1", "--graph-margin", "0.99", "--lr", "1e-2", "--out", str(out), "--threads", "1"]) == 0
     said = capsys.readouterr().out.splitlines()[0]
     assert said.startswith("adaptation DECLINED") and "graph check" in said
     base, new = read_checkpoint(ONE), read_checkpoint(out)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.geometry import geodetic2ecef, line_of_sight
+from fusion.geometry import geodetic2ecef, line_of_sight, ned2ecef_vec
 from fusion.prepare.multi_clock import multi_clock_positions
 
 RX = geodetic2ecef(np.array([[37.4, -122.1, 30.0]]))[0]
@@ -11,13 +11,9 @@ RX = geodetic2ecef(np.array([[37.4, -122.1, 30.0]]))[0]
 
 def _sky(rng, n):
     """(n,3) satellites 20,200 km from RX in random directions 15-85 degrees above its horizon."""
-    up = RX / np.linalg.norm(RX)
-    east = np.cross([0.0, 0.0, 1.0], up)
-    east /= np.linalg.norm(east)
-    north = np.cross(up, east)
     el, az = np.radians(rng.uniform(15, 85, n)), rng.uniform(0, 2 * np.pi, n)
-    d = (np.cos(el) * np.sin(az))[:, None] * east + (np.cos(el) * np.cos(az))[:, None] * north + np.sin(el)[:, None] * up
-    return RX + 2.02e7 * d
+    ned = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), -np.sin(el)]
+    return RX + 2.02e7 * ned2ecef_vec(ned, RX)
 
 
 def test_positions_and_a_clock_per_signal_from_exact_ranges():
