@@ -537,6 +537,37 @@ def test_an_outage_is_flagged_as_bridged_with_its_length(trace, wls):
     assert estimates_frame(tr, res)["bridged"].sum() == 10
 
 
+def test_satellites_are_counted_once_whatever_their_signals():
+    """satellite_counts: two frequencies of one satellite are one satellite; unselected slots none."""
+    from fusion.estimate.graph.inputs import satellite_counts
+
+    sat_id = np.array([[5, 5, 7, 9, 0], [3, 4, 3, 4, 3], [1, 2, 3, 4, 5], [0, 8, 9, 10, 11]])
+    sel = np.array([[1, 1, 1, 0, 0], [1, 1, 1, 1, 0], [0, 0, 0, 0, 0], [1, 1, 1, 1, 0]], bool)
+    np.testing.assert_array_equal(satellite_counts(sat_id, sel), [2, 2, 0, 4])
+
+
+def test_four_pseudoranges_of_three_satellites_are_a_bridge():
+    """Four pseudoranges of three satellites, one of them on two frequencies, fix no position: the epochs are
+    bridged (flagged, counted, the motion model's) as three single-frequency satellites are."""
+    import dataclasses
+
+    from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+    from fusion.sim.simulate import SimConfig, simulate
+
+    tr = simulate(n_epochs=80, nav=read_rinex_nav(default_nav_path()), seed=12,
+                  config=SimConfig(doppler=False, carrier=False, dual_frequency=True)).trace
+    mask = tr.mask.copy()
+    for k in range(40, 50):                    # one satellite's two signals and two other satellites' one each
+        ids, n = np.unique(tr.sat_id[k][tr.mask[k]], return_counts=True)
+        assert (n == 2).any() and (n == 1).sum() >= 2
+        mask[k] &= np.isin(tr.sat_id[k], np.r_[ids[n == 2][:1], ids[n == 1][:2]])
+    tr = dataclasses.replace(tr, mask=mask)
+    assert (tr.mask[40:50].sum(axis=1) == 4).all()
+    res = _fused_nodnn(tr)
+    assert res.info["epochs_bridged"] == 10 and res.info["bridged"][40:50].all()
+    assert res.info["bridged_without_doppler"][40:50].all() and not res.info["bridged"][:40].any()
+
+
 def _outage(tr: Trace) -> Trace:
     """The trace with 2 satellites at epochs 40-49."""
     import dataclasses

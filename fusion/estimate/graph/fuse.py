@@ -16,7 +16,7 @@ from fusion.errors import GnssfuseError
 from fusion.estimate.graph.batch import BatchSolution, solve_batch
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.incremental import solve_incremental
-from fusion.estimate.graph.inputs import (EpochInputs, initial_positions, motion_only, prepare_inputs,
+from fusion.estimate.graph.inputs import (EpochInputs, doppler_epochs, initial_positions, prepare_inputs,
                                          pseudorange_gap)
 from fusion.estimate.graph.priors import (LearnedGraphInputs, PriorProvider, SlotNoiseProvider,
                                           learned_from_providers)
@@ -64,7 +64,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
 
 
 def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
-    """Solved epochs that fewer than 4 pseudoranges and no prior determine (the motion model carries
+    """Solved epochs that fewer than 4 satellites' pseudoranges and no prior determine (the motion model carries
     them from their neighbours): ``bridged`` (E,) bool, their count and the longest such stretch [s],
     so that a drift through an outage is flagged rather than passed off as a fix; and
     ``bridged_without_doppler`` (E,) bool those where no Doppler measures the velocity either."""
@@ -76,7 +76,7 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     before, after = np.maximum(starts - 1, 0), np.minimum(ends + 1, len(t) - 1)
     longest = float(np.max(t[after] - t[before], initial=0.0))
     return {"bridged": bridged, "epochs_bridged": int(bridged.sum()), "longest_bridge_s": longest,
-            "bridged_without_doppler": valid & motion_only(inp)}
+            "bridged_without_doppler": bridged & ~doppler_epochs(inp)}
 
 
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,

@@ -43,7 +43,7 @@ def feed_epochs(isam: gtsam.ISAM2, trace: Trace, inp: EpochInputs, cfg: GraphCon
     Epochs of a motion component are held back until the component has an anchor (an epoch with
     >= 4 satellites or a prior), because ISAM2 cannot take an undetermined update."""
     epochs, graphs, values = graph_pieces(trace, inp, cfg).by_epoch()
-    anchor = (inp.sel.sum(axis=1) >= 4) | inp.prior_ok
+    anchor = (inp.n_sats >= 4) | inp.prior_ok
     online = np.full((trace.n_epochs, 3), np.nan)
     pending_f, pending_v, pending_k = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
     anchored = False
