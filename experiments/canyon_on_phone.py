@@ -9,7 +9,7 @@ C/N0; the carrier's chain breaks where a satellite changes class (a slip). The t
 nothing learned or solved sees it. Seeded street layouts; GSDC score [m].
 
     python experiments/canyon_on_phone.py [--seeds 0 1 2] [--height 15 60] [--width 15 35] [--no-doppler-jump]
-        [--sp3] [--signals GPS_L1,GLO_G1,GAL_E1]
+        [--sp3] [--signals GPS_L1,GLO_G1,GAL_E1] [--graph-config FILE.toml]
 
 ``--sp3``: CODE's multi-GNSS SP3/CLK (GPS, GLONASS and Galileo, every signal the log has unless ``--signals``
 names some) instead of the broadcast GPS file.
@@ -29,6 +29,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 from few_satellites import NAV, PIXEL5  # noqa: E402
 from pixel5_table import ORBITS  # noqa: E402
+from fusion.estimate.graph.config import load_graph_config  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.geometry import elevation_azimuth, line_of_sight  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
@@ -115,10 +116,14 @@ def main() -> int:
                    help="the Doppler sees the drift state itself, without the jump the log shows "
                         "(GraphConfig.doppler_jump_from_log off)")
     p.add_argument("--sp3", action="store_true", help="multi-GNSS SP3/CLK instead of broadcast GPS")
+    p.add_argument("--graph-config", type=Path, default=None, metavar="FILE.toml",
+                   help="the graph's settings (GraphConfig fields as 'name = value' lines; default: the shipped)")
     add_signals_option(p, "default: every signal the orbits cover")
     args = p.parse_args()
     orbits = ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"] if args.sp3 else {"nav": (NAV,)}
     opts = RunOptions(signals=parse_signals(args.signals), sigma_calibration=False, **orbits)
+    if args.graph_config is not None:
+        opts = replace(opts, graph=load_graph_config(args.graph_config))
     if args.no_doppler_jump:
         opts = replace(opts, graph=replace(opts.graph, doppler_jump_from_log=False))
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))

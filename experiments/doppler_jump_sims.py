@@ -9,7 +9,10 @@ without and with the jump; and the jump the graph took (mean over traces; "-" wh
 
     python experiments/sim_city_traces.py --out /tmp/simho --held-out
     python experiments/sim_city_traces.py --out /tmp/simdeepho --held-out --scenarios deep --first-seed 300
-    python experiments/doppler_jump_sims.py --sims /tmp/simho /tmp/simdeepho [--jump 0.47]
+    python experiments/doppler_jump_sims.py --sims /tmp/simho /tmp/simdeepho [--jump 0.47] [--graph-config FILE.toml]
+
+``--graph-config``: every variant on those settings (GraphConfig fields as ``name = value`` lines) instead of the
+shipped ones.
 """
 from __future__ import annotations
 
@@ -25,6 +28,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from few_satellites import thinned  # noqa: E402
+from fusion.estimate.graph.config import load_graph_config  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
@@ -53,8 +57,12 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sims", type=Path, nargs="+", required=True, help="folders of held-out simulated traces")
     p.add_argument("--jump", type=float, default=0.47, help="the added white jump of the Doppler's drift [m/s]")
+    p.add_argument("--graph-config", type=Path, default=None, metavar="FILE.toml",
+                   help="the graph's settings (GraphConfig fields as 'name = value' lines; default: the shipped)")
     args = p.parse_args()
     opts = RunOptions(signals=parse_signals("all"), sigma_calibration=False)
+    if args.graph_config is not None:
+        opts = replace(opts, graph=load_graph_config(args.graph_config))
     paths = [q for folder in args.sims for q in sorted(folder.glob("*/SimPhone"))]
     print("| traces | added jump [m/s] | " + " | ".join(VARIANTS) + " | jump taken [m/s] |")
     print("|---|---|" + "---|" * (len(VARIANTS) + 1))

@@ -102,8 +102,8 @@ def motion_only(inp: EpochInputs) -> np.ndarray:
     """(E,) bool epochs whose velocity random walk takes GraphConfig.bridged_accel_scale: fewer than 4
     pseudoranges (not satellites), no prior and no Doppler. The scale was chosen on single-frequency logs,
     where the two counts agree; on the held-out simulated city traces with two frequencies thinned to 3
-    satellites, giving it to every :func:`pseudorange_gap` epoch without Doppler cost 6 % on average
-    (fused-nodnn without Doppler, 7 of 11 traces worse): a second frequency's pseudoranges still steer."""
+    satellites, giving it to every :func:`pseudorange_gap` epoch without Doppler cost 5.1 % on average, 7 of 12
+    traces worse (experiments/results/dual_frequency_bridges.md): a second frequency's pseudoranges still steer."""
     return (inp.sel.sum(axis=1) < 4) & ~inp.prior_ok & ~doppler_epochs(inp)
 
 
