@@ -212,8 +212,11 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "sigmas raised where the measurements disagreed among themselves beyond them: 25 doppler" in text
     assert "asked at 10 epochs, 80 measurements" in text and "3 measurements with inputs outside" in text
     assert "12 measurements of signals it cannot read" in text and "switched off in 1" in text
-    assert "4 epochs bridged" in text and "longest stretch 4 s" in text
+    assert "4 epochs bridged" in text and "longest stretch 4 s" in text and "widened" not in text
     assert "Doppler head" not in text and "drift of its own" not in text
+    text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
+                        "info": {**info, "bridged_widened": 3}})
+    assert "longest stretch 4 s; the sigmas of 3 widened where the graph without Doppler and carrier disagreed" in text
     info.update(doppler_drift_jump_mps=0.471)
     text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
                         "info": info})

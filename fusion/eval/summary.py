@@ -49,9 +49,13 @@ def doppler_head_words(info: dict) -> str:
 
 
 def bridged_words(info: dict) -> str:
-    """The graph's epochs that only the motion model placed, in words."""
+    """The graph's epochs that only the motion model placed, and those whose sigmas their check widened, in
+    words."""
+    widened = info.get("bridged_widened")
+    checked = (f"; the sigmas of {widened} widened where the graph without Doppler and carrier disagreed"
+               if widened else "")
     return (f"{info['epochs_bridged']} epochs bridged by the motion model alone (fewer than 4 satellites, no prior; "
-            f"longest stretch {info.get('longest_bridge_s', 0):.0f} s): column 'bridged' in estimates.csv")
+            f"longest stretch {info.get('longest_bridge_s', 0):.0f} s{checked}): column 'bridged' in estimates.csv")
 
 
 #: what a mode's learned parts did, in words, where its info has the key

@@ -198,6 +198,13 @@ class GraphConfig:
     # (experiments/results/few_satellites.md). The down axis needs less: the level prior holds the height.
     bridged_sigma_scale: float = 1.76
     bridged_sigma_scale_down: float = 1.15
+    # A bridged epoch with Doppler or carrier keeps the graph's calibrated sigma unless the same graph without
+    # Doppler and carrier disagrees with it on an axis by more than this many of their combined sigmas; then
+    # that axis's variance takes the squared disagreement (fusion.estimate.graph.bridged_check; 0: off, no
+    # second solve). 1, not tuned: the simulated city traces, the only tuning logs with Doppler, read cautious
+    # there already; the real phone's canyons held 0.10-0.53 of errors within 1 sigma on those epochs
+    # (experiments/results/bridged_check.md).
+    bridged_check_sigmas: float = 1.0
     # The constant-velocity model's velocity random walk into an epoch only the motion model places (fewer than
     # 4 satellites, no prior, no Doppler) is this times cv_accel_h / cv_accel_v: there nothing measures the
     # velocity, and a looser walk lets the few pseudoranges left, with a clock interpolated across the gap,
@@ -257,7 +264,7 @@ MAY_BE_ZERO = {"prior_sigma_floor_m", "doppler_check_window_s", "carrier_check_w
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps", "cv_level_sigma_mps", "learned_sigma_power",
-               "cv_level_sigma_no_doppler_mps"}
+               "cv_level_sigma_no_doppler_mps", "bridged_check_sigmas"}
 
 
 #: the values each string setting takes

@@ -14,6 +14,7 @@ import numpy as np
 
 from fusion.errors import GnssfuseError
 from fusion.estimate.graph.batch import BatchSolution, solve_batch
+from fusion.estimate.graph.bridged_check import check_bridged
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.incremental import solve_incremental
 from fusion.estimate.graph.inputs import (EpochInputs, doppler_epochs, initial_positions, prepare_inputs,
@@ -131,4 +132,4 @@ def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions
 
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused-nodnn`` mode: the graph without anything learned."""
-    return calibrate_graph(fuse(trace, wls, opts), trace, "fused-nodnn", opts, wls)
+    return check_bridged(calibrate_graph(fuse(trace, wls, opts), trace, "fused-nodnn", opts, wls), trace, wls, opts)
