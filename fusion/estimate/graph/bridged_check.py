@@ -1,14 +1,16 @@
-"""Bridged epochs with Doppler: their sigmas checked against the same graph without Doppler and carrier.
+"""Bridged epochs with Doppler: their sigmas checked against the graph without Doppler, carrier or anything
+learned.
 
 Where fewer than 4 satellites' pseudoranges place an epoch, Doppler and carrier carry the track through: a
 graph with them is usually far better there than one without (``experiments/results/doppler_carrier.md``), but
 nothing checks it. Two or three satellites leave a horizontal direction, and the velocity's trade with the
 clock drift, to the motion model and the clock's walk; where those models are wrong for the phone the track
 runs off by hundreds of metres with a sigma of tens (``experiments/results/canyon_on_phone.md``, deep layout 1),
-and no residual shows it. The graph without Doppler and carrier is a second opinion that does not share that
-weakness. Where the two disagree on an axis by more than ``GraphConfig.bridged_check_sigmas`` times their
-combined calibrated sigma there, neither sigma covers the truth for sure, so the graph's variance on that axis
-takes the squared disagreement on top (``experiments/results/bridged_check.md``).
+and no residual shows it. The graph without Doppler and carrier (``fused-nodnn`` on pseudoranges alone, for
+``fused`` too) is a second opinion that does not share that weakness. Where the two disagree on an axis by more
+than ``GraphConfig.bridged_check_sigmas`` times their combined calibrated sigma there, neither sigma covers the
+truth for sure, so the graph's variance on that axis takes the squared disagreement on top
+(``experiments/results/bridged_check.md``).
 """
 from __future__ import annotations
 
@@ -33,6 +35,8 @@ def widen_by_disagreement(result: ModeResult, reference: ModeResult, rows: np.nd
     """Add, in place, the squared NED disagreement with ``reference`` to ``result``'s variance on each axis of
     ``rows`` (E,) bool where it exceeds ``n_sigma`` times the two results' combined sigma. Returns the count of
     epochs widened."""
+    if reference.cov is None:
+        return 0
     rows = rows & reference.valid & np.isfinite(reference.cov).all(axis=(1, 2))
     if not rows.any():
         return 0
