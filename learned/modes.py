@@ -7,11 +7,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from fusion.estimate.graph.bridged_check import check_bridged
-from fusion.estimate.graph.fuse import fuse, learned_guess, learned_guess_and_start
+from fusion.estimate.graph.fuse import calibrated, fuse, learned_guess, learned_guess_and_start
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
-from fusion.estimate.variance_factor import calibrate_graph, calibrate_snapshot
+from fusion.estimate.variance_factor import calibrate_snapshot
 from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, TRACE_DEFAULTS, WlsResult, solve_wls_arrays
 from fusion.geometry import ecef2ned_cov, ecef2ned_vec, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
@@ -180,4 +179,4 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
         ned = ecef2ned_cov(res.cov[ok], res.pos[ok]) * np.outer(v, v)
         res.cov = res.cov.copy()
         res.cov[ok] = ned2ecef_cov(ned, res.pos[ok])
-    return check_bridged(calibrate_graph(res, trace, "fused", opts, wls), trace, wls, opts)
+    return calibrated(res, trace, "fused", opts, wls)

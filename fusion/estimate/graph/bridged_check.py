@@ -1,16 +1,16 @@
 """Bridged epochs with Doppler: their sigmas checked against the graph without Doppler, carrier or anything
 learned.
 
-Where fewer than 4 satellites' pseudoranges place an epoch, Doppler and carrier carry the track through: a
-graph with them is usually far better there than one without (``experiments/results/doppler_carrier.md``), but
-nothing checks it. Two or three satellites leave a horizontal direction, and the velocity's trade with the
-clock drift, to the motion model and the clock's walk; where those models are wrong for the phone the track
-runs off by hundreds of metres with a sigma of tens (``experiments/results/canyon_on_phone.md``, deep layout 1),
-and no residual shows it. The graph without Doppler and carrier (``fused-nodnn`` on pseudoranges alone, for
-``fused`` too) is a second opinion that does not share that weakness. Where the two disagree on an axis by more
-than ``GraphConfig.bridged_check_sigmas`` times their combined calibrated sigma there, neither sigma covers the
-truth for sure, so the graph's variance on that axis takes the squared disagreement on top
-(``experiments/results/bridged_check.md``).
+Where fewer than 4 satellites' pseudoranges place an epoch, Doppler carries the track through (a carrier
+factor needs 5 satellites, so none is there): a graph with it is usually far better there than one without
+(``experiments/results/doppler_carrier.md``), but nothing checks it. Two or three satellites leave a horizontal
+direction, and the velocity's trade with the clock drift, to the motion model and the clock's walk; where those
+models are wrong for the phone the track runs off by hundreds of metres with a sigma of tens
+(``experiments/results/canyon_on_phone.md``, deep layout 1), and no residual shows it. The graph without Doppler
+and carrier (``fused-nodnn`` on pseudoranges alone, for ``fused`` too) is a second opinion that does not share
+that weakness. Where the two disagree on an axis by more than ``GraphConfig.bridged_check_sigmas`` times their
+combined calibrated sigma there, neither sigma covers the truth for sure, so the graph's variance on that axis
+takes the squared disagreement on top (``experiments/results/bridged_check.md``).
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from fusion.run_types import ModeResult, RunOptions
 
 
 def bridged_with_doppler(result: ModeResult) -> np.ndarray:
-    """(E,) bool solved epochs the graph bridged where Doppler or carrier measured the motion."""
+    """(E,) bool solved epochs the graph bridged where Doppler measured the motion."""
     bridged, without = (result.info.get(k) for k in ("bridged", "bridged_without_doppler"))
     if not isinstance(bridged, np.ndarray) or not isinstance(without, np.ndarray):
         return np.zeros(len(result.valid), bool)

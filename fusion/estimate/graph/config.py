@@ -198,7 +198,7 @@ class GraphConfig:
     # (experiments/results/few_satellites.md). The down axis needs less: the level prior holds the height.
     bridged_sigma_scale: float = 1.76
     bridged_sigma_scale_down: float = 1.15
-    # A bridged epoch with Doppler or carrier keeps the graph's calibrated sigma unless the graph without
+    # A bridged epoch with Doppler keeps the graph's calibrated sigma unless the graph without
     # Doppler, carrier or anything learned disagrees with it on an axis by more than this many of their combined
     # sigmas; then that axis's variance takes the squared disagreement (fusion.estimate.graph.bridged_check; 0:
     # off, no second solve). 1, not tuned: the simulated city traces, the only tuning logs with Doppler, read cautious

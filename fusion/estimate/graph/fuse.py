@@ -130,6 +130,13 @@ def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions
     return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at), first.info.get("batch_solution")
 
 
+def calibrated(result: ModeResult, trace: Trace, mode: str, opts: RunOptions, wls: WlsResult) -> ModeResult:
+    """A graph mode's ``result`` with its sigmas calibrated (:func:`~fusion.estimate.variance_factor.calibrate_graph`)
+    and those of its bridged epochs with Doppler checked (:func:`~fusion.estimate.graph.bridged_check.check_bridged`):
+    the one finish both graph modes share."""
+    return check_bridged(calibrate_graph(result, trace, mode, opts, wls), trace, wls, opts)
+
+
 def estimate_fused_nodnn(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused-nodnn`` mode: the graph without anything learned."""
-    return check_bridged(calibrate_graph(fuse(trace, wls, opts), trace, "fused-nodnn", opts, wls), trace, wls, opts)
+    return calibrated(fuse(trace, wls, opts), trace, "fused-nodnn", opts, wls)
