@@ -28,10 +28,12 @@ from fusion.errors import DataError, GnssfuseError
 
 #: Signal names in the GSDC vocabulary; ``Trace.signal`` stores indices into this tuple. New
 #: signals are appended (stored indices and checkpoints name signals by these positions): the
-#: second frequencies a dual-frequency receiver logs (GPS L2C, Galileo E5b, BeiDou B2I, QZSS L2C).
+#: second frequencies a dual-frequency receiver logs (GPS L2C, Galileo E5b, BeiDou B2I, QZSS L2C), then
+#: BeiDou-3's open signals on the L1 and L5 carriers (B1C, B2a), which newer phones log beside or instead of B1I.
 SIGNALS: tuple[str, ...] = (
     "GPS_L1", "GPS_L5", "GLO_G1", "GAL_E1", "GAL_E5A", "BDS_B1I", "QZS_J1", "QZS_J5",
     "GPS_L2", "GAL_E5B", "BDS_B2I", "QZS_J2",
+    "BDS_B1C", "BDS_B2A",
 )
 
 

@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 
 FORMAT_VERSION = 1
 SYSTEMS = ("GPS", "GLO", "GAL", "BDS", "QZS")
-FIRST_FREQUENCY = ("GPS_L1", "GLO_G1", "GAL_E1", "BDS_B1I", "QZS_J1")
+FIRST_FREQUENCY = ("GPS_L1", "GLO_G1", "GAL_E1", "BDS_B1I", "QZS_J1", "BDS_B1C")
 #: per-measurement inputs, in order (``*_present`` flags say whether the value exists: 0 inputs then)
 FEATURES = ("cn0_present", "cn0", "sin_el", "z_present", "z", "abs_z", "epoch_scale", "n_doppler", "speed",
             "second_freq") + tuple(f"sys_{s}" for s in SYSTEMS)

@@ -67,7 +67,8 @@ def feature_guard(x: np.ndarray, mask: np.ndarray, ranges: dict | None, cfg) -> 
 
     Returns ``missing`` (group -> (N,S) bool: read that group as missing / unknown there, for
     :func:`learned.features.context_channels`), ``core`` (N,S) bool (the slot's own residual, residual
-    change or arc age is outside the training range: handed to the physical model) and counts by reason.
+    change or arc age is outside the training range: handed to the physical model) and counts by reason
+    (``meas_signal_read_as_unknown``: the measurements its signal one-hot reads as an unknown signal).
     """
     from learned.features import BOUNDED_GROUPS, CATEGORY_GROUPS, FLAG_CHANNEL, OPTIONAL_GROUPS
     missing, counts = {}, {}
@@ -94,6 +95,8 @@ def feature_guard(x: np.ndarray, mask: np.ndarray, ranges: dict | None, cfg) -> 
         unseen = mask & (x[..., cols[~seen[cols]]] > 0.5).any(-1)
         missing[g] = unseen
         counts[f"meas_{g}_unseen_in_training"] = int(unseen.sum())
+        # those and the ones the network's one-hot has no column for (signals newer than it) alike
+        counts[f"meas_{g}_read_as_unknown"] = int((unseen | (mask & (x[..., sl[g].stop - 1] > 0.5))).sum())
     core_idx = [0] + [sl[g].start for g in ("dres", "arc") if g in sl]
     v = x[..., core_idx]
     core = mask & ((v < lo[core_idx]) | (v > hi[core_idx])).any(-1)

@@ -28,8 +28,8 @@ def learned_words(info: dict) -> str:
     return (f"{who}: asked at {g.get('epochs_asked', 0)} epochs, {g.get('meas_asked', 0)} measurements; its guard "
             f"gave the physical sigma model {g.get('meas_out_of_range', 0)} measurements with inputs outside the "
             f"training range; {g.get('meas_unseen_signal', 0)} measurements of signals it cannot read left to the "
-            f"graph's own model; "
-            f"correction shrunk in {g.get('epochs_guard_shrunk', 0)} epochs, switched off in "
+            f"graph's own model; {g.get('meas_signal_read_as_unknown', 0)} read as an unknown signal (one it was "
+            f"not trained on); correction shrunk in {g.get('epochs_guard_shrunk', 0)} epochs, switched off in "
             f"{g.get('epochs_guard_off', 0)}")
 
 

@@ -48,7 +48,8 @@ _CONST_LETTER = {1: "G", 2: "S", 3: "R", 4: "J", 5: "C", 6: "E"}
 #: (letter, band) -> signal; band "L1" ~1575 MHz, "L5" ~1176 MHz, "B1" 1561 MHz, "G1" ~1602 MHz.
 _SIGNAL = {("G", "L1"): "GPS_L1", ("G", "L5"): "GPS_L5", ("R", "G1"): "GLO_G1", ("E", "L1"): "GAL_E1",
            ("E", "L5"): "GAL_E5A", ("C", "B1"): "BDS_B1I", ("J", "L1"): "QZS_J1", ("J", "L5"): "QZS_J5",
-           ("G", "L2"): "GPS_L2", ("J", "L2"): "QZS_J2", ("E", "B2"): "GAL_E5B", ("C", "B2"): "BDS_B2I"}
+           ("G", "L2"): "GPS_L2", ("J", "L2"): "QZS_J2", ("E", "B2"): "GAL_E5B", ("C", "B2"): "BDS_B2I",
+           ("C", "L1"): "BDS_B1C", ("C", "L5"): "BDS_B2A"}
 _BANDS = (("L1", 1575.42e6), ("L5", 1176.45e6), ("B1", 1561.098e6), ("L2", 1227.60e6), ("B2", 1207.14e6))
 #: Android ``CodeType`` values that are our second-frequency signals (GPS / QZSS L2C: L, M, X
 #: and S (L2C(M)); Galileo E5b and BeiDou B2I: I, Q, X); others on those carriers (GPS P(Y),
@@ -179,12 +180,12 @@ def _signals(const: np.ndarray, freq_hz: np.ndarray, svid: np.ndarray,
              code: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Signal name (None where not one of ours) and GLONASS channel per record.
 
-    const: (N,) RINEX letters.  freq_hz: (N,) CarrierFrequencyHz, NaN when not logged (old logs:
-    L1 band assumed).  svid: (N,) Android svid (GLONASS 93..106 = channel + 100, slot unknown).
+    const: (N,) RINEX letters.  freq_hz: (N,) CarrierFrequencyHz, NaN when not logged (old logs, which
+    predate dual-frequency phones: L1 band assumed, B1I for BeiDou).  svid: (N,) Android svid (GLONASS 93..106 = channel + 100, slot unknown).
     code: (N,) CodeType ('' when not logged), which tells L2C / B2I from other signals on their carriers.
     """
     band = np.full(const.size, "", dtype=object)
-    f = np.where(np.isnan(freq_hz), 1575.42e6, freq_hz)
+    f = np.where(np.isnan(freq_hz), np.where(const == "C", 1561.098e6, 1575.42e6), freq_hz)
     for name, centre in _BANDS:
         band[np.abs(f - centre) < 1e6] = name
     glo = const == "R"

@@ -355,8 +355,10 @@ def galileo_message(letters: np.ndarray, data_source: np.ndarray) -> np.ndarray:
 def group_delays(letters: np.ndarray, msg: np.ndarray, tgd: np.ndarray, iodc: np.ndarray
                  ) -> dict[str, np.ndarray]:
     """Group delays [s] per signal class of each record (N,): ``tgd`` (L1 class: GPS/QZSS L1,
-    Galileo E1, BeiDou B1I), ``tgd_l5`` (L5 / E5a), ``tgd_l2`` (GPS/QZSS L2, Galileo E5b, BeiDou
-    B2I), each what that signal's user subtracts from the record's clock.
+    Galileo E1, BeiDou B1I and B1C), ``tgd_l5`` (L5 / E5a; BeiDou B2a: 0), ``tgd_l2`` (GPS/QZSS L2,
+    Galileo E5b, BeiDou B2I), each what that signal's user subtracts from the record's clock. A D1 / D2
+    record has no group delay for B1C or B2a (CNAV-1 / CNAV-2 carry them): B1C takes TGD1, of the nearest
+    carrier that has one, and B2a none; the graph's bias state per signal takes their common part.
 
     tgd / iodc: the record's two group-delay slots (GPS TGD / IODC; Galileo BGD(E1,E5a) /
     BGD(E1,E5b); BeiDou TGD1 / TGD2). Galileo's I/NAV clock serves E1 and E5b with BGD(E1,E5b),

@@ -39,15 +39,20 @@ from fusion.trace import count_skip
 
 #: System letter -> [(signal, band digit, tracking attributes in priority order)].
 #: Second frequencies: GPS / QZSS L2C (L, M or combined X tracking; P(Y) semi-codeless W is not
-#: L2C and stays out), Galileo E5b, BeiDou B2I (band 7 in every RINEX 3 version).
+#: L2C and stays out), Galileo E5b, BeiDou B2I (band 7 in every RINEX 3 version). BeiDou-3's B1C
+#: (band 1, pilot, data or both) and B2a (band 5) since RINEX 3.04.
 SIGNAL_CODES: dict[str, list[tuple[str, str, str]]] = {
     "G": [("GPS_L1", "1", "C"), ("GPS_L5", "5", "QIX"), ("GPS_L2", "2", "LXS")],
     "R": [("GLO_G1", "1", "C")],
     "E": [("GAL_E1", "1", "CXB"), ("GAL_E5A", "5", "QXI"), ("GAL_E5B", "7", "QXI")],
     # RINEX 3.01 wrote BeiDou B1I as C1I; 3.02 on as C2I.
-    "C": [("BDS_B1I", "2", "I"), ("BDS_B1I", "1", "I"), ("BDS_B2I", "7", "IXQ")],
+    "C": [("BDS_B1I", "2", "I"), ("BDS_B1I", "1", "I"), ("BDS_B2I", "7", "IXQ"),
+          ("BDS_B1C", "1", "PXD"), ("BDS_B2A", "5", "PXD")],
     "J": [("QZS_J1", "1", "C"), ("QZS_J5", "5", "QXI"), ("QZS_J2", "2", "LXS")],
 }
+#: Codes that named another signal before a RINEX version: in 3.01 BeiDou's band 1 was B1I, so C1X was
+#: B1I's I + Q, not B1C.
+_CODE_SINCE = {("C", "1X"): 3.02}
 #: RINEX satellite number -> Android svid offset (QZSS J01 is svid 193, SBAS S20 is 120).
 _SVID_OFFSET = {"J": 192, "S": 100}
 #: Time systems whose seconds are GPS seconds, and BeiDou time's offset from GPS [s].
@@ -399,6 +404,7 @@ def _system_blocks(sys_letter: str, types: list[str], rows: np.ndarray, values: 
     done: set[str] = set()
     blocks = []
     for signal, band, attrs in SIGNAL_CODES[sys_letter]:
+        attrs = "".join(a for a in attrs if head.version >= _CODE_SINCE.get((sys_letter, band + a), 0.0))
         attr = next((a for a in attrs if f"C{band}{a}" in index or f"L{band}{a}" in index), None)
         if attr is None or signal in done:
             continue

@@ -21,8 +21,11 @@ from fusion.nav.glonass import glonass_state, select_glonass
 from fusion.nav.orbits import GpsNav, sat_state, select_ephemeris
 from fusion.trace import SIGNALS, count_skip
 
-#: Group-delay class of each signal: 0 L1 / E1 / B1I / G1, 1 L5 / E5a, 2 L2 / E5b / B2I.
-SIGNAL_CLASS = np.array([1 if s in ("GPS_L5", "GAL_E5A", "QZS_J5") else
+#: Group-delay class of each signal: 0 L1 / E1 / B1I / B1C / G1, 1 L5 / E5a / B2a, 2 L2 / E5b / B2I.
+#: BeiDou's D1 / D2 records (all RINEX 3 carries) give group delays for B1I and B2I only: B1C takes B1I's
+#: TGD1, B2a none (:func:`fusion.io.rinex_nav.group_delays`); each signal's own bias state in the graph
+#: takes the part common to the satellites, a few nanoseconds per satellite stay.
+SIGNAL_CLASS = np.array([1 if s in ("GPS_L5", "GAL_E5A", "QZS_J5", "BDS_B2A") else
                          2 if s in ("GPS_L2", "GAL_E5B", "BDS_B2I", "QZS_J2") else 0 for s in SIGNALS])
 #: Signals on the L5 / E5a carrier, whose group delay is ``tgd_l5`` rather than the L1 ``tgd``.
 L5_SIGNALS = SIGNAL_CLASS == 1

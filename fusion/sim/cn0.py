@@ -34,13 +34,16 @@ from fusion.trace import SIGNALS
 CHIP_RATE = {"GPS_L1": 1.023e6, "GPS_L5": 10.23e6, "GLO_G1": 0.511e6, "GAL_E1": 1.023e6,
              "GAL_E5A": 10.23e6, "BDS_B1I": 2.046e6, "QZS_J1": 1.023e6, "QZS_J5": 10.23e6,
              # second frequencies (L2C: CM and CL chips time-multiplexed at 1.023 Mcps)
-             "GPS_L2": 1.023e6, "GAL_E5B": 10.23e6, "BDS_B2I": 2.046e6, "QZS_J2": 1.023e6}
+             "GPS_L2": 1.023e6, "GAL_E5B": 10.23e6, "BDS_B2I": 2.046e6, "QZS_J2": 1.023e6,
+             "BDS_B1C": 1.023e6, "BDS_B2A": 10.23e6}
 #: Zenith C/N0 [dB-Hz] of each signal for an isotropic antenna at nominal received power
 #: (GPS L1 C/A -158.5 dBW into a -204 dBW/Hz noise floor = 45.5; others relative to it).
 ZENITH_DB = {"GPS_L1": 45.5, "GPS_L5": 47.5, "GLO_G1": 44.5, "GAL_E1": 44.5, "GAL_E5A": 46.5,
              "BDS_B1I": 43.5, "QZS_J1": 45.5, "QZS_J5": 47.5,
              # L2C -160 dBW (1.5 dB below L1 C/A), E5b as E5a, B2I as B1I
-             "GPS_L2": 44.0, "GAL_E5B": 46.5, "BDS_B2I": 43.5, "QZS_J2": 44.0}
+             "GPS_L2": 44.0, "GAL_E5B": 46.5, "BDS_B2I": 43.5, "QZS_J2": 44.0,
+             # B1C -159 dBW (data + pilot), B2a -156 dBW (BDS-SIS-ICD-B1C / B2a 1.0)
+             "BDS_B1C": 45.0, "BDS_B2A": 47.5}
 #: Chip length [m] per signal index (index into SIGNALS).
 CHIP_M = np.array([C_LIGHT / CHIP_RATE[s] for s in SIGNALS])
 _ZENITH = np.array([ZENITH_DB[s] for s in SIGNALS])

@@ -214,3 +214,26 @@ def test_second_frequencies_by_carrier_and_code_type(tmp_path):
     l2 = raw.frame[raw.frame.signal == "GPS_L2"]
     assert (l2.carrier_hz == 1227.60e6).all()
     assert raw.skipped["records_other_signals"] > 0          # the CodeType W ones
+
+
+def test_beidou_b1c_and_b2a_by_carrier_and_b1i_without_one(tmp_path):
+    """BeiDou records at 1575.42 MHz are B1C and at 1176.45 MHz B2a (newer phones log them); a BeiDou record
+    without a carrier frequency, from a log older than dual-frequency phones, is B1I (it was dropped as
+    a BeiDou signal on the L1 carrier before)."""
+    carriers = ("1575420000", "1176450000", "")
+
+    def to_beidou(lines):
+        out, k = [], 0
+        for ln in lines:
+            f = ln.rstrip("\n").split(",")
+            if ln.startswith("Raw,") and f[28] == "1":                 # the GPS records become BeiDou ones
+                f[28], f[22], f[35] = "5", carriers[k % 3], ""
+                k += 1
+                ln = ",".join(f) + "\n"
+            out.append(ln)
+        return out
+    f = read_gnss_log(_edit(tmp_path, P7_LOG, to_beidou)).frame
+    bds = f[f.const == "C"]
+    assert set(bds.signal) == {"BDS_B1C", "BDS_B2A", "BDS_B1I"}
+    for name, hz in (("BDS_B1C", 1575.42e6), ("BDS_B2A", 1176.45e6), ("BDS_B1I", 1561.098e6)):
+        assert (bds.carrier_hz[bds.signal == name] == hz).all()

@@ -379,3 +379,34 @@ def test_satellite_lines_read_in_blocks_as_in_one(tmp_path, monkeypatch):
     for other in frames[1:]:
         assert other.frame.equals(frames[0].frame) and other.skipped == frames[0].skipped
     assert frames[0].skipped["sat_lines_bad_number"] == 1 and len(frames[0].frame) > 20
+
+
+def _beidou_file(tmp_path: Path, version: str, types: str) -> Path:
+    """One epoch of one BeiDou satellite with the observation types ``types`` (C L D S per signal)."""
+    t = types.split()
+    head = [f"{version:>9s}           OBSERVATION DATA    M                   RINEX VERSION / TYPE",
+            f"C  {len(t):3d} " + " ".join(t).ljust(53) + "SYS / # / OBS TYPES",
+            "  2021     4    28    22    19   22.0000000     GPS         TIME OF FIRST OBS",
+            " " * 60 + "END OF HEADER"]
+    f = lambda v: f"{v:14.3f} 5"  # noqa: E731
+    body = ["> 2021 04 28 22 19 22.0000000  0  1", "C30" + "".join(f(3.8e7 + i) for i in range(len(t)))]
+    p = tmp_path / f"bds{version}.21o"
+    p.write_text("\n".join(head + body) + "\n")
+    return p
+
+
+def test_beidou_b1c_and_b2a(tmp_path):
+    """RINEX 3.04's BeiDou-3 codes: B1C on band 1 (pilot P first, then X, then data D), B2a on band 5, each a
+    signal of its own beside B1I at its carrier; in RINEX 3.01, whose band 1 was B1I, C1X is no B1C."""
+    raw = read_rinex_obs(_beidou_file(tmp_path, "3.04", "C2I L2I D2I S2I C1D C1P L1P D1P S1P C5X L5X D5X S5X"))
+    f = raw.frame.set_index("signal")
+    assert sorted(f.index) == ["BDS_B1C", "BDS_B1I", "BDS_B2A"]
+    assert f.loc["BDS_B1C", "pr_m"] == 3.8e7 + 5 and f.loc["BDS_B1C", "carrier_hz"] == 1575.42e6     # C1P, not C1D
+    assert f.loc["BDS_B1C", "adr_m"] == pytest.approx((3.8e7 + 6) * C / 1575.42e6)
+    assert f.loc["BDS_B2A", "pr_m"] == 3.8e7 + 9 and f.loc["BDS_B2A", "carrier_hz"] == 1176.45e6
+    assert f.loc["BDS_B2A", "cn0"] == 3.8e7 + 12
+    assert raw.skipped == {"obs_other_signals": 1}                                            # C1D
+    assert set(read_rinex_obs(_beidou_file(tmp_path, "3.04", "C1X L1X")).frame.signal) == {"BDS_B1C"}
+    old = read_rinex_obs(_beidou_file(tmp_path, "3.01", "C1I L1I C1X L1X"))
+    assert set(old.frame.signal) == {"BDS_B1I"} and old.frame.pr_m.tolist() == [3.8e7]
+    assert old.skipped == {"obs_other_signals": 1}

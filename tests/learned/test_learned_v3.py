@@ -74,7 +74,7 @@ def test_guard_reads_unseen_features_as_missing_and_unseen_signals_as_unknown():
     assert missing["cn0"][m].all() and counts["meas_cn0_unseen_in_training"] == m.sum()
     assert missing["signal"][:, :3][m[:, :3]].all() and not missing["signal"][:, 3:].any()
     assert missing["system"][:, :3][m[:, :3]].all()
-    assert counts["meas_signal_unseen_in_training"] == m[:, :3].sum()
+    assert counts["meas_signal_unseen_in_training"] == counts["meas_signal_read_as_unknown"] == m[:, :3].sum()
     assert not core.any()                                   # their own residuals are in range: not handed off
     y = context_channels(rctx, m, CFG, missing)
     sl = CFG.slices()
@@ -152,3 +152,23 @@ def test_feature_dropout_drops_the_report_per_sample_and_signals_per_slot():
     unknown = d["extra"][..., sl["signal"].stop - 5][m]
     assert 0.1 < unknown.float().mean() < 0.3
     assert torch.equal(feature_dropout(t, TrainConfig(features=CFG, dropout={}), g)["extra"], t["extra"])
+
+
+def test_signals_newer_than_the_network_read_as_unknown():
+    """BeiDou B1C / B2a (appended to SIGNALS after the network's one-hots were fixed) read as an unknown
+    signal of an unknown system, like a signal unseen in training."""
+    tr = toy_trace(10, seed=3, n_sats=(8, 8))
+    tr.signal[:, :2] = SIGNALS.index("BDS_B1C")
+    tr.signal[:, 2] = SIGNALS.index("BDS_B2A")
+    ctx = slot_context(tr, solve_wls(tr)).as_dict()
+    y = context_channels(ctx, tr.mask, CFG)
+    sl = CFG.slices()
+    for group in ("signal", "system"):
+        onehot = y[..., sl[group].start - 4:sl[group].stop - 4]
+        assert (onehot[:, :3, -1] == 1).all() and (onehot[:, :3, :-1] == 0).all()
+        assert (onehot[:, 3:, -1] == 0).all()
+    x = np.concatenate([np.zeros(tr.mask.shape + (4,), np.float32), y], -1)
+    ranges = {"lo": x[tr.mask].min(0).tolist(), "hi": x[tr.mask].max(0).tolist()}
+    ranges["hi"][sl["signal"].stop - 1] = 1.0               # feature dropout showed the network "unknown"
+    _, core, counts = feature_guard(x, tr.mask, ranges, CFG)
+    assert counts["meas_signal_read_as_unknown"] == tr.mask[:, :3].sum() and not core.any()

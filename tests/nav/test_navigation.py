@@ -335,3 +335,20 @@ def test_lagrange_interpolation_is_exact_for_its_degree_and_at_the_samples():
     want = np.array([np.polyval(coeffs[:, c], t / t_ref[-1]) for c, t in zip(col, t_q)])
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(values).max())
     np.testing.assert_allclose(got[-3:], values[[0, 7, 29], col[-3:], 0], rtol=1e-14, atol=0)
+
+
+def test_beidou_b1c_takes_tgd1_and_b2a_no_group_delay(mixed):
+    """A D1 / D2 record's clock refers to B3I and carries group delays for B1I (TGD1) and B2I (TGD2) only:
+    B1C takes TGD1, B2a none."""
+    k = mixed.kepler
+    rec = int(np.flatnonzero(k.sat_id == 5006)[0])
+    names = ("BDS_B1I", "BDS_B1C", "BDS_B2A", "BDS_B2I")
+    sig = np.array([SIGNALS.index(s) for s in names], np.int8)
+    st = broadcast_states(mixed, np.full(4, 5006), sig, np.full(4, k.toe_ms[rec]), 0.0)
+    assert st["ok"].all()
+    tgd1, tgd2 = k.params["tgd"][rec], k.params["iodc"][rec]
+    assert tgd1 != 0 and tgd2 != 0
+    b1i, b1c, b2a, b2i = st["clock_s"]
+    assert b1c == b1i
+    assert b2a - b1i == pytest.approx(tgd1, abs=1e-15)
+    assert b2i - b1i == pytest.approx(tgd1 - tgd2, abs=1e-15)

@@ -130,3 +130,37 @@ def test_signal_names_stay_and_new_ones_are_appended():
     for system, v2 in (("G", "C2"), ("G", "L2"), ("E", "C7"), ("C", "C7"), ("J", "C2")):
         assert (system, v2_type_as_v3(system, v2)[1:]) in codes
     assert ("G", v2_type_as_v3("G", "P2")[1:]) not in codes              # P(Y) is not L2C
+
+
+def test_beidou_b1c_and_b2a_are_signals_of_their_own_through_every_mode():
+    """BeiDou-3's B1C and B2a (indices past the network's one-hots) run through every mode, the learned part
+    reading them as an unseen signal, and each has its own bias state in the graph: a 15 m receiver bias on
+    B1C moves that state, not the positions. A simulated open-sky drive whose BeiDou satellites of odd svid
+    log B1C and the others B2a."""
+    from fusion.modes import run_modes
+    from fusion.run_types import RunOptions
+    from fusion.sim.config import scenario_config
+    from fusion.sim.simulate import simulate
+    from fusion.trace import signal_index
+    assert signal_index(["BDS_B1C", "BDS_B2A_P", "BDS_B1C_D"]).tolist() == [12, 13, 12]
+    tr = simulate(n_epochs=60, nav=default_nav_path(), seed=3, config=scenario_config("open")).trace
+    bds = tr.mask & (tr.signal == SIGNALS.index("BDS_B1I"))
+    b1c = bds & (tr.sat_id % 2 == 1)
+    tr.signal[b1c], tr.signal[bds & ~b1c] = SIGNALS.index("BDS_B1C"), SIGNALS.index("BDS_B2A")
+    assert b1c.any() and (bds & ~b1c).any()
+    opts = RunOptions(signals=None, graph=GraphConfig(use_doppler=False, use_carrier=False))
+    res = run_modes(tr, ["wls", "fused-nodnn", "fused"], opts)
+    for mode, r in res.items():
+        err = np.linalg.norm(r.pos[r.valid] - tr.truth[r.valid], axis=1)
+        assert r.valid.all() and np.median(err) < 3.0, mode
+    # every BeiDou measurement the network was asked about (above its mask) read as an unknown signal, no other
+    info = res["fused"].info
+    from fusion.eval.summary import learned_words
+    assert 0.8 * bds.sum() < info["learned_meas_signal_read_as_unknown"] <= bds.sum()
+    assert f"{info['learned_meas_signal_read_as_unknown']} read as an unknown signal" in learned_words(info)
+    base = res["fused-nodnn"]
+    tr.pr[b1c] += 15.0
+    moved = run_modes(tr, ["fused-nodnn"], opts)["fused-nodnn"]
+    assert {"BDS_B1C@0", "BDS_B2A@0"} <= set(moved.info["isb_m"])
+    assert moved.info["isb_m"]["BDS_B1C@0"] - base.info["isb_m"]["BDS_B1C@0"] == pytest.approx(15.0, abs=0.3)
+    np.testing.assert_allclose(moved.pos, base.pos, atol=0.05)
