@@ -37,6 +37,18 @@ SIGNALS: tuple[str, ...] = (
 )
 
 
+def satellite_counts(sat_id: np.ndarray, sel: np.ndarray) -> np.ndarray:
+    """(E,) int distinct satellites among the slots ``sel`` (E,S) bool, ``sat_id`` (E,S) int: a second
+    frequency of a satellite adds a pseudorange but no direction, so four slots of two satellites fix no
+    position. A slot without a satellite number (0: arrays built without one) counts as a satellite of its own."""
+    sat_id = np.asarray(sat_id, np.int64)
+    own = -1 - np.arange(sat_id.shape[1])              # one per slot, below every real number
+    none = np.iinfo(np.int64).min
+    ids = np.sort(np.where(sel, np.where(sat_id > 0, sat_id, own), none), axis=1)
+    new = ids[:, 1:] != ids[:, :-1]
+    return (ids[:, :1] != none).sum(axis=1) + (new & (ids[:, 1:] != none)).sum(axis=1)
+
+
 def signal_index(names: Sequence[str] | pd.Series) -> np.ndarray:
     """Map GSDC signal names onto indices into :data:`SIGNALS` (int8, -1 where unknown).
 

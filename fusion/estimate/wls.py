@@ -69,7 +69,8 @@ floored at 1 so the reported uncertainty is never more optimistic than the a-pri
 
 Failure reporting
 -----------------
-An epoch is ``valid`` only when it had >= 4 satellites after the mask, a well-conditioned normal
+An epoch is ``valid`` only when it had >= 4 satellites after the mask (satellites, not signals: given
+``sat_id``, two frequencies of one satellite count once), a well-conditioned normal
 matrix (condition number of the unit-diagonal scaled normal matrix <= ``max_cond``; catches
 coplanar and cone geometries), a converged fine stage, and a
 plausible result (finite, ellipsoidal height within [-2 km, 100 km]). ``status`` holds a code per
@@ -96,7 +97,7 @@ from fusion.estimate.variance_factor import calibrate_snapshot
 from fusion.estimate.wls_state import SIGMA0_M, FitState, WlsSettings  # noqa: F401 (SIGMA0_M: public here too)
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
 from fusion.run_types import ModeResult
-from fusion.trace import count_skip
+from fusion.trace import count_skip, satellite_counts
 
 #: Epochs with at most this many satellites after exclusion are also checked against their neighbours:
 #: with one or two redundant measurements the chi-square test misses many gross faults.
@@ -208,13 +209,13 @@ def solve_wls(trace, settings: WlsSettings | None = None, *, x0: np.ndarray | No
     """
     settings = (TRACE_DEFAULTS if settings is None else settings).replace(**options)
     return solve_wls_arrays(trace.sat_pos, trace.pr, trace.mask, trace.pr_sigma, x0, settings=settings,
-                            t_ms=trace.t_ms, clock_reset=trace.clock_reset)
+                            t_ms=trace.t_ms, clock_reset=trace.clock_reset, sat_id=trace.sat_id)
 
 
 def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigma: np.ndarray | None = None,
                      x0: np.ndarray | None = None, *, settings: WlsSettings | None = None,
                      t_ms: np.ndarray | None = None, clock_reset: np.ndarray | None = None,
-                     **options) -> WlsResult:
+                     sat_id: np.ndarray | None = None, **options) -> WlsResult:
     """Batched WLS on raw padded arrays (the engine behind :func:`solve_wls`).
 
     sat_pos:     (E, S, 3) transmit-time satellite ECEF [m].
@@ -227,6 +228,8 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
     t_ms:        (E,)      epoch times; with it, three-satellite epochs are solved with the clock
                            interpolated from neighbouring valid epochs (:mod:`fusion.estimate.clock_bridge`).
     clock_reset: (E,)      bool, known clock jumps (no clock is interpolated across one).
+    sat_id:      (E, S)    int, the satellite of each slot: "four satellites" and "three" count satellites,
+                           not slots (a second frequency adds no direction). None: each slot its own.
 
     Real slots with non-finite inputs (or a non-positive sigma under ``"uncertainty"``) are not
     used and are counted in ``dropped``; wrong shapes or option values raise :class:`DataError`.
@@ -235,8 +238,9 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
     sat_pos, pr, mask, sigma, x0 = _check_inputs(sat_pos, pr, mask, sigma, x0, cfg.weighting)
     dropped: dict[str, int] = {}
     sat_pos, pr, real = _usable_slots(sat_pos, pr, mask, sigma, cfg.weighting, dropped)
-    status = np.where(real.sum(1) < 4, FEW_SATS, OK).astype(np.int8)
-    fit, el = _coarse_and_mask(_start_fit(sat_pos, pr, real, x0, dropped), status, sigma, cfg)
+    n_sats = _satellite_counter(sat_id, real.shape)
+    status = np.where(n_sats(real) < 4, FEW_SATS, OK).astype(np.int8)
+    fit, el = _coarse_and_mask(_start_fit(sat_pos, pr, real, x0, dropped), status, sigma, cfg, n_sats)
     # fine stage: weighted, to the step tolerance
     alive = status == OK
     fit = fit.solve(alive, fit.w_prior, cfg.max_iter, cfg.tol_m, cfg.max_cond)
@@ -250,8 +254,19 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
         fit = huber_irls(fit, eligible, cfg)
     res = _finish(fit, el, status, alive, cfg)
     if t_ms is not None:
-        _bridge_three_sat_epochs(res, fit, sigma, np.asarray(t_ms), clock_reset, cfg)
+        _bridge_three_sat_epochs(res, fit, sigma, np.asarray(t_ms), clock_reset, cfg, n_sats)
     return res
+
+
+def _satellite_counter(sat_id: np.ndarray | None, shape: tuple[int, int]):
+    """``count(sel, rows=slice(None))``: (K,) distinct satellites among the slots ``sel`` (K,S) bool of the
+    epochs ``rows`` (slots, without ``sat_id``)."""
+    if sat_id is None:
+        return lambda sel, rows=slice(None): sel.sum(1)
+    if np.shape(sat_id) != shape:
+        raise DataError(f"sat_id must be {shape} like pr, got {np.shape(sat_id)}")
+    sat_id = np.asarray(sat_id)
+    return lambda sel, rows=slice(None): satellite_counts(sat_id[rows], sel)
 
 
 # ------------------------------------------------------------------------------------- the stages
@@ -322,10 +337,10 @@ def _start_fit(sat_pos, pr, real, x0, dropped) -> FitState:
 
 
 def _coarse_and_mask(fit: FitState, status: np.ndarray, sigma: np.ndarray,
-                     cfg: WlsSettings) -> tuple[FitState, np.ndarray]:
+                     cfg: WlsSettings, n_sats) -> tuple[FitState, np.ndarray]:
     """Coarse fix (all satellites, unit weights), then the elevation mask and a-priori weights.
 
-    ``status`` (E,) is updated in place. Returns the fit at the coarse state with ``used``, ``w_prior``
+    ``status`` (E,) is updated in place; ``n_sats`` counts satellites among slots (:func:`_satellite_counter`). Returns the fit at the coarse state with ``used``, ``w_prior``
     and ``w_fit`` set by the mask and weighting (and fresh ``conv`` / ``bad`` / ``runaway``), and the
     elevations (E,S) [deg]. 100 m is ample for the coarse stage: elevations only need km accuracy, and
     one Gauss-Newton step from 100 m off lands within ~1e-6 m.
@@ -340,7 +355,7 @@ def _coarse_and_mask(fit: FitState, status: np.ndarray, sigma: np.ndarray,
     el = _elevations(fit.sat_pos, coarse.x[:, :3], real & alive[:, None])
     used = real & (el >= cfg.elev_mask_deg)
     count_skip(fit.dropped, "below_mask", real & ~used & alive[:, None])
-    status[alive & (used.sum(1) < 4)] = FEW_SATS_AFTER_MASK
+    status[alive & (n_sats(used) < 4)] = FEW_SATS_AFTER_MASK
     used &= (status == OK)[:, None]
     w_prior = np.where(used, 1.0 / _sigmas(cfg, el, sigma) ** 2, 0.0)
     return fit.replace(x=coarse.x, used=used, w_prior=w_prior, w_fit=w_prior), el
@@ -389,12 +404,12 @@ def _reasons(status: np.ndarray) -> dict[str, int]:
 
 
 def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t_ms: np.ndarray, clock_reset,
-                             cfg: WlsSettings) -> None:
-    """Solve (in place) epochs left with exactly three satellites above the mask, the clock
-    interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`).
-    sigma: (E,S) the input sigmas; t_ms: (E,); clock_reset: (E,) bool or None."""
+                             cfg: WlsSettings, n_sats) -> None:
+    """Solve (in place) epochs left with exactly three satellites above the mask (any number of signals each),
+    the clock interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`).
+    sigma: (E,S) the input sigmas; t_ms: (E,); clock_reset: (E,) bool or None; n_sats: as in :func:`_coarse_and_mask`."""
     real = fit.real
-    few = np.flatnonzero(np.isin(res.status, (FEW_SATS, FEW_SATS_AFTER_MASK)) & (real.sum(1) >= 3))
+    few = np.flatnonzero(np.isin(res.status, (FEW_SATS, FEW_SATS_AFTER_MASK)) & (n_sats(real) >= 3))
     good = np.flatnonzero(res.valid)
     if few.size == 0 or good.size == 0:
         return
@@ -402,7 +417,7 @@ def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t
     pos0 = res.pos[near]
     el = _elevations(fit.sat_pos[few], pos0, real[few])
     used = real[few] & (el >= cfg.elev_mask_deg)
-    few, pos0, el, used = (a[used.sum(1) == 3] for a in (few, pos0, el, used))
+    few, pos0, el, used = (a[n_sats(used, few) == 3] for a in (few, pos0, el, used))
     resets = np.zeros(res.n_epochs, bool) if clock_reset is None else np.asarray(clock_reset, bool)
     clock, ok = interpolate_clock(t_ms, res.clock_m, res.valid, resets, few)
     res.status[few[~ok]] = THREE_SATS_NO_CLOCK
@@ -419,7 +434,7 @@ def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t
     res.cov[e] = np.nan
     res.cov[e, :3, :3] = cov3[good_fix]
     res.used[e] = used[good_fix]
-    res.n_used[e] = 3
+    res.n_used[e] = used[good_fix].sum(1)
     res.elev_deg[e] = el[good_fix]
     res.reasons = _reasons(res.status)
 
@@ -505,9 +520,9 @@ def estimate_wls(trace, wls: WlsResult, opts) -> ModeResult:
     # Copies: every mode receives the same WlsResult, so no mode's output may alias it.
     res = ModeResult(pos=wls.pos.copy(), valid=wls.valid.copy(), cov=wls.cov[:, :3, :3].copy(),
                      info={"unsolved": int((~wls.valid).sum()),
-                           # epochs loaded with < 4 measurements (CLI loads with min_sats=1 so the
+                           # epochs loaded with < 4 satellites (CLI loads with min_sats=1 so the
                            # fused modes can carry them; WLS solves only 3-satellite ones, below)
-                           "lt4_sats": int((trace.n_sats < 4).sum()),
+                           "lt4_sats": int((satellite_counts(trace.sat_id, trace.mask) < 4).sum()),
                            **wls_counts(wls)})
     return calibrate_snapshot(res, trace, "wls", opts, wls, used=wls.used)
 

@@ -538,12 +538,13 @@ def test_an_outage_is_flagged_as_bridged_with_its_length(trace, wls):
 
 
 def test_satellites_are_counted_once_whatever_their_signals():
-    """satellite_counts: two frequencies of one satellite are one satellite; unselected slots none."""
-    from fusion.estimate.graph.inputs import satellite_counts
+    """satellite_counts: two frequencies of one satellite are one satellite; unselected slots none; slots without
+    a satellite number (0) one each."""
+    from fusion.trace import satellite_counts
 
-    sat_id = np.array([[5, 5, 7, 9, 0], [3, 4, 3, 4, 3], [1, 2, 3, 4, 5], [0, 8, 9, 10, 11]])
-    sel = np.array([[1, 1, 1, 0, 0], [1, 1, 1, 1, 0], [0, 0, 0, 0, 0], [1, 1, 1, 1, 0]], bool)
-    np.testing.assert_array_equal(satellite_counts(sat_id, sel), [2, 2, 0, 4])
+    sat_id = np.array([[5, 5, 7, 9, 0], [3, 4, 3, 4, 3], [1, 2, 3, 4, 5], [0, 8, 9, 10, 11], [0, 0, 0, 6, 6]])
+    sel = np.array([[1, 1, 1, 0, 0], [1, 1, 1, 1, 0], [0, 0, 0, 0, 0], [1, 1, 1, 1, 0], [1, 1, 1, 1, 1]], bool)
+    np.testing.assert_array_equal(satellite_counts(sat_id, sel), [2, 2, 0, 4, 4])
 
 
 def test_four_pseudoranges_of_three_satellites_are_a_bridge():

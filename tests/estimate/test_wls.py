@@ -337,6 +337,27 @@ def test_three_satellite_epoch_solved_with_interpolated_clock():
     assert not res.valid[2] and res.reasons == {"three_sats_no_clock": 1}
 
 
+def test_satellites_not_slots_decide_three_and_four():
+    """A dual-frequency drive (each satellite twice, one slot per signal): epoch 2's three satellites are six
+    slots, yet three satellites; it is solved with the interpolated clock as a single-frequency one is, not
+    refused as degenerate. Two satellites on two frequencies (four slots) are too few, not a degenerate fit."""
+    single, rx = _drive_with_three_sat_epoch()
+    S = single.mask.shape[1]
+    ids = np.broadcast_to(1001 + np.arange(S), single.mask.shape)
+    kw = empty_trace(5, 2 * S)
+    kw.update(t_ms=single.t_ms, sat_pos=np.concatenate([single.sat_pos] * 2, 1), pr=np.concatenate([single.pr] * 2, 1),
+              mask=np.concatenate([single.mask] * 2, 1), sat_id=np.concatenate([ids] * 2, 1).astype(np.int32))
+    dual = Trace(**kw)
+    res = solve_wls(dual)
+    assert res.valid.all() and res.clock_predicted.tolist() == [False, False, True, False, False]
+    assert np.linalg.norm(res.pos[2] - rx[2]) < 1e-3 and res.n_used[2] == 6
+    by_slots = solve_wls_arrays(dual.sat_pos, dual.pr, dual.mask, None, t_ms=dual.t_ms)     # no satellite ids
+    assert not by_slots.valid[2] and by_slots.reasons == {"degenerate": 1}
+    dual.mask[2, :] = False
+    dual.mask[2, [0, 1, S, S + 1]] = True
+    assert solve_wls(dual).reasons == {"few_sats": 1}
+
+
 def test_wls_mode_reports_exclusions():
     from fusion.estimate.wls import estimate_wls
     from fusion.run_types import RunOptions

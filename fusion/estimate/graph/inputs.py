@@ -20,7 +20,7 @@ from fusion.estimate.graph.raw_inputs import RawInputs, raw_inputs
 from fusion.estimate.graph.series import interp_rows
 from fusion.estimate.wls import WlsResult
 from fusion.geometry import elevation_azimuth, line_of_sight
-from fusion.trace import Trace
+from fusion.trace import Trace, satellite_counts
 
 
 @dataclass
@@ -77,15 +77,6 @@ def doppler_drift_epochs(inp: EpochInputs) -> np.ndarray:
     if inp.raw is None or inp.doppler_jump_mps <= 0:
         return np.zeros(inp.keep.shape, bool)
     return (inp.raw.doppler & inp.keep[:, None]).any(axis=1)
-
-
-def satellite_counts(sat_id: np.ndarray, sel: np.ndarray) -> np.ndarray:
-    """(E,) int distinct satellites among the slots ``sel`` (E,S) bool, ``sat_id`` (E,S) int: a second
-    frequency of a satellite adds a pseudorange but no direction, so four slots of two satellites fix no
-    position."""
-    ids = np.sort(np.where(sel, sat_id, -1), axis=1)
-    new = ids[:, 1:] != ids[:, :-1]
-    return (ids[:, :1] >= 0).sum(axis=1) + (new & (ids[:, 1:] >= 0)).sum(axis=1)
 
 
 def pseudorange_gap(inp: EpochInputs) -> np.ndarray:
