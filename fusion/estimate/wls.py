@@ -340,7 +340,8 @@ def _coarse_and_mask(fit: FitState, status: np.ndarray, sigma: np.ndarray,
                      cfg: WlsSettings, n_sats) -> tuple[FitState, np.ndarray]:
     """Coarse fix (all satellites, unit weights), then the elevation mask and a-priori weights.
 
-    ``status`` (E,) is updated in place; ``n_sats`` counts satellites among slots (:func:`_satellite_counter`). Returns the fit at the coarse state with ``used``, ``w_prior``
+    ``status`` (E,) is updated in place; ``n_sats`` counts satellites among slots (:func:`_satellite_counter`).
+    Returns the fit at the coarse state with ``used``, ``w_prior``
     and ``w_fit`` set by the mask and weighting (and fresh ``conv`` / ``bad`` / ``runaway``), and the
     elevations (E,S) [deg]. 100 m is ample for the coarse stage: elevations only need km accuracy, and
     one Gauss-Newton step from 100 m off lands within ~1e-6 m.
@@ -407,7 +408,8 @@ def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t
                              cfg: WlsSettings, n_sats) -> None:
     """Solve (in place) epochs left with exactly three satellites above the mask (any number of signals each),
     the clock interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`).
-    sigma: (E,S) the input sigmas; t_ms: (E,); clock_reset: (E,) bool or None; n_sats: as in :func:`_coarse_and_mask`."""
+    sigma: (E,S) the input sigmas; t_ms: (E,); clock_reset: (E,) bool or None; n_sats: as in
+    :func:`_coarse_and_mask`."""
     real = fit.real
     few = np.flatnonzero(np.isin(res.status, (FEW_SATS, FEW_SATS_AFTER_MASK)) & (n_sats(real) >= 3))
     good = np.flatnonzero(res.valid)

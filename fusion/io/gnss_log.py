@@ -181,7 +181,8 @@ def _signals(const: np.ndarray, freq_hz: np.ndarray, svid: np.ndarray,
     """Signal name (None where not one of ours) and GLONASS channel per record.
 
     const: (N,) RINEX letters.  freq_hz: (N,) CarrierFrequencyHz, NaN when not logged (old logs, which
-    predate dual-frequency phones: L1 band assumed, B1I for BeiDou).  svid: (N,) Android svid (GLONASS 93..106 = channel + 100, slot unknown).
+    predate dual-frequency phones: L1 band assumed, B1I for BeiDou).  svid: (N,) Android svid (GLONASS
+    93..106 = channel + 100, slot unknown).
     code: (N,) CodeType ('' when not logged), which tells L2C / B2I from other signals on their carriers.
     """
     band = np.full(const.size, "", dtype=object)

@@ -134,9 +134,10 @@ def test_signal_names_stay_and_new_ones_are_appended():
 
 def test_beidou_b1c_and_b2a_are_signals_of_their_own_through_every_mode():
     """BeiDou-3's B1C and B2a (indices past the network's one-hots) run through every mode, the learned part
-    reading them as an unseen signal, and each has its own bias state in the graph: a 15 m receiver bias on
+    reading them as an unknown signal, and each has its own bias state in the graph: a 15 m receiver bias on
     B1C moves that state, not the positions. A simulated open-sky drive whose BeiDou satellites of odd svid
     log B1C and the others B2a."""
+    from fusion.eval.summary import learned_words
     from fusion.modes import run_modes
     from fusion.run_types import RunOptions
     from fusion.sim.config import scenario_config
@@ -155,7 +156,6 @@ def test_beidou_b1c_and_b2a_are_signals_of_their_own_through_every_mode():
         assert r.valid.all() and np.median(err) < 3.0, mode
     # every BeiDou measurement the network was asked about (above its mask) read as an unknown signal, no other
     info = res["fused"].info
-    from fusion.eval.summary import learned_words
     assert 0.8 * bds.sum() < info["learned_meas_signal_read_as_unknown"] <= bds.sum()
     assert f"{info['learned_meas_signal_read_as_unknown']} read as an unknown signal" in learned_words(info)
     base = res["fused-nodnn"]
