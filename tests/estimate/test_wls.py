@@ -356,6 +356,8 @@ def test_satellites_not_slots_decide_three_and_four():
     dual.mask[2, :] = False
     dual.mask[2, [0, 1, S, S + 1]] = True
     assert solve_wls(dual).reasons == {"few_sats": 1}
+    with pytest.raises(DataError, match=r"sat_id must be \(5, 16\) like pr"):
+        solve_wls_arrays(dual.sat_pos, dual.pr, dual.mask, None, sat_id=dual.sat_id[:, :3])
 
 
 def test_wls_mode_reports_exclusions():
