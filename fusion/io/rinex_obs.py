@@ -50,9 +50,9 @@ SIGNAL_CODES: dict[str, list[tuple[str, str, str]]] = {
           ("BDS_B1C", "1", "PXD"), ("BDS_B2A", "5", "PXD")],
     "J": [("QZS_J1", "1", "C"), ("QZS_J5", "5", "QXI"), ("QZS_J2", "2", "LXS")],
 }
-#: Codes that named another signal before a RINEX version: in 3.01 BeiDou's band 1 was B1I, so C1X was
-#: B1I's I + Q, not B1C.
-_CODE_SINCE = {("C", "1X"): 3.02}
+#: Codes read only from a RINEX version on: BeiDou's band 1 was B1I in 3.01 (C1X its I + Q) and B1C from 3.04,
+#: so a C1X in between is another converter's B1 and not read as B1C (counted as another signal).
+_CODE_SINCE = {("C", "1X"): 3.04}
 #: RINEX satellite number -> Android svid offset (QZSS J01 is svid 193, SBAS S20 is 120).
 _SVID_OFFSET = {"J": 192, "S": 100}
 #: Time systems whose seconds are GPS seconds, and BeiDou time's offset from GPS [s].

@@ -397,7 +397,7 @@ def _beidou_file(tmp_path: Path, version: str, types: str) -> Path:
 
 def test_beidou_b1c_and_b2a(tmp_path):
     """RINEX 3.04's BeiDou-3 codes: B1C on band 1 (pilot P first, then X, then data D), B2a on band 5, each a
-    signal of its own beside B1I at its carrier; in RINEX 3.01, whose band 1 was B1I, C1X is no B1C."""
+    signal of its own beside B1I at its carrier; before 3.04 (in 3.01 band 1 was B1I) C1X is no B1C."""
     raw = read_rinex_obs(_beidou_file(tmp_path, "3.04", "C2I L2I D2I S2I C1D C1P L1P D1P S1P C5X L5X D5X S5X"))
     f = raw.frame.set_index("signal")
     assert sorted(f.index) == ["BDS_B1C", "BDS_B1I", "BDS_B2A"]
@@ -407,6 +407,7 @@ def test_beidou_b1c_and_b2a(tmp_path):
     assert f.loc["BDS_B2A", "cn0"] == 3.8e7 + 12
     assert raw.skipped == {"obs_other_signals": 1}                                            # C1D
     assert set(read_rinex_obs(_beidou_file(tmp_path, "3.04", "C1X L1X")).frame.signal) == {"BDS_B1C"}
-    old = read_rinex_obs(_beidou_file(tmp_path, "3.01", "C1I L1I C1X L1X"))
-    assert set(old.frame.signal) == {"BDS_B1I"} and old.frame.pr_m.tolist() == [3.8e7]
-    assert old.skipped == {"obs_other_signals": 1}
+    for version in ("3.01", "3.03"):
+        old = read_rinex_obs(_beidou_file(tmp_path, version, "C1I L1I C1X L1X"))
+        assert set(old.frame.signal) == {"BDS_B1I"} and old.frame.pr_m.tolist() == [3.8e7]
+        assert old.skipped == {"obs_other_signals": 1}
