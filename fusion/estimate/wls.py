@@ -238,9 +238,9 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
     sat_pos, pr, mask, sigma, x0 = _check_inputs(sat_pos, pr, mask, sigma, x0, cfg.weighting)
     dropped: dict[str, int] = {}
     sat_pos, pr, real = _usable_slots(sat_pos, pr, mask, sigma, cfg.weighting, dropped)
-    n_sats = _satellite_counter(sat_id, real.shape)
-    status = np.where(n_sats(real) < 4, FEW_SATS, OK).astype(np.int8)
-    fit, el = _coarse_and_mask(_start_fit(sat_pos, pr, real, x0, dropped), status, sigma, cfg, n_sats)
+    ids = _satellite_ids(sat_id, real.shape)
+    status = np.where(satellite_counts(ids, real) < 4, FEW_SATS, OK).astype(np.int8)
+    fit, el = _coarse_and_mask(_start_fit(sat_pos, pr, real, x0, dropped), status, sigma, cfg, ids)
     # fine stage: weighted, to the step tolerance
     alive = status == OK
     fit = fit.solve(alive, fit.w_prior, cfg.max_iter, cfg.tol_m, cfg.max_cond)
@@ -254,19 +254,18 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
         fit = huber_irls(fit, eligible, cfg)
     res = _finish(fit, el, status, alive, cfg)
     if t_ms is not None:
-        _bridge_three_sat_epochs(res, fit, sigma, np.asarray(t_ms), clock_reset, cfg, n_sats)
+        _bridge_three_sat_epochs(res, fit, sigma, np.asarray(t_ms), clock_reset, cfg, ids)
     return res
 
 
-def _satellite_counter(sat_id: np.ndarray | None, shape: tuple[int, int]):
-    """``count(sel, rows=slice(None))``: (K,) distinct satellites among the slots ``sel`` (K,S) bool of the
-    epochs ``rows`` (slots, without ``sat_id``)."""
+def _satellite_ids(sat_id: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """(E,S) the satellite of each slot for :func:`fusion.trace.satellite_counts`; without ``sat_id``, zeros:
+    each slot a satellite of its own."""
     if sat_id is None:
-        return lambda sel, rows=slice(None): sel.sum(1)
+        return np.zeros(shape, np.int64)
     if np.shape(sat_id) != shape:
         raise DataError(f"sat_id must be {shape} like pr, got {np.shape(sat_id)}")
-    sat_id = np.asarray(sat_id)
-    return lambda sel, rows=slice(None): satellite_counts(sat_id[rows], sel)
+    return np.asarray(sat_id)
 
 
 # ------------------------------------------------------------------------------------- the stages
@@ -337,10 +336,10 @@ def _start_fit(sat_pos, pr, real, x0, dropped) -> FitState:
 
 
 def _coarse_and_mask(fit: FitState, status: np.ndarray, sigma: np.ndarray,
-                     cfg: WlsSettings, n_sats) -> tuple[FitState, np.ndarray]:
+                     cfg: WlsSettings, ids: np.ndarray) -> tuple[FitState, np.ndarray]:
     """Coarse fix (all satellites, unit weights), then the elevation mask and a-priori weights.
 
-    ``status`` (E,) is updated in place; ``n_sats`` counts satellites among slots (:func:`_satellite_counter`).
+    ``status`` (E,) is updated in place; ``ids`` (E,S) each slot's satellite (:func:`_satellite_ids`).
     Returns the fit at the coarse state with ``used``, ``w_prior``
     and ``w_fit`` set by the mask and weighting (and fresh ``conv`` / ``bad`` / ``runaway``), and the
     elevations (E,S) [deg]. 100 m is ample for the coarse stage: elevations only need km accuracy, and
@@ -356,7 +355,7 @@ def _coarse_and_mask(fit: FitState, status: np.ndarray, sigma: np.ndarray,
     el = _elevations(fit.sat_pos, coarse.x[:, :3], real & alive[:, None])
     used = real & (el >= cfg.elev_mask_deg)
     count_skip(fit.dropped, "below_mask", real & ~used & alive[:, None])
-    status[alive & (n_sats(used) < 4)] = FEW_SATS_AFTER_MASK
+    status[alive & (satellite_counts(ids, used) < 4)] = FEW_SATS_AFTER_MASK
     used &= (status == OK)[:, None]
     w_prior = np.where(used, 1.0 / _sigmas(cfg, el, sigma) ** 2, 0.0)
     return fit.replace(x=coarse.x, used=used, w_prior=w_prior, w_fit=w_prior), el
@@ -405,13 +404,13 @@ def _reasons(status: np.ndarray) -> dict[str, int]:
 
 
 def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t_ms: np.ndarray, clock_reset,
-                             cfg: WlsSettings, n_sats) -> None:
+                             cfg: WlsSettings, ids: np.ndarray) -> None:
     """Solve (in place) epochs left with exactly three satellites above the mask (any number of signals each),
     the clock interpolated from the valid epochs around them (:mod:`fusion.estimate.clock_bridge`).
-    sigma: (E,S) the input sigmas; t_ms: (E,); clock_reset: (E,) bool or None; n_sats: as in
-    :func:`_coarse_and_mask`."""
+    sigma: (E,S) the input sigmas; t_ms: (E,); clock_reset: (E,) bool or None; ids (E,S) each slot's
+    satellite."""
     real = fit.real
-    few = np.flatnonzero(np.isin(res.status, (FEW_SATS, FEW_SATS_AFTER_MASK)) & (n_sats(real) >= 3))
+    few = np.flatnonzero(np.isin(res.status, (FEW_SATS, FEW_SATS_AFTER_MASK)) & (satellite_counts(ids, real) >= 3))
     good = np.flatnonzero(res.valid)
     if few.size == 0 or good.size == 0:
         return
@@ -419,7 +418,7 @@ def _bridge_three_sat_epochs(res: WlsResult, fit: FitState, sigma: np.ndarray, t
     pos0 = res.pos[near]
     el = _elevations(fit.sat_pos[few], pos0, real[few])
     used = real[few] & (el >= cfg.elev_mask_deg)
-    few, pos0, el, used = (a[n_sats(used, few) == 3] for a in (few, pos0, el, used))
+    few, pos0, el, used = (a[satellite_counts(ids[few], used) == 3] for a in (few, pos0, el, used))
     resets = np.zeros(res.n_epochs, bool) if clock_reset is None else np.asarray(clock_reset, bool)
     clock, ok = interpolate_clock(t_ms, res.clock_m, res.valid, resets, few)
     res.status[few[~ok]] = THREE_SATS_NO_CLOCK

@@ -43,7 +43,7 @@ def widen_by_disagreement(result: ModeResult, reference: ModeResult, rows: np.nd
     pos = result.pos[rows]
     ned = ecef2ned_cov(result.cov[rows], pos)
     ref = ecef2ned_cov(reference.cov[rows], pos)
-    d = ecef2ned_vec(result.pos[rows] - reference.pos[rows], pos)
+    d = ecef2ned_vec(pos - reference.pos[rows], pos)
     both = np.diagonal(ned, axis1=1, axis2=2) + np.diagonal(ref, axis1=1, axis2=2)
     add = np.where(np.abs(d) > n_sigma * np.sqrt(both), d ** 2, 0.0)
     result.cov = result.cov.copy()
