@@ -1,6 +1,7 @@
-"""What the pseudorange factors' narrower robust scale costs where errors are Gaussian: simulated traces with
-Doppler and no multipath (the simulator's default errors), the graph without carrier, pseudoranges at
-``robust_k`` 1.5 (shipped) and 2 (before), Doppler at 2. Median / 95th percentile of the 3-D position error [m].
+"""What the pseudorange factors' robust losses cost where errors are Gaussian: simulated traces with Doppler and
+no multipath (the simulator's default errors), the graph without carrier or anything learned, pseudoranges under
+Cauchy at 1.5 and 2 and Geman-McClure at 2 (GraphConfig.unlearned_robust / unlearned_robust_k: shipped, Cauchy 1.5
+before), Doppler under Cauchy at 2. Median / 95th percentile of the 3-D position error [m].
 
     python experiments/robust_scale_clean.py [--seeds 11,1,2,3,4,5]
 """
@@ -21,12 +22,14 @@ from fusion.modes import solve_initial  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.sim.simulate import SimConfig, simulate  # noqa: E402
 
-SCALES = (1.5, 2.0)
+#: the pseudorange losses compared: (GraphConfig.unlearned_robust, unlearned_robust_k)
+LOSSES = (("cauchy", 1.5), ("cauchy", 2.0), ("gm", 2.0))
 
 
-def errors(sim, wls, k: float, doppler: bool) -> np.ndarray:
-    """(E,) 3-D position error [m] of the graph with pseudorange scale ``k``, with or without Doppler."""
-    cfg = GraphConfig(use_doppler=doppler, use_carrier=False, robust_k=k, rate_robust_k=2.0)
+def errors(sim, wls, loss: tuple[str, float], doppler: bool) -> np.ndarray:
+    """(E,) 3-D position error [m] of the graph with the pseudorange ``loss``, with or without Doppler."""
+    cfg = GraphConfig(use_doppler=doppler, use_carrier=False, unlearned_robust=loss[0], unlearned_robust_k=loss[1],
+                      rate_robust_k=2.0)
     res = fuse(sim.trace, wls, RunOptions(graph=cfg), want_cov=False)
     return np.linalg.norm(res.pos - sim.trace.truth, axis=1)
 
@@ -36,8 +39,8 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", default="11,1,2,3,4,5")
     args = p.parse_args(argv)
     nav = read_rinex_nav(default_nav_path())
-    cols = [(k, d) for k in SCALES for d in (False, True)]
-    print("| seed | " + " | ".join(f"k {k:g}, {'Doppler' if d else 'no Doppler'}" for k, d in cols) + " |")
+    cols = [(loss, d) for loss in LOSSES for d in (False, True)]
+    print("| seed | " + " | ".join(f"{k} {s:g}, {'Doppler' if d else 'no Doppler'}" for (k, s), d in cols) + " |")
     print("|---|" + "---|" * len(cols))
     med, p95 = {c: [] for c in cols}, {c: [] for c in cols}
     for seed in (int(s) for s in args.seeds.split(",")):

@@ -57,13 +57,14 @@ def _cases(raw_sim, doppler_sim):
         "doppler+carrier": (raw_sim[0], raw_sim[1], GraphConfig(), None),
         "doppler drift jumps": (with_drift_jumps(raw_sim[0], 0.6, seed=5), raw_sim[1], GraphConfig(), None),
         "doppler only": (doppler_sim[0], doppler_sim[1], GraphConfig(), None),
-        "isb+prior cauchy": (two, two_wls, GraphConfig(), prior),
-        "isb+prior huber": (two, two_wls, GraphConfig(robust="huber", prior_robust="huber"), prior),
-        "random walk": (syn, solve_wls(syn), GraphConfig(motion="rw", robust="none"), None),
+        "isb+prior geman-mcclure": (two, two_wls, GraphConfig(), prior),
+        "isb+prior cauchy": (two, two_wls, GraphConfig(unlearned_robust="cauchy", unlearned_robust_k=1.5), prior),
+        "isb+prior huber": (two, two_wls, GraphConfig(unlearned_robust="huber", prior_robust="huber"), prior),
+        "random walk": (syn, solve_wls(syn), GraphConfig(motion="rw", unlearned_robust="none"), None),
         "no drift states": (two, two_wls, GraphConfig(clock_drift_states="doppler"), prior),
         "level prior": (raw_sim[0], raw_sim[1], GraphConfig(cv_level_sigma_mps=0.5), None),
         "level prior, no Doppler": (two, two_wls, GraphConfig(cv_level_sigma_no_doppler_mps=0.5), prior),
-        "own robust scales": (raw_sim[0], raw_sim[1], GraphConfig(robust_k=1.0, rate_robust_k=3.0), None),
+        "own robust scales": (raw_sim[0], raw_sim[1], GraphConfig(unlearned_robust_k=1.0, rate_robust_k=3.0), None),
     }
 
 
@@ -73,9 +74,9 @@ def _inputs(trace, wls, cfg, provider):
     return prepare_inputs(trace, wls, cfg, 10.0, learned)
 
 
-@pytest.mark.parametrize("case", ["doppler+carrier", "doppler drift jumps", "doppler only", "isb+prior cauchy",
-                                  "isb+prior huber", "random walk", "no drift states", "level prior",
-                                  "level prior, no Doppler", "own robust scales"])
+@pytest.mark.parametrize("case", ["doppler+carrier", "doppler drift jumps", "doppler only", "isb+prior geman-mcclure",
+                                  "isb+prior cauchy", "isb+prior huber", "random walk", "no drift states",
+                                  "level prior", "level prior, no Doppler", "own robust scales"])
 def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
@@ -91,9 +92,9 @@ def test_vector_graph_has_gtsams_cost_at_any_values(raw_sim, doppler_sim, case):
         assert banded_gn.cost(vec.system, x) == pytest.approx(graph.error(to_values(vec.layout, x)), rel=1e-9)
 
 
-@pytest.mark.parametrize("case", ["doppler+carrier", "doppler drift jumps", "doppler only", "isb+prior cauchy",
-                                  "isb+prior huber", "random walk", "no drift states", "level prior",
-                                  "level prior, no Doppler", "own robust scales"])
+@pytest.mark.parametrize("case", ["doppler+carrier", "doppler drift jumps", "doppler only", "isb+prior geman-mcclure",
+                                  "isb+prior cauchy", "isb+prior huber", "random walk", "no drift states",
+                                  "level prior", "level prior, no Doppler", "own robust scales"])
 def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
     trace, wls, cfg, provider = _cases(raw_sim, doppler_sim)[case]
     inp = _inputs(trace, wls, cfg, provider)
@@ -205,12 +206,13 @@ def test_pixel5_graph_matches_gtsam(shared_data):
 
 
 def test_doppler_and_carrier_take_their_own_robust_scale(raw_sim):
-    """Pseudorange blocks carry ``robust_k``; Doppler and carrier blocks ``rate_robust_k``."""
+    """Pseudorange blocks carry the unlearned loss and scale (a graph without learned sigmas); Doppler and
+    carrier blocks ``robust`` at ``rate_robust_k``."""
     from fusion.estimate.graph.vector_graph import carrier_blocks, doppler_blocks, make_layout, pseudorange_blocks
     trace, wls = raw_sim
-    cfg = GraphConfig(robust_k=1.0, rate_robust_k=3.0)
+    cfg = GraphConfig(unlearned_robust_k=1.0, rate_robust_k=3.0)
     inp = _inputs(trace, wls, cfg, None)
     lay = make_layout(trace, inp, cfg, np.arange(trace.n_epochs))
-    assert {b.k for b in pseudorange_blocks(trace, inp, cfg, lay)} == {1.0}
-    assert {b.k for b in doppler_blocks(trace, inp, cfg, lay)} == {3.0}
+    assert {(b.robust, b.k) for b in pseudorange_blocks(trace, inp, cfg, lay) if len(b.cols)} == {("gm", 1.0)}
+    assert {(b.robust, b.k) for b in doppler_blocks(trace, inp, cfg, lay)} == {("cauchy", 3.0)}
     assert carrier_blocks(trace, inp, cfg, lay)[-1].k == 3.0

@@ -167,7 +167,7 @@ def test_gross_outliers_do_not_pull_the_solution(trace, wls):
     wb = solve_wls(bad)
     clean = fuse(trace, wls, RunOptions(), want_cov=False)
     robust = fuse(bad, wb, RunOptions(), want_cov=False)
-    plain = fuse(bad, wb, RunOptions(), cfg=GraphConfig(robust="none"), want_cov=False)
+    plain = fuse(bad, wb, RunOptions(), cfg=GraphConfig(unlearned_robust="none"), want_cov=False)
     e_c, e_r, e_p = (np.percentile(h_err(trace, r.pos, r.valid), 95) for r in (clean, robust, plain))
     assert e_r < e_p                        # the robust loss matters
     assert e_r < e_c + 3.0                  # and nearly undoes the damage
@@ -635,3 +635,30 @@ def test_a_tighter_velocity_walk_only_where_the_motion_model_alone_places_the_ep
     np.testing.assert_allclose(tight.pos, gtsam_tight.pos, rtol=0, atol=5e-5)
     np.testing.assert_array_equal(_fused_nodnn(doppler_outage, bridged_accel_scale=0.5).pos,
                                   _fused_nodnn(doppler_outage, bridged_accel_scale=1.0).pos)
+
+
+def test_pseudorange_losses_redescend_only_with_satellites_to_spare_and_nothing_learned():
+    """Geman-McClure where the graph has no learned sigma and the epoch at least unlearned_robust_min_sats
+    satellites; the learned graphs' loss (robust / robust_k) everywhere else."""
+    from fusion.estimate.graph.inputs import pseudorange_losses
+    cfg = GraphConfig()
+    n_sats = np.array([3, 5, 6, 9])
+    (kind, k, at), (other, k_other, rest) = pseudorange_losses(cfg, False, n_sats)
+    assert (kind, k, other, k_other) == ("gm", 2.0, "cauchy", 1.5)
+    assert at.tolist() == [False, False, True, True] and rest.tolist() == [True, True, False, False]
+    [(kind, k, at)] = pseudorange_losses(cfg, True, n_sats)
+    assert (kind, k) == ("cauchy", 1.5) and at.all()
+
+
+def test_geman_mcclure_drops_a_gross_outlier_that_cauchy_still_feels(trace, wls):
+    """One satellite 60 m off for the whole trace: the redescending loss gives it next to no weight, so the
+    solution stays nearer the clean one than under Cauchy at the same scale."""
+    pr = trace.pr.copy()
+    pr[:, 0] = np.where(trace.mask[:, 0], pr[:, 0] + 60.0, pr[:, 0])
+    bad = Trace(**{**trace.__dict__, "pr": pr})
+    clean = fuse(trace, wls, RunOptions(), want_cov=False)
+    runs = {kind: fuse(bad, wls, RunOptions(), cfg=GraphConfig(unlearned_robust=kind, unlearned_robust_k=2.0,
+                                                                unlearned_robust_min_sats=1), want_cov=False)
+            for kind in ("gm", "cauchy")}
+    shift = {kind: np.nanmedian(np.linalg.norm(r.pos - clean.pos, axis=1)) for kind, r in runs.items()}
+    assert shift["gm"] < 0.5 * shift["cauchy"]

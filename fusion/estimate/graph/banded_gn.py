@@ -36,7 +36,7 @@ class Blocks:
 
     cols (M,n) int: each factor's variables (indices into the state vector); linear kinds give A (M,d,n)
     and b (M,d), the whitened residual being ``A @ x[cols] - b``; nonlinear kinds give ``model`` instead.
-    robust: "none", "huber" or "cauchy" on the norm of each factor's whitened residual, at ``k``. A factor
+    robust: "none", "huber", "cauchy" or "gm" on the norm of each factor's whitened residual, at ``k``. A factor
     names each of its variables once (the normal equations' pair products assume distinct columns)."""
 
     cols: np.ndarray
@@ -99,7 +99,10 @@ def robust_loss(kind: str, k: float, e: np.ndarray) -> tuple[np.ndarray, np.ndar
     if kind == "huber":
         big = e > k
         return np.where(big, k * e - 0.5 * k * k, 0.5 * e * e), np.where(big, k / np.where(big, e, 1.0), 1.0)
-    raise GnssfuseError(f"unknown robust loss {kind!r}; choose huber, cauchy or none")
+    if kind == "gm":
+        d = k * k + e * e
+        return 0.5 * k * k * e * e / d, (k * k / d) ** 2
+    raise GnssfuseError(f"unknown robust loss {kind!r}; choose huber, cauchy, gm or none")
 
 
 def cost(system: System, x: np.ndarray) -> float:

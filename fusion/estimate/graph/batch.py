@@ -97,7 +97,7 @@ def warm_values(values: gtsam.Values, start: gtsam.Values | None) -> gtsam.Value
 
 
 #: the inputs a learned model changes that a solved graph takes in place: pseudorange noise and priors
-PATCHABLE = frozenset({"sigma", "pr_bias", "prior_mean", "prior_cov", "prior_ok"})
+PATCHABLE = frozenset({"sigma", "pr_bias", "pr_losses", "prior_mean", "prior_cov", "prior_ok"})
 
 
 def patchable(start: BatchSolution | None, inp: EpochInputs, cfg: GraphConfig) -> bool:

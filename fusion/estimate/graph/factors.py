@@ -23,19 +23,25 @@ from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, cloc
 from fusion.geometry import C_LIGHT, OMEGA_E
 
 
+#: GraphConfig's robust-loss names -> GTSAM's M-estimators ("gm": Geman-McClure, which redescends).
+M_ESTIMATORS = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+                "gm": gtsam.noiseModel.mEstimator.GemanMcClure}
+
+
+def m_estimator(kind: str, k: float):
+    """GTSAM's M-estimator ``kind`` at ``k`` (in sigmas of the whitened error)."""
+    if kind not in M_ESTIMATORS:
+        raise GeometryError(f"unknown robust loss {kind!r}; choose {', '.join(M_ESTIMATORS)} or none")
+    return M_ESTIMATORS[kind].Create(k)
+
+
 def robust_model(kind: str, k: float, base: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
     """``base`` wrapped in a robust loss. GTSAM applies the M-estimator to the norm of the
     *whitened* error, i.e. to the Mahalanobis distance for a full-covariance ``base`` (checked in
     ``tests/estimate/test_graph.py``), so ``k`` is in sigmas whatever the covariance."""
     if kind == "none":
         return base
-    if kind == "huber":
-        est = gtsam.noiseModel.mEstimator.Huber.Create(k)
-    elif kind == "cauchy":
-        est = gtsam.noiseModel.mEstimator.Cauchy.Create(k)
-    else:
-        raise GeometryError(f"unknown robust loss {kind!r}; choose huber, cauchy or none")
-    return gtsam.noiseModel.Robust.Create(est, base)
+    return gtsam.noiseModel.Robust.Create(m_estimator(kind, k), base)
 
 
 def scalar_robust_models(kind: str, k: float, sigmas: np.ndarray) -> list:
@@ -43,10 +49,7 @@ def scalar_robust_models(kind: str, k: float, sigmas: np.ndarray) -> list:
     trace's factors of one kind needs them: one M-estimator shared by all (GTSAM holds it by shared
     pointer and never changes it) and one model per distinct sigma (a phone reports few distinct
     sigmas), so a trace costs a few hundred GTSAM calls instead of three per factor."""
-    if kind not in ("none", "huber", "cauchy"):
-        return [robust_model(kind, k, gtsam.noiseModel.Isotropic.Sigma(1, 1.0))]     # raises
-    est = None if kind == "none" else (gtsam.noiseModel.mEstimator.Huber.Create(k) if kind == "huber"
-                                       else gtsam.noiseModel.mEstimator.Cauchy.Create(k))
+    est = None if kind == "none" else m_estimator(kind, k)
     made: dict[float, gtsam.noiseModel.Base] = {}
     out = []
     for sg in np.asarray(sigmas, float).tolist():
@@ -60,7 +63,7 @@ def scalar_robust_models(kind: str, k: float, sigmas: np.ndarray) -> list:
 
 def prior_noise_model(cov: np.ndarray, robust: str = "none", robust_k: float = 1.0) -> gtsam.noiseModel.Base:
     """Noise model of one position prior: Gaussian with ``cov`` (3,3) (already cleaned by
-    :func:`fusion.estimate.graph.priors.clean_priors`), wrapped in ``robust`` ("huber", "cauchy",
+    :func:`fusion.estimate.graph.priors.clean_priors`), wrapped in ``robust`` (a key of :data:`M_ESTIMATORS` or
     "none") at ``robust_k`` sigmas."""
     return robust_model(robust, robust_k, gtsam.noiseModel.Gaussian.Covariance(cov))
 

@@ -42,7 +42,8 @@ class EpochInputs:
     clock_span_s (E,) [s] along each clock link (for drift states); use_drift: the clock chain has drift
     states (GraphConfig.clock_drift_states); doppler_jump_mps: the white jump of the drift each epoch's
     Doppler sees beyond the clock's walk [m/s] (0: none, the Doppler sees the drift state itself;
-    :mod:`fusion.estimate.graph.drift_noise`).
+    :mod:`fusion.estimate.graph.drift_noise`); pr_losses: the pseudorange factors' robust losses, scales
+    and the epochs of each (:func:`pseudorange_losses`; None: GraphConfig.robust / robust_k everywhere).
     """
 
     init_pos: np.ndarray
@@ -70,6 +71,7 @@ class EpochInputs:
     odometry: OdometryFactors | None = None
     use_drift: bool = False
     doppler_jump_mps: float = 0.0
+    pr_losses: list[tuple[str, float, np.ndarray]] | None = None
 
 
 def doppler_drift_epochs(inp: EpochInputs) -> np.ndarray:
@@ -159,6 +161,24 @@ def learned_slot_noise(trace: Trace, got_sigma: np.ndarray | None, got_bias: np.
             ratio = np.nanmedian(np.where(use, sigma, np.nan), 1) / np.nanmedian(np.where(use, got_sigma, np.nan), 1)
         got_sigma = got_sigma * np.nan_to_num(ratio, nan=1.0)[:, None]
     return np.where(use, got_sigma, sigma), np.where(use, got_bias, 0.0), int(use.sum())
+
+
+def pseudorange_losses(cfg: GraphConfig, learned_sigmas: bool, n_sats: np.ndarray
+                       ) -> list[tuple[str, float, np.ndarray]]:
+    """The pseudorange factors' robust losses: (kind, scale [sigmas], epochs (E,) bool) that partition the
+    epochs. ``robust`` everywhere where some pseudorange of the graph has a learned sigma; where none has (a
+    network whose guard handed every measurement to the physical model builds the graph without it),
+    ``unlearned_robust`` at epochs of at least ``unlearned_robust_min_sats`` satellites (n_sats (E,)) and
+    ``robust`` at the others (GraphConfig)."""
+    if learned_sigmas:
+        return [(cfg.robust, cfg.robust_k, np.ones(n_sats.shape, bool))]
+    enough = n_sats >= cfg.unlearned_robust_min_sats
+    return [(cfg.unlearned_robust, cfg.unlearned_robust_k, enough), (cfg.robust, cfg.robust_k, ~enough)]
+
+
+def pseudorange_losses_of(inp: EpochInputs, cfg: GraphConfig) -> list[tuple[str, float, np.ndarray]]:
+    """``inp.pr_losses``, or GraphConfig.robust / robust_k at every epoch where it has none."""
+    return inp.pr_losses or [(cfg.robust, cfg.robust_k, np.ones(inp.keep.shape, bool))]
 
 
 def drift_states(raw: RawInputs | None, mode: str) -> bool:
@@ -260,6 +280,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
                                            cfg.use_doppler, cfg.use_carrier),
                       clock_drift_mps=chain.drift_mps, clock_span_s=chain.span_s)
     inp.use_drift = drift_states(inp.raw, cfg.clock_drift_states)
+    inp.pr_losses = pseudorange_losses(cfg, n_learned > 0, n_sats)
     if inp.raw is not None:
         inp.dropped.update(inp.raw.counts)
         if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():
