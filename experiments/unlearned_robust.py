@@ -1,9 +1,10 @@
 """The pseudorange loss of a graph without learned sigmas (GraphConfig.unlearned_robust / unlearned_robust_k, at
 epochs of at least unlearned_robust_min_sats satellites): Cauchy (the loss before) against Geman-McClure, which
-redescends, at three scales, at every epoch whatever its satellites, and on every graph. GSDC score [m] of ``fused-nodnn`` on the twelve GSDC training drives (no network: the mean over drives),
-and of ``fused-nodnn`` and ``fused`` (the shipped network, which never saw them) on smartLoc's canyon and, with
-``--sims``, on held-out simulated city traces (``sim_city_traces.py --held-out``; the mean per street kind).
-Those decide; ``--pixel5`` then reports the Pixel5 RINEX test trace (GPS broadcast navigation).
+redescends, at three scales, at every epoch whatever its satellites, and on every graph. GSDC score [m] of
+``fused-nodnn`` on the twelve GSDC training drives (no network: the mean over drives), and of ``fused-nodnn``
+and ``fused`` (the shipped network, which never saw them) on smartLoc's canyon and, with ``--sims``, on held-out
+simulated city traces (``sim_city_traces.py --held-out``; the mean per street kind). Those decide; ``--pixel5``
+then reports the Pixel5 RINEX test trace (GPS broadcast navigation).
 
     python experiments/sim_city_traces.py --out /tmp/simho --held-out
     python experiments/sim_city_traces.py --out /tmp/simdeepho --held-out --scenarios deep --first-seed 300

@@ -304,7 +304,7 @@ def test_fuse_with_slot_noise_downweights_a_biased_satellite(biased_trace):
     from fusion.run_types import RunOptions
 
     tr, wls = biased_trace
-    cfg = GraphConfig(robust="none")
+    cfg = GraphConfig(robust="none", unlearned_robust="none")     # the sigmas alone
     seen = {}
 
     def provider(trace, init_pos, valid):
