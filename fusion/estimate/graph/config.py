@@ -32,9 +32,9 @@ class GraphConfig:
     # Scale on the whitened residual of the pseudorange factors (chosen when it served every graph). 1.5 against
     # 2 (chosen on three drives in the first round) and 1: fused-nodnn better at 1.5 than at 2 on every tuning
     # set (GSDC 3.89 -> 3.86 m pooled, smartLoc 35.72 -> 34.90 m, each of the eight simulated city traces); 1
-    # was better still on smartLoc and
-    # seven of the simulated traces but not on the GSDC drives (3.90 m), and fused was best or tied at 1.5 (GSDC
-    # 3.69 / 3.69 / 3.70 m at 1.5 / 2 / 1, smartLoc 26.55 / 27.14 / 27.31 m; experiments/results/sigma_power.md).
+    # was better still on smartLoc and seven of the simulated traces but not on the GSDC drives (3.90 m), and
+    # fused was best or tied at 1.5 (GSDC 3.69 / 3.69 / 3.70 m at 1.5 / 2 / 1, smartLoc 26.55 / 27.14 / 27.31 m;
+    # experiments/results/sigma_power.md).
     # Multipath and reflections give pseudoranges heavy tails; on Gaussian errors a narrower Cauchy costs some
     # efficiency (experiments/robust_scale_clean.py).
     robust_k: float = 1.5
@@ -44,10 +44,10 @@ class GraphConfig:
     # (k^2 / (k^2 + e^2))^2, ~0 beyond a few k) lets the graph drop a reflection instead of only
     # down-weighting it. Against Cauchy at 1.5, fused-nodnn: GSDC drives 3.80 -> 3.79 m (mean of twelve),
     # smartLoc 34.90 -> 34.09 m, the held-out simulated city traces 6.34 -> 5.72 m (urban 7.15 -> 5.63); fused
-    # within 0.07 m on those and 3.65 -> 3.64 m cross-validated on the GSDC drives;
-    # k 1.5 / 2.5 gained more on the simulated traces / the GSDC drives and lost on the others
-    # (experiments/results/unlearned_robust.md). On the learned graph Cauchy stays: the learned sigmas
-    # already carry that judgement, and Geman-McClure there cost smartLoc's fused 27.18 -> 29.34 m.
+    # within 0.07 m on those and 3.65 -> 3.64 m cross-validated on the GSDC drives; k 1.5 / 2.5 gained more on
+    # the simulated traces / the GSDC drives and lost on the others (experiments/results/unlearned_robust.md).
+    # On the learned graph Cauchy stays: the learned sigmas already carry that judgement, and Geman-McClure there
+    # cost smartLoc's fused 27.18 -> 29.34 m.
     unlearned_robust: str = "gm"
     unlearned_robust_k: float = 2.0
     # ... at epochs of this many satellites or more; the others keep robust / robust_k. A loss that redescends
