@@ -49,9 +49,7 @@ def score(job: tuple[Path, str, str, tuple]) -> tuple[str, str, str, float]:
     opts = RunOptions(signals=None if nav or "smartloc" in str(path) else parse_signals("all"), nav=nav)
     opts = replace(opts, graph=replace(opts.graph, **VARIANTS[variant]), sigma_calibration=False)
     trace = load_trace(path, min_sats=1, **load_options(opts))
-    res = run_modes(trace, [mode], opts)[mode]
-    return path.parent.name if path.name in ("Pixel4", "SimPhone", "Pixel5") else path.name, variant, mode, \
-        mode_metrics(trace, res)["gsdc_score"]
+    return trace.name, variant, mode, mode_metrics(trace, run_modes(trace, [mode], opts)[mode])["gsdc_score"]
 
 
 def table(title: str, rows: dict[str, dict[str, float]]) -> None:
@@ -87,7 +85,7 @@ def main() -> int:
         mine = [(name, m, s) for name, vv, m, s in got if vv == v]
         r = {"GSDC fused-nodnn (mean of 12)": np.mean([s for n, m, s in mine if n.startswith("20")])}
         for m in ("fused-nodnn", "fused"):
-            r[f"smartLoc {m}"] = next(s for n, mm, s in mine if n == "Berlin_Potsdamer_Platz" and mm == m)
+            r[f"smartLoc {m}"] = next(s for n, mm, s in mine if n.startswith("smartloc") and mm == m)
             for kind in KINDS if args.sims else ():
                 r[f"sims {kind} {m}"] = np.mean([s for n, mm, s in mine if f"-{kind}-" in n and mm == m])
         rows[v] = r

@@ -28,7 +28,7 @@ from fusion.estimate.graph.factors import (clock_drift_factor_ccd, clock_factor_
                                            isb_prior_factor_i, position_prior_factor_x, prior_noise_model,
                                            pseudorange_factor_xc, pseudorange_factor_xci, scalar_robust_models,
                                            tdcp_factor_linearised, zero_point)
-from fusion.estimate.graph.inputs import EpochInputs, doppler_drift_epochs, motion_only, pseudorange_losses_of
+from fusion.estimate.graph.inputs import EpochInputs, doppler_drift_epochs, motion_only
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, doppler_drift_key,
                                         drift_key, isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import motion_model
@@ -167,7 +167,7 @@ def pseudorange_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs
     sigma, grp, comp = inp.sigma[ks, ss], inp.isb.group[ks, ss], inp.comp[ks]
     sat = trace.sat_pos[ks, ss]
     models = [None] * ks.size
-    for kind, k, at in pseudorange_losses_of(inp, cfg):
+    for kind, k, at in inp.pr_losses:
         rows = np.flatnonzero(at[ks])
         for i, model in zip(rows.tolist(), scalar_robust_models(kind, k, sigma[rows])):
             models[i] = model

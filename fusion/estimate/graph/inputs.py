@@ -43,7 +43,7 @@ class EpochInputs:
     states (GraphConfig.clock_drift_states); doppler_jump_mps: the white jump of the drift each epoch's
     Doppler sees beyond the clock's walk [m/s] (0: none, the Doppler sees the drift state itself;
     :mod:`fusion.estimate.graph.drift_noise`); pr_losses: the pseudorange factors' robust losses, scales
-    and the epochs of each (:func:`pseudorange_losses`; None: GraphConfig.robust / robust_k everywhere).
+    and the epochs of each (:func:`pseudorange_losses`).
     """
 
     init_pos: np.ndarray
@@ -65,13 +65,13 @@ class EpochInputs:
     isb: IsbInputs
     pr_bias: np.ndarray
     n_sats: np.ndarray
+    pr_losses: list[tuple[str, float, np.ndarray]]
     raw: RawInputs | None = None
     clock_drift_mps: np.ndarray | None = None
     clock_span_s: np.ndarray | None = None
     odometry: OdometryFactors | None = None
     use_drift: bool = False
     doppler_jump_mps: float = 0.0
-    pr_losses: list[tuple[str, float, np.ndarray]] | None = None
 
 
 def doppler_drift_epochs(inp: EpochInputs) -> np.ndarray:
@@ -176,11 +176,6 @@ def pseudorange_losses(cfg: GraphConfig, learned_sigmas: bool, n_sats: np.ndarra
     return [(cfg.unlearned_robust, cfg.unlearned_robust_k, enough), (cfg.robust, cfg.robust_k, ~enough)]
 
 
-def pseudorange_losses_of(inp: EpochInputs, cfg: GraphConfig) -> list[tuple[str, float, np.ndarray]]:
-    """``inp.pr_losses``, or GraphConfig.robust / robust_k at every epoch where it has none."""
-    return inp.pr_losses or [(cfg.robust, cfg.robust_k, np.ones(inp.keep.shape, bool))]
-
-
 def drift_states(raw: RawInputs | None, mode: str) -> bool:
     """Whether the clock chain gets drift states: always, or where some Doppler is used (``mode``
     "always" / "doppler", GraphConfig.clock_drift_states)."""
@@ -276,11 +271,11 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
                       clock_sigma_m=chain.sigma_m, prior_mean=pri.mean, prior_cov=pri.cov, prior_ok=pri.ok,
                       keep=keep, comp=comp, dropped=dropped,
                       isb=isb_inputs(trace, sel, comp, init_clock, resid, cfg), pr_bias=pr_bias, n_sats=n_sats,
+                      pr_losses=pseudorange_losses(cfg, n_learned > 0, n_sats),
                       raw=trace_raw_inputs(trace, init_pos, elev_mask_deg, sel.any(axis=1), chain.link, cfg,
                                            cfg.use_doppler, cfg.use_carrier),
                       clock_drift_mps=chain.drift_mps, clock_span_s=chain.span_s)
     inp.use_drift = drift_states(inp.raw, cfg.clock_drift_states)
-    inp.pr_losses = pseudorange_losses(cfg, n_learned > 0, n_sats)
     if inp.raw is not None:
         inp.dropped.update(inp.raw.counts)
         if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():

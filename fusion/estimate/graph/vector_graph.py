@@ -24,7 +24,7 @@ from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
 from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, level_sigma
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import range_and_gradient
-from fusion.estimate.graph.inputs import EpochInputs, doppler_drift_epochs, motion_only, pseudorange_losses_of
+from fusion.estimate.graph.inputs import EpochInputs, doppler_drift_epochs, motion_only
 from fusion.estimate.graph.isb import isb_label
 from fusion.estimate.graph.marginals import information_marginals
 from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, doppler_drift_key,
@@ -156,7 +156,7 @@ def pseudorange_blocks(trace: Trace, inp: EpochInputs, cfg: GraphConfig, lay: La
     pr = trace.pr[ks, ss] - inp.pr_bias[ks, ss]
     sigma, grp, sat = inp.sigma[ks, ss], inp.isb.group[ks, ss], trace.sat_pos[ks, ss]
     out = []
-    for (robust, k, at), isb in itertools.product(pseudorange_losses_of(inp, cfg), (False, True)):
+    for (robust, k, at), isb in itertools.product(inp.pr_losses, (False, True)):
         m = ((grp >= 0) == isb) & at[ks]
         cols = np.concatenate([_cols(lay.start["pos"], ks[m], 3), lay.start["clk"][ks[m], None]], axis=1)
         if isb:
