@@ -38,16 +38,17 @@ VARIANTS = {
     "Geman-McClure 2 (shipped)": {},
     "Geman-McClure 2.5": {"unlearned_robust_k": 2.5},
     "Geman-McClure 2 at every epoch": {"unlearned_robust_min_sats": 1},
-    "Geman-McClure 2 on every graph": {"robust": "gm", "robust_k": 2.0},
+    "Geman-McClure 2 on every graph": {"robust": "gm", "robust_k": 2.0, "learned_robust": "gm",
+                                       "learned_robust_k": 2.0},
 }
 KINDS = ("suburban", "urban", "deep")
 
 
-def score(job: tuple[Path, str, str, tuple]) -> tuple[str, str, str, float]:
-    """(trace name, variant, mode, GSDC score) of one trace, variant and mode."""
-    path, variant, mode, nav = job
+def score(job: tuple[Path, str, dict, str, tuple]) -> tuple[str, str, str, float]:
+    """(trace name, variant, mode, GSDC score) of one trace, variant (its name and GraphConfig changes) and mode."""
+    path, variant, changes, mode, nav = job
     opts = RunOptions(signals=None if nav or "smartloc" in str(path) else parse_signals("all"), nav=nav)
-    opts = replace(opts, graph=replace(opts.graph, **VARIANTS[variant]), sigma_calibration=False)
+    opts = replace(opts, graph=replace(opts.graph, **changes), sigma_calibration=False)
     trace = load_trace(path, min_sats=1, **load_options(opts))
     return trace.name, variant, mode, mode_metrics(trace, run_modes(trace, [mode], opts)[mode])["gsdc_score"]
 
@@ -67,13 +68,14 @@ def main() -> int:
     ap.add_argument("--jobs", type=int, default=2)
     args = ap.parse_args()
     if args.pixel5:
-        jobs = [(PIXEL5, v, m, (NAV,)) for v in VARIANTS for m in ("fused-nodnn", "fused")]
+        jobs = [(PIXEL5, v, c, m, (NAV,)) for v, c in VARIANTS.items() for m in ("fused-nodnn", "fused")]
     else:
         gsdc = sorted((SHARED / "gsdc2021/train").glob("2020-*/Pixel4"))
         sims = [p for d in args.sims for p in sorted(d.glob("*/SimPhone"))]
         smartloc = SHARED / "smartloc" / "Berlin_Potsdamer_Platz"
-        jobs = [(p, v, "fused-nodnn", ()) for p in gsdc for v in VARIANTS]
-        jobs += [(p, v, m, ()) for p in sims + [smartloc] for v in VARIANTS for m in ("fused-nodnn", "fused")]
+        jobs = [(p, v, c, "fused-nodnn", ()) for p in gsdc for v, c in VARIANTS.items()]
+        jobs += [(p, v, c, m, ()) for p in sims + [smartloc] for v, c in VARIANTS.items()
+                 for m in ("fused-nodnn", "fused")]
     with ProcessPoolExecutor(args.jobs) as pool:
         got = list(pool.map(score, jobs))
     if args.pixel5:

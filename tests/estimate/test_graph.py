@@ -639,15 +639,16 @@ def test_a_tighter_velocity_walk_only_where_the_motion_model_alone_places_the_ep
 
 def test_pseudorange_losses_redescend_only_with_satellites_to_spare_and_nothing_learned():
     """Geman-McClure where the graph has no learned sigma and the epoch at least unlearned_robust_min_sats
-    satellites; the learned graphs' loss (robust / robust_k) everywhere else."""
+    satellites; learned_robust at those epochs of a graph with learned sigmas; robust / robust_k at the others."""
     from fusion.estimate.graph.inputs import pseudorange_losses
-    cfg = GraphConfig()
     n_sats = np.array([3, 5, 6, 9])
-    (kind, k, at), (other, k_other, rest) = pseudorange_losses(cfg, False, n_sats)
+    (kind, k, at), (other, k_other, rest) = pseudorange_losses(GraphConfig(), False, n_sats)
     assert (kind, k, other, k_other) == ("gm", 2.0, "cauchy", 1.5)
     assert at.tolist() == [False, False, True, True] and rest.tolist() == [True, True, False, False]
-    [(kind, k, at)] = pseudorange_losses(cfg, True, n_sats)
-    assert (kind, k) == ("cauchy", 1.5) and at.all()
+    cfg = GraphConfig(learned_robust="huber", learned_robust_k=3.0, robust="none", robust_k=1.0)
+    (kind, k, at), (other, k_other, rest) = pseudorange_losses(cfg, True, n_sats)
+    assert (kind, k, other, k_other) == ("huber", 3.0, "none", 1.0)
+    assert at.tolist() == [False, False, True, True] and rest.tolist() == [True, True, False, False]
 
 
 def test_geman_mcclure_drops_a_gross_outlier_that_cauchy_still_feels(trace, wls):

@@ -31,7 +31,8 @@ def test_a_file_sets_fields_and_round_trips(tmp_path):
                                         ('motion = "rwx"\n', "'motion' must be one of 'cv', 'rw', got 'rwx'"),
                                         ('clock_drift_states = "yes"\n', "'clock_drift_states' must be one of"),
                                         ('batch_solver = "lu"\n', "'batch_solver' must be one of"),
-                                        ('unlearned_robust = "tukey"\n', "'unlearned_robust' must be one of")])
+                                        ('unlearned_robust = "tukey"\n', "'unlearned_robust' must be one of"),
+                                        ('learned_robust = "tukey"\n', "'learned_robust' must be one of")])
 def test_bad_files_name_the_file_and_the_setting(tmp_path, text, says):
     f = tmp_path / "g.toml"
     f.write_text(text)
