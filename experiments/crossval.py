@@ -18,7 +18,8 @@ checkpoint (the shipped one is calibrated this way).
 Quicker, on a busy machine: ``--two-fold`` (two folds of six drives), ``--modes wls,dnn,fused-nodnn,fused``,
 ``--epochs 8``; ``--feature-version 2`` trains the previous release's recipe on the same folds, and
 ``--weights CKPT`` evaluates one checkpoint on every fold (in-sample if it was trained on them);
-``--reuse --graph-config G.toml`` re-evaluates the fold networks with other graph settings.
+``--reuse --graph-config G.toml`` re-evaluates the fold networks with other graph settings, ``--elev-mask`` with
+another elevation mask.
 ``--ensemble-of RUN1 RUN2 ...`` evaluates, per fold, the ensemble of those runs' fold networks
 (:mod:`learned.ensemble`; a manifest ``<out>/fold_<F>.json`` per fold), and ``--store-calibration`` then
 takes an ensemble manifest (the shipped weights are one).
@@ -127,7 +128,7 @@ def eval_drive(drive: str, ckpt: Path, args) -> dict:
     trace = load_trace(drive_dir(args.data, drive))
     # the pooled unseen-drive scales (--store-calibration) are fitted on the covariances before the variance
     # factor (fusion.estimate.variance_factor), which is tuned on top of them (experiments/sigma_calibration.py)
-    base = RunOptions(weights=ckpt, graph=args.graph, sigma_calibration=False)
+    base = RunOptions(weights=ckpt, graph=args.graph, sigma_calibration=False, elev_mask_deg=args.elev_mask)
     wls = solve_initial(trace, base)
     out = {}
     for label, (mode, changes) in ((k, MODES[k]) for k in args.modes.split(",")):
@@ -274,6 +275,8 @@ def parse_args(argv=None):
     p.add_argument("--graph-config", type=Path, default=None,
                    help="the fused modes' graph settings (TOML, as gnssfuse run --graph-config)")
     p.add_argument("--signals", default="GPS_L1", help="signals the training reads (gnssfuse train --signals)")
+    p.add_argument("--elev-mask", type=float, default=RunOptions.elev_mask_deg,
+                   help="the evaluated modes' elevation mask [deg] (gnssfuse run --elev-mask)")
     args = p.parse_args(argv)
     args.signals = parse_signals(args.signals)
     args.graph = load_graph_config(args.graph_config) if args.graph_config else GraphConfig()
