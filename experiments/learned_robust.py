@@ -11,7 +11,6 @@ the Pixel5 RINEX test trace (GPS broadcast navigation).
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
-from unlearned_robust import KINDS, score, table  # noqa: E402
+from unlearned_robust import KINDS, parse_args, score, table  # noqa: E402
 
 #: name -> GraphConfig changes
 VARIANTS = {
@@ -35,11 +34,7 @@ VARIANTS = {
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sims", type=Path, nargs="*", default=(), help="folders of held-out simulated traces")
-    ap.add_argument("--pixel5", action="store_true", help="report the Pixel5 test trace instead")
-    ap.add_argument("--jobs", type=int, default=2)
-    args = ap.parse_args()
+    args = parse_args(__doc__.splitlines()[0])
     if args.pixel5:
         traces, nav = [PIXEL5], (NAV,)
     else:

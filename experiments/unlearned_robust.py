@@ -61,12 +61,17 @@ def table(title: str, rows: dict[str, dict[str, float]]) -> None:
         print(f"| {v} | " + " | ".join(f"{r[c]:.3f}" for c in cols) + " |", flush=True)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def parse_args(description: str) -> argparse.Namespace:
+    """The loss experiments' options: ``--sims`` folders, ``--pixel5`` (report it instead), ``--jobs``."""
+    ap = argparse.ArgumentParser(description=description)
     ap.add_argument("--sims", type=Path, nargs="*", default=(), help="folders of held-out simulated traces")
     ap.add_argument("--pixel5", action="store_true", help="report the Pixel5 test trace instead")
     ap.add_argument("--jobs", type=int, default=2)
-    args = ap.parse_args()
+    return ap.parse_args()
+
+
+def main() -> int:
+    args = parse_args(__doc__.splitlines()[0])
     if args.pixel5:
         jobs = [(PIXEL5, v, c, m, (NAV,)) for v, c in VARIANTS.items() for m in ("fused-nodnn", "fused")]
     else:
