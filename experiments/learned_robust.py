@@ -3,8 +3,8 @@ of at least unlearned_robust_min_sats satellites; the others keep robust / robus
 before) and wider, against Geman-McClure, which redescends. GSDC score [m] of ``fused`` (the shipped network,
 which never saw these logs) on smartLoc's canyon and, with ``--sims``, on held-out simulated city traces
 (``sim_city_traces.py --held-out``; the mean per street kind). Those decide, with the GSDC drives cross-validated
-(``crossval.py --reuse --graph-config``, see ``experiments/results/learned_robust.md``); ``--pixel5`` then reports
-the Pixel5 RINEX test trace (GPS broadcast navigation).
+(``crossval.py --ensemble-of ... --graph-config``, see ``experiments/results/learned_robust.md``); ``--pixel5`` then
+reports the Pixel5 RINEX test trace (GPS broadcast navigation).
 
     GNSSFUSE_SHARED_DATA=../shared/data python experiments/learned_robust.py --sims /tmp/simho /tmp/simdeepho
     GNSSFUSE_SHARED_DATA=../shared/data python experiments/learned_robust.py --pixel5
