@@ -86,6 +86,22 @@ def drive_samples(data: Path, drive: str, cache: Path, phone: str = "Pixel4", si
     return s
 
 
+def canyon_samples(data: Path, drive: str, cache: Path, kind: str, seed: int, signals=("GPS_L1",)):
+    """Training samples of one drive seen from simulated streets (``canyon_on_phone.in_canyon``: "ordinary" the
+    simulator's default streets, "deep" its high-rise core; ``seed`` the layout), cached like
+    :func:`drive_samples`. Only the fold's own training drives are so used, so no fold sees its unseen drives."""
+    from canyon_on_phone import DEEP, in_canyon
+    from fusion.sim.canyon import CanyonModel
+    f = cache / f"{drive}_Pixel4_{'-'.join(signals)}_canyon-{kind}-{seed}.pkl"
+    if f.is_file():
+        return pickle.loads(f.read_bytes())
+    trace, _ = in_canyon(load_trace(drive_dir(data, drive), signals=signals), DEEP if kind == "deep" else CanyonModel(),
+                         seed)
+    s = samples_from_trace(trace, real=True, with_graph=True)
+    f.write_bytes(pickle.dumps(s))
+    return s
+
+
 def train_fold(fold: str, args) -> Path:
     ckpt = args.out / f"fold_{fold}.pt"
     if ckpt.is_file() and args.reuse:
@@ -97,6 +113,8 @@ def train_fold(fold: str, args) -> Path:
     parts = [drive_samples(args.data, d, args.out / "cache", signals=args.signals) for d in drives]
     parts += [drive_samples(x.parent.parent, x.parent.name, args.out / "cache", x.name, args.signals)
               for x in args.extra]
+    parts += [canyon_samples(args.data, d, args.out / "cache", kind, seed, args.signals)
+              for d in drives for kind, seed in args.canyon]
     samples = concat_samples([replace(p, trace=np.zeros(len(p), int)) for p in parts])
     # validation: one whole drive of the nine, so the best epoch is the one that generalises
     tr, va = split_traces(samples, 0.1, np.random.default_rng(args.seed))
@@ -275,10 +293,16 @@ def parse_args(argv=None):
     p.add_argument("--graph-config", type=Path, default=None,
                    help="the fused modes' graph settings (TOML, as gnssfuse run --graph-config)")
     p.add_argument("--signals", default="GPS_L1", help="signals the training reads (gnssfuse train --signals)")
+    p.add_argument("--canyon", default="", metavar="KIND:SEED,...",
+                   help="add each fold's training drives seen from simulated streets (KIND ordinary or deep, SEED the "
+                        "layout; experiments/canyon_on_phone.py)")
     p.add_argument("--elev-mask", type=float, default=RunOptions.elev_mask_deg,
                    help="the evaluated modes' elevation mask [deg] (gnssfuse run --elev-mask)")
     args = p.parse_args(argv)
     args.signals = parse_signals(args.signals)
+    args.canyon = [(k, int(v)) for k, v in (kv.split(":") for kv in args.canyon.split(",") if kv)]
+    if any(k not in ("ordinary", "deep") for k, _ in args.canyon):
+        p.error(f"--canyon: KIND must be ordinary or deep, got {args.canyon}")
     args.graph = load_graph_config(args.graph_config) if args.graph_config else GraphConfig()
     return args
 
