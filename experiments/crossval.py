@@ -19,7 +19,8 @@ Quicker, on a busy machine: ``--two-fold`` (two folds of six drives), ``--modes 
 ``--epochs 8``; ``--feature-version 2`` trains the previous release's recipe on the same folds, and
 ``--weights CKPT`` evaluates one checkpoint on every fold (in-sample if it was trained on them);
 ``--reuse --graph-config G.toml`` re-evaluates the fold networks with other graph settings, ``--elev-mask`` with
-another elevation mask.
+another elevation mask; ``--canyon ordinary:1000,deep:1001`` adds each fold's own training drives seen from
+simulated streets to its training data (``experiments/results/canyon_on_gsdc.md``).
 ``--ensemble-of RUN1 RUN2 ...`` evaluates, per fold, the ensemble of those runs' fold networks
 (:mod:`learned.ensemble`; a manifest ``<out>/fold_<F>.json`` per fold), and ``--store-calibration`` then
 takes an ensemble manifest (the shipped weights are one).
@@ -260,6 +261,14 @@ def pooled_scales(results: dict) -> dict:
     return out
 
 
+def parse_canyon(item: str, parser: argparse.ArgumentParser) -> tuple[str, int]:
+    """One ``--canyon`` item, ``KIND:SEED`` -> (KIND, SEED); anything else is the parser's error."""
+    kind, _, seed = item.partition(":")
+    if kind not in ("ordinary", "deep") or not seed.isdigit():
+        parser.error(f"--canyon: {item!r} is not KIND:SEED with KIND ordinary or deep and SEED a whole number")
+    return kind, int(seed)
+
+
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "gsdc2021" / "train")
@@ -300,9 +309,7 @@ def parse_args(argv=None):
                    help="the evaluated modes' elevation mask [deg] (gnssfuse run --elev-mask)")
     args = p.parse_args(argv)
     args.signals = parse_signals(args.signals)
-    args.canyon = [(k, int(v)) for k, v in (kv.split(":") for kv in args.canyon.split(",") if kv)]
-    if any(k not in ("ordinary", "deep") for k, _ in args.canyon):
-        p.error(f"--canyon: KIND must be ordinary or deep, got {args.canyon}")
+    args.canyon = [parse_canyon(item, p) for item in args.canyon.split(",") if item]
     args.graph = load_graph_config(args.graph_config) if args.graph_config else GraphConfig()
     return args
 
