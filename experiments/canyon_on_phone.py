@@ -37,6 +37,7 @@ from fusion.options import add_signals_option, load_options, parse_signals  # no
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.sim.canyon import BLOCKED, LOS, CanyonModel, classify, street_layout  # noqa: E402
+from fusion.sim.cn0 import Cn0Model, draw_cn0, los_cn0  # noqa: E402
 from fusion.trace import Trace  # noqa: E402
 
 #: the deep canyon of the experiments (``--height 30 100 --width 12 25``): a high-rise core
@@ -59,6 +60,19 @@ def canyon_classes(trace: Trace, model: CanyonModel, seed: int) -> dict[str, np.
 def reflected(trace: Trace, c: dict[str, np.ndarray]) -> np.ndarray:
     """(E,S) bool real slots that arrive reflected or bent (not blocked, not line of sight) by classes ``c``."""
     return trace.mask & (c["cls"] != LOS) & (c["cls"] != BLOCKED)
+
+
+def with_model_cn0(trace: Trace, seed: int) -> Trace:
+    """``trace`` with a C/N0 drawn from the simulator's line-of-sight model (:mod:`fusion.sim.cn0`: signal power,
+    path loss and antenna pattern at the truth's geometry, a receiver offset, per-satellite offsets and noise), for
+    logs whose files carry none (the GSDC 2021 derived files); :func:`in_canyon` then lowers it for reflections.
+    Its real slots' C/N0 only; nothing else changes."""
+    rng = np.random.default_rng(seed)
+    rng_m, los = line_of_sight(trace.sat_pos, trace.truth)
+    el, _ = elevation_azimuth(los, trace.truth)
+    base = los_cn0(trace.signal.astype(int), el, rng_m, Cn0Model())
+    cn0 = draw_cn0(np.nan_to_num(base), np.zeros(trace.n_epochs, int), Cn0Model(), rng)
+    return replace(trace, cn0=np.where(trace.mask, cn0, 0.0))
 
 
 def in_canyon(trace: Trace, model: CanyonModel, seed: int) -> tuple[Trace, dict[str, float]]:

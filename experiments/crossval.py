@@ -87,16 +87,20 @@ def drive_samples(data: Path, drive: str, cache: Path, phone: str = "Pixel4", si
     return s
 
 
-def canyon_samples(data: Path, drive: str, cache: Path, kind: str, seed: int, signals=("GPS_L1",)):
+def canyon_samples(data: Path, drive: str, cache: Path, kind: str, seed: int, signals=("GPS_L1",),
+                   cn0: bool = False):
     """Training samples of one drive seen from simulated streets (``canyon_on_phone.in_canyon``: "ordinary" the
     simulator's default streets, "deep" its high-rise core; ``seed`` the layout), cached like
-    :func:`drive_samples`. Only the fold's own training drives are so used, so no fold sees its unseen drives."""
-    from canyon_on_phone import DEEP, in_canyon
+    :func:`drive_samples`. Only the fold's own training drives are so used, so no fold sees its unseen drives.
+    ``cn0``: the drive first gets the simulator's C/N0 (``canyon_on_phone.with_model_cn0``), which the streets
+    then lower for reflections, as a phone log would show them."""
+    from canyon_on_phone import DEEP, in_canyon, with_model_cn0
     from fusion.sim.canyon import CanyonModel
-    f = cache / f"{drive}_Pixel4_{'-'.join(signals)}_canyon-{kind}-{seed}.pkl"
+    f = cache / f"{drive}_Pixel4_{'-'.join(signals)}_canyon-{kind}-{seed}{'-cn0' if cn0 else ''}.pkl"
     if f.is_file():
         return pickle.loads(f.read_bytes())
-    trace, _ = in_canyon(load_trace(drive_dir(data, drive), signals=signals), DEEP if kind == "deep" else CanyonModel(),
+    trace = load_trace(drive_dir(data, drive), signals=signals)
+    trace, _ = in_canyon(with_model_cn0(trace, seed) if cn0 else trace, DEEP if kind == "deep" else CanyonModel(),
                          seed)
     s = samples_from_trace(trace, real=True, with_graph=True)
     f.write_bytes(pickle.dumps(s))
@@ -114,7 +118,7 @@ def train_fold(fold: str, args) -> Path:
     parts = [drive_samples(args.data, d, args.out / "cache", signals=args.signals) for d in drives]
     parts += [drive_samples(x.parent.parent, x.parent.name, args.out / "cache", x.name, args.signals)
               for x in args.extra]
-    parts += [canyon_samples(args.data, d, args.out / "cache", kind, seed, args.signals)
+    parts += [canyon_samples(args.data, d, args.out / "cache", kind, seed, args.signals, args.canyon_cn0)
               for d in drives for kind, seed in args.canyon]
     samples = concat_samples([replace(p, trace=np.zeros(len(p), int)) for p in parts])
     # validation: one whole drive of the nine, so the best epoch is the one that generalises
@@ -305,6 +309,8 @@ def parse_args(argv=None):
     p.add_argument("--canyon", default="", metavar="KIND:SEED,...",
                    help="add each fold's training drives seen from simulated streets (KIND ordinary or deep, SEED the "
                         "layout; experiments/canyon_on_phone.py)")
+    p.add_argument("--canyon-cn0", action="store_true",
+                   help="--canyon's drives get the simulator's C/N0 first, lowered for reflections")
     p.add_argument("--elev-mask", type=float, default=RunOptions.elev_mask_deg,
                    help="the evaluated modes' elevation mask [deg] (gnssfuse run --elev-mask)")
     args = p.parse_args(argv)
