@@ -64,9 +64,10 @@ def reflected(trace: Trace, c: dict[str, np.ndarray]) -> np.ndarray:
 
 def with_model_cn0(trace: Trace, seed: int) -> Trace:
     """``trace`` with a C/N0 drawn from the simulator's line-of-sight model (:mod:`fusion.sim.cn0`: signal power,
-    path loss and antenna pattern at the truth's geometry, a receiver offset, per-satellite offsets and noise), for
-    logs whose files carry none (the GSDC 2021 derived files); :func:`in_canyon` then lowers it for reflections.
-    Its real slots' C/N0 only; nothing else changes."""
+    path loss and antenna pattern at the truth's geometry, a receiver offset and noise; its per-satellite offset
+    falls here on each packed slot column, not on a satellite), for logs whose files carry none (the GSDC 2021
+    derived files); :func:`in_canyon` then lowers it for reflections. Its real slots' C/N0 only; nothing else
+    changes."""
     rng = np.random.default_rng(seed)
     rng_m, los = line_of_sight(trace.sat_pos, trace.truth)
     el, _ = elevation_azimuth(los, trace.truth)
