@@ -77,14 +77,20 @@ def drive_dir(data: Path, drive: str, phone: str = "Pixel4") -> Path:
     return data / drive / phone
 
 
-def drive_samples(data: Path, drive: str, cache: Path, phone: str = "Pixel4", signals=("GPS_L1",)):
-    """Training samples of one drive (with graph positions), cached: they cost a graph solve."""
-    f = cache / f"{drive}_{phone}_{'-'.join(signals)}.pkl"
+def cached_samples(f: Path, trace):
+    """Training samples (with graph positions) of the trace ``trace()`` makes, kept in ``f``: they cost a graph
+    solve."""
     if f.is_file():
         return pickle.loads(f.read_bytes())
-    s = samples_from_trace(load_trace(drive_dir(data, drive, phone), signals=signals), real=True, with_graph=True)
+    s = samples_from_trace(trace(), real=True, with_graph=True)
     f.write_bytes(pickle.dumps(s))
     return s
+
+
+def drive_samples(data: Path, drive: str, cache: Path, phone: str = "Pixel4", signals=("GPS_L1",)):
+    """Training samples of one drive, cached (:func:`cached_samples`)."""
+    return cached_samples(cache / f"{drive}_{phone}_{'-'.join(signals)}.pkl",
+                          lambda: load_trace(drive_dir(data, drive, phone), signals=signals))
 
 
 def canyon_samples(data: Path, drive: str, cache: Path, kind: str, seed: int, signals=("GPS_L1",),
@@ -96,15 +102,13 @@ def canyon_samples(data: Path, drive: str, cache: Path, kind: str, seed: int, si
     then lower for reflections, as a phone log would show them."""
     from canyon_on_phone import DEEP, in_canyon, with_model_cn0
     from fusion.sim.canyon import CanyonModel
-    f = cache / f"{drive}_Pixel4_{'-'.join(signals)}_canyon-{kind}-{seed}{'-cn0' if cn0 else ''}.pkl"
-    if f.is_file():
-        return pickle.loads(f.read_bytes())
-    trace = load_trace(drive_dir(data, drive), signals=signals)
-    trace, _ = in_canyon(with_model_cn0(trace, seed) if cn0 else trace, DEEP if kind == "deep" else CanyonModel(),
-                         seed)
-    s = samples_from_trace(trace, real=True, with_graph=True)
-    f.write_bytes(pickle.dumps(s))
-    return s
+
+    def trace():
+        logged = load_trace(drive_dir(data, drive), signals=signals)
+        return in_canyon(with_model_cn0(logged, seed) if cn0 else logged, DEEP if kind == "deep" else CanyonModel(),
+                         seed)[0]
+    return cached_samples(cache / f"{drive}_Pixel4_{'-'.join(signals)}_canyon-{kind}-{seed}{'-cn0' if cn0 else ''}.pkl",
+                          trace)
 
 
 def train_fold(fold: str, args) -> Path:

@@ -1,5 +1,5 @@
 """The pseudorange loss of a graph with learned sigmas (GraphConfig.learned_robust / learned_robust_k, at epochs
-of at least unlearned_robust_min_sats satellites; the others keep robust / robust_k): Cauchy at 1.5 (the loss
+of at least robust_min_sats satellites; the others keep robust / robust_k): Cauchy at 1.5 (the loss
 before) and wider, against Geman-McClure, which redescends. GSDC score [m] of ``fused`` (the shipped network,
 which never saw these logs) on smartLoc's canyon and, with ``--sims``, on held-out simulated city traces
 (``sim_city_traces.py --held-out``; the mean per street kind). Those decide, with the GSDC drives cross-validated

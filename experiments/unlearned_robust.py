@@ -1,5 +1,5 @@
 """The pseudorange loss of a graph without learned sigmas (GraphConfig.unlearned_robust / unlearned_robust_k, at
-epochs of at least unlearned_robust_min_sats satellites): Cauchy (the loss before) against Geman-McClure, which
+epochs of at least robust_min_sats satellites): Cauchy (the loss before) against Geman-McClure, which
 redescends, at three scales, at every epoch whatever its satellites, and on every graph. GSDC score [m] of
 ``fused-nodnn`` on the twelve GSDC training drives (no network: the mean over drives), and of ``fused-nodnn``
 and ``fused`` (the shipped network, which never saw them) on smartLoc's canyon and, with ``--sims``, on held-out
@@ -37,7 +37,7 @@ VARIANTS = {
     "Geman-McClure 1.5": {"unlearned_robust_k": 1.5},
     "Geman-McClure 2 (shipped)": {},
     "Geman-McClure 2.5": {"unlearned_robust_k": 2.5},
-    "Geman-McClure 2 at every epoch": {"unlearned_robust_min_sats": 1},
+    "Geman-McClure 2 at every epoch": {"robust_min_sats": 1},
     "Geman-McClure 2 on every graph": {"robust": "gm", "robust_k": 2.0, "learned_robust": "gm",
                                        "learned_robust_k": 2.0},
 }

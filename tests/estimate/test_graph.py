@@ -638,7 +638,7 @@ def test_a_tighter_velocity_walk_only_where_the_motion_model_alone_places_the_ep
 
 
 def test_pseudorange_losses_redescend_only_with_satellites_to_spare_and_nothing_learned():
-    """Geman-McClure where the graph has no learned sigma and the epoch at least unlearned_robust_min_sats
+    """Geman-McClure where the graph has no learned sigma and the epoch at least robust_min_sats
     satellites; learned_robust at those epochs of a graph with learned sigmas; robust / robust_k at the others."""
     from fusion.estimate.graph.inputs import pseudorange_losses
     n_sats = np.array([3, 5, 6, 9])
@@ -659,7 +659,7 @@ def test_geman_mcclure_drops_a_gross_outlier_that_cauchy_still_feels(trace, wls)
     bad = Trace(**{**trace.__dict__, "pr": pr})
     clean = fuse(trace, wls, RunOptions(), want_cov=False)
     runs = {kind: fuse(bad, wls, RunOptions(), cfg=GraphConfig(unlearned_robust=kind, unlearned_robust_k=2.0,
-                                                                unlearned_robust_min_sats=1), want_cov=False)
+                                                                robust_min_sats=1), want_cov=False)
             for kind in ("gm", "cauchy")}
     shift = {kind: np.nanmedian(np.linalg.norm(r.pos - clean.pos, axis=1)) for kind, r in runs.items()}
     assert shift["gm"] < 0.5 * shift["cauchy"]

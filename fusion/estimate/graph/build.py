@@ -166,11 +166,10 @@ def pseudorange_factors(trace: Trace, inp: EpochInputs, cfg: GraphConfig, epochs
     pr = trace.pr[ks, ss] - inp.pr_bias[ks, ss]
     sigma, grp, comp = inp.sigma[ks, ss], inp.isb.group[ks, ss], inp.comp[ks]
     sat = trace.sat_pos[ks, ss]
-    models = [None] * ks.size
+    models = np.empty(ks.size, object)
     for kind, k, at in inp.pr_losses:
         rows = np.flatnonzero(at[ks])
-        for i, model in zip(rows.tolist(), scalar_robust_models(kind, k, sigma[rows])):
-            models[i] = model
+        models[rows] = scalar_robust_models(kind, k, sigma[rows])
     return ks, [pseudorange_factor_xc(k, r, sat[i], models[i]) if g < 0 else
                 pseudorange_factor_xci(k, c, g, r, sat[i], models[i])
                 for i, (k, r, g, c) in enumerate(zip(ks.tolist(), pr.tolist(), grp.tolist(), comp.tolist()))]

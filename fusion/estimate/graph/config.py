@@ -27,7 +27,7 @@ class GraphConfig:
     # 31.08 m with the shipped one. With smartLoc's vehicle odometry (off where phones are compared) it is
     # mixed: 12.70 -> 12.65 / 15.84 -> 16.26 m, shipped 14.64 -> 15.08 m (experiments/results/crossval_v3.md).
     slot_noise_level: str = "absolute"
-    # The pseudorange loss at epochs with fewer than unlearned_robust_min_sats satellites (below), in every graph.
+    # The pseudorange loss at epochs with fewer than robust_min_sats satellites (below), in every graph.
     robust: str = "cauchy"             # "huber", "cauchy", "gm" (Geman-McClure) or "none"
     # Scale on the whitened residual of the pseudorange factors (chosen when it served every graph). 1.5 against
     # 2 (chosen on three drives in the first round) and 1: fused-nodnn better at 1.5 than at 2 on every tuning
@@ -50,17 +50,17 @@ class GraphConfig:
     # cost smartLoc's fused 27.18 -> 29.34 m.
     unlearned_robust: str = "gm"
     unlearned_robust_k: float = 2.0
-    # ... at epochs of this many satellites or more; the others keep robust / robust_k. A loss that redescends
+    # The pseudorange loss of a graph with learned sigmas. Cauchy at 1.5 stays: a wider Cauchy or Geman-McClure at
+    # 3-5 gains smartLoc's fused (27.24 -> 26.31-26.69 m) and loses the held-out simulated deep streets (9.28 ->
+    # 9.46-9.71 m); the GSDC drives cross-validated move by at most 0.002 x (experiments/results/learned_robust.md).
+    learned_robust: str = "cauchy"
+    learned_robust_k: float = 1.5
+    # unlearned_robust and learned_robust act at epochs of this many satellites or more (this setting was
+    # unlearned_robust_min_sats until 2026-11-28); the others keep robust / robust_k. A loss that redescends
     # needs measurements to spare to tell which one is wrong (fault exclusion needs six satellites): with
     # three to five it drops good pseudoranges and the motion model carries the car (the simulated city
     # traces thinned to three satellites: Geman-McClure everywhere took fused-nodnn 38.0 -> 49.7 m).
-    unlearned_robust_min_sats: int = 6
-    # The pseudorange loss of a graph with learned sigmas, at the same epochs (the others keep robust / robust_k).
-    # Cauchy at 1.5 stays: a wider Cauchy or Geman-McClure at 3-5 gains smartLoc's fused (27.24 -> 26.31-26.69 m)
-    # and loses the held-out simulated deep streets (9.28 -> 9.46-9.71 m); the GSDC drives cross-validated move by
-    # at most 0.002 x (experiments/results/learned_robust.md).
-    learned_robust: str = "cauchy"
-    learned_robust_k: float = 1.5
+    robust_min_sats: int = 6
     # The robust scale of the Doppler and time-differenced carrier factors: 2 (the old common value) against 1.5
     # on the simulated city traces, the only tuning logs with Doppler: mean fused-nodnn 5.44 -> 5.37 m, no trace
     # worse by more than 0.01 m.

@@ -166,11 +166,11 @@ def learned_slot_noise(trace: Trace, got_sigma: np.ndarray | None, got_bias: np.
 def pseudorange_losses(cfg: GraphConfig, learned_sigmas: bool, n_sats: np.ndarray
                        ) -> list[tuple[str, float, np.ndarray]]:
     """The pseudorange factors' robust losses: (kind, scale [sigmas], epochs (E,) bool) that partition the
-    epochs. At epochs of at least ``unlearned_robust_min_sats`` satellites (n_sats (E,)), ``learned_robust``
+    epochs. At epochs of at least ``robust_min_sats`` satellites (n_sats (E,)), ``learned_robust``
     where some pseudorange of the graph has a learned sigma and ``unlearned_robust`` where none has (a network
     whose guard handed every measurement to the physical model builds the graph without it); ``robust`` at the
     others (GraphConfig)."""
-    enough = n_sats >= cfg.unlearned_robust_min_sats
+    enough = n_sats >= cfg.robust_min_sats
     kind, k = (cfg.learned_robust, cfg.learned_robust_k) if learned_sigmas else (cfg.unlearned_robust,
                                                                                  cfg.unlearned_robust_k)
     return [(kind, k, enough), (cfg.robust, cfg.robust_k, ~enough)]
