@@ -64,15 +64,17 @@ def reflected(trace: Trace, c: dict[str, np.ndarray]) -> np.ndarray:
 
 def with_model_cn0(trace: Trace, seed: int) -> Trace:
     """``trace`` with a C/N0 drawn from the simulator's line-of-sight model (:mod:`fusion.sim.cn0`: signal power,
-    path loss and antenna pattern at the truth's geometry, a receiver offset and noise; its per-satellite offset
-    falls here on each packed slot column, not on a satellite), for logs whose files carry none (the GSDC 2021
-    derived files); :func:`in_canyon` then lowers it for reflections. Its real slots' C/N0 only; nothing else
-    changes."""
-    rng = np.random.default_rng(seed)
+    path loss and antenna pattern at the truth's geometry, a receiver offset, an offset per satellite and noise),
+    for logs whose files carry none (the GSDC 2021 derived files); :func:`in_canyon` then lowers it for
+    reflections. Its real slots' C/N0 only; nothing else changes."""
+    rng, model = np.random.default_rng(seed), Cn0Model()
     rng_m, los = line_of_sight(trace.sat_pos, trace.truth)
     el, _ = elevation_azimuth(los, trace.truth)
-    base = los_cn0(trace.signal.astype(int), el, rng_m, Cn0Model())
-    cn0 = draw_cn0(np.nan_to_num(base), np.zeros(trace.n_epochs, int), Cn0Model(), rng)
+    # slots are packed per epoch, so the satellite offset is looked up by satellite, not by column
+    ids, of_slot = np.unique(trace.sat_id, return_inverse=True)
+    sat_db = (rng.standard_normal(ids.size) * model.satellite_sigma_db)[of_slot.reshape(trace.sat_id.shape)]
+    cn0 = draw_cn0(np.nan_to_num(los_cn0(trace.signal.astype(int), el, rng_m, model)) + sat_db,
+                   np.zeros(trace.n_epochs, int), replace(model, satellite_sigma_db=0.0), rng)
     return replace(trace, cn0=np.where(trace.mask, cn0, 0.0))
 
 
