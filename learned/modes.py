@@ -1,13 +1,17 @@
 """The ``dnn`` and ``fused`` pipeline modes: the trained network wired into fusion's estimators.
 
 ``fusion``'s mode registry names these functions by string (``"learned.modes:estimate_dnn"``). Neither
-imports torch: the network runs in numpy (:mod:`learned.npnet`), asked once per run.
+imports torch: the network runs in numpy (:mod:`learned.npnet`), asked once per run (``fused``: its
+pseudorange sigmas once more, :func:`sigmas_again`).
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from fusion.estimate.graph.fuse import calibrated, fuse, learned_guess, learned_guess_and_start
+from fusion.estimate.graph.batch import BatchSolution
+from fusion.estimate.graph.fuse import calibrated, fuse, learned_guess, learned_guess_and_start, solve_graph
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
 from fusion.estimate.variance_factor import calibrate_snapshot
@@ -162,13 +166,43 @@ def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     return out
 
 
+def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOptions,
+                 learned: LearnedGraphInputs, at: np.ndarray, start: BatchSolution | None
+                 ) -> tuple[LearnedGraphInputs, BatchSolution | None]:
+    """``learned`` with its pseudorange sigmas asked again at the graph's own answer with them, each of
+    ``GraphConfig.learned_sigma_passes`` - 1 times, and the last of those solves (the final solve's start).
+
+    The first pass asks the network at the graph without anything learned (``at`` (E,3) ECEF): in a canyon
+    that guess is metres off, and the residuals the head reads there carry the guess's error beside each
+    satellite's own. A solve with its sigmas, to the full tolerance (stopped at ``guess_rel_tol`` it left
+    smartLoc at 25.65 against 25.10 m), is the better guess for the next pass. Only the sigmas are taken
+    again: the position prior and the biases stay the first pass's, since a guess already moved by them
+    would have the network move it again (both re-asked: GSDC cross-validated 3.689 against 3.664 m).
+    Batch mode only (the incremental smoother asks once, at its online estimates, to stay causal)."""
+    if opts.graph.incremental or learned.pr_sigma is None or opts.graph.learned_sigma_passes <= 1:
+        return learned, start
+    info = dict(learned.info or {})
+    for _ in range(opts.graph.learned_sigma_passes - 1):
+        guess = solve_graph(trace, wls, opts, opts.graph, learned, want_cov=False, start=start, keep_values=True)
+        ok = guess.valid & np.isfinite(guess.pos).all(axis=1)
+        again = graph_inputs(corrector, trace, wls, opts, np.where(ok[:, None], guess.pos, at))
+        # the guard's measurement counts are the pass whose sigmas the graph takes; its epoch counts the prior's
+        info.update({k: v for k, v in (again.info or {}).items() if k.startswith(("learned_meas", "learned_pr_"))})
+        learned = replace(learned, pr_sigma=again.pr_sigma, info=info)
+        start = guess.info.get("batch_solution", start)
+    info["learned_sigma_passes"] = opts.graph.learned_sigma_passes
+    return learned, start
+
+
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
     + motion, from one network pass; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     at, start = learned_guess_and_start(trace, wls, opts)
-    # the solve with the learned inputs starts from the first solve's solution (one network pass)
-    res = fuse(trace, wls, opts, learned=graph_inputs(corrector, trace, wls, opts, at), start=start)
+    learned = graph_inputs(corrector, trace, wls, opts, at)
+    learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start)
+    # the solve with the learned inputs starts from the last solve's solution
+    res = fuse(trace, wls, opts, learned=learned, start=start)
     if opts.graph.prior_at == "graph":
         res.info["unlearned_pos"] = at          # the first solve: nothing learned (its sigma calibration)
         res.info.update(learned_move(res.pos, at, res.valid))

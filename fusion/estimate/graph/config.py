@@ -116,6 +116,14 @@ class GraphConfig:
     # traces 2.51 / 2.26 / 2.12 m at 3 / 4 / 5 (experiments/results/sigma_power.md). 4: the canyon's gain
     # without a cost on the GSDC drives or the suburban simulated traces.
     learned_sigma_power: float = 4.0
+    # How many times the fused mode asks the network for those sigmas (learned.modes.sigmas_again): the
+    # first pass at the graph without anything learned, each further one at the graph's answer with the sigmas
+    # before (the prior and the biases stay the first pass's). Chosen on the logs whose gain is inside the trace:
+    # 1 -> 2 took smartLoc (never trained on) 27.24 -> 25.10 m and the twelve held-out simulated city traces'
+    # urban / deep means 3.43 -> 3.25 / 9.28 -> 9.11 m, GSDC cross-validated 3.661 -> 3.664 m (three seeds'
+    # fold networks as one ensemble); 3 gave 24.62 m and 3.24 / 9.09 m for one more network pass and solve
+    # (experiments/results/sigma_passes.md).
+    learned_sigma_passes: int = 2
     prior_cov_scale: float = 4.0
     prior_sigma_floor_m: float = 2.0
     # robust loss on the prior's Mahalanobis distance (in sigmas), so that a wrong network output
