@@ -4,8 +4,9 @@ Honest protocol: the initial guess comes from WLS (or any estimate that never sa
 clock is re-estimated from the measurements at every guess (:mod:`learned.features`).
 
 Runs without torch: the network is evaluated in numpy (:mod:`learned.npnet`) from the checkpoint's ``.npz``
-twin (:mod:`learned.npz_weights`). :meth:`Corrector.graph_inputs` is the one network pass the ``fused``
-mode makes: the prior, the per-satellite sigmas and biases and the guard's counts together.
+twin (:mod:`learned.npz_weights`). :meth:`Corrector.graph_inputs` is one network pass of the ``fused`` mode:
+the prior, the per-satellite sigmas and biases and the guard's counts together (the mode takes the sigmas of a
+second pass, :func:`learned.modes.sigmas_again`).
 """
 from __future__ import annotations
 

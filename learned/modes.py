@@ -196,7 +196,8 @@ def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
 
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
-    + motion, from one network pass; ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
+    + motion, from one network pass (and its sigmas from a second, :func:`sigmas_again`); ``opts.learned_prior`` /
+    ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     at, start = learned_guess_and_start(trace, wls, opts)
     learned = graph_inputs(corrector, trace, wls, opts, at)

@@ -264,6 +264,8 @@ def test_the_report_says_per_mode_what_the_learned_parts_and_the_motion_model_di
     assert "fused: 120" not in text and "fused: 0 epochs bridged" not in text
     from fusion.eval.summary import learned_words
     assert learned_words({**info, "learned_members": 3}).startswith("ensemble of 3 networks (guard counts: the most")
+    assert "asked 2 times for the pseudorange sigmas" in learned_words({**info, "learned_sigma_passes": 2})
+    assert "times for the pseudorange sigmas" not in learned_words({**info, "learned_sigma_passes": 1})
 
 
 # ---------------------------------------------------------------------------- start-up and exit cost of `run`

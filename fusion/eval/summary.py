@@ -25,6 +25,9 @@ def learned_words(info: dict) -> str:
     """What the network and its guard did (a mode's ``learned_*`` info), in words."""
     g = {k[len("learned_"):]: int(v) for k, v in info.items() if k.startswith("learned_") and isinstance(v, (int, float))}
     who = f"ensemble of {g['members']} networks (guard counts: the most of any)" if g.get("members") else "network"
+    if g.get("sigma_passes", 1) > 1:
+        who += (f", asked {g['sigma_passes']} times for the pseudorange sigmas (measurement counts: the last pass's;"
+                " epoch counts: the first's, whose prior the graph takes)")
     return (f"{who}: asked at {g.get('epochs_asked', 0)} epochs, {g.get('meas_asked', 0)} measurements; its guard "
             f"gave the physical sigma model {g.get('meas_out_of_range', 0)} measurements with inputs outside the "
             f"training range; {g.get('meas_unseen_signal', 0)} measurements of signals it cannot read left to the "

@@ -513,8 +513,9 @@ def test_fused_feeds_the_network_the_runs_elevation_mask(trace, wls, tmp_path, m
         return real(self, trace, init_pos, valid, elev_mask_deg=elev_mask_deg, **kw)
     monkeypatch.setattr(Corrector, "predict", spy)
     run_modes(trace, ["dnn", "fused"], RunOptions(weights=ckpt, elev_mask_deg=17.0), wls=wls)
-    # dnn once, fused once for its prior and its slot noise: both with the run's mask
-    assert seen == [17.0, 17.0]
+    # dnn once, fused once for its prior and its slot noise and once more for its sigmas
+    # (GraphConfig.learned_sigma_passes): all with the run's mask
+    assert seen == [17.0, 17.0, 17.0]
 
 
 def test_an_outage_is_flagged_as_bridged_with_its_length(trace, wls):
