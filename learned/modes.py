@@ -177,7 +177,8 @@ def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     satellite's own. A solve with its sigmas, to the full tolerance (stopped at ``guess_rel_tol`` it left
     smartLoc at 25.65 against 25.10 m), is the better guess for the next pass. Only the sigmas are taken
     again: the position prior and the biases stay the first pass's, since a guess already moved by them
-    would have the network move it again (both re-asked: GSDC cross-validated 3.689 against 3.664 m).
+    would have the network move it again (a scratch run asking all three again: GSDC cross-validated 3.689
+    against 3.664 m).
     Batch mode only (the incremental smoother asks once, at its online estimates, to stay causal)."""
     if opts.graph.incremental or learned.pr_sigma is None or opts.graph.learned_sigma_passes <= 1:
         return learned, start

@@ -53,23 +53,26 @@ def _passes(n: int) -> RunOptions:
     return RunOptions(graph=replace(GraphConfig(), learned_sigma_passes=n))
 
 
-def test_one_pass_leaves_the_inputs_and_the_start_as_they_are(case):
+def _ask(case, opts: RunOptions):
+    """Both passes through a recording corrector: (recorder, first pass, its guess, the no-net start,
+    sigmas_again's inputs, sigmas_again's start)."""
     corrector, tr, wls = case
-    opts = _passes(1)
     at, start = learned_guess_and_start(tr, wls, opts)
     rec = _Recording(corrector)
     first = graph_inputs(rec, tr, wls, opts, at)
     out, out_start = sigmas_again(rec, tr, wls, opts, first, at, start)
+    return rec, first, at, start, out, out_start
+
+
+def test_one_pass_leaves_the_inputs_and_the_start_as_they_are(case):
+    rec, first, _, start, out, out_start = _ask(case, _passes(1))
     assert out is first and out_start is start and len(rec.asked) == 1
 
 
 def test_the_second_pass_is_asked_at_the_solve_with_the_first_sigmas(case):
     corrector, tr, wls = case
     opts = _passes(2)
-    at, start = learned_guess_and_start(tr, wls, opts)
-    rec = _Recording(corrector)
-    first = graph_inputs(rec, tr, wls, opts, at)
-    out, out_start = sigmas_again(rec, tr, wls, opts, first, at, start)
+    rec, first, at, start, out, out_start = _ask(case, opts)
     assert len(rec.asked) == 2
     solved = solve_graph(tr, wls, opts, opts.graph, first, want_cov=False, start=start)
     ok = solved.valid
@@ -86,27 +89,16 @@ def test_the_second_pass_is_asked_at_the_solve_with_the_first_sigmas(case):
 
 
 def test_each_further_pass_asks_once_more_and_the_incremental_smoother_asks_once(case):
-    corrector, tr, wls = case
-    for n, asked in ((3, 3), (2, 2)):
-        opts = _passes(n)
-        at, start = learned_guess_and_start(tr, wls, opts)
-        rec = _Recording(corrector)
-        sigmas_again(rec, tr, wls, opts, graph_inputs(rec, tr, wls, opts, at), at, start)
-        assert len(rec.asked) == asked
-    opts = RunOptions(graph=replace(GraphConfig(), learned_sigma_passes=3, incremental=True))
-    at, start = learned_guess_and_start(tr, wls, opts)
-    rec = _Recording(corrector)
-    first = graph_inputs(rec, tr, wls, opts, at)
-    assert sigmas_again(rec, tr, wls, opts, first, at, start)[0] is first and len(rec.asked) == 1
+    for n in (2, 3):
+        assert len(_ask(case, _passes(n))[0].asked) == n
+    rec, first, _, _, out, _ = _ask(case, RunOptions(graph=replace(GraphConfig(), learned_sigma_passes=3,
+                                                                     incremental=True)))
+    assert out is first and len(rec.asked) == 1
 
 
 def test_without_learned_sigmas_there_is_nothing_to_ask_again(case):
-    corrector, tr, wls = case
-    opts = replace(_passes(2), learned_sigmas=False)
-    at, start = learned_guess_and_start(tr, wls, opts)
-    rec = _Recording(corrector)
-    first = graph_inputs(rec, tr, wls, opts, at)
-    assert sigmas_again(rec, tr, wls, opts, first, at, start)[0] is first and len(rec.asked) == 1
+    rec, first, _, _, out, _ = _ask(case, replace(_passes(2), learned_sigmas=False))
+    assert out is first and len(rec.asked) == 1
 
 
 def test_the_setting_is_a_whole_number_of_at_least_one(tmp_path):

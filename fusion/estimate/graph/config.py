@@ -120,9 +120,9 @@ class GraphConfig:
     # first pass at the graph without anything learned, each further one at the graph's answer with the sigmas
     # before (the prior and the biases stay the first pass's). Chosen on the logs whose gain is inside the trace:
     # 1 -> 2 took smartLoc (never trained on) 27.24 -> 25.10 m and the twelve held-out simulated city traces'
-    # urban / deep means 3.43 -> 3.25 / 9.28 -> 9.11 m, GSDC cross-validated 3.661 -> 3.664 m (three seeds'
-    # fold networks as one ensemble); 3 gave 24.62 m and 3.24 / 9.09 m for one more network pass and solve
-    # (experiments/results/sigma_passes.md).
+    # urban / deep means 3.43 -> 3.27 / 9.28 -> 9.13 m, GSDC cross-validated 3.661 -> 3.665 m (three seeds'
+    # fold networks as one ensemble); 3 gave 24.64 m and 3.26 / 9.12 m for one more network pass and solve
+    # (experiments/results/sigma_passes.md). Costs 0.7 s on the Pixel5 RINEX trace (2.0 -> 2.7 s).
     learned_sigma_passes: int = 2
     prior_cov_scale: float = 4.0
     prior_sigma_floor_m: float = 2.0
