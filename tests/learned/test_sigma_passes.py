@@ -54,8 +54,8 @@ def _passes(n: int) -> RunOptions:
 
 
 def _ask(case, opts: RunOptions):
-    """Both passes through a recording corrector: (recorder, first pass, its guess, the no-net start,
-    sigmas_again's inputs, sigmas_again's start)."""
+    """The fused mode's passes through a recording corrector: (recorder, first pass, its guess, the no-net
+    start, sigmas_again's inputs, sigmas_again's start)."""
     corrector, tr, wls = case
     at, start = learned_guess_and_start(tr, wls, opts)
     rec = _Recording(corrector)
@@ -103,11 +103,10 @@ def test_without_learned_sigmas_there_is_nothing_to_ask_again(case):
 
 def test_the_setting_is_a_whole_number_of_at_least_one(tmp_path):
     assert GraphConfig().learned_sigma_passes == 2
-    for text, what in (("learned_sigma_passes = 0", "learned_sigma_passes"),
-                       ("learned_sigma_passes = 1.5", "learned_sigma_passes")):
+    for value in ("0", "1.5"):
         f = tmp_path / "g.toml"
-        f.write_text(text + "\n")
-        with pytest.raises(ConfigError, match=what) as err:
+        f.write_text(f"learned_sigma_passes = {value}\n")
+        with pytest.raises(ConfigError, match="learned_sigma_passes") as err:
             load_graph_config(f)
         assert str(f) in str(err.value) or f.name in str(err.value)
     f = tmp_path / "ok.toml"
