@@ -13,6 +13,7 @@ import numpy as np
 from fusion.estimate.graph.batch import BatchSolution
 from fusion.estimate.graph.fuse import calibrated, fuse, learned_guess, learned_guess_and_start, solve_graph
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
+from fusion.estimate.graph.series import where_solved
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
 from fusion.estimate.variance_factor import calibrate_snapshot
 from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, TRACE_DEFAULTS, WlsResult, solve_wls_arrays
@@ -185,8 +186,7 @@ def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     info = dict(learned.info or {})
     for _ in range(opts.graph.learned_sigma_passes - 1):
         guess = solve_graph(trace, wls, opts, opts.graph, learned, want_cov=False, start=start, keep_values=True)
-        ok = guess.valid & np.isfinite(guess.pos).all(axis=1)
-        again = graph_inputs(corrector, trace, wls, opts, np.where(ok[:, None], guess.pos, at))
+        again = graph_inputs(corrector, trace, wls, opts, where_solved(guess.pos, at))
         # the guard's measurement counts are the pass whose sigmas the graph takes; its epoch counts the prior's
         info.update({k: v for k, v in (again.info or {}).items() if k.startswith(("learned_meas", "learned_pr_"))})
         learned = replace(learned, pr_sigma=again.pr_sigma, info=info)

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fusion.estimate.graph.series import where_solved
 from fusion.geometry import ecef2ned_cov, ecef2ned_vec, elevation_azimuth, line_of_sight, ned2ecef_cov
 from fusion.trace import Trace
 
@@ -91,7 +92,7 @@ def sigma_model(trace: Trace, pos: np.ndarray, elev_mask_deg: float, zenith_m: f
                 ) -> tuple[np.ndarray, np.ndarray]:
     """The physical pseudorange model at ``pos`` (E,3) ECEF: slots above the mask (E,S) bool and their
     sigmas sqrt(pr_sigma^2 + (zenith_m / sin el)^2) (E,S) [m] (the graph's default model)."""
-    at = np.where(np.isfinite(pos).all(axis=1)[:, None], pos, 0.0)
+    at = where_solved(pos, 0.0)
     _, los = line_of_sight(trace.sat_pos, at)
     el, _ = elevation_azimuth(los, at)
     sel = trace.mask & (el >= elev_mask_deg) & np.isfinite(pos).all(axis=1)[:, None]

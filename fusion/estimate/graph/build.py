@@ -33,6 +33,7 @@ from fusion.estimate.graph.keys import (DRIFT_HORIZON_S, carrier_clock_key, cloc
                                         drift_key, isb_key, pos_key, vel_key)
 from fusion.estimate.graph.motion import motion_model
 from fusion.estimate.graph.raw_inputs import carrier_rows
+from fusion.estimate.graph.series import where_solved
 from fusion.geometry import C_LIGHT
 from fusion.trace import Trace
 
@@ -337,7 +338,7 @@ def relinearise_carriers(graph: gtsam.NonlinearFactorGraph, p: GraphPieces, trac
         return
     raw = inp.raw
     old = inp.init_pos if raw.lin_pos is None else raw.lin_pos
-    lin = np.where(np.isfinite(pos).all(axis=1)[:, None], pos, old)
+    lin = where_solved(pos, old)
     has = np.zeros(trace.n_epochs, bool)
     has[np.asarray(p.factor_epoch[p.carrier], int)] = True
     _, factors = carrier_factors(trace, inp, cfg, has, lin)

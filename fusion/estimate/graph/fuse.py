@@ -21,6 +21,7 @@ from fusion.estimate.graph.inputs import (EpochInputs, doppler_epochs, initial_p
                                          pseudorange_gap)
 from fusion.estimate.graph.priors import (LearnedGraphInputs, PriorProvider, SlotNoiseProvider,
                                           learned_from_providers)
+from fusion.estimate.graph.series import where_solved
 from fusion.estimate.graph.solve_errors import check_determined
 from fusion.estimate.variance_factor import calibrate_graph
 from fusion.estimate.wls import WlsResult
@@ -127,7 +128,7 @@ def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions
     loose = replace(opts.graph, lm_rel_tol=opts.graph.guess_rel_tol)
     first = solve_graph(trace, wls, opts, loose, None, want_cov=False, keep_values=True)
     pos = first.info.get("online_pos", first.pos) if opts.graph.incremental else first.pos
-    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, at), first.info.get("batch_solution")
+    return where_solved(pos, at), first.info.get("batch_solution")
 
 
 def calibrated(result: ModeResult, trace: Trace, mode: str, opts: RunOptions, wls: WlsResult) -> ModeResult:

@@ -1,4 +1,5 @@
-"""Helpers over per-epoch time series: fill gaps by interpolation, robust rolling medians."""
+"""Helpers over per-epoch time series: fill gaps by interpolation or from another series, robust rolling
+medians."""
 from __future__ import annotations
 
 import warnings
@@ -15,6 +16,12 @@ def interp_rows(t: np.ndarray, rows: np.ndarray, ok: np.ndarray) -> np.ndarray:
     for j in range(rows.shape[1]):  # k columns, not epochs
         out[~ok, j] = np.interp(t[~ok], t[ok], rows[ok, j])
     return out
+
+
+def where_solved(pos: np.ndarray, other) -> np.ndarray:
+    """``pos`` (E,3) where its row is finite, else ``other`` ((E,3) or a scalar): an unsolved epoch takes the
+    fallback."""
+    return np.where(np.isfinite(pos).all(axis=1)[:, None], pos, other)
 
 
 def rolling_nanmedian(x: np.ndarray, w: int) -> np.ndarray:
