@@ -79,12 +79,12 @@ def fitted_positions(mode: str, info: dict) -> bool:
 #: (pooled, unseen-drive) calibration.
 DEFAULTS: dict[str, SigmaCalibration] = {
     "wls": SigmaCalibration(a=(1.0615, 1.0661, 1.18), b=1.5, window_s=15.0, snapshot=0.3),
-    "dnn": SigmaCalibration(a=(1.5119, 1.3771, 1.8418), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+    "dnn": SigmaCalibration(a=(1.5195, 1.3787, 1.8536), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
                             snapshot=0.3),
     "fused-nodnn": SigmaCalibration(a=(1.1312, 1.4488, 1.32), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(1.3468, 1.617, 0.8255), b=1.5, window_s=300.0,
-                              snapshot=0.3, disagreement=2.0),
+    "fused": SigmaCalibration(a=(0.8021, 0.8217, 1.1435), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+                              snapshot=0.3, disagreement=1.0),
 }
 
 
