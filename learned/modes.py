@@ -15,7 +15,7 @@ from fusion.estimate.graph.fuse import calibrated, fuse, learned_guess, learned_
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.graph.series import where_solved
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
-from fusion.estimate.variance_factor import calibrate_snapshot
+from fusion.estimate.variance_factor import calibrate_snapshot, sigma_model, track_factor
 from fusion.estimate.wls import NEIGHBOUR_CHECK_MAX_SATS, TRACE_DEFAULTS, WlsResult, solve_wls_arrays
 from fusion.geometry import ecef2ned_cov, ecef2ned_vec, ned2ecef_cov
 from fusion.run_types import ModeResult, RunOptions
@@ -195,13 +195,33 @@ def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     return learned, start
 
 
+def prior_by_factor(trace: Trace, learned: LearnedGraphInputs, at: np.ndarray, opts: RunOptions) -> LearnedGraphInputs:
+    """``learned`` with its prior covariance (E,3,3) x ``max(1, F / ref) ** power`` per epoch, F (E,) the windowed
+    a-posteriori variance factor of the physical model's pseudorange residuals at ``at`` (E,3) ECEF, the graph
+    without anything learned where the network was asked (``GraphConfig.prior_factor_*``: why and how chosen).
+    Info: the factor's median (``learned_prior_factor_p50``) and the epochs whose prior it widened
+    (``learned_prior_widened``). Batch mode only: the centred window reads epochs ahead, and the incremental
+    smoother stays causal."""
+    g = opts.graph
+    if g.incremental or learned.prior_cov is None or g.prior_factor_power == 0:
+        return learned
+    pos = where_solved(at, np.nan)
+    sel, sigma = sigma_model(trace, pos, opts.elev_mask_deg)
+    F = track_factor(trace, pos, sel, sigma, None, g.prior_factor_window_s)
+    k = np.maximum(1.0, np.nan_to_num(F, nan=1.0) / g.prior_factor_ref) ** g.prior_factor_power
+    ok = np.asarray(learned.prior_ok, bool) if learned.prior_ok is not None else np.ones(len(k), bool)
+    info = dict(learned.info or {}, learned_prior_factor_p50=float(np.median(F)),
+                learned_prior_widened=int(np.sum(ok & (k > 1))))
+    return replace(learned, prior_cov=learned.prior_cov * k[:, None, None], info=info)
+
+
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
     + motion, from one network pass (and its sigmas from a second, :func:`sigmas_again`); ``opts.learned_prior`` /
     ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     at, start = learned_guess_and_start(trace, wls, opts)
-    learned = graph_inputs(corrector, trace, wls, opts, at)
+    learned = prior_by_factor(trace, graph_inputs(corrector, trace, wls, opts, at), at, opts)
     learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start)
     # the solve with the learned inputs starts from the last solve's solution
     res = fuse(trace, wls, opts, learned=learned, start=start)
