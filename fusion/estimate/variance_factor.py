@@ -83,7 +83,7 @@ DEFAULTS: dict[str, SigmaCalibration] = {
                             snapshot=0.3),
     "fused-nodnn": SigmaCalibration(a=(1.1312, 1.4488, 1.32), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(0.8021, 0.8217, 1.1435), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+    "fused": SigmaCalibration(a=(0.7542, 0.7867, 1.0776), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
                               snapshot=0.3, disagreement=1.0),
 }
 

@@ -135,7 +135,7 @@ class GraphConfig:
     # twelve GSDC drives (cross-validated, three seeds' fold networks as one ensemble), smartLoc and the twelve
     # held-out simulated city traces: power 0 / 1 / 2 / 3 / 4 (ref 1, 300 s): GSDC 3.674 / 3.670 / 3.667 /
     # 3.660 / 3.666 m, smartLoc 25.10 / 24.62 / 24.33 / 24.30 / 24.30 m; at 3 the simulated urban / deep /
-    # suburban means 3.266 -> 3.189, 9.129 -> 9.018, 0.486 -> 0.488 m. Ref 0.5 cost GSDC 3.687 m; a 60-s window
+    # suburban means 3.266 -> 3.189, 9.129 -> 9.018, 0.486 -> 0.488 m. Ref 0.5 cost GSDC 3.695 m; a 60-s window
     # gained GSDC 0.003 m more and the simulated urban streets nothing (experiments/results/prior_factor.md).
     prior_factor_power: float = 3.0
     prior_factor_ref: float = 1.0
