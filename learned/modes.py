@@ -216,9 +216,9 @@ def prior_by_factor(trace: Trace, learned: LearnedGraphInputs, at: np.ndarray, o
 
 
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
-    """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior
-    + motion, from one network pass (and its sigmas from a second, :func:`sigmas_again`); ``opts.learned_prior`` /
-    ``opts.learned_sigmas`` switch each part off."""
+    """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior (widened
+    where the residuals exceed their model, :func:`prior_by_factor`) + motion, from one network pass (and its sigmas
+    from a second, :func:`sigmas_again`); ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     at, start = learned_guess_and_start(trace, wls, opts)
     learned = prior_by_factor(trace, graph_inputs(corrector, trace, wls, opts, at), at, opts)
