@@ -236,6 +236,11 @@ def test_fused_modes_run_through_the_pipeline_registry(trace, wls, tmp_path):
     assert out["fused"].valid.all() and out["fused-nodnn"].valid.all()
     assert out["fused"].info["priors_used"] > 0 and out["fused-nodnn"].info["priors_used"] == 0
     assert out["fused"].cov.shape == (trace.n_epochs, 3, 3)
+    # the prior's widening by the residuals' variance factor (GraphConfig.prior_factor_*) is wired in and counted
+    info = out["fused"].info
+    assert 0 <= info["learned_prior_widened"] <= info["priors_used"] and info["learned_prior_factor_p50"] > 0
+    off = RunOptions(weights=ckpt, graph=GraphConfig(prior_factor_power=0.0))
+    assert "learned_prior_widened" not in run_modes(trace, ["fused"], off, wls=wls)["fused"].info
 
 
 def test_iterated_provider_feeds_each_pass_the_previous_mean(trace):
