@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 import learned.adapt as adapt_module  # noqa: E402
-from adapt_eval import graph_words  # noqa: E402
+from adapt_eval import decision_words, graph_words  # noqa: E402
 from canyon_on_phone import in_canyon  # noqa: E402
 from few_satellites import NAV, PIXEL5  # noqa: E402
 from pixel5_table import ORBITS  # noqa: E402
@@ -60,7 +60,7 @@ def row(trace, opts: RunOptions) -> dict:
         adapted = run_modes(trace, ["fused"], replace(opts, weights=w))["fused"]
     s = {k: mode_metrics(trace, r)["gsdc_score"] for k, r in shipped.items()}
     s["adapted"] = mode_metrics(trace, adapted)["gsdc_score"]
-    return dict(s, decision=f"{rec['decision']} (epoch {rec['best_epoch']})", graph=graph_words(rec),
+    return dict(s, decision=decision_words(rec), graph=graph_words(rec),
                 heldout=" -> ".join("-" if v is None else f"{v:.3f}" for v in rec["heldout"]), t=t_adapt)
 
 

@@ -86,7 +86,7 @@ def one(name: str, nav: tuple, cfg: AdaptConfig, folder: Path, base: Path | None
             print(f"    {name} {k}: " + " ".join(f"{c[k]:.4f}" for c in rec["heldout_all"] if c), file=sys.stderr)
     return dict(score, trusted=f"{c['teacher_trusted']}/{c['epochs']}", sigmas=learned_sigmas(adapted.info),
                 guard=guard(adapted.info), shipped_guard=guard(shipped["fused"].info), t_adapt=t_adapt,
-                decision=f"{rec['decision']} (epoch {rec['best_epoch']})", graph=graph_words(rec),
+                decision=decision_words(rec), graph=graph_words(rec),
                 heldout=" -> ".join("-" if v is None else f"{v:.3f}" for v in rec["heldout"]))
 
 
@@ -98,6 +98,13 @@ def log_path(name: str) -> Path:
 def learned_sigmas(info: dict) -> int:
     """Pseudoranges the network gave a sigma for (asked minus those its guard gave the physical model)."""
     return int(info.get("learned_meas_asked", 0)) - int(info.get("learned_meas_out_of_range", 0))
+
+
+def decision_words(rec: dict) -> str:
+    """The decision, the epoch kept and, for an ensemble, how many members' self-checks accepted."""
+    members = rec.get("members") or [rec]
+    took = sum(m["decision"] == "accepted" for m in members)
+    return f"{rec['decision']} (epoch {rec['best_epoch']}; members {took}/{len(members)})"
 
 
 def graph_words(rec: dict) -> str:
