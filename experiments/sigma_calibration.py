@@ -275,16 +275,20 @@ def tune_mode(data: dict, mode: str) -> tuple[SigmaCalibration, dict, float]:
     return cal, cov, pen
 
 
-def held_out(data: dict, mode: str, cal: SigmaCalibration) -> tuple[float, int, int]:
+def held_out(data: dict, mode: str, cal: SigmaCalibration) -> tuple[float, dict]:
     """The leave-fold-out penalty of ``cal``'s setting (its levels refitted per fold, as for each grid point) and
-    how many of the held-out drive-axes fall outside :data:`BAND`, of how many."""
+    its held-out coverages (trace -> (3,))."""
     names = [n for ds in tune_folds(data).values() for n in ds]
     base = with_snapshot(data, base_var(data, mode), mode, cal.snapshot)
     dv = {n: disagreement(data[n], mode, cal.window_s) for n in names}
-    pen, cov = cross_validate(data, base, mode, cal.window_s, cal.b, np.array(cal.floor_m), cal.factor_from,
-                              cal.disagreement, dv)
+    return cross_validate(data, base, mode, cal.window_s, cal.b, np.array(cal.floor_m), cal.factor_from,
+                          cal.disagreement, dv)
+
+
+def outside(cov: dict) -> str:
+    """How many of the drive-axes in ``cov`` (trace -> (3,) coverages) fall outside :data:`BAND`, of how many."""
     c = np.array(list(cov.values()))
-    return pen, int(((c < BAND[0]) | (c > BAND[1])).sum()), c.size
+    return f"{int(((c < BAND[0]) | (c > BAND[1])).sum())} of {c.size}"
 
 
 def fmt(c: np.ndarray) -> str:
@@ -327,9 +331,9 @@ def tune(args) -> None:
         print(f"## {mode}\n\nchosen: window {cal.window_s:g} s, b = {cal.b:g}, floor N/E/D {fmt(np.array(cal.floor_m))} m, "
               f"snapshot share {cal.snapshot:g}, factor from {cal.factor_from}, disagreement share {cal.disagreement:g}, "
               f"a N/E/D = {fmt(np.array(cal.a))} (leave-fold-out penalty {pen:.3f})\n")
-        shipped, chosen_pen = held_out(data, mode, DEFAULTS[mode]), held_out(data, mode, cal)
-        print(f"held out, drive-axes outside {BAND[0]}-{BAND[1]}: {chosen_pen[1]} of {chosen_pen[2]}; the setting in "
-              f"variance_factor.DEFAULTS when this ran: penalty {shipped[0]:.3f}, {shipped[1]} of {shipped[2]} out\n")
+        shipped_pen, shipped = held_out(data, mode, DEFAULTS[mode])
+        print(f"held out, drive-axes outside {BAND[0]}-{BAND[1]}: {outside(held)}; the setting in "
+              f"variance_factor.DEFAULTS when this ran: penalty {shipped_pen:.3f}, {outside(shipped)} out\n")
         print("| trace | median F | before | after, held out | after, final |\n|---|---|---|---|---|")
         rows = [(n, slice(None)) for n in [*held, *tests]]
         if "test MTV Pixel4" in data:       # the issue's figure is over its first 400 epochs

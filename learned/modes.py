@@ -205,13 +205,12 @@ def prior_by_factor(trace: Trace, learned: LearnedGraphInputs, at: np.ndarray, o
     g = opts.graph
     if g.incremental or learned.prior_cov is None or g.prior_factor_power == 0:
         return learned
-    pos = where_solved(at, np.nan)
-    sel, sigma = sigma_model(trace, pos, opts.elev_mask_deg)
-    F = track_factor(trace, pos, sel, sigma, None, g.prior_factor_window_s)
-    k = np.maximum(1.0, np.nan_to_num(F, nan=1.0) / g.prior_factor_ref) ** g.prior_factor_power
-    ok = np.asarray(learned.prior_ok, bool) if learned.prior_ok is not None else np.ones(len(k), bool)
+    # unsolved rows of ``at`` (NaN) have no residuals: their window's factor, or the trace's, stands for them
+    sel, sigma = sigma_model(trace, at, opts.elev_mask_deg)
+    F = track_factor(trace, at, sel, sigma, None, g.prior_factor_window_s)
+    k = np.maximum(1.0, F / g.prior_factor_ref) ** g.prior_factor_power
     info = dict(learned.info or {}, learned_prior_factor_p50=float(np.median(F)),
-                learned_prior_widened=int(np.sum(ok & (k > 1))))
+                learned_prior_widened=int(np.sum(np.asarray(learned.prior_ok, bool) & (k > 1))))
     return replace(learned, prior_cov=learned.prior_cov * k[:, None, None], info=info)
 
 
