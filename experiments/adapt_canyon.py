@@ -1,5 +1,5 @@
-"""Adaptation without ground truth on a phone in a street canyon: the Pixel5 RINEX test trace seen from the
-simulator's streets (``canyon_on_phone.py``), adapted on its own canyon log, then scored.
+"""Adaptation without ground truth on a phone in a street canyon: the Pixel5 RINEX test trace (or smartLoc, a
+tuning log) seen from the simulator's streets (``canyon_on_phone.py``), adapted on its own canyon log, then scored.
 
 No log here is a phone in a dense city with truth, and the hidden phones of issue 20 are exactly that: this is
 the nearest stand-in for "adapted on each phone's own log". For each street layout the canyon trace is handed
@@ -8,6 +8,11 @@ to ``gnssfuse adapt``'s code without its truth (the truth only placed the street
 against the truth. Prints a Markdown table like ``adapt_eval.py``'s.
 
     python experiments/adapt_canyon.py [--seeds 0 1 2] [--height 30 100 --width 12 25] [--sp3]
+    python experiments/adapt_canyon.py --log smartloc [--seeds 0 1 2] [--height 30 100 --width 12 25]
+
+The Pixel5 is a test trace: its rows are reported, never chosen on. smartLoc (a u-blox in Berlin's Potsdamer
+Platz, GPS + GLONASS, no network trained on it) is a tuning log: streets laid over a real canyon, without Doppler
+or carrier.
 """
 from __future__ import annotations
 
@@ -25,6 +30,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 import learned.adapt as adapt_module  # noqa: E402
 from adapt_eval import decision_words, graph_words  # noqa: E402
 from canyon_on_phone import in_canyon  # noqa: E402
+from adapt_eval import SMARTLOC  # noqa: E402
 from few_satellites import NAV, PIXEL5  # noqa: E402
 from pixel5_table import ORBITS  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
@@ -69,13 +75,16 @@ def main() -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--height", type=float, nargs=2, default=(15.0, 60.0), help="building heights [m], lo hi")
     p.add_argument("--width", type=float, nargs=2, default=(15.0, 35.0), help="street widths [m], lo hi")
-    p.add_argument("--sp3", action="store_true", help="multi-GNSS SP3/CLK instead of broadcast GPS")
+    p.add_argument("--sp3", action="store_true", help="multi-GNSS SP3/CLK instead of broadcast GPS (the Pixel5)")
+    p.add_argument("--log", choices=("pixel5", "smartloc"), default="pixel5", help="the log laid in the streets")
     a = p.parse_args()
     orbits = ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"] if a.sp3 else {"nav": (NAV,)}
+    if a.log == "smartloc":
+        orbits = {}                               # its pseudoranges come with satellite positions
     opts = RunOptions(signals=None, **orbits)     # None: every signal the orbits cover, as canyon_on_phone.py
-    trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
+    trace = load_trace(PIXEL5 if a.log == "pixel5" else SMARTLOC, min_sats=1, **load_options(opts))
     model = CanyonModel(height_m=tuple(a.height), width_m=tuple(a.width))
-    print("| Pixel5 RINEX | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped | decision "
+    print(f"| {'Pixel5 RINEX' if a.log == 'pixel5' else 'smartLoc'} | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped | decision "
           "| held-out criterion [m] by epoch | graph check [m] | adapt [s] |")
     print("|---|---|---|---|---|---|---|---|---|")
     ratios = []

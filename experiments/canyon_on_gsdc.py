@@ -8,6 +8,7 @@ satellites removed, a reflected or bent signal's extra path added to its pseudor
 --ensemble-of``: ``fold_<F>.json`` for the drives of fold F). The truth places the streets only. GSDC score [m].
 
     python experiments/canyon_on_gsdc.py --folds /tmp/cv_ens_new [--deep] [--seed 0] [--cn0] [--graph-config F.toml]
+        [--without prior sigmas bias]
 
 ``--cn0`` first gives each drive the simulator's C/N0 (line-of-sight model at the truth's geometry), which the
 streets then lower for reflections: the same canyon as a phone log with C/N0 would show it.
@@ -36,13 +37,14 @@ from fusion.sim.canyon import CanyonModel  # noqa: E402
 
 
 def drive_row(drive: str, weights: Path, model: CanyonModel, seed: int, cn0: bool = False,
-              graph: GraphConfig | None = None) -> str:
+              graph: GraphConfig | None = None, without: tuple[str, ...] = ()) -> str:
     """One table row: the drive in the canyon, its shares blocked and reflected, both modes' scores, their ratio.
     cn0: the drive first gets the simulator's C/N0 (:func:`canyon_on_phone.with_model_cn0`); graph: the graph's
-    settings (None: the shipped)."""
+    settings (None: the shipped); without: learned parts ``fused`` leaves out (``prior``, ``sigmas``, ``bias``)."""
     trace = load_trace(SHARED / "gsdc2021/train" / drive / "Pixel4")
     trace, share = in_canyon(with_model_cn0(trace, seed) if cn0 else trace, model, seed)
-    opts = RunOptions(weights=weights, sigma_calibration=False, graph=graph or GraphConfig())
+    off = {f"learned_{part}": False for part in without}
+    opts = RunOptions(weights=weights, sigma_calibration=False, graph=graph or GraphConfig(), **off)
     res = run_modes(trace, ["fused-nodnn", "fused"], opts, wls=solve_initial(trace, opts))
     a, b = (mode_metrics(trace, res[m])["gsdc_score"] for m in ("fused-nodnn", "fused"))
     return f"| {drive} | {share['blocked']:.2f} | {share['reflected']:.2f} | {a:.2f} | {b:.2f} | {b / a:.3f} |"
@@ -56,6 +58,8 @@ def main() -> int:
     p.add_argument("--cn0", action="store_true", help="give the drives the simulator's C/N0 first (as a phone log has)")
     p.add_argument("--graph-config", type=Path, default=None, metavar="FILE.toml",
                    help="the graph's settings (GraphConfig fields as 'name = value' lines; default: the shipped)")
+    p.add_argument("--without", nargs="+", default=(), choices=("prior", "sigmas", "bias"),
+                   help="learned parts fused leaves out (its ablation)")
     args = p.parse_args()
     graph = None if args.graph_config is None else load_graph_config(args.graph_config)
     model = DEEP if args.deep else CanyonModel()
@@ -65,7 +69,8 @@ def main() -> int:
     for fold, drives in FOLDS2.items():
         for drive in drives:
             # fold_<F> was trained on the other fold's drives (crossval.train_fold)
-            row = drive_row(drive, args.folds / f"fold_{fold}.json", model, args.seed, args.cn0, graph)
+            row = drive_row(drive, args.folds / f"fold_{fold}.json", model, args.seed, args.cn0, graph,
+                            tuple(args.without))
             ratios.append(float(row.rsplit("|", 2)[-2]))
             print(row, flush=True)
     print(f"\nratio: mean {np.mean(ratios):.3f}, median {np.median(ratios):.3f}, "

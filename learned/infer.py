@@ -317,7 +317,7 @@ class Corrector:
                 "meas_unseen_signal": int(np.sum(unseen))}
 
     def graph_inputs(self, trace: Trace, init_pos: np.ndarray, valid: np.ndarray,
-                     elev_mask_deg: float | None = None, sigma_power: float = 1.0) -> LearnedGraphInputs:
+                     elev_mask_deg: float | None = None, sigma_power: float | np.ndarray = 1.0) -> LearnedGraphInputs:
         """Everything the graph takes from the network, from ONE pass at ``init_pos`` (E,3) ECEF for the
         epochs in ``valid`` (E,): the position prior (mean (E,3), covariance (E,3,3), ok (E,)), the
         per-slot pseudorange sigma and bias (E,S) [m] (NaN: no opinion; the head's multiplier on its
@@ -374,8 +374,9 @@ class Corrector:
         return ask
 
 
-def graph_sigma(sigma: np.ndarray, base: np.ndarray, power: float) -> np.ndarray:
-    """The head's pseudorange sigma for a smoother: ``base * (sigma / base) ** power``, all (E,S) [m].
+def graph_sigma(sigma: np.ndarray, base: np.ndarray, power: float | np.ndarray) -> np.ndarray:
+    """The head's pseudorange sigma for a smoother: ``base * (sigma / base) ** power``, all (E,S) [m]; ``power``
+    a number or per epoch (E,1).
 
     The head is trained on one epoch's error, and a smoother averages epochs: a pseudorange the head
     finds worse than the physical model is mostly multipath or a reflection, whose error lasts for many
@@ -384,7 +385,7 @@ def graph_sigma(sigma: np.ndarray, base: np.ndarray, power: float) -> np.ndarray
     log-multiplier keeps the head's own clamp (:data:`learned.heads.LOGSIG_RANGE`, 1/55 to 55 x the model):
     one satellite at millimetres would make the graph's normal equations ill-conditioned.
     """
-    if power == 1.0:
+    if np.all(np.asarray(power) == 1.0):
         return sigma
     with np.errstate(invalid="ignore", divide="ignore"):
         return base * np.exp(np.clip(power * np.log(sigma / base), *LOGSIG_RANGE))

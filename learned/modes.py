@@ -146,15 +146,16 @@ def iterated(provider: PriorProvider, passes: int) -> PriorProvider:
 
 
 def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOptions,
-                 at: np.ndarray | None = None) -> LearnedGraphInputs:
+                 at: np.ndarray | None = None, sigma_power: float | np.ndarray | None = None) -> LearnedGraphInputs:
     """The network's one pass at :func:`learned_guess` under the run's elevation mask: the position prior
     and the per-measurement sigmas and biases the graph uses (``opts.learned_prior`` /
     ``opts.learned_sigmas`` / ``opts.learned_bias`` / ``opts.learned_doppler`` switch each off), and what the guard
     did (info keys ``learned_*``).
-    at: (E,3) that guess if already made."""
+    at: (E,3) that guess if already made; sigma_power: the head's power, a number or per epoch (E,1)
+    (:func:`sigma_power_by_factor`; None: ``GraphConfig.learned_sigma_power``)."""
     at = learned_guess(trace, wls, opts) if at is None else at
     out = corrector.graph_inputs(trace, at, trace.n_sats >= 1, elev_mask_deg=opts.elev_mask_deg,
-                                 sigma_power=opts.graph.learned_sigma_power)
+                                 sigma_power=opts.graph.learned_sigma_power if sigma_power is None else sigma_power)
     out.info = {f"learned_{k}": v for k, v in (out.info or {}).items()}
     if not opts.learned_prior:
         out.prior_mean = out.prior_cov = out.prior_ok = None
@@ -168,8 +169,8 @@ def graph_inputs(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
 
 
 def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOptions,
-                 learned: LearnedGraphInputs, at: np.ndarray, start: BatchSolution | None
-                 ) -> tuple[LearnedGraphInputs, BatchSolution | None]:
+                 learned: LearnedGraphInputs, at: np.ndarray, start: BatchSolution | None,
+                 sigma_power: float | np.ndarray | None = None) -> tuple[LearnedGraphInputs, BatchSolution | None]:
     """``learned`` with its pseudorange sigmas asked again at the graph's own answer with them, each of
     ``GraphConfig.learned_sigma_passes`` - 1 times, and the last of those solves (the final solve's start).
 
@@ -180,13 +181,14 @@ def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     again: the position prior and the biases stay the first pass's, since a guess already moved by them
     would have the network move it again (a scratch run asking all three again: GSDC cross-validated 3.689
     against 3.664 m).
-    Batch mode only (the incremental smoother asks once, at its online estimates, to stay causal)."""
+    Batch mode only (the incremental smoother asks once, at its online estimates, to stay causal);
+    sigma_power as :func:`graph_inputs` takes it."""
     if opts.graph.incremental or learned.pr_sigma is None or opts.graph.learned_sigma_passes <= 1:
         return learned, start
     info = dict(learned.info or {})
     for _ in range(opts.graph.learned_sigma_passes - 1):
         guess = solve_graph(trace, wls, opts, opts.graph, learned, want_cov=False, start=start, keep_values=True)
-        again = graph_inputs(corrector, trace, wls, opts, where_solved(guess.pos, at))
+        again = graph_inputs(corrector, trace, wls, opts, where_solved(guess.pos, at), sigma_power)
         # the guard's measurement counts are the pass whose sigmas the graph takes; its epoch counts the prior's
         info.update({k: v for k, v in (again.info or {}).items() if k.startswith(("learned_meas", "learned_pr_"))})
         learned = replace(learned, pr_sigma=again.pr_sigma, info=info)
@@ -195,19 +197,36 @@ def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
     return learned, start
 
 
-def prior_by_factor(trace: Trace, learned: LearnedGraphInputs, at: np.ndarray, opts: RunOptions) -> LearnedGraphInputs:
-    """``learned`` with its prior covariance (E,3,3) x ``max(1, F / ref) ** power`` per epoch, F (E,) the windowed
-    a-posteriori variance factor of the physical model's pseudorange residuals at ``at`` (E,3) ECEF, the graph
-    without anything learned where the network was asked (``GraphConfig.prior_factor_*``: why and how chosen).
-    Info: the factor's median (``learned_prior_factor_p50``) and the epochs whose prior it widened
-    (``learned_prior_widened``). Batch mode only: the centred window reads epochs ahead, and the incremental
-    smoother stays causal."""
-    g = opts.graph
-    if g.incremental or learned.prior_cov is None or g.prior_factor_power == 0:
-        return learned
-    # unsolved rows of ``at`` (NaN) have no residuals: their window's factor, or the trace's, stands for them
+def residual_factor(trace: Trace, at: np.ndarray, opts: RunOptions) -> np.ndarray | None:
+    """(E,) the windowed a-posteriori variance factor F of the physical model's pseudorange residuals at ``at``
+    (E,3) ECEF, the graph without anything learned (window ``GraphConfig.prior_factor_window_s``); None in
+    incremental mode, whose smoother stays causal (the centred window reads epochs ahead).
+    Unsolved rows of ``at`` (NaN) have no residuals: their window's factor, or the trace's, stands for them."""
+    if opts.graph.incremental:
+        return None
     sel, sigma = sigma_model(trace, at, opts.elev_mask_deg)
-    F = track_factor(trace, at, sel, sigma, None, g.prior_factor_window_s)
+    return track_factor(trace, at, sel, sigma, None, opts.graph.prior_factor_window_s)
+
+
+def sigma_power_by_factor(F: np.ndarray | None, opts: RunOptions) -> float | np.ndarray:
+    """The learned sigmas' power per epoch (E,1): ``learned_sigma_power`` where the residuals fit their model
+    (F <= 1), rising with log F to ``learned_sigma_power_high`` at F >= ``learned_sigma_power_f_high``
+    (``GraphConfig``: why and how chosen); the plain number without F (incremental mode) or a ramp."""
+    g = opts.graph
+    if F is None or g.learned_sigma_power_high == g.learned_sigma_power:
+        return g.learned_sigma_power
+    t = np.clip(np.log(np.maximum(F, 1.0)) / np.log(g.learned_sigma_power_f_high), 0.0, 1.0)
+    return (g.learned_sigma_power + (g.learned_sigma_power_high - g.learned_sigma_power) * t)[:, None]
+
+
+def prior_by_factor(learned: LearnedGraphInputs, F: np.ndarray | None, opts: RunOptions) -> LearnedGraphInputs:
+    """``learned`` with its prior covariance (E,3,3) x ``max(1, F / ref) ** power`` per epoch, F (E,) from
+    :func:`residual_factor` (``GraphConfig.prior_factor_*``: why and how chosen).
+    Info: the factor's median (``learned_prior_factor_p50``) and the epochs whose prior it widened
+    (``learned_prior_widened``). Batch mode only (F None: incremental)."""
+    g = opts.graph
+    if F is None or learned.prior_cov is None or g.prior_factor_power == 0:
+        return learned
     k = np.maximum(1.0, F / g.prior_factor_ref) ** g.prior_factor_power
     info = dict(learned.info or {}, learned_prior_factor_p50=float(np.median(F)),
                 learned_prior_widened=int(np.sum(np.asarray(learned.prior_ok, bool) & (k > 1))))
@@ -215,13 +234,16 @@ def prior_by_factor(trace: Trace, learned: LearnedGraphInputs, at: np.ndarray, o
 
 
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
-    """The ``fused`` mode: pseudoranges weighted by the per-satellite head + the learned position prior (widened
-    where the residuals exceed their model, :func:`prior_by_factor`) + motion, from one network pass (and its sigmas
+    """The ``fused`` mode: pseudoranges weighted by the per-satellite head (its power rising where the residuals
+    exceed their model, :func:`sigma_power_by_factor`) + the learned position prior (widened there,
+    :func:`prior_by_factor`) + motion, from one network pass (and its sigmas
     from a second, :func:`sigmas_again`); ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     at, start = learned_guess_and_start(trace, wls, opts)
-    learned = prior_by_factor(trace, graph_inputs(corrector, trace, wls, opts, at), at, opts)
-    learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start)
+    F = residual_factor(trace, at, opts)
+    power = sigma_power_by_factor(F, opts)
+    learned = prior_by_factor(graph_inputs(corrector, trace, wls, opts, at, power), F, opts)
+    learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start, power)
     # the solve with the learned inputs starts from the last solve's solution
     res = fuse(trace, wls, opts, learned=learned, start=start)
     if opts.graph.prior_at == "graph":

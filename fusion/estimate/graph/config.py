@@ -116,6 +116,12 @@ class GraphConfig:
     # traces 2.51 / 2.26 / 2.12 m at 3 / 4 / 5 (experiments/results/sigma_power.md). 4: the canyon's gain
     # without a cost on the GSDC drives or the suburban simulated traces.
     learned_sigma_power: float = 4.0
+    # The fused mode's power rises with the windowed variance factor F of the physical model's residuals at the
+    # graph without anything learned (learned.modes.sigma_power_by_factor; batch mode only): learned_sigma_power
+    # where F <= 1, learned_sigma_power_high where F >= learned_sigma_power_f_high, linear in log F between.
+    # Equal powers switch the ramp off.
+    learned_sigma_power_high: float = 4.0
+    learned_sigma_power_f_high: float = 4.0
     # How many times the fused mode asks the network for those sigmas (learned.modes.sigmas_again): the
     # first pass at the graph without anything learned, each further one at the graph's answer with the sigmas
     # before (the prior and the biases stay the first pass's). Chosen on the logs whose gain is inside the trace:
@@ -311,6 +317,7 @@ MAY_BE_ZERO = {"prior_sigma_floor_m", "prior_factor_power", "doppler_check_windo
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps", "cv_level_sigma_mps", "learned_sigma_power",
+               "learned_sigma_power_high",
                "cv_level_sigma_no_doppler_mps", "bridged_check_sigmas"}
 
 
@@ -353,6 +360,10 @@ def check_numbers(cfg: GraphConfig, where: str) -> None:
         if not (math.isfinite(v) and low_ok):
             bound = ">= 0" if f.name in MAY_BE_ZERO else "> 0"
             raise ConfigError(f"{where}: graph setting {f.name!r} must be a finite number {bound}, got {v!r}")
+    if cfg.learned_sigma_power_f_high <= 1:
+        # the power's ramp runs in log F from F = 1 (learned.modes.sigma_power_by_factor)
+        raise ConfigError(f"{where}: graph setting 'learned_sigma_power_f_high' must be > 1, "
+                          f"got {cfg.learned_sigma_power_f_high!r}")
 
 
 def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
