@@ -28,9 +28,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 import learned.adapt as adapt_module  # noqa: E402
-from adapt_eval import decision_words, graph_words  # noqa: E402
+from adapt_eval import SMARTLOC, decision_words, graph_words  # noqa: E402
 from canyon_on_phone import in_canyon  # noqa: E402
-from adapt_eval import SMARTLOC  # noqa: E402
 from few_satellites import NAV, PIXEL5  # noqa: E402
 from pixel5_table import ORBITS  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
@@ -84,8 +83,9 @@ def main() -> int:
     opts = RunOptions(signals=None, **orbits)     # None: every signal the orbits cover, as canyon_on_phone.py
     trace = load_trace(PIXEL5 if a.log == "pixel5" else SMARTLOC, min_sats=1, **load_options(opts))
     model = CanyonModel(height_m=tuple(a.height), width_m=tuple(a.width))
-    print(f"| {'Pixel5 RINEX' if a.log == 'pixel5' else 'smartLoc'} | fused-nodnn | fused, shipped | fused, adapted | adapted / shipped | decision "
-          "| held-out criterion [m] by epoch | graph check [m] | adapt [s] |")
+    print(f"| {'Pixel5 RINEX' if a.log == 'pixel5' else 'smartLoc'} | fused-nodnn | fused, shipped "
+          "| fused, adapted | adapted / shipped | decision | held-out criterion [m] by epoch | graph check [m] "
+          "| adapt [s] |")
     print("|---|---|---|---|---|---|---|---|---|")
     ratios = []
     for seed in a.seeds:
