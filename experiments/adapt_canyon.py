@@ -77,9 +77,12 @@ def main() -> int:
     p.add_argument("--sp3", action="store_true", help="multi-GNSS SP3/CLK instead of broadcast GPS (the Pixel5)")
     p.add_argument("--log", choices=("pixel5", "smartloc"), default="pixel5", help="the log laid in the streets")
     a = p.parse_args()
-    orbits = ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"] if a.sp3 else {"nav": (NAV,)}
+    if a.sp3 and a.log == "smartloc":
+        p.error("--sp3 is for the Pixel5: smartLoc's pseudoranges come with satellite positions")
     if a.log == "smartloc":
         orbits = {}                               # its pseudoranges come with satellite positions
+    else:
+        orbits = ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"] if a.sp3 else {"nav": (NAV,)}
     opts = RunOptions(signals=None, **orbits)     # None: every signal the orbits cover, as canyon_on_phone.py
     trace = load_trace(PIXEL5 if a.log == "pixel5" else SMARTLOC, min_sats=1, **load_options(opts))
     model = CanyonModel(height_m=tuple(a.height), width_m=tuple(a.width))

@@ -200,12 +200,14 @@ def sigmas_again(corrector: Corrector, trace: Trace, wls: WlsResult, opts: RunOp
 def residual_factor(trace: Trace, at: np.ndarray, opts: RunOptions) -> np.ndarray | None:
     """(E,) the windowed a-posteriori variance factor F of the physical model's pseudorange residuals at ``at``
     (E,3) ECEF, the graph without anything learned (window ``GraphConfig.prior_factor_window_s``); None in
-    incremental mode, whose smoother stays causal (the centred window reads epochs ahead).
+    incremental mode, whose smoother stays causal (the centred window reads epochs ahead), and where neither the
+    prior's widening nor the sigmas' power ramp reads it.
     Unsolved rows of ``at`` (NaN) have no residuals: their window's factor, or the trace's, stands for them."""
-    if opts.graph.incremental:
+    g = opts.graph
+    if g.incremental or (g.prior_factor_power == 0 and g.learned_sigma_power_high == g.learned_sigma_power):
         return None
     sel, sigma = sigma_model(trace, at, opts.elev_mask_deg)
-    return track_factor(trace, at, sel, sigma, None, opts.graph.prior_factor_window_s)
+    return track_factor(trace, at, sel, sigma, None, g.prior_factor_window_s)
 
 
 def sigma_power_by_factor(F: np.ndarray | None, opts: RunOptions) -> float | np.ndarray:

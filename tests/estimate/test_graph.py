@@ -241,6 +241,20 @@ def test_fused_modes_run_through_the_pipeline_registry(trace, wls, tmp_path):
     assert 0 <= info["learned_prior_widened"] <= info["priors_used"] and info["learned_prior_factor_p50"] > 0
     off = RunOptions(weights=ckpt, graph=GraphConfig(prior_factor_power=0.0))
     assert "learned_prior_widened" not in run_modes(trace, ["fused"], off, wls=wls)["fused"].info
+    # the sigmas' power ramp (GraphConfig.learned_sigma_power_high) reaches the graph: on the trace with 40 m of
+    # extra noise in its second half (variance factor far above 1 there) the high power moves the answer
+    from dataclasses import replace as _replace
+    from learned.modes import residual_factor
+    rng = np.random.default_rng(1)
+    half = np.arange(trace.n_epochs)[:, None] >= trace.n_epochs // 2
+    noisy = _replace(trace, pr=trace.pr + np.where(half, rng.normal(0.0, 40.0, trace.pr.shape), 0.0))
+    noisy_wls = solve_wls(noisy)
+    plain = run_modes(noisy, ["fused"], RunOptions(weights=ckpt), wls=noisy_wls)["fused"]
+    assert np.sum(residual_factor(noisy, plain.info["unlearned_pos"], RunOptions()) > 1.01) > 0
+    ramp = RunOptions(weights=ckpt, graph=GraphConfig(learned_sigma_power_high=12.0,
+                                                      learned_sigma_power_f_high=1.01))
+    moved = run_modes(noisy, ["fused"], ramp, wls=noisy_wls)["fused"].pos - plain.pos
+    assert np.nanmax(np.abs(moved)) > 1e-3
 
 
 def test_iterated_provider_feeds_each_pass_the_previous_mean(trace):

@@ -105,6 +105,8 @@ def test_the_sigma_power_rises_with_the_factor_from_one_to_its_high_point(noisy)
     # equal powers, or no factor (the incremental smoother), give the one number
     assert sigma_power_by_factor(F, _opts(learned_sigma_power=4.0, learned_sigma_power_high=4.0)) == 4.0
     assert residual_factor(tr, tr.truth, _opts(incremental=True)) is None
+    # nothing reads the factor with the widening and the ramp both off: it is not computed
+    assert residual_factor(tr, tr.truth, _opts(prior_factor_power=0.0)) is None
     assert sigma_power_by_factor(None, opts) == 3.0
 
 
