@@ -13,6 +13,10 @@ acts inside the trace: four other drives' tracks (never replayed in training), s
 
 ``--scenarios deep --first-seed 200`` writes the same tracks through the ``deep`` high-rise scenario (seeds
 201-204; with ``--held-out``, ``--first-seed 300``: 301-304), traces that are not part of the shipped recipe.
+
+``--carrier`` adds carrier phase (the simulator's reflected paths lengthen it as they do the code), e.g.
+``--held-out --scenarios deep urban --first-seed 400 --carrier --out /tmp/simcarho``: a phone's carrier in a
+canyon, where the learned part met the graph's carrier-tightened track on no other tuning log.
 """
 from __future__ import annotations
 
@@ -43,6 +47,7 @@ def main(argv=None) -> int:
     p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), help="simulator scenarios, each track through each")
     p.add_argument("--first-seed", type=int, default=None, help="seeds count up from the one after this "
                    f"(default 0 for training, {HELD_OUT_SEED} held out)")
+    p.add_argument("--carrier", action="store_true", help="carrier phase too (not in the shipped recipe's traces)")
     args = p.parse_args(argv)
     tracks, seed, prefix = (HELD_OUT_TRACKS, HELD_OUT_SEED, "ho") if args.held_out else (TRACKS, 0, "sim")
     seed = seed if args.first_seed is None else args.first_seed
@@ -51,7 +56,8 @@ def main(argv=None) -> int:
             seed += 1
             gt = SHARED / "gsdc2021" / "trajectories" / track / "Pixel4" / "ground_truth.csv"
             rc = cli(["simulate", "--out", str(args.out), "--scenario", scenario, "--trajectory", str(gt),
-                      "--seed", str(seed), "--collection", f"{prefix}-{scenario}-{seed}", "--epochs", str(args.epochs)])
+                      "--seed", str(seed), "--collection", f"{prefix}-{scenario}-{seed}", "--epochs", str(args.epochs)]
+                     + (["--carrier"] if args.carrier else []))
             if rc:
                 return rc
     return 0

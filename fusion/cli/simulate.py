@@ -59,6 +59,8 @@ def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
                     help="signals per epoch at most, 0 = all (default 10; scenarios: all)")
     ap.add_argument("--scenario", choices=sorted(SCENARIOS), default=None,
                     help="multi-constellation preset with C/N0, Doppler and street canyons: open, suburban, urban, deep")
+    ap.add_argument("--carrier", action="store_true",
+                    help="carrier phase too (AccumulatedDeltaRange; its slips where an arc breaks; device_gnss)")
     ap.add_argument("--constellations", default=None,
                     help="GPS,GLO,GAL,BDS or all (default GPS; scenarios all); no records in --nav: synthetic")
     ap.add_argument("--format", choices=FORMATS, default="auto",
@@ -104,7 +106,8 @@ def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
     try:
         cfg = config_from_options(args.scenario, args.constellations, sigma_m=args.sigma,
                                   elevation_noise=args.elevation_noise, elev_mask_deg=args.elev_mask,
-                                  max_sats=args.max_sats, nlos=args.bias_scenario)
+                                  max_sats=args.max_sats, nlos=args.bias_scenario,
+                                  carrier=args.carrier)
         cfg.validate()
         traj = _trajectory(args, rng)
     except ValueError as exc:

@@ -123,7 +123,7 @@ def scenario_config(name: str, **overrides) -> SimConfig:
 def config_from_options(scenario: str | None = None, constellations: str | None = None, *,
                         sigma_m: float | None = None, elevation_noise: bool = False,
                         elev_mask_deg: float | None = None, max_sats: int | None = None,
-                        nlos: bool = False) -> SimConfig:
+                        nlos: bool = False, carrier: bool = False) -> SimConfig:
     """The settings a command line asks for: the scenario preset (None: the GPS-only default), with
     every option given (not None / True) replacing the preset's value. ``max_sats`` 0 = no cap;
     ``constellations`` as :func:`fusion.sim.constellations.parse_systems` reads it."""
@@ -137,6 +137,8 @@ def config_from_options(scenario: str | None = None, constellations: str | None 
         over["elevation_noise"] = True
     if nlos:
         over["nlos"] = True
+    if carrier:
+        over["carrier"] = True
     cfg = replace(cfg, **over)
     cfg.validate()
     return cfg

@@ -244,6 +244,21 @@ class GraphConfig:
     # Time-differenced carrier sigma [m] = sqrt(adr_sigma(k-1)^2 + adr_sigma(k)^2 + tdcp_sigma_floor_m^2):
     # the floor covers what differencing leaves (multipath change, iono change over a second).
     tdcp_sigma_floor_m: float = 0.02
+    # ... times 10^((ref - C/N0) / 20) below this C/N0 [dB-Hz] at the weaker end of the pair (0: off), as the
+    # Doppler's prr_cn0_ref_dbhz. Off: on the held-out simulated city traces with carrier it helped fused-nodnn on
+    # average (deep / urban 8.56 -> 8.00 / 6.60 -> 5.75 m at 40 dB-Hz) but doubled one suburban trace's error
+    # (1.03 -> 2.35 m): a reflection's carrier made a few sigmas wider sits inside the robust loss's core, where
+    # it pulls harder than far outside it (experiments/results/carrier_trust.md).
+    tdcp_cn0_ref_dbhz: float = 0.0
+    # In the fused mode, a time-differenced carrier's sigma x (its satellite's learned pseudorange sigma over the
+    # physical model's, relative to the epoch's median, never below 1) ** this
+    # (fusion.estimate.graph.raw_inputs.carrier_sigma_by_pseudorange; 0: off). A reflected signal's carrier
+    # follows the reflected path, whose length changes as the car drives, and no slip flag says so; its
+    # pseudorange, tens of metres long, is what the head reads. On the held-out simulated city traces with carrier
+    # (no network trained on them) fused went deep / urban / suburban 6.00 / 4.90 / 0.51 m -> 4.67 / 2.34 / 0.18 m
+    # at 8 (4: 4.89 / 2.87 / 0.18; 12: 4.51 / 2.40), where removing the reflected carrier by the simulator's labels
+    # would give ... (experiments/results/carrier_trust.md). No GSDC 2021 file or smartLoc carries carrier phase.
+    learned_carrier_power: float = 8.0
     # The calibrated covariance of a bridged epoch without Doppler (fewer than 4 satellites, no prior, no
     # Doppler: the motion model alone carries it) is scaled by these on the north and east axes and on the down
     # axis (their squares on the variances): the 68th percentile of |error| / sigma there, per axis, on the
@@ -316,6 +331,7 @@ class GraphConfig:
 #: numeric settings that may be 0 (a floor, an "off", a count of extra updates); every other one must be > 0
 MAY_BE_ZERO = {"prior_sigma_floor_m", "prior_factor_power", "doppler_check_window_s", "carrier_check_window_s",
                "pseudorange_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
+               "tdcp_cn0_ref_dbhz", "learned_carrier_power",
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps", "cv_level_sigma_mps", "learned_sigma_power",

@@ -16,7 +16,7 @@ from fusion.estimate.graph.drift_noise import doppler_jump, drift_change
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
 from fusion.estimate.graph.odometry import OdometryFactors, odometry_factors
 from fusion.estimate.graph.priors import LearnedGraphInputs, Priors, clean_priors
-from fusion.estimate.graph.raw_inputs import RawInputs, raw_inputs
+from fusion.estimate.graph.raw_inputs import RawInputs, carrier_sigma_by_pseudorange, raw_inputs
 from fusion.estimate.graph.series import interp_rows
 from fusion.estimate.wls import WlsResult
 from fusion.geometry import elevation_azimuth, line_of_sight
@@ -251,6 +251,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
     init_pos, wls_ok = initial_positions(trace, wls, t)
     pri, n_rejected = learned_priors(trace, learned, cfg)
     sel, sigma, resid = select_satellites(trace, wls, wls_ok, init_pos, cfg, elev_mask_deg)
+    physical = sigma
     sigma, pr_bias, n_learned = learned_slot_noise(trace, None if learned is None else learned.pr_sigma,
                                                    None if learned is None else learned.pr_bias, sel, sigma,
                                                    cfg.slot_noise_level)
@@ -280,6 +281,11 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
         inp.dropped.update(inp.raw.counts)
         if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():
             inp.dropped.update({f"learned_{k}": v for k, v in learned.doppler_noise(trace, inp).items()})
+        if n_learned and cfg.learned_carrier_power > 0:
+            # every slot the head judged, the ones the graph's selection left out (gross residuals) too
+            ratio = np.where(trace.mask & (physical > 0), np.asarray(learned.pr_sigma, float) / physical, np.nan)
+            inp.raw.tdcp_sigma, n = carrier_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_carrier_power)
+            inp.dropped["learned_carrier_sigmas_raised"] = n
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
         if cfg.doppler_jump_from_log and inp.use_drift and inp.raw.doppler.any():
             change, linked = drift_change(trace, inp), dt[pos_link]

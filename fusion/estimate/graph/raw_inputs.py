@@ -9,6 +9,7 @@ the clock chain links ``k`` directly to ``k - 1`` (no receiver clock reset, no m
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -104,8 +105,11 @@ def tdcp_pairs(trace: Trace, above: np.ndarray, clock_link: np.ndarray, cfg: Gra
     use &= ~few[:, None]
     prev[1:] = np.where(use, same.argmax(axis=2), -1)
     prev_sigma = np.take_along_axis(trace.adr_sigma[:-1], np.maximum(prev[1:], 0), axis=1)
+    # the weaker end of the pair sets the difference's C/N0 factor (a reflected arc reads low C/N0)
+    weak = cn0_scale(trace, cfg.tdcp_cn0_ref_dbhz)
+    weak = np.maximum(weak[1:], np.take_along_axis(weak[:-1], np.maximum(prev[1:], 0), axis=1))
     sigma = np.ones((E, S))
-    sigma[1:] = np.sqrt(trace.adr_sigma[1:] ** 2 + prev_sigma ** 2 + cfg.tdcp_sigma_floor_m ** 2)
+    sigma[1:] = weak * np.sqrt(trace.adr_sigma[1:] ** 2 + prev_sigma ** 2 + cfg.tdcp_sigma_floor_m ** 2)
     counts["tdcp_factors"] = int(use.sum())
     return prev, np.where(prev >= 0, sigma, 1.0)
 
@@ -147,3 +151,24 @@ def doppler_rows_at(trace: Trace, raw: RawInputs, rx: np.ndarray, ks: np.ndarray
     (:func:`fusion.estimate.graph.factors.doppler_rows`)."""
     return doppler_rows(trace.prr[ks, ss] - raw.prr_bias[ks, ss], trace.sat_pos[ks, ss], trace.sat_vel[ks, ss],
                         rx[ks])
+
+
+def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float) -> tuple[np.ndarray, int]:
+    """``raw.tdcp_sigma`` (E,S) [m] raised where a satellite's pseudorange is trusted less than its epoch's others.
+
+    ratio (E,S): each slot's pseudorange sigma over the physical model's (the learned head's multiplier; NaN
+    where the slot has none). A reflected signal's carrier follows the reflected path, whose length changes as
+    the car turns or the street changes, and nothing in the carrier itself shows it; its pseudorange carries the
+    same reflection metres long, which the head reads. Each slot's ratio over its epoch's median, never below 1,
+    the larger of the pair's two ends, to ``power``, multiplies the difference's sigma.
+    Returns the sigmas and how many differences were raised by more than 5 %."""
+    tdcp = raw.tdcp_prev >= 0
+    if power <= 0 or not tdcp.any():
+        return raw.tdcp_sigma, 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # epochs without any learned sigma -> NaN
+        rel = np.maximum(1.0, np.nan_to_num(ratio / np.nanmedian(ratio, axis=1, keepdims=True), nan=1.0))
+    worse = rel.copy()
+    worse[1:] = np.maximum(rel[1:], np.take_along_axis(rel[:-1], np.maximum(raw.tdcp_prev[1:], 0), axis=1))
+    f = np.where(tdcp, worse ** power, 1.0)
+    return raw.tdcp_sigma * f, int((f > 1.05).sum())

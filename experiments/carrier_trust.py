@@ -1,0 +1,108 @@
+"""Which carrier phase the graph should trust in a street canyon: the simulator's city traces with carrier.
+
+A reflected signal's carrier follows the reflected path. Its length changes as the car turns or the street
+changes, and nothing in the carrier itself says so; an unflagged reflection's time-differenced carrier is a few
+of its sigmas off, each epoch, where the robust loss does not reach. The variants below weight the carrier by
+the satellite's C/N0 (``GraphConfig.tdcp_cn0_ref_dbhz``) and, in ``fused``, by the learned head's distrust of
+the same satellite's pseudorange (``GraphConfig.learned_carrier_power``). The last row removes the reflected
+and bent signals' carrier by the simulator's own labels: a diagnosis of what is at stake, never an estimator.
+
+Tuning logs only: the held-out simulated traces (no network trained on them) written with carrier phase,
+
+    python experiments/sim_city_traces.py --held-out --scenarios deep urban --first-seed 400 --carrier --out /tmp/simcarho
+    python experiments/sim_city_traces.py --held-out --scenarios suburban --first-seed 500 --carrier --out /tmp/simcarsub
+    python experiments/carrier_trust.py /tmp/simcarho/*/SimPhone /tmp/simcarsub/*/SimPhone [--jobs 2]
+
+GSDC score [m] of ``fused-nodnn`` and ``fused`` (shipped weights), mean per street kind.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from fusion.estimate.graph.config import GraphConfig  # noqa: E402
+from fusion.eval.metrics import mode_metrics  # noqa: E402
+from fusion.gpstime import gps_ms_to_unix_ms  # noqa: E402
+from fusion.modes import run_modes, solve_initial  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
+from fusion.run_types import RunOptions  # noqa: E402
+from fusion.trace import SIGNALS  # noqa: E402
+
+BEFORE = dict(tdcp_cn0_ref_dbhz=0.0, learned_carrier_power=0.0)
+#: name -> GraphConfig settings (the shipped defaults for the rest)
+VARIANTS = {
+    "pseudoranges only": dict(use_doppler=False, use_carrier=False),
+    "+ Doppler": dict(use_carrier=False),
+    "+ Doppler + carrier, before": BEFORE,
+    "+ carrier's C/N0 (ref 35 dB-Hz)": dict(BEFORE, tdcp_cn0_ref_dbhz=35.0),
+    "+ carrier's C/N0 (ref 40 dB-Hz)": dict(BEFORE, tdcp_cn0_ref_dbhz=40.0),
+    "+ learned distrust (power 4)": dict(BEFORE, learned_carrier_power=4.0),
+    "+ learned distrust (power 8)": dict(BEFORE, learned_carrier_power=8.0),
+    "shipped defaults": {},
+    "shipped, reflected carrier removed (labels: diagnosis)": {},
+}
+ORACLE = "shipped, reflected carrier removed (labels: diagnosis)"
+MODES = ("fused-nodnn", "fused")
+
+
+def reflected_slots(trace, folder: Path) -> np.ndarray:
+    """(E,S) bool: the slots the simulator's labels call reflected or bent (sim_labels.csv)."""
+    lab = pd.read_csv(folder / "sim_labels.csv")
+    bad = {(int(t), int(c) * 1000 + int(s), SIGNALS.index(g)) for t, c, s, g, cl in
+           zip(lab.utcTimeMillis, lab.ConstellationType, lab.Svid, lab.SignalType, lab.Class) if cl != "LOS"}
+    unix = gps_ms_to_unix_ms(trace.t_ms)
+    e, s = np.nonzero(trace.mask)
+    hit = [(int(unix[i]), int(trace.sat_id[i, j]), int(trace.signal[i, j])) in bad for i, j in zip(e, s)]
+    out = np.zeros(trace.mask.shape, bool)
+    out[e, s] = hit
+    return out
+
+
+def score_trace(folder: str) -> list[dict]:
+    """One row per variant and mode: the trace's GSDC score [m]."""
+    trace = load_trace(folder, signals="all")
+    kind = re.search(r"-(deep|urban|suburban)-", folder)
+    opts0 = RunOptions(signals=None)
+    wls = solve_initial(trace, opts0)
+    rows = []
+    for name, settings in VARIANTS.items():
+        tr = trace
+        if name == ORACLE:
+            tr = replace(trace, adr_ok=trace.adr_ok & ~reflected_slots(trace, Path(folder)))
+        opts = replace(opts0, graph=replace(GraphConfig(), **settings))
+        res = run_modes(tr, list(MODES), opts, wls)
+        for m in MODES:
+            rows.append(dict(trace=Path(folder).parent.name, kind=kind.group(1) if kind else "-", variant=name,
+                             mode=m, score=mode_metrics(tr, res[m])["gsdc_score"]))
+    return rows
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("traces", nargs="+", help="simulated trace folders written with --carrier")
+    p.add_argument("--jobs", type=int, default=1)
+    args = p.parse_args()
+    with ProcessPoolExecutor(args.jobs) as pool:
+        rows = [r for part in pool.map(score_trace, args.traces) for r in part]
+    df = pd.DataFrame(rows)
+    table = df.pivot_table(index="variant", columns=["kind", "mode"], values="score", aggfunc="mean", sort=False)
+    print(table.round(3).to_markdown())
+    per = df.pivot_table(index="trace", columns=["variant", "mode"], values="score", sort=False)
+    print()
+    print(per[[c for c in per.columns if c[0] in ("+ Doppler", "+ Doppler + carrier, before", "shipped defaults")]]
+          .round(3).to_markdown())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
