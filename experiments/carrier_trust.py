@@ -46,8 +46,10 @@ VARIANTS = {
     "+ Doppler + carrier, before": BEFORE,
     "+ carrier's C/N0 (ref 35 dB-Hz)": dict(BEFORE, tdcp_cn0_ref_dbhz=35.0),
     "+ carrier's C/N0 (ref 40 dB-Hz)": dict(BEFORE, tdcp_cn0_ref_dbhz=40.0),
-    "+ learned distrust (power 4)": dict(BEFORE, learned_carrier_power=4.0),
-    "+ learned distrust (power 8)": dict(BEFORE, learned_carrier_power=8.0),
+    "+ learned distrust (power 4)": dict(BEFORE, learned_carrier_power=4.0, learned_carrier_knee=1.0),
+    "+ learned distrust (power 8)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_knee=1.0),
+    "+ learned distrust (power 8, knee 2)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_knee=2.0),
+    "+ learned distrust (power 8, knee 3)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_knee=3.0),
     "shipped defaults": {},
     "shipped, reflected carrier removed (labels: diagnosis)": {},
 }
@@ -87,20 +89,29 @@ def score_trace(folder: str) -> list[dict]:
     return rows
 
 
+def markdown(df: pd.DataFrame) -> str:
+    """A frame as a markdown table (its index the first column; column tuples joined by a space)."""
+    cols = [" ".join(map(str, c)) if isinstance(c, tuple) else str(c) for c in df.columns]
+    lines = ["| " + " | ".join(["", *cols]) + " |", "|" + "---|" * (len(cols) + 1)]
+    lines += ["| " + " | ".join([str(i), *(f"{v:.3f}" for v in row)]) + " |" for i, row in zip(df.index, df.values)]
+    return "\n".join(lines)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("traces", nargs="+", help="simulated trace folders written with --carrier")
     p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--csv", type=Path, default=None, help="also write every trace's scores here")
     args = p.parse_args()
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = [r for part in pool.map(score_trace, args.traces) for r in part]
     df = pd.DataFrame(rows)
-    table = df.pivot_table(index="variant", columns=["kind", "mode"], values="score", aggfunc="mean", sort=False)
-    print(table.round(3).to_markdown())
-    per = df.pivot_table(index="trace", columns=["variant", "mode"], values="score", sort=False)
+    if args.csv:
+        df.to_csv(args.csv, index=False)
+    print(markdown(df.pivot_table(index="variant", columns=["kind", "mode"], values="score", sort=False)))
+    per = df[df.variant.isin(["+ Doppler", "+ Doppler + carrier, before", "shipped defaults"])]
     print()
-    print(per[[c for c in per.columns if c[0] in ("+ Doppler", "+ Doppler + carrier, before", "shipped defaults")]]
-          .round(3).to_markdown())
+    print(markdown(per.pivot_table(index="trace", columns=["variant", "mode"], values="score", sort=False)))
     return 0
 
 

@@ -14,7 +14,8 @@ acts inside the trace: four other drives' tracks (never replayed in training), s
 ``--scenarios deep --first-seed 200`` writes the same tracks through the ``deep`` high-rise scenario (seeds
 201-204; with ``--held-out``, ``--first-seed 300``: 301-304), traces that are not part of the shipped recipe.
 
-``--carrier`` adds carrier phase (the simulator's reflected paths lengthen it as they do the code), e.g.
+``--carrier`` adds carrier phase (the simulator's reflected paths lengthen it as they do the code; a signal that
+turns reflected or back slips, flagged), e.g.
 ``--held-out --scenarios deep urban --first-seed 400 --carrier --out /tmp/simcarho``: a phone's carrier in a
 canyon, where the learned part met the graph's carrier-tightened track on no other tuning log.
 """

@@ -266,7 +266,8 @@ def test_the_report_says_per_mode_what_the_learned_parts_and_the_motion_model_di
     assert learned_words({**info, "learned_members": 3}).startswith("ensemble of 3 networks (guard counts: the most")
     assert "asked 2 times for the pseudorange sigmas" in learned_words({**info, "learned_sigma_passes": 2})
     assert "times for the pseudorange sigmas" not in learned_words({**info, "learned_sigma_passes": 1})
-    assert "; 12 carrier-phase differences trusted less" in learned_words({**info, "learned_carrier_sigmas_raised": 12})
+    assert "; 12 carrier-phase differences given at least twice" in learned_words(
+        {**info, "learned_carrier_sigmas_raised": 12})
     assert "carrier-phase" not in learned_words(info)
 
 

@@ -33,8 +33,8 @@ def learned_words(info: dict) -> str:
         widened = (f"; its prior widened in {g['prior_widened']} epochs, where the pseudorange residuals exceed their "
                    f"model (median variance factor {float(info.get('learned_prior_factor_p50', 0.0)):.2f})")
     if "carrier_sigmas_raised" in g:
-        widened += (f"; {g['carrier_sigmas_raised']} carrier-phase differences trusted less, their satellites' "
-                    "pseudoranges distrusted (a reflection's carrier follows its path)")
+        widened += (f"; {g['carrier_sigmas_raised']} carrier-phase differences given at least twice their sigma, "
+                    "their satellites' pseudoranges distrusted (a reflection's carrier follows its path)")
     return (f"{who}: asked at {g.get('epochs_asked', 0)} epochs, {g.get('meas_asked', 0)} measurements; its guard "
             f"gave the physical sigma model {g.get('meas_out_of_range', 0)} measurements with inputs outside the "
             f"training range; {g.get('meas_unseen_signal', 0)} measurements of signals it cannot read left to the "

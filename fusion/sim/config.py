@@ -40,7 +40,9 @@ class SimConfig:
     multipath:       line-of-sight code multipath growing as C/N0 falls (needs ``cn0``); None = none.
     carrier:         also simulate carrier phase (``Trace.adr``), 1-sigma ``adr_sigma_m``, with a
                      random cycle slip per satellite and epoch at probability ``slip_prob``, each a
-                     jump of the ambiguity by +-U[``slip_jump_m``] (see fusion.sim.doppler_carrier).
+                     jump of the ambiguity by +-U[``slip_jump_m``] (see fusion.sim.doppler_carrier); with
+                     ``slip_on_class_change`` a flagged slip wherever a satellite's signal turns reflected or
+                     bent, or back (a tracking loop loses lock there).
     """
 
     sigma_m: float = 6.0
@@ -63,6 +65,7 @@ class SimConfig:
     adr_sigma_m: float = 0.003
     slip_prob: float = 0.0
     slip_jump_m: tuple[float, float] = (5.0, 100.0)
+    slip_on_class_change: bool = True
     systems: tuple[str, ...] = ("G",)
     dual_frequency: bool = False
     cn0: Cn0Model | None = None

@@ -65,6 +65,20 @@ def carrier_arcs(in_view: np.ndarray, seg_start: np.ndarray, cfg: "SimConfig", r
     return new_arc, np.cumsum(np.where(new_arc, jump, 0.0), axis=0)
 
 
+def class_changed(cls: np.ndarray, mask: np.ndarray, pick: np.ndarray, P: int) -> np.ndarray:
+    """(E,K) bool: the slot's satellite arrived by another path (line of sight, reflected, bent) in its previous
+    epoch. cls (E,K) the canyon's classes of the slots, mask (E,K), pick (E,K) their columns of P satellites.
+    A tracking loop whose signal turns reflected, or back, sees its phase jump by the paths' difference within a
+    fraction of a second: it loses lock, and the receiver flags the slip."""
+    E = mask.shape[0]
+    by_sat = np.full((E, P), -1, np.int16)
+    rows = np.broadcast_to(np.arange(E)[:, None], mask.shape)
+    by_sat[rows[mask], pick[mask]] = cls[mask]
+    change = np.zeros((E, P), bool)
+    change[1:] = (by_sat[1:] != by_sat[:-1]) & (by_sat[1:] >= 0) & (by_sat[:-1] >= 0)
+    return np.take_along_axis(change, pick, axis=1) & mask
+
+
 def doppler_carrier_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, slots: dict,
                            pick: np.ndarray, P: int, cfg: "SimConfig", rng: np.random.Generator,
                            env: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
@@ -98,8 +112,10 @@ def doppler_carrier_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarr
         new_arc, amb = carrier_arcs(in_view, seg_start, cfg, rng)
         ambiguity = np.take_along_axis(amb, pick, axis=1)
         noise = rng.standard_normal(mask.shape) * cfg.adr_sigma_m
+        slip = np.take_along_axis(new_arc, pick, axis=1) & mask
+        if cfg.slip_on_class_change and env.get("cls") is not None:
+            slip |= class_changed(env["cls"], mask, pick, P)
         out.update(adr=slots["range"] + slots["clock"][:, None] + ambiguity + noise + env.get("nlos_delay", 0.0),
-                   adr_sigma=np.where(mask, cfg.adr_sigma_m, 1.0), adr_ok=mask.copy(),
-                   adr_slip=np.take_along_axis(new_arc, pick, axis=1) & mask,
+                   adr_sigma=np.where(mask, cfg.adr_sigma_m, 1.0), adr_ok=mask.copy(), adr_slip=slip,
                    ambiguity=np.where(mask, ambiguity, 0.0))
     return out

@@ -230,6 +230,24 @@ def test_carrier_follows_the_reflected_path(urban):
     assert np.abs(resid[tr.adr_ok]).max() < 0.05
 
 
+def test_a_signal_that_turns_reflected_or_back_slips(nav, urban):
+    """Every change of a satellite's arrival class between consecutive epochs is a flagged slip (the loop loses
+    lock); without slip_on_class_change those epochs keep their arcs (this urban config has no random slips)."""
+    tr, res = urban.trace, urban
+    key = np.where(tr.mask, tr.sat_id.astype(np.int64) * 100 + tr.signal, -1)
+    changed = np.zeros(tr.mask.shape, bool)
+    for e in range(1, tr.n_epochs):
+        for s in np.flatnonzero(tr.mask[e]):
+            prev = np.flatnonzero(key[e - 1] == key[e, s])
+            changed[e, s] = bool(prev.size) and res.los_class[e - 1, prev[0]] != res.los_class[e, s]
+    assert changed.sum() > 50
+    assert tr.adr_slip[changed].all()
+    kept = simulate(n_epochs=600, nav=nav, seed=21,
+                    config=scenario_config("urban", carrier=True, slip_on_class_change=False)).trace
+    assert not kept.adr_slip[changed].any()
+    np.testing.assert_array_equal(kept.adr_slip, tr.adr_slip & ~changed)
+
+
 def test_the_deep_canyon_blocks_more_of_the_sky_than_the_urban_one(nav, urban):
     deep = simulate(n_epochs=600, nav=nav, seed=21, config=scenario_config("deep", carrier=True))
     per_epoch = {name: r.trace.mask.sum(axis=1).mean() for name, r in (("urban", urban), ("deep", deep))}

@@ -246,19 +246,24 @@ class GraphConfig:
     tdcp_sigma_floor_m: float = 0.02
     # ... times 10^((ref - C/N0) / 20) below this C/N0 [dB-Hz] at the weaker end of the pair (0: off), as the
     # Doppler's prr_cn0_ref_dbhz. Off: on the held-out simulated city traces with carrier it helped fused-nodnn on
-    # average (deep / urban 8.56 -> 8.00 / 6.60 -> 5.75 m at 40 dB-Hz) but doubled one suburban trace's error
-    # (1.03 -> 2.35 m): a reflection's carrier made a few sigmas wider sits inside the robust loss's core, where
-    # it pulls harder than far outside it (experiments/results/carrier_trust.md).
+    # ten traces of twelve but doubled a suburban one's error (1.20 -> 2.32 m at 40 dB-Hz): a reflection's carrier
+    # made a few sigmas wider sits inside the robust loss's core, where it pulls harder than far outside it
+    # (experiments/results/carrier_trust.md).
     tdcp_cn0_ref_dbhz: float = 0.0
     # In the fused mode, a time-differenced carrier's sigma x (its satellite's learned pseudorange sigma over the
-    # physical model's, relative to the epoch's median, never below 1) ** this
+    # physical model's, relative to the epoch's median and over learned_carrier_knee, never below 1) ** this
     # (fusion.estimate.graph.raw_inputs.carrier_sigma_by_pseudorange; 0: off). A reflected signal's carrier
     # follows the reflected path, whose length changes as the car drives, and no slip flag says so; its
-    # pseudorange, tens of metres long, is what the head reads. On the held-out simulated city traces with carrier
-    # (no network trained on them) fused went deep / urban / suburban 6.00 / 4.90 / 0.51 m -> 4.67 / 2.34 / 0.18 m
-    # at 8 (4: 4.89 / 2.87 / 0.18; 12: 4.51 / 2.40), where removing the reflected carrier by the simulator's labels
-    # would give ... (experiments/results/carrier_trust.md). No GSDC 2021 file or smartLoc carries carrier phase.
+    # pseudorange, metres long, is what the head reads. On the held-out simulated city traces with carrier (no
+    # network trained on them) fused went deep / urban / suburban 5.07 / 3.82 / 0.38 m -> 4.62 / 2.18 / 0.18 m at 8
+    # (4: 4.56 / 2.37 / 0.18), about what removing the reflected carrier by the simulator's labels gives (5.01 /
+    # 2.05 / 0.17). No GSDC 2021 file or smartLoc carries carrier phase; reported on the Pixel5 test trace as logged
+    # (a suburb), fused with carrier lost 0.1-0.5 m (experiments/results/carrier_trust.md).
     learned_carrier_power: float = 8.0
+    # The distrust counts from this many times the epoch's median (1: from the median). A code's multipath leaves
+    # its carrier clean, so a knee would spare the mildly distrusted; on those traces 2 gave back part of the gain
+    # (urban 2.18 -> 2.63 m): a quarter of the reflected signals' pseudoranges are only mildly distrusted.
+    learned_carrier_knee: float = 1.0
     # The calibrated covariance of a bridged epoch without Doppler (fewer than 4 satellites, no prior, no
     # Doppler: the motion model alone carries it) is scaled by these on the north and east axes and on the down
     # axis (their squares on the variances): the 68th percentile of |error| / sigma there, per axis, on the

@@ -284,7 +284,8 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
         if n_learned and cfg.learned_carrier_power > 0:
             # every slot the head judged, the ones the graph's selection left out (gross residuals) too
             ratio = np.where(trace.mask & (physical > 0), np.asarray(learned.pr_sigma, float) / physical, np.nan)
-            inp.raw.tdcp_sigma, n = carrier_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_carrier_power)
+            inp.raw.tdcp_sigma, n = carrier_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_carrier_power,
+                                                                 cfg.learned_carrier_knee)
             inp.dropped["learned_carrier_sigmas_raised"] = n
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
         if cfg.doppler_jump_from_log and inp.use_drift and inp.raw.doppler.any():

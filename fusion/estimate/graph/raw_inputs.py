@@ -153,22 +153,24 @@ def doppler_rows_at(trace: Trace, raw: RawInputs, rx: np.ndarray, ks: np.ndarray
                         rx[ks])
 
 
-def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float) -> tuple[np.ndarray, int]:
+def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float, knee: float = 1.0
+                                  ) -> tuple[np.ndarray, int]:
     """``raw.tdcp_sigma`` (E,S) [m] raised where a satellite's pseudorange is trusted less than its epoch's others.
 
     ratio (E,S): each slot's pseudorange sigma over the physical model's (the learned head's multiplier; NaN
     where the slot has none). A reflected signal's carrier follows the reflected path, whose length changes as
     the car turns or the street changes, and nothing in the carrier itself shows it; its pseudorange carries the
-    same reflection metres long, which the head reads. Each slot's ratio over its epoch's median, never below 1,
-    the larger of the pair's two ends, to ``power``, multiplies the difference's sigma.
-    Returns the sigmas and how many differences were raised by more than 5 %."""
+    same reflection metres long, which the head reads. Each slot's ratio over its epoch's median and over
+    ``knee`` (a code's multipath, a little above its epoch's median, leaves the carrier alone), never below 1, the
+    larger of the pair's two ends, to ``power``, multiplies the difference's sigma.
+    Returns the sigmas and how many differences had their sigma at least doubled."""
     tdcp = raw.tdcp_prev >= 0
     if power <= 0 or not tdcp.any():
         return raw.tdcp_sigma, 0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)          # epochs without any learned sigma -> NaN
-        rel = np.maximum(1.0, np.nan_to_num(ratio / np.nanmedian(ratio, axis=1, keepdims=True), nan=1.0))
+        rel = np.maximum(1.0, np.nan_to_num(ratio / np.nanmedian(ratio, axis=1, keepdims=True) / knee, nan=1.0))
     worse = rel.copy()
     worse[1:] = np.maximum(rel[1:], np.take_along_axis(rel[:-1], np.maximum(raw.tdcp_prev[1:], 0), axis=1))
     f = np.where(tdcp, worse ** power, 1.0)
-    return raw.tdcp_sigma * f, int((f > 1.05).sum())
+    return raw.tdcp_sigma * f, int((f >= 2.0).sum())
