@@ -50,7 +50,8 @@ def run_scenario(cfg: SimConfig, n_traces: int, n_epochs: int, incremental: bool
         pos["wls"].append(np.linalg.norm(wls.pos - tr.truth, axis=1))
         for name, (d, c) in VARIANTS.items():
             t0 = time.perf_counter()
-            out = fuse(tr, wls, RunOptions(graph=replace(graph, use_doppler=d, use_carrier=c, incremental=incremental)), want_cov=False)
+            opts = RunOptions(graph=replace(graph, use_doppler=d, use_carrier=c, incremental=incremental))
+            out = fuse(tr, wls, opts, want_cov=False)
             secs[name] += time.perf_counter() - t0
             pos[name].append(np.linalg.norm(out.pos - tr.truth, axis=1))
             vel[name].append(np.linalg.norm(out.info["vel"] - res.rx_vel_mps, axis=1))

@@ -60,7 +60,8 @@ def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
     ap.add_argument("--scenario", choices=sorted(SCENARIOS), default=None,
                     help="multi-constellation preset with C/N0, Doppler and street canyons: open, suburban, urban, deep")
     ap.add_argument("--carrier", action="store_true",
-                    help="carrier phase too (AccumulatedDeltaRange; a slip where an arc breaks or a signal turns reflected or back)")
+                    help="carrier phase too (AccumulatedDeltaRange; a slip where an arc breaks or a signal "
+                         "turns reflected or back)")
     ap.add_argument("--constellations", default=None,
                     help="GPS,GLO,GAL,BDS or all (default GPS; scenarios all); no records in --nav: synthetic")
     ap.add_argument("--format", choices=FORMATS, default="auto",

@@ -264,6 +264,7 @@ class GraphConfig:
     # its carrier clean, so a knee would spare the mildly distrusted; on those traces 2 gave back part of the gain
     # (urban 2.18 -> 2.63 m): a quarter of the reflected signals' pseudoranges are only mildly distrusted.
     learned_carrier_knee: float = 1.0
+    learned_doppler_power: float = 0.0
     # The calibrated covariance of a bridged epoch without Doppler (fewer than 4 satellites, no prior, no
     # Doppler: the motion model alone carries it) is scaled by these on the north and east axes and on the down
     # axis (their squares on the variances): the 68th percentile of |error| / sigma there, per axis, on the
@@ -336,7 +337,7 @@ class GraphConfig:
 #: numeric settings that may be 0 (a floor, an "off", a count of extra updates); every other one must be > 0
 MAY_BE_ZERO = {"prior_sigma_floor_m", "prior_factor_power", "doppler_check_window_s", "carrier_check_window_s",
                "pseudorange_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
-               "tdcp_cn0_ref_dbhz", "learned_carrier_power",
+               "tdcp_cn0_ref_dbhz", "learned_carrier_power", "learned_doppler_power",
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps", "cv_level_sigma_mps", "learned_sigma_power",

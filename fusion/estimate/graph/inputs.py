@@ -16,7 +16,8 @@ from fusion.estimate.graph.drift_noise import doppler_jump, drift_change
 from fusion.estimate.graph.isb import IsbInputs, isb_inputs
 from fusion.estimate.graph.odometry import OdometryFactors, odometry_factors
 from fusion.estimate.graph.priors import LearnedGraphInputs, Priors, clean_priors
-from fusion.estimate.graph.raw_inputs import RawInputs, carrier_sigma_by_pseudorange, raw_inputs
+from fusion.estimate.graph.raw_inputs import (RawInputs, carrier_sigma_by_pseudorange, doppler_sigma_by_pseudorange,
+                                              raw_inputs)
 from fusion.estimate.graph.series import interp_rows
 from fusion.estimate.wls import WlsResult
 from fusion.geometry import elevation_azimuth, line_of_sight
@@ -287,6 +288,11 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
             inp.raw.tdcp_sigma, n = carrier_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_carrier_power,
                                                                  cfg.learned_carrier_knee)
             inp.dropped["learned_carrier_sigmas_raised"] = n
+        if n_learned and cfg.learned_doppler_power > 0:
+            ratio = np.where(trace.mask & (physical > 0), np.asarray(learned.pr_sigma, float) / physical, np.nan)
+            inp.raw.prr_sigma, n = doppler_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_doppler_power,
+                                                                cfg.learned_carrier_knee)
+            inp.dropped["learned_doppler_sigmas_raised"] = n
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
         if cfg.doppler_jump_from_log and inp.use_drift and inp.raw.doppler.any():
             change, linked = drift_change(trace, inp), dt[pos_link]

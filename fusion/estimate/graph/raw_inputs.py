@@ -153,6 +153,14 @@ def doppler_rows_at(trace: Trace, raw: RawInputs, rx: np.ndarray, ks: np.ndarray
                         rx[ks])
 
 
+def relative_distrust(ratio: np.ndarray, knee: float = 1.0) -> np.ndarray:
+    """(E,S) each slot's pseudorange sigma ratio (E,S) (over the physical model's; NaN: none) over its epoch's
+    median and over ``knee``, never below 1 (1 where NaN)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)          # epochs without any learned sigma -> NaN
+        return np.maximum(1.0, np.nan_to_num(ratio / np.nanmedian(ratio, axis=1, keepdims=True) / knee, nan=1.0))
+
+
 def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float, knee: float = 1.0
                                   ) -> tuple[np.ndarray, int]:
     """``raw.tdcp_sigma`` (E,S) [m] raised where a satellite's pseudorange is trusted less than its epoch's others.
@@ -160,17 +168,25 @@ def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float
     ratio (E,S): each slot's pseudorange sigma over the physical model's (the learned head's multiplier; NaN
     where the slot has none). A reflected signal's carrier follows the reflected path, whose length changes as
     the car turns or the street changes, and nothing in the carrier itself shows it; its pseudorange carries the
-    same reflection metres long, which the head reads. Each slot's ratio over its epoch's median and over
-    ``knee`` (a code's multipath, a little above its epoch's median, leaves the carrier alone), never below 1, the
-    larger of the pair's two ends, to ``power``, multiplies the difference's sigma.
+    same reflection metres long, which the head reads. :func:`relative_distrust` (``knee``: a code's multipath, a
+    little above its epoch's median, leaves the carrier alone), the larger of the pair's two ends, to ``power``,
+    multiplies the difference's sigma.
     Returns the sigmas and how many differences had their sigma at least doubled."""
     tdcp = raw.tdcp_prev >= 0
     if power <= 0 or not tdcp.any():
         return raw.tdcp_sigma, 0
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)          # epochs without any learned sigma -> NaN
-        rel = np.maximum(1.0, np.nan_to_num(ratio / np.nanmedian(ratio, axis=1, keepdims=True) / knee, nan=1.0))
+    rel = relative_distrust(ratio, knee)
     worse = rel.copy()
     worse[1:] = np.maximum(rel[1:], np.take_along_axis(rel[:-1], np.maximum(raw.tdcp_prev[1:], 0), axis=1))
     f = np.where(tdcp, worse ** power, 1.0)
     return raw.tdcp_sigma * f, int((f >= 2.0).sum())
+
+
+def doppler_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float, knee: float = 1.0
+                                  ) -> tuple[np.ndarray, int]:
+    """``raw.prr_sigma`` (E,S) [m/s] x :func:`relative_distrust` ** ``power`` on the Doppler slots: a reflected
+    signal's Doppler is the reflected path's rate. Returns the sigmas and how many were at least doubled."""
+    if power <= 0 or not raw.doppler.any():
+        return raw.prr_sigma, 0
+    f = np.where(raw.doppler, relative_distrust(ratio, knee) ** power, 1.0)
+    return raw.prr_sigma * f, int((f >= 2.0).sum())
