@@ -12,7 +12,8 @@ from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.fuse import fuse
 from fusion.estimate.graph.inputs import prepare_inputs
 from fusion.estimate.graph.priors import LearnedGraphInputs
-from fusion.estimate.graph.raw_inputs import RawInputs, carrier_sigma_by_pseudorange, tdcp_pairs
+from fusion.estimate.graph.raw_inputs import (RawInputs, carrier_sigma_by_pseudorange, doppler_sigma_by_pseudorange,
+                                              tdcp_pairs)
 from fusion.estimate.variance_factor import sigma_model
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
@@ -74,6 +75,18 @@ def test_a_distrusted_pseudorange_raises_its_carrier_and_the_pair_takes_the_wors
     assert n0 == 0
     nan = np.full((4, 4), np.nan)                          # no learned sigma anywhere: nothing moves
     np.testing.assert_array_equal(carrier_sigma_by_pseudorange(raw, nan, 2.0)[0], raw.tdcp_sigma)
+
+
+def test_a_distrusted_pseudorange_raises_its_doppler_sigma_alone():
+    raw = _raw([[-1] * 5] * 2)
+    raw.doppler = np.array([[True, True, True, True, False], [True] * 5])
+    raw.prr_sigma = np.full((2, 5), 0.1)
+    ratio = np.array([[1.0, 1.0, 1.0, 3.0, 5.0], [1.0, 1.0, 1.0, 1.0, np.nan]])
+    sigma, n = doppler_sigma_by_pseudorange(raw, ratio, 2.0)
+    np.testing.assert_allclose(sigma[0], [0.1, 0.1, 0.1, 0.9, 0.1])     # the last slot has no Doppler factor
+    np.testing.assert_allclose(sigma[1], 0.1)
+    assert n == 1
+    np.testing.assert_array_equal(doppler_sigma_by_pseudorange(raw, ratio, 0.0)[0], raw.prr_sigma)
 
 
 def _reflected(sim, slots, rates, start: int):

@@ -264,6 +264,10 @@ class GraphConfig:
     # its carrier clean, so a knee would spare the mildly distrusted; on those traces 2 gave back part of the gain
     # (urban 2.18 -> 2.63 m): a quarter of the reflected signals' pseudoranges are only mildly distrusted.
     learned_carrier_knee: float = 1.0
+    # The same distrust on the Doppler sigmas (raw_inputs.doppler_sigma_by_pseudorange; 0: off), a reflected
+    # signal's Doppler being the reflected path's rate. Off: on the same traces with carrier, power 2 / 4 moved fused
+    # deep 4.62 -> 4.72 / 4.46 m and suburban 0.18 -> 0.23 / 0.23 m, and on the held-out city traces without carrier
+    # deep 9.02 -> 9.25 / 9.38 m, urban 3.19 -> 3.23 / 3.21 m (experiments/results/carrier_trust.md).
     learned_doppler_power: float = 0.0
     # The calibrated covariance of a bridged epoch without Doppler (fewer than 4 satellites, no prior, no
     # Doppler: the motion model alone carries it) is scaled by these on the north and east axes and on the down
