@@ -1,6 +1,7 @@
 """Which carrier phase the graph trusts: time-differenced carrier sigmas raised by C/N0
 (GraphConfig.tdcp_cn0_ref_dbhz) and, in the fused mode, by the learned pseudorange multiplier of the same
-satellite (GraphConfig.learned_carrier_power): a reflected signal's carrier follows the reflected path."""
+satellite (GraphConfig.learned_carrier_power): a reflected signal's carrier follows the reflected path; the same
+distrust on the Doppler (GraphConfig.learned_doppler_power, shipped off)."""
 from __future__ import annotations
 
 import dataclasses
