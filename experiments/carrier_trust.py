@@ -11,9 +11,13 @@ Tuning logs only: the held-out simulated traces (no network trained on them) wri
 
     python experiments/sim_city_traces.py --held-out --scenarios deep urban --first-seed 400 --carrier --out /tmp/simcarho
     python experiments/sim_city_traces.py --held-out --scenarios suburban --first-seed 500 --carrier --out /tmp/simcarsub
-    python experiments/carrier_trust.py /tmp/simcarho/*/SimPhone /tmp/simcarsub/*/SimPhone [--jobs 2]
+    python experiments/sim_city_traces.py --held-out --scenarios suburban urban --first-seed 600 --carrier \
+        --constellations GPS --out /tmp/simgps
+    python experiments/carrier_trust.py /tmp/simcarho/*/SimPhone /tmp/simcarsub/*/SimPhone /tmp/simgps/*/SimPhone \
+        [--jobs 2]
 
-GSDC score [m] of ``fused-nodnn`` and ``fused`` (shipped weights), mean per street kind.
+GSDC score [m] of ``fused-nodnn`` and ``fused`` (shipped weights), mean per street kind ("(GPS)": the phone of
+GPS L1 + L5 alone).
 """
 from __future__ import annotations
 
@@ -38,18 +42,19 @@ from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.trace import SIGNALS  # noqa: E402
 
-BEFORE = dict(tdcp_cn0_ref_dbhz=0.0, learned_carrier_power=0.0)
+BEFORE = dict(tdcp_cn0_ref_dbhz=0.0, learned_carrier_power=0.0, learned_carrier_knee=1.0)
 #: name -> GraphConfig settings (the shipped defaults for the rest)
 VARIANTS = {
     "pseudoranges only": dict(use_doppler=False, use_carrier=False),
     "+ Doppler": dict(use_carrier=False),
     "+ Doppler + carrier, before": BEFORE,
-    "+ carrier's C/N0 (ref 35 dB-Hz)": dict(BEFORE, tdcp_cn0_ref_dbhz=35.0),
     "+ carrier's C/N0 (ref 40 dB-Hz)": dict(BEFORE, tdcp_cn0_ref_dbhz=40.0),
-    "+ learned distrust (power 4)": dict(BEFORE, learned_carrier_power=4.0, learned_carrier_knee=1.0),
-    "+ learned distrust (power 8)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_knee=1.0),
-    "+ learned distrust (power 8, knee 2)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_knee=2.0),
-    "+ learned distrust (power 8, knee 3)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_knee=3.0),
+    "+ learned distrust (power 4)": dict(BEFORE, learned_carrier_power=4.0, learned_carrier_min_count=0),
+    "+ learned distrust (power 8)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_min_count=0),
+    "+ learned distrust (power 8, knee 2)": dict(BEFORE, learned_carrier_power=8.0, learned_carrier_knee=2.0,
+                                                 learned_carrier_min_count=0),
+    "+ learned distrust (power 8, from 12 differences)": dict(BEFORE, learned_carrier_power=8.0,
+                                                              learned_carrier_min_count=12),
     "shipped defaults": {},
     "shipped, reflected carrier removed (labels: diagnosis)": {},
 }
@@ -74,6 +79,7 @@ def score_trace(folder: str) -> list[dict]:
     """One row per variant and mode: the trace's GSDC score [m]."""
     trace = load_trace(folder, signals="all")
     kind = re.search(r"-(deep|urban|suburban)-", folder)
+    gps_only = all(SIGNALS[i].startswith("GPS") for i in np.unique(trace.signal[trace.mask]))
     opts0 = RunOptions(signals=None)
     wls = solve_initial(trace, opts0)
     rows = []
@@ -84,7 +90,8 @@ def score_trace(folder: str) -> list[dict]:
         opts = replace(opts0, graph=replace(GraphConfig(), **settings))
         res = run_modes(tr, list(MODES), opts, wls)
         for m in MODES:
-            rows.append(dict(trace=Path(folder).parent.name, kind=kind.group(1) if kind else "-", variant=name,
+            rows.append(dict(trace=Path(folder).parent.name, variant=name,
+                             kind=(kind.group(1) if kind else "-") + (" (GPS)" if gps_only else ""),
                              mode=m, score=mode_metrics(tr, res[m])["gsdc_score"]))
     return rows
 

@@ -17,7 +17,8 @@ acts inside the trace: four other drives' tracks (never replayed in training), s
 ``--carrier`` adds carrier phase (the simulator's reflected paths lengthen it as they do the code; a signal that
 turns reflected or back slips, flagged), e.g.
 ``--held-out --scenarios deep urban --first-seed 400 --carrier --out /tmp/simcarho``: a phone's carrier in a
-canyon, where the learned part met the graph's carrier-tightened track on no other tuning log.
+canyon, where the learned part met the graph's carrier-tightened track on no other tuning log; with
+``--constellations GPS`` a GPS L1 + L5 phone's (the Pixel5's measurement set with broadcast orbits).
 """
 from __future__ import annotations
 
@@ -49,6 +50,7 @@ def main(argv=None) -> int:
     p.add_argument("--first-seed", type=int, default=None, help="seeds count up from the one after this "
                    f"(default 0 for training, {HELD_OUT_SEED} held out)")
     p.add_argument("--carrier", action="store_true", help="carrier phase too (not in the shipped recipe's traces)")
+    p.add_argument("--constellations", default=None, help="e.g. GPS: a phone of one constellation (default: all four)")
     args = p.parse_args(argv)
     tracks, seed, prefix = (HELD_OUT_TRACKS, HELD_OUT_SEED, "ho") if args.held_out else (TRACKS, 0, "sim")
     seed = seed if args.first_seed is None else args.first_seed
@@ -58,7 +60,8 @@ def main(argv=None) -> int:
             gt = SHARED / "gsdc2021" / "trajectories" / track / "Pixel4" / "ground_truth.csv"
             rc = cli(["simulate", "--out", str(args.out), "--scenario", scenario, "--trajectory", str(gt),
                       "--seed", str(seed), "--collection", f"{prefix}-{scenario}-{seed}", "--epochs", str(args.epochs)]
-                     + (["--carrier"] if args.carrier else []))
+                     + (["--carrier"] if args.carrier else [])
+                     + (["--constellations", args.constellations] if args.constellations else []))
             if rc:
                 return rc
     return 0

@@ -71,6 +71,10 @@ def test_a_distrusted_pseudorange_raises_its_carrier_and_the_pair_takes_the_wors
     kneed, n4 = carrier_sigma_by_pseudorange(raw, ratio, 2.0, knee=4.0)   # distrust counted from 4 x the median
     assert kneed[1, 2] == pytest.approx(0.02 * 4) and kneed[2, 2] == pytest.approx(0.02 * 4)
     assert kneed[3, 1] == pytest.approx(0.02) and n4 == 2
+    few, n_few = carrier_sigma_by_pseudorange(raw, ratio, 2.0, min_count=4)  # epoch 3 holds three differences
+    np.testing.assert_allclose(few[:3], sigma[:3])
+    np.testing.assert_array_equal(few[3], raw.tdcp_sigma[3])
+    assert n_few == 2
     same, n0 = carrier_sigma_by_pseudorange(raw, ratio, 0.0)
     np.testing.assert_array_equal(same, raw.tdcp_sigma)
     assert n0 == 0

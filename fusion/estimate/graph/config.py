@@ -255,15 +255,21 @@ class GraphConfig:
     # (fusion.estimate.graph.raw_inputs.carrier_sigma_by_pseudorange; 0: off). A reflected signal's carrier
     # follows the reflected path, whose length changes as the car drives, and no slip flag says so; its
     # pseudorange, metres long, is what the head reads. On the held-out simulated city traces with carrier (no
-    # network trained on them) fused went deep / urban / suburban 5.07 / 3.82 / 0.38 m -> 4.62 / 2.18 / 0.18 m at 8
-    # (4: 4.56 / 2.37 / 0.18), about what removing the reflected carrier by the simulator's labels gives (5.01 /
-    # 2.05 / 0.17). No GSDC 2021 file or smartLoc carries carrier phase; reported on the Pixel5 test trace as logged
-    # (a suburb), fused with carrier lost 0.1-0.5 m (experiments/results/carrier_trust.md).
+    # network trained on them) fused went deep / urban / suburban 5.07 / 3.82 / 0.38 m -> 4.56 / 2.20 / 0.18 m at 8
+    # (from 8 differences, below; at every epoch 4: 4.56 / 2.37 / 0.18, 8: 4.62 / 2.18 / 0.18), about what removing
+    # the reflected carrier by the simulator's labels gives (4.94 / 2.03 / 0.17). No GSDC 2021 file or smartLoc
+    # carries carrier phase (experiments/results/carrier_trust.md).
     learned_carrier_power: float = 8.0
     # The distrust counts from this many times the epoch's median (1: from the median). A code's multipath leaves
     # its carrier clean, so a knee would spare the mildly distrusted; on those traces 2 gave back part of the gain
     # (urban 2.18 -> 2.63 m): a quarter of the reflected signals' pseudoranges are only mildly distrusted.
     learned_carrier_knee: float = 1.0
+    # ... at epochs with at least this many carrier differences (0: every epoch). A phone of one constellation
+    # holds five to ten (the held-out simulated traces of GPS L1 + L5 alone: median 7); there the distrust took
+    # away carrier the track needed (fused suburban / urban 3.96 / 5.12 -> 5.90 / 5.58 m at every epoch, 3.74 / 5.10 m
+    # from 8), while the multi-constellation traces keep their gain from 8 (deep / urban 4.56 / 2.20 m; from 12 the
+    # deep ones lost it, 5.14 m; experiments/results/carrier_trust.md).
+    learned_carrier_min_count: int = 8
     # The same distrust on the Doppler sigmas (raw_inputs.doppler_sigma_by_pseudorange; 0: off), a reflected
     # signal's Doppler being the reflected path's rate. Off: on the same traces with carrier, power 2 / 4 moved fused
     # deep 4.62 -> 4.72 / 4.46 m and suburban 0.18 -> 0.23 / 0.23 m, and on the held-out city traces without carrier
@@ -342,6 +348,7 @@ class GraphConfig:
 MAY_BE_ZERO = {"prior_sigma_floor_m", "prior_factor_power", "doppler_check_window_s", "carrier_check_window_s",
                "pseudorange_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
                "tdcp_cn0_ref_dbhz", "learned_carrier_power", "learned_doppler_power",
+               "learned_carrier_min_count",
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps", "cv_level_sigma_mps", "learned_sigma_power",

@@ -286,7 +286,7 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
             # every slot the head judged, the ones the graph's selection left out (gross residuals) too
             ratio = np.where(trace.mask & (physical > 0), np.asarray(learned.pr_sigma, float) / physical, np.nan)
             inp.raw.tdcp_sigma, n = carrier_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_carrier_power,
-                                                                 cfg.learned_carrier_knee)
+                                                                 cfg.learned_carrier_knee, cfg.learned_carrier_min_count)
             inp.dropped["learned_carrier_sigmas_raised"] = n
         if n_learned and cfg.learned_doppler_power > 0:
             ratio = np.where(trace.mask & (physical > 0), np.asarray(learned.pr_sigma, float) / physical, np.nan)

@@ -161,8 +161,8 @@ def relative_distrust(ratio: np.ndarray, knee: float = 1.0) -> np.ndarray:
         return np.maximum(1.0, np.nan_to_num(ratio / np.nanmedian(ratio, axis=1, keepdims=True) / knee, nan=1.0))
 
 
-def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float, knee: float = 1.0
-                                  ) -> tuple[np.ndarray, int]:
+def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float, knee: float = 1.0,
+                                  min_count: int = 0) -> tuple[np.ndarray, int]:
     """``raw.tdcp_sigma`` (E,S) [m] raised where a satellite's pseudorange is trusted less than its epoch's others.
 
     ratio (E,S): each slot's pseudorange sigma over the physical model's (the learned head's multiplier; NaN
@@ -170,7 +170,8 @@ def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float
     the car turns or the street changes, and nothing in the carrier itself shows it; its pseudorange carries the
     same reflection metres long, which the head reads. :func:`relative_distrust` (``knee``: a code's multipath, a
     little above its epoch's median, leaves the carrier alone), the larger of the pair's two ends, to ``power``,
-    multiplies the difference's sigma.
+    multiplies the difference's sigma, at epochs with at least ``min_count`` carrier differences (with fewer, the
+    carrier left after the distrust no longer holds the track's shape).
     Returns the sigmas and how many differences had their sigma at least doubled."""
     tdcp = raw.tdcp_prev >= 0
     if power <= 0 or not tdcp.any():
@@ -178,7 +179,8 @@ def carrier_sigma_by_pseudorange(raw: RawInputs, ratio: np.ndarray, power: float
     rel = relative_distrust(ratio, knee)
     worse = rel.copy()
     worse[1:] = np.maximum(rel[1:], np.take_along_axis(rel[:-1], np.maximum(raw.tdcp_prev[1:], 0), axis=1))
-    f = np.where(tdcp, worse ** power, 1.0)
+    enough = tdcp.sum(axis=1, keepdims=True) >= min_count
+    f = np.where(tdcp & enough, worse ** power, 1.0)
     return raw.tdcp_sigma * f, int((f >= 2.0).sum())
 
 
