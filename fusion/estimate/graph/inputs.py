@@ -238,6 +238,23 @@ def trace_raw_inputs(trace: Trace, init_pos: np.ndarray, elev_mask_deg: float, h
     return raw_inputs(trace, el, elev_mask_deg, has_clock, clock_link, cfg, use_doppler, use_carrier)
 
 
+def distrust_raw(trace: Trace, inp: EpochInputs, learned_sigma: np.ndarray, physical: np.ndarray,
+                 cfg: GraphConfig) -> None:
+    """Raise ``inp.raw``'s carrier (and Doppler) sigmas in place where the head distrusts the satellite's
+    pseudorange (``GraphConfig.learned_carrier_*``, ``learned_doppler_power``), counted in ``inp.dropped``.
+    learned_sigma, physical (E,S) [m]: the head's pseudorange sigmas and the physical model's."""
+    if cfg.learned_carrier_power <= 0 and cfg.learned_doppler_power <= 0:
+        return
+    # every slot the head judged, the ones the graph's selection left out (gross residuals) too
+    ratio = np.where(trace.mask & (physical > 0), learned_sigma / physical, np.nan)
+    if cfg.learned_carrier_power > 0:
+        inp.raw.tdcp_sigma, inp.dropped["learned_carrier_sigmas_raised"] = carrier_sigma_by_pseudorange(
+            inp.raw, ratio, cfg.learned_carrier_power, cfg.learned_carrier_knee, cfg.learned_carrier_min_count)
+    if cfg.learned_doppler_power > 0:
+        inp.raw.prr_sigma, inp.dropped["learned_doppler_sigmas_raised"] = doppler_sigma_by_pseudorange(
+            inp.raw, ratio, cfg.learned_doppler_power, cfg.learned_carrier_knee)
+
+
 def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg: float = 10.0,
                    learned: LearnedGraphInputs | None = None) -> EpochInputs:
     """Initial values, satellite selection, sigmas, chain links and priors for every epoch.
@@ -282,17 +299,8 @@ def prepare_inputs(trace: Trace, wls: WlsResult, cfg: GraphConfig, elev_mask_deg
         inp.dropped.update(inp.raw.counts)
         if learned is not None and learned.doppler_noise is not None and inp.raw.doppler.any():
             inp.dropped.update({f"learned_{k}": v for k, v in learned.doppler_noise(trace, inp).items()})
-        if n_learned and cfg.learned_carrier_power > 0:
-            # every slot the head judged, the ones the graph's selection left out (gross residuals) too
-            ratio = np.where(trace.mask & (physical > 0), np.asarray(learned.pr_sigma, float) / physical, np.nan)
-            inp.raw.tdcp_sigma, n = carrier_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_carrier_power,
-                                                                 cfg.learned_carrier_knee, cfg.learned_carrier_min_count)
-            inp.dropped["learned_carrier_sigmas_raised"] = n
-        if n_learned and cfg.learned_doppler_power > 0:
-            ratio = np.where(trace.mask & (physical > 0), np.asarray(learned.pr_sigma, float) / physical, np.nan)
-            inp.raw.prr_sigma, n = doppler_sigma_by_pseudorange(inp.raw, ratio, cfg.learned_doppler_power,
-                                                                cfg.learned_carrier_knee)
-            inp.dropped["learned_doppler_sigmas_raised"] = n
+        if n_learned:
+            distrust_raw(trace, inp, np.asarray(learned.pr_sigma, float), physical, cfg)
         inp.dropped.update(raise_raw_sigmas(trace, inp, cfg.doppler_check_window_s, cfg.carrier_check_window_s))
         if cfg.doppler_jump_from_log and inp.use_drift and inp.raw.doppler.any():
             change, linked = drift_change(trace, inp), dt[pos_link]
