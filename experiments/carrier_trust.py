@@ -65,11 +65,14 @@ MODES = ("fused-nodnn", "fused")
 def reflected_slots(trace, folder: Path) -> np.ndarray:
     """(E,S) bool: the slots the simulator's labels call reflected or bent (sim_labels.csv)."""
     lab = pd.read_csv(folder / "sim_labels.csv")
-    bad = {(int(t), int(c) * 1000 + int(s), SIGNALS.index(g)) for t, c, s, g, cl in
-           zip(lab.utcTimeMillis, lab.ConstellationType, lab.Svid, lab.SignalType, lab.Class) if cl != "LOS"}
-    unix = gps_ms_to_unix_ms(trace.t_ms)
+    lab = lab[lab.Class != "LOS"]
+    bad = pd.DataFrame({"t": lab.utcTimeMillis.astype(np.int64),
+                        "sat": lab.ConstellationType.astype(np.int64) * 1000 + lab.Svid.astype(np.int64),
+                        "sig": lab.SignalType.map(SIGNALS.index).astype(np.int64), "bad": True})
     e, s = np.nonzero(trace.mask)
-    hit = [(int(unix[i]), int(trace.sat_id[i, j]), int(trace.signal[i, j])) in bad for i, j in zip(e, s)]
+    slots = pd.DataFrame({"t": gps_ms_to_unix_ms(trace.t_ms)[e].astype(np.int64),
+                          "sat": trace.sat_id[e, s].astype(np.int64), "sig": trace.signal[e, s].astype(np.int64)})
+    hit = slots.merge(bad, on=["t", "sat", "sig"], how="left")["bad"].fillna(False).to_numpy(bool)
     out = np.zeros(trace.mask.shape, bool)
     out[e, s] = hit
     return out

@@ -28,19 +28,19 @@ def learned_words(info: dict) -> str:
     if g.get("sigma_passes", 1) > 1:
         who += (f", asked {g['sigma_passes']} times for the pseudorange sigmas (measurement counts: the last pass's;"
                 " epoch counts: the first's, whose prior the graph takes)")
-    widened = ""
+    extra = ""
     if "prior_widened" in g:
-        widened = (f"; its prior widened in {g['prior_widened']} epochs, where the pseudorange residuals exceed their "
-                   f"model (median variance factor {float(info.get('learned_prior_factor_p50', 0.0)):.2f})")
+        extra = (f"; its prior widened in {g['prior_widened']} epochs, where the pseudorange residuals exceed their "
+                 f"model (median variance factor {float(info.get('learned_prior_factor_p50', 0.0)):.2f})")
     if "carrier_sigmas_raised" in g:
-        widened += (f"; {g['carrier_sigmas_raised']} carrier-phase differences given at least twice their sigma, "
-                    "their satellites' pseudoranges distrusted (a reflection's carrier follows its path)")
+        extra += (f"; {g['carrier_sigmas_raised']} carrier-phase differences given at least twice their sigma, "
+                  "their satellites' pseudoranges distrusted (a reflection's carrier follows its path)")
     return (f"{who}: asked at {g.get('epochs_asked', 0)} epochs, {g.get('meas_asked', 0)} measurements; its guard "
             f"gave the physical sigma model {g.get('meas_out_of_range', 0)} measurements with inputs outside the "
             f"training range; {g.get('meas_unseen_signal', 0)} measurements of signals it cannot read left to the "
             f"graph's own model; {g.get('meas_signal_read_as_unknown', 0)} read as an unknown signal (one it was "
             f"not trained on); correction shrunk in {g.get('epochs_guard_shrunk', 0)} epochs, switched off in "
-            f"{g.get('epochs_guard_off', 0)}{widened}")
+            f"{g.get('epochs_guard_off', 0)}{extra}")
 
 
 def move_words(info: dict) -> str:

@@ -270,8 +270,8 @@ class GraphConfig:
     # from 8), while the multi-constellation traces keep their gain from 8 (deep / urban 4.56 / 2.20 m; from 12 the
     # deep ones lost it, 5.14 m; experiments/results/carrier_trust.md).
     learned_carrier_min_count: int = 8
-    # The same distrust on the Doppler sigmas (raw_inputs.doppler_sigma_by_pseudorange; 0: off), a reflected
-    # signal's Doppler being the reflected path's rate. Off: on the same traces with carrier, power 2 / 4 moved fused
+    # The same distrust (learned_carrier_knee's too) on the Doppler sigmas (raw_inputs.doppler_sigma_by_pseudorange;
+    # 0: off), a reflected signal's Doppler being the reflected path's rate. Off: on the same traces with carrier, power 2 / 4 moved fused
     # deep 4.62 -> 4.72 / 4.46 m and suburban 0.18 -> 0.23 / 0.23 m, and on the held-out city traces without carrier
     # deep 9.02 -> 9.25 / 9.38 m, urban 3.19 -> 3.23 / 3.21 m (experiments/results/carrier_trust.md).
     learned_doppler_power: float = 0.0

@@ -105,11 +105,12 @@ def tdcp_pairs(trace: Trace, above: np.ndarray, clock_link: np.ndarray, cfg: Gra
     use &= ~few[:, None]
     prev[1:] = np.where(use, same.argmax(axis=2), -1)
     prev_sigma = np.take_along_axis(trace.adr_sigma[:-1], np.maximum(prev[1:], 0), axis=1)
-    # the weaker end of the pair sets the difference's C/N0 factor (a reflected arc reads low C/N0)
-    weak = cn0_scale(trace, cfg.tdcp_cn0_ref_dbhz)
-    weak = np.maximum(weak[1:], np.take_along_axis(weak[:-1], np.maximum(prev[1:], 0), axis=1))
     sigma = np.ones((E, S))
-    sigma[1:] = weak * np.sqrt(trace.adr_sigma[1:] ** 2 + prev_sigma ** 2 + cfg.tdcp_sigma_floor_m ** 2)
+    sigma[1:] = np.sqrt(trace.adr_sigma[1:] ** 2 + prev_sigma ** 2 + cfg.tdcp_sigma_floor_m ** 2)
+    if cfg.tdcp_cn0_ref_dbhz > 0:
+        # the weaker end of the pair sets the difference's C/N0 factor (a reflected arc reads low C/N0)
+        weak = cn0_scale(trace, cfg.tdcp_cn0_ref_dbhz)
+        sigma[1:] *= np.maximum(weak[1:], np.take_along_axis(weak[:-1], np.maximum(prev[1:], 0), axis=1))
     counts["tdcp_factors"] = int(use.sum())
     return prev, np.where(prev >= 0, sigma, 1.0)
 
