@@ -13,8 +13,9 @@ from tests.run_options import parse_run_options
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import (_linear_factor, displacement_factor_xxu, doppler_factor_vcd,
                                            drift_walk_factor_cdcd, tdcp_factor_uqq)
-from fusion.estimate.graph.fuse import fuse
+from fusion.estimate.graph.fuse import carrier_linked, fuse
 from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.estimate.graph.raw_inputs import RawInputs
 from fusion.estimate.graph.keys import DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, pos_key, vel_key
 from fusion.geometry import C_LIGHT, line_of_sight, range_rate
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
@@ -182,6 +183,18 @@ def test_switches_and_traces_without_the_fields(sim, wls):
     plain = solve(bare, wls)
     np.testing.assert_array_equal(off.pos, plain.pos)
     assert "doppler_factors" not in plain.info and "tdcp_factors" not in plain.info
+    assert not plain.info["carrier_linked"].any() and not off.info["carrier_linked"].any()
+    linked = solve(tr, wls).info["carrier_linked"]
+    assert linked.shape == (tr.n_epochs,) and linked.mean() > 0.9
+
+
+def test_carrier_linked_epochs_are_those_a_carrier_difference_ties_to_a_neighbour():
+    prev = np.array([[-1, -1], [0, 1], [-1, -1], [-1, -1], [-1, 0], [-1, -1]])
+    raw = RawInputs(doppler=np.zeros(prev.shape, bool), prr_sigma=np.ones(prev.shape), tdcp_prev=prev,
+                    tdcp_sigma=np.ones(prev.shape))
+    # epoch 1 differences with 0, epoch 4 with 3; 2 and 5 are tied to neither neighbour
+    np.testing.assert_array_equal(carrier_linked(raw, 6), [True, True, False, True, True, False])
+    assert not carrier_linked(None, 6).any()
 
 
 # ------------------------------------------------------------------------------ solutions

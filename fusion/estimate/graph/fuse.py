@@ -21,6 +21,7 @@ from fusion.estimate.graph.inputs import (EpochInputs, doppler_epochs, initial_p
                                          pseudorange_gap)
 from fusion.estimate.graph.priors import (LearnedGraphInputs, PriorProvider, SlotNoiseProvider,
                                           learned_from_providers)
+from fusion.estimate.graph.raw_inputs import RawInputs
 from fusion.estimate.graph.series import where_solved
 from fusion.estimate.graph.solve_errors import check_determined
 from fusion.estimate.variance_factor import calibrate_graph
@@ -62,7 +63,17 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     info["unsolved"] = int((~valid).sum())
     info.update(bridged_epochs(trace, inp, valid))
     info["pr_noise"] = (inp.sel, inp.sigma, inp.pr_bias)     # for fusion.estimate.variance_factor
+    info["carrier_linked"] = carrier_linked(inp.raw, E)       # ... which calibrates these epochs apart
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
+
+
+def carrier_linked(raw: RawInputs | None, n_epochs: int) -> np.ndarray:
+    """(E,) bool: epochs that time-differenced carrier phase ties to the epoch before or after."""
+    linked = np.zeros(n_epochs, bool)
+    if raw is not None and raw.has_tdcp:
+        to_prev = (raw.tdcp_prev >= 0).any(axis=1)
+        linked = to_prev | np.r_[to_prev[1:], False]
+    return linked
 
 
 def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
