@@ -88,13 +88,13 @@ def collect(args) -> None:
 
 
 def slug(name: str) -> str:
-    return name.replace(" ", "_").replace("/", "__")
+    """A file name for a trace name (the simulated traces' names hold no "_", so :func:`load` can invert it)."""
+    return name.replace("/", "__").replace(" ", "_")
 
 
 def load(out: Path) -> dict[str, dict]:
     """name -> the collected arrays, every trace in ``out``."""
-    return {f.stem.replace("__", "/").replace("_", " ") if f.stem.startswith("test") else f.stem.replace("__", "/"):
-            dict(np.load(f)) for f in sorted(out.glob("*.npz"))}
+    return {f.stem.replace("__", "/").replace("_", " "): dict(np.load(f)) for f in sorted(out.glob("*.npz"))}
 
 
 def folds_of(names: list[str]) -> list[list[str]]:
@@ -150,17 +150,18 @@ def tune_mode(data: dict, names: list[str], mode: str) -> tuple[SigmaCalibration
     return replace(cal, a=tuple(round(float(x), 4) for x in a)), pen, cov
 
 
+def variances(d: dict, mode: str, cal: SigmaCalibration) -> np.ndarray:
+    """(E,3) one trace's variances under ``cal`` (variance_factor.calibrate_cov)."""
+    base, F, extra = terms(d, mode, cal)
+    return scaled(base, F, cal.a, cal.b, np.array(cal.floor_m), extra)
+
+
 def calibrated(d: dict, mode: str, cal: SigmaCalibration, carrier_cal: SigmaCalibration | None) -> np.ndarray:
-    """(E,3) the variances as the pipeline reports them: ``carrier_cal`` at the carrier epochs (None: ``cal``)."""
-    out = scaled(*_with(terms(d, mode, cal), cal))
+    """(E,3) the variances as the pipeline would report them: ``carrier_cal`` at the carrier epochs (None: ``cal``)."""
+    out = variances(d, mode, cal)
     if carrier_cal is not None:
-        out = np.where(d[f"{mode}/carrier"][:, None], scaled(*_with(terms(d, mode, carrier_cal), carrier_cal)), out)
+        out = np.where(d[f"{mode}/carrier"][:, None], variances(d, mode, carrier_cal), out)
     return out
-
-
-def _with(t: tuple, cal: SigmaCalibration) -> tuple:
-    base, F, extra = t
-    return base, F, cal.a, cal.b, np.array(cal.floor_m), extra
 
 
 def tune(args) -> None:

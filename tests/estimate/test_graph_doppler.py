@@ -15,8 +15,8 @@ from fusion.estimate.graph.factors import (_linear_factor, displacement_factor_x
                                            drift_walk_factor_cdcd, tdcp_factor_uqq)
 from fusion.estimate.graph.fuse import carrier_linked, fuse
 from fusion.estimate.graph.inputs import prepare_inputs
-from fusion.estimate.graph.raw_inputs import RawInputs
 from fusion.estimate.graph.keys import DRIFT_HORIZON_S, carrier_clock_key, clock_key, disp_key, drift_key, pos_key, vel_key
+from fusion.estimate.graph.raw_inputs import RawInputs
 from fusion.geometry import C_LIGHT, line_of_sight, range_rate
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial

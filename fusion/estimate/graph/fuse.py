@@ -63,7 +63,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     info["unsolved"] = int((~valid).sum())
     info.update(bridged_epochs(trace, inp, valid))
     info["pr_noise"] = (inp.sel, inp.sigma, inp.pr_bias)     # for fusion.estimate.variance_factor
-    info["carrier_linked"] = carrier_linked(inp.raw, E)       # ... which calibrates these epochs apart
+    info["carrier_linked"] = carrier_linked(inp.raw, E)       # experiments/carrier_calibration.py
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
