@@ -182,11 +182,11 @@ def tune(args) -> None:
         before = {n: within(carrier_only(data[n], mode, data[n][f"{mode}/err"]),
                             calibrated(data[n], mode, DEFAULTS[mode], None)) for n in names}
         n_before = sum(int(((c < BAND[0]) | (c > BAND[1])).sum()) for c in before.values())
-        print(f"## {mode}\n\nchosen: window {cal.window_s:g} s, b = {cal.b:g}, floor N/E/D {fmt(np.array(cal.floor_m))} "
-              f"m, snapshot share {cal.snapshot:g}, factor from {cal.factor_from}, disagreement share "
-              f"{cal.disagreement:g}, a N/E/D = {fmt(np.array(cal.a))} (leave-fold-out penalty {pen:.3f}); held out, "
-              f"{n_out} of {3 * len(held)} trace-axes outside {BAND[0]}-{BAND[1]} at the carrier epochs ({n_before} with "
-              "DEFAULTS)\n")
+        print(f"## {mode}\n\nchosen: window {cal.window_s:g} s, b = {cal.b:g}, floor N/E/D "
+              f"{fmt(np.array(cal.floor_m))} m, snapshot share {cal.snapshot:g}, factor from {cal.factor_from}, "
+              f"disagreement share {cal.disagreement:g}, a N/E/D = {fmt(np.array(cal.a))} (leave-fold-out penalty "
+              f"{pen:.3f}); held out, {n_out} of {3 * len(held)} trace-axes outside {BAND[0]}-{BAND[1]} at the "
+              f"carrier epochs ({n_before} with DEFAULTS)\n")
         print("| trace | carrier epochs | before, carrier epochs | held out, carrier epochs | final, carrier epochs "
               "| before, all epochs | final, all epochs |")
         print("|---|---|---|---|---|---|---|")
