@@ -42,7 +42,7 @@ from sigma_calibration import (BAND, GRID, TESTS, disagreement, factor, fit_a, f
 from fusion.estimate.variance_factor import (DEFAULTS, SigmaCalibration, epoch_chi2, whitened_residuals,  # noqa: E402
                                              wls_track)
 from fusion.modes import run_modes, solve_initial  # noqa: E402
-from fusion.options import load_options  # noqa: E402
+from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 
@@ -78,7 +78,8 @@ def collect_one(job) -> tuple[str, dict]:
 
 def collect(args) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
-    todo = [(name_of(f), f, {"signals": None}) for f in map(Path, args.traces)]
+    every = {"signals": parse_signals("all")}          # a derived file's default is GPS L1 alone
+    todo = [(name_of(f), f, every) for f in map(Path, args.traces)]
     todo.append((PIXEL5, TESTS[PIXEL5][0], TESTS[PIXEL5][1]))
     todo = [j for j in todo if not (args.out / f"{slug(j[0])}.npz").is_file()]
     with ProcessPoolExecutor(args.jobs) as pool:

@@ -73,6 +73,14 @@ from learned.train import LossWeights, TrainConfig, batch_loss, guesses_for, mak
 TEACHERS = ("fused", "fused-nodnn")
 
 
+#: An adaptation is declined where the teacher's median horizontal sigma over the logs is below this [m]: there
+#: carrier phase already places the track to decimetres, and both checks score pseudoranges at metre level, so
+#: neither can see what re-weighting them does to it. On twenty held-out simulated traces with carrier phase the
+#: checks passed seven adaptations, all worse (1.09-2.05 x), their teachers at 0.07-0.27 m; every teacher at
+#: 0.51 m or more was declined by the self-check; smartLoc's teacher is metres (experiments/results/adapt.md).
+MIN_TEACHER_SIGMA_M = 0.5
+
+
 @dataclass
 class AdaptConfig:
     """How to adapt. ``max_teacher_sigma_m``: teacher epochs used only where its horizontal 1-sigma
@@ -103,6 +111,7 @@ class AdaptConfig:
     graph_check: bool = True  # an accepted adaptation must also place the fused graph better (learned.graph_check)
     graph_folds: int = FOLDS  # ... judged on this many folds of satellites held out of the graph
     graph_margin: float = GRAPH_MARGIN  # ... by at least this relative gain (negative: a tolerance)
+    min_teacher_sigma_m: float = MIN_TEACHER_SIGMA_M   # decline where the teacher is tighter than this (0: off)
 
 
 @dataclass
@@ -258,10 +267,12 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
         done.append(Tuned(model, blob["config"], o, start, record, history, ranges))
     write_derived_manifest(weights, out, outs)
     record = whole_record(weights, [t.record for t in done])
-    if record["decision"] == "accepted" and cfg.graph_check:
-        check_in_graph(out, weights, [t.trace for t in taught], teacher_opts, cfg, record, log)
+    if record["decision"] == "accepted":
+        check_teacher_spread(record, taught, cfg)
+        if record["decision"] == "accepted" and cfg.graph_check:
+            check_in_graph(out, weights, [t.trace for t in taught], teacher_opts, cfg, record, log)
         for t in done:
-            if t.record is not record:
+            if t.record is not record and "graph_check" in record:
                 t.record["graph_check"] = record["graph_check"]
             if record["decision"] == "declined":
                 t.record.update(decision="declined", best_epoch=0, reason=record["reason"])
@@ -318,6 +329,19 @@ def write_adapted(out: str | Path, model: torch.nn.Module, base: dict, record: d
     if record["decision"] == "accepted" and ranges is not None:
         config["input_ranges"] = widened_ranges(base.get("input_ranges"), ranges)
     save_checkpoint(out, model, config, epoch=record["best_epoch"], history=history)
+
+
+def check_teacher_spread(record: dict, taught: list[Teacher], cfg: AdaptConfig) -> None:
+    """Turns ``record`` into a decline where the teachers' median horizontal sigma (all their solved epochs) is
+    below ``cfg.min_teacher_sigma_m`` (:data:`MIN_TEACHER_SIGMA_M`: why)."""
+    sigma = np.concatenate([t.sigma_h for t in taught])
+    med = float(np.nanmedian(sigma)) if np.isfinite(sigma).any() else float("nan")
+    record["teacher_sigma_h_median_m"] = _rounded(med)
+    if med < cfg.min_teacher_sigma_m:
+        record.update(decision="declined", best_epoch=0,
+                      reason=f"{record['reason']}; but the teacher's median horizontal sigma is {med:.2f} m, below "
+                             f"{cfg.min_teacher_sigma_m:g} m: a track that tight cannot show what re-weighting the "
+                             "pseudoranges does to it")
 
 
 def check_in_graph(out: Path, weights: Path, traces: list[Trace], opts: RunOptions, cfg: AdaptConfig,

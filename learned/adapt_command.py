@@ -28,6 +28,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need -1 <= --margin < 1")
     if not -1 <= args.graph_margin < 1:
         raise DataError("need -1 <= --graph-margin < 1")
+    if not args.min_teacher_sigma >= 0:
+        raise DataError("need --min-teacher-sigma >= 0")
     if args.block < 1 or args.every < 2:
         raise DataError("need --block >= 1 and --every >= 2")
     if args.max_epochs is not None and args.max_epochs < 1:
@@ -66,7 +68,8 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
                       max_teacher_sigma_m=args.max_teacher_sigma, max_epochs=args.max_epochs, loo=args.loo,
                       teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree,
                       anchor=args.anchor, margin=args.margin, block=args.block, every=args.every,
-                      graph_check=args.graph_check, graph_margin=args.graph_margin)
+                      graph_check=args.graph_check, graph_margin=args.graph_margin,
+                      min_teacher_sigma_m=args.min_teacher_sigma)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr), scheduler=args.scheduler)
     print(f"{verdict(record, args.out)}\n{describe(record)}")

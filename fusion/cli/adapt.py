@@ -61,6 +61,9 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
                         "held-out satellites share the reflections the adaptation learns to distrust)")
     p.add_argument("--no-graph-check", dest="graph_check", action="store_false",
                    help="keep what the self-check accepts without the graph check (saves 8 graph solves per log)")
+    p.add_argument("--min-teacher-sigma", type=float, default=0.5, metavar="M",
+                   help="decline where the teacher's median horizontal 1-sigma is below M metres (default 0.5; "
+                        "0: off): a track carrier phase places to decimetres is beyond what the checks can judge")
     p.add_argument("--max-epochs", type=int, default=None, metavar="N", help="use only each log's first N epochs")
     add_signals_option(p, "the signals the teacher uses (default: GPS_L1 for GSDC files, every signal with "
                           "ephemerides for RINEX / GnssLogger logs); the network reads its own")

@@ -1,6 +1,7 @@
 """``gnssfuse adapt``: fine-tuning without ground truth (learned/adapt.py, fusion/cli/adapt.py)."""
 from __future__ import annotations
 
+import dataclasses
 import shutil
 
 import numpy as np
@@ -148,6 +149,7 @@ def test_widened_ranges():
     (["--graph-margin", "-2"], "-1 <= --graph-margin < 1"),
     (["--every", "1"], "--every >= 2"),
     (["--anchor", "-1"], "--anchor >= 0"),
+    (["--min-teacher-sigma", "-1"], "--min-teacher-sigma >= 0"),
     (["--clk", "x.clk"], "--clk needs --sp3"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "no epoch of 2021-04-28-US-MTV-1/Pixel4 has a teacher"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "hold only 20 epochs in all, fewer than a held-out block"),
@@ -249,6 +251,19 @@ def test_accepted_adaptation_keeps_the_best_epoch_and_moves_only_the_chosen_part
               cfg=AdaptConfig(epochs=1, max_epochs=FEW, part="trunk"))
 
 
+def test_a_teacher_tighter_than_the_checks_can_judge_declines_and_keeps_the_base(shipped_trace_dir, tmp_path):
+    cfg = AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0, lr=1e-2, graph_check=False)
+    kept = adapt([shipped_trace_dir], tmp_path / "kept.pt", weights=ONE, cfg=cfg)
+    med = kept["teacher_sigma_h_median_m"]
+    assert kept["decision"] == "accepted" and med >= cfg.min_teacher_sigma_m
+    # the same adaptation where the least teacher sigma is above this log's median: declined, the base written
+    tight = adapt([shipped_trace_dir], tmp_path / "tight.pt", weights=ONE,
+                  cfg=dataclasses.replace(cfg, min_teacher_sigma_m=2 * med))
+    assert tight["decision"] == "declined" and tight["best_epoch"] == 0
+    assert f"median horizontal sigma is {med:.2f} m" in tight["reason"] and tight["heldout"] == kept["heldout"]
+    assert _differing(ONE, tmp_path / "tight.pt") == set() and _differing(ONE, tmp_path / "kept.pt")
+
+
 def test_scale_anchor_ignores_what_the_consistency_checks_and_pulls_what_it_cannot():
     from learned.adapt import scale_anchor
     mask = torch.tensor([[True, True, True, False]])
@@ -308,6 +323,7 @@ def test_the_command_line_defaults_are_the_apis(tmp_path):
                  "every", "graph_check", "graph_margin"):
         assert getattr(args, name) == getattr(cfg, name), name
     assert args.max_teacher_sigma == cfg.max_teacher_sigma_m and args.elev_mask == cfg.elev_mask_deg
+    assert args.min_teacher_sigma == cfg.min_teacher_sigma_m
 
 
 def test_an_ensemble_is_adapted_member_by_member_into_a_manifest(shipped_trace_dir, tmp_path, capsys):
