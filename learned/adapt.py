@@ -24,7 +24,8 @@ checkpoint then holds the base's weights and input ranges unchanged, with the de
 ``config["adapted"]``. An adaptation the self-check accepts must also place the ``fused`` graph better
 (:mod:`learned.graph_check`: satellites held out of the graph, predicted at its positions), else it is
 declined the same way: the self-check scores snapshots, and the graph weighs pseudoranges against
-Doppler, carrier and motion over time.
+Doppler, carrier and motion over time. Nor is one kept where the teacher's track is tighter than either check can
+judge (:data:`MIN_TEACHER_SIGMA_M`: carrier phase placing it to decimetres).
 
 Ground truth is never read: every trace is loaded with ``truth="none"`` and a trace that still carries
 truth is refused. The adapted checkpoint keeps the base's calibration (nothing here can measure a new
