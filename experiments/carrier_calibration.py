@@ -37,8 +37,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from sigma_calibration import (BAND, GRID, TESTS, disagreement, factor, fit_a, flag, fmt, miss,  # noqa: E402
-                               mode_record, scaled, within)
+from sigma_calibration import (BAND, GRID, TESTS, calibrated_var, disagreement, factor, fit_a, flag, fmt,  # noqa: E402
+                               miss, mode_record, scaled, within)
 from fusion.estimate.variance_factor import (DEFAULTS, SigmaCalibration, epoch_chi2, whitened_residuals,  # noqa: E402
                                              wls_track)
 from fusion.modes import run_modes, solve_initial  # noqa: E402
@@ -107,9 +107,14 @@ def carrier_only(d: dict, mode: str, x: np.ndarray) -> np.ndarray:
     return np.where(d[f"{mode}/carrier"][:, None], x, np.nan)
 
 
+def with_snapshot(d: dict, mode: str, cal: SigmaCalibration) -> np.ndarray:
+    """(E,3) one trace's raw variances plus ``cal``'s share of its one-epoch variances."""
+    return d[f"{mode}/var"] + cal.snapshot * np.nan_to_num(d[f"{mode}/snap"])
+
+
 def terms(d: dict, mode: str, cal: SigmaCalibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(base variances (E,3) with the snapshot share, factor F (E,), disagreement term (E,3)) of one trace."""
-    base = d[f"{mode}/var"] + cal.snapshot * np.nan_to_num(d[f"{mode}/snap"])
+    base = with_snapshot(d, mode, cal)
     F = factor(d, mode, cal.window_s, cal.factor_from)
     extra = cal.disagreement * disagreement(d, mode, cal.window_s) if cal.disagreement else np.zeros_like(base)
     return base, F, extra
@@ -151,17 +156,12 @@ def tune_mode(data: dict, names: list[str], mode: str) -> tuple[SigmaCalibration
     return replace(cal, a=tuple(round(float(x), 4) for x in a)), pen, cov
 
 
-def variances(d: dict, mode: str, cal: SigmaCalibration) -> np.ndarray:
-    """(E,3) one trace's variances under ``cal`` (variance_factor.calibrate_cov)."""
-    base, F, extra = terms(d, mode, cal)
-    return scaled(base, F, cal.a, cal.b, np.array(cal.floor_m), extra)
-
-
 def calibrated(d: dict, mode: str, cal: SigmaCalibration, carrier_cal: SigmaCalibration | None) -> np.ndarray:
     """(E,3) the variances as the pipeline would report them: ``carrier_cal`` at the carrier epochs (None: ``cal``)."""
-    out = variances(d, mode, cal)
+    out = calibrated_var(d, with_snapshot(d, mode, cal), mode, cal)
     if carrier_cal is not None:
-        out = np.where(d[f"{mode}/carrier"][:, None], variances(d, mode, carrier_cal), out)
+        carrier = calibrated_var(d, with_snapshot(d, mode, carrier_cal), mode, carrier_cal)
+        out = np.where(d[f"{mode}/carrier"][:, None], carrier, out)
     return out
 
 

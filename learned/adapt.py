@@ -272,14 +272,21 @@ def adapt(paths: list[str | Path], out: str | Path, *, weights: str | Path | Non
         check_teacher_spread(record, taught, cfg)
         if record["decision"] == "accepted" and cfg.graph_check:
             check_in_graph(out, weights, [t.trace for t in taught], teacher_opts, cfg, record, log)
-        for t in done:
-            if t.record is not record and "graph_check" in record:
-                t.record["graph_check"] = record["graph_check"]
-            if record["decision"] == "declined":
-                t.record.update(decision="declined", best_epoch=0, reason=record["reason"])
-                t.model.load_state_dict(t.start)
-            write_adapted(t.out, t.model, t.base, t.record, t.ranges, t.history)   # widens only where still accepted
+        if record["decision"] == "declined" or "graph_check" in record:
+            settle(done, record)
     return record
+
+
+def settle(done: list[Tuned], record: dict) -> None:
+    """Rewrite each member with what the checks after its self-check found (``record``, the whole's): the graph
+    check's figures, and where the whole was declined, the base weights and the decline's reason."""
+    for t in done:
+        if t.record is not record and "graph_check" in record:
+            t.record["graph_check"] = record["graph_check"]
+        if record["decision"] == "declined":
+            t.record.update(decision="declined", best_epoch=0, reason=record["reason"])
+            t.model.load_state_dict(t.start)
+        write_adapted(t.out, t.model, t.base, t.record, t.ranges, t.history)   # widens only where still accepted
 
 
 @dataclass
