@@ -111,6 +111,8 @@ def graph_words(rec: dict) -> str:
     """The graph check's held-out error base -> adapted [m], or why there is none."""
     g = rec.get("graph_check")
     if g is None:
+        if rec["decision"] == "declined" and "carrier phase ties" in rec["reason"]:
+            return f"not run (carrier ties {rec['teacher_carrier_share']:.0%} of the epochs)"
         if rec["decision"] == "declined" and "median horizontal sigma" in rec["reason"]:
             return f"not run (teacher sigma {rec['teacher_sigma_h_median_m']:.2f} m too tight)"
         return "not run (self-check declined)" if rec["decision"] == "declined" and "graph check" not in \
@@ -140,6 +142,7 @@ def main() -> int:
     p.add_argument("--no-graph-check", dest="graph_check", action="store_false")
     p.add_argument("--graph-margin", type=float, default=AdaptConfig.graph_margin)
     p.add_argument("--min-teacher-sigma", type=float, default=AdaptConfig.min_teacher_sigma_m)
+    p.add_argument("--max-carrier-share", type=float, default=AdaptConfig.max_carrier_share)
     p.add_argument("--signals", default=None, help="as gnssfuse run --signals (default: the format's own)")
     p.add_argument("--fold-weights", type=Path, default=None,
                    help="adapt each GSDC training drive from the cross-validation network that never saw it")
@@ -147,11 +150,11 @@ def main() -> int:
     cfg = AdaptConfig(epochs=a.epochs, lr=a.lr, max_teacher_sigma_m=a.max_teacher_sigma, loo=a.loo,
                       teacher=a.teacher, anchor=a.anchor, widen=a.widen, part=a.part, agree=a.agree, margin=a.margin, block=a.block, every=a.every,
                       graph_check=a.graph_check, graph_margin=a.graph_margin,
-                      min_teacher_sigma_m=a.min_teacher_sigma)
+                      min_teacher_sigma_m=a.min_teacher_sigma, max_carrier_share=a.max_carrier_share)
     print(f"adapt: teacher {cfg.teacher}, epochs {cfg.epochs}, lr {cfg.lr}, max teacher sigma {cfg.max_teacher_sigma_m} m, "
           f"leave-one-out weight {cfg.loo}, teacher-agreement weight {cfg.agree}, fine-tuned: {cfg.part}, scale/bias anchor {cfg.anchor}, guard ranges widened: {cfg.widen}, held out every {cfg.every}th block of {cfg.block}, "
           f"margin {cfg.margin}, graph check {'on, margin ' + str(cfg.graph_margin) if cfg.graph_check else 'off'}, "
-          f"least teacher sigma {cfg.min_teacher_sigma_m} m, "
+          f"least teacher sigma {cfg.min_teacher_sigma_m} m, most carrier-tied share {cfg.max_carrier_share}, "
           f"seed {cfg.seed}\n")
     if a.fold_weights:
         print(f"base networks: {a.fold_weights}/fold_*.pt, each GSDC drive adapted from the one that never saw it "

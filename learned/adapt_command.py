@@ -30,6 +30,8 @@ def check_args(args: argparse.Namespace) -> None:
         raise DataError("need -1 <= --graph-margin < 1")
     if not args.min_teacher_sigma >= 0:
         raise DataError("need --min-teacher-sigma >= 0")
+    if not 0 <= args.max_carrier_share <= 1:
+        raise DataError("need 0 <= --max-carrier-share <= 1")
     if args.block < 1 or args.every < 2:
         raise DataError("need --block >= 1 and --every >= 2")
     if args.max_epochs is not None and args.max_epochs < 1:
@@ -55,7 +57,8 @@ def describe(record: dict) -> str:
         med = c["teacher_sigma_h_median_m"]
         lines.append(f"  {name}: {c['teacher_trusted']}/{c['epochs']} epochs trusted (teacher median horizontal "
                      f"sigma {'-' if med is None else f'{med:.2f}'} m; Doppler {'yes' if c['doppler'] else 'no'}, "
-                     f"carrier {'yes' if c['carrier'] else 'no'}), {c.get('samples', 0)} samples")
+                     f"carrier {'yes' if c['carrier'] else 'no'}, tying {c['carrier_linked']} epochs), "
+                     f"{c.get('samples', 0)} samples")
     return "\n".join(lines)
 
 
@@ -69,7 +72,7 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse adapt", progress: bool =
                       teacher=args.teacher, elev_mask_deg=args.elev_mask, part=args.part, agree=args.agree,
                       anchor=args.anchor, margin=args.margin, block=args.block, every=args.every,
                       graph_check=args.graph_check, graph_margin=args.graph_margin,
-                      min_teacher_sigma_m=args.min_teacher_sigma)
+                      min_teacher_sigma_m=args.min_teacher_sigma, max_carrier_share=args.max_carrier_share)
     record = adapt(args.trace_dirs, args.out, weights=args.weights, cfg=cfg, opts=run_options(args), jobs=args.jobs,
                    progress=progress, log=lambda s: print(f"{prog}: {s}", file=sys.stderr), scheduler=args.scheduler)
     print(f"{verdict(record, args.out)}\n{describe(record)}")

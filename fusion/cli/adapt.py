@@ -64,6 +64,10 @@ def build_parser(prog: str = "gnssfuse adapt") -> argparse.ArgumentParser:
     p.add_argument("--min-teacher-sigma", type=float, default=0.5, metavar="M",
                    help="decline where the teacher's median horizontal 1-sigma is below M metres (default 0.5; "
                         "0: off): a track carrier phase places to decimetres is beyond what the checks can judge")
+    p.add_argument("--max-carrier-share", type=float, default=0.5, metavar="S",
+                   help="decline where time-differenced carrier phase ties more than this share of the teacher's "
+                        "epochs (default 0.5; 1: off): both checks score pseudoranges, which cannot show where "
+                        "re-weighting them moves a carrier-shaped track")
     p.add_argument("--max-epochs", type=int, default=None, metavar="N", help="use only each log's first N epochs")
     add_signals_option(p, "the signals the teacher uses (default: GPS_L1 for GSDC files, every signal with "
                           "ephemerides for RINEX / GnssLogger logs); the network reads its own")

@@ -150,6 +150,7 @@ def test_widened_ranges():
     (["--every", "1"], "--every >= 2"),
     (["--anchor", "-1"], "--anchor >= 0"),
     (["--min-teacher-sigma", "-1"], "--min-teacher-sigma >= 0"),
+    (["--max-carrier-share", "1.5"], "0 <= --max-carrier-share <= 1"),
     (["--clk", "x.clk"], "--clk needs --sp3"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "no epoch of 2021-04-28-US-MTV-1/Pixel4 has a teacher"),
     (["--max-epochs", "20", "--max-teacher-sigma", "1e-6"], "hold only 20 epochs in all, fewer than a held-out block"),
@@ -264,6 +265,33 @@ def test_a_teacher_tighter_than_the_checks_can_judge_declines_and_keeps_the_base
     assert _differing(ONE, tmp_path / "tight.pt") == set() and _differing(ONE, tmp_path / "kept.pt")
 
 
+def test_a_log_whose_track_carrier_phase_ties_declines_and_keeps_the_base(tmp_path, monkeypatch):
+    """A simulated phone log with carrier phase (truth removed): the same adaptation accepted with the carrier
+    rule off is declined at the default, the base written byte for byte; the record counts the tied epochs."""
+    import learned.adapt as adapt_module
+    from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+    from fusion.sim.simulate import SimConfig, simulate
+    sim = simulate(n_epochs=FEW, nav=read_rinex_nav(default_nav_path()), seed=4,
+                   config=SimConfig(doppler=True, carrier=True, slip_prob=0.005)).trace
+    monkeypatch.setattr(adapt_module, "load_log", lambda path, opts, max_epochs=None: dataclasses.replace(sim, truth=None))
+    cfg = AdaptConfig(epochs=1, margin=-1.0, lr=1e-2, graph_check=False, min_teacher_sigma_m=0.0)
+    kept = adapt([tmp_path / "sim"], tmp_path / "kept.pt", weights=ONE, cfg=dataclasses.replace(cfg, max_carrier_share=1.0))
+    share = kept["teacher_carrier_share"]
+    (counts,) = kept["traces"].values()
+    assert kept["decision"] == "accepted" and counts["carrier"] and share > 0.9
+    assert counts["carrier_linked"] == pytest.approx(share * counts["teacher_solved"], abs=1)
+    tied = adapt([tmp_path / "sim"], tmp_path / "tied.pt", weights=ONE, cfg=cfg)
+    assert tied["decision"] == "declined" and tied["best_epoch"] == 0 and tied["heldout"] == kept["heldout"]
+    assert f"carrier phase ties {share:.0%} of the teacher's epochs, above 50%" in tied["reason"]
+    assert _differing(ONE, tmp_path / "tied.pt") == set() and _differing(ONE, tmp_path / "kept.pt")
+
+
+def test_a_log_without_carrier_is_not_touched_by_the_carrier_rule(shipped_trace_dir, tmp_path):
+    cfg = AdaptConfig(epochs=1, max_epochs=FEW, margin=-1.0, lr=1e-2, graph_check=False, max_carrier_share=0.0)
+    rec = adapt([shipped_trace_dir], tmp_path / "w.pt", weights=ONE, cfg=cfg)
+    assert rec["decision"] == "accepted" and rec["teacher_carrier_share"] == 0.0
+
+
 def test_scale_anchor_ignores_what_the_consistency_checks_and_pulls_what_it_cannot():
     from learned.adapt import scale_anchor
     mask = torch.tensor([[True, True, True, False]])
@@ -323,7 +351,7 @@ def test_the_command_line_defaults_are_the_apis(tmp_path):
                  "every", "graph_check", "graph_margin"):
         assert getattr(args, name) == getattr(cfg, name), name
     assert args.max_teacher_sigma == cfg.max_teacher_sigma_m and args.elev_mask == cfg.elev_mask_deg
-    assert args.min_teacher_sigma == cfg.min_teacher_sigma_m
+    assert args.min_teacher_sigma == cfg.min_teacher_sigma_m and args.max_carrier_share == cfg.max_carrier_share
 
 
 def test_an_ensemble_is_adapted_member_by_member_into_a_manifest(shipped_trace_dir, tmp_path, capsys):
