@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 
 from fusion.estimate.graph.batch import BatchSolution
-from fusion.estimate.graph.fuse import calibrated, fuse, learned_guess, learned_guess_and_start, solve_graph
+from fusion.estimate.graph.fuse import calibrated, fuse, learned_guess, learned_guess_start_solved, solve_graph
 from fusion.estimate.graph.priors import LearnedGraphInputs, PriorProvider
 from fusion.estimate.graph.series import where_solved
 from fusion.estimate.neighbour_fde import GATE, PRED_SIGMA_M, gross_outliers
@@ -235,16 +235,31 @@ def prior_by_factor(learned: LearnedGraphInputs, F: np.ndarray | None, opts: Run
     return replace(learned, prior_cov=learned.prior_cov * k[:, None, None], info=info)
 
 
+def prior_where_determined(learned: LearnedGraphInputs, solved: np.ndarray | None) -> LearnedGraphInputs:
+    """``learned`` without its position prior at the epochs the graph without anything learned could not solve
+    (``solved`` (E,) bool; None: keep all): there too few satellites remain, the network was asked at the WLS
+    track interpolated across the gap, and its prior alone would place the epoch: on held-out simulated GPS-only
+    deep streets 11-255 m off at the median (5.7 km on one trace without Doppler) where the rest holds 2-4 m
+    (experiments/results/prior_undetermined.md). Such epochs stay unsolved, as in ``fused-nodnn``, and are counted
+    (``learned_prior_withheld``)."""
+    if solved is None or learned.prior_ok is None:
+        return learned
+    withheld = np.asarray(learned.prior_ok, bool) & ~solved
+    info = dict(learned.info or {}, learned_prior_withheld=int(withheld.sum()))
+    return replace(learned, prior_ok=np.asarray(learned.prior_ok, bool) & solved, info=info)
+
+
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head (its power rising where the residuals
     exceed their model, :func:`sigma_power_by_factor`) + the learned position prior (widened there,
     :func:`prior_by_factor`) + motion, from one network pass (and its sigmas
     from a second, :func:`sigmas_again`); ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
     corrector = Corrector.load(opts.weights, device=opts.device)
-    at, start = learned_guess_and_start(trace, wls, opts)
+    at, start, solved = learned_guess_start_solved(trace, wls, opts)
     F = residual_factor(trace, at, opts)
     power = sigma_power_by_factor(F, opts)
     learned = prior_by_factor(graph_inputs(corrector, trace, wls, opts, at, power), F, opts)
+    learned = prior_where_determined(learned, solved)
     learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start, power)
     # the solve with the learned inputs starts from the last solve's solution
     res = fuse(trace, wls, opts, learned=learned, start=start)

@@ -32,6 +32,9 @@ def learned_words(info: dict) -> str:
     if "prior_widened" in g:
         extra = (f"; its prior widened in {g['prior_widened']} epochs, where the pseudorange residuals exceed their "
                  f"model (median variance factor {float(info.get('learned_prior_factor_p50', 0.0)):.2f})")
+    if g.get("prior_withheld"):
+        extra += (f"; its prior withheld at {g['prior_withheld']} epochs the graph without it cannot place (too few "
+                  "satellites: the prior alone would place them, asked at a guess interpolated across the gap)")
     if "carrier_sigmas_raised" in g:
         extra += (f"; {g['carrier_sigmas_raised']} carrier-phase differences given at least twice their sigma, "
                   "their satellites' pseudoranges distrusted (a reflection's carrier follows its path)")

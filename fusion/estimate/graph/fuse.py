@@ -131,15 +131,23 @@ def learned_guess_and_start(trace: Trace, wls: WlsResult, opts: RunOptions
     its optimum (the learned inputs move it by metres at most) and patches its graph. The first solve stops
     at ``GraphConfig.guess_rel_tol``: the guess needs decimetres, and the second solve carries on to
     ``lm_rel_tol`` from where it stopped."""
+    at, start, _ = learned_guess_start_solved(trace, wls, opts)
+    return at, start
+
+
+def learned_guess_start_solved(trace: Trace, wls: WlsResult, opts: RunOptions
+                               ) -> tuple[np.ndarray, BatchSolution | None, np.ndarray | None]:
+    """:func:`learned_guess_and_start`, and (E,) bool the epochs the graph without anything learned solved
+    (None with ``prior_at="wls"``): elsewhere the guess is the WLS track interpolated across the gap."""
     at, _ = initial_positions(trace, wls, trace.t_ms.astype(float) / 1000.0)
     if opts.graph.prior_at == "wls":
-        return at, None
+        return at, None, None
     if opts.graph.prior_at != "graph":
         raise GnssfuseError(f"GraphConfig.prior_at must be 'graph' or 'wls', got {opts.graph.prior_at!r}")
     loose = replace(opts.graph, lm_rel_tol=opts.graph.guess_rel_tol)
     first = solve_graph(trace, wls, opts, loose, None, want_cov=False, keep_values=True)
     pos = first.info.get("online_pos", first.pos) if opts.graph.incremental else first.pos
-    return where_solved(pos, at), first.info.get("batch_solution")
+    return where_solved(pos, at), first.info.get("batch_solution"), np.asarray(first.valid, bool)
 
 
 def calibrated(result: ModeResult, trace: Trace, mode: str, opts: RunOptions, wls: WlsResult) -> ModeResult:
