@@ -6,7 +6,9 @@ network the four pseudoranges it needs, the graph too few), the guess there is t
 the gap, and the network's prior alone would place the epoch. Since 2026-12-07 the prior is withheld there
 (``learned.modes.prior_where_determined``). This prints, per trace, ``fused-nodnn`` and ``fused`` with the prior
 withheld (the default) and kept (the code before), their GSDC scores over the epochs each solved and the
-horizontal error of the epochs only the kept prior placed, with and without Doppler and carrier.
+horizontal error of the epochs only the kept prior placed, with and without Doppler and carrier; and the epochs
+of fewer than 4 satellites each flags bridged (``fused`` flags them where its prior holds them too, since
+2026-12-07: ``learned.modes.flag_few_satellites``) with the share of ``fused``'s errors within its 1 sigma there.
 
     python experiments/sim_city_traces.py --held-out --scenarios deep --first-seed 700 --carrier \\
         --constellations GPS --out /tmp/simgpsdeep
@@ -25,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import learned.modes  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
-from fusion.geometry import ecef2ned_vec  # noqa: E402
+from fusion.geometry import ecef2ned_cov, ecef2ned_vec  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402
 from fusion.options import parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
@@ -52,9 +54,20 @@ def h_error(res, truth: np.ndarray) -> np.ndarray:
     return e
 
 
+def within_sigma(res, truth: np.ndarray, rows: np.ndarray) -> str:
+    """Share of |error| within the 1-sigma N / E / D at the solved ``rows`` (E,) bool."""
+    ok = rows & res.valid
+    if not ok.any():
+        return "-"
+    d = ecef2ned_vec(res.pos[ok] - truth[ok], truth[ok])
+    s = np.sqrt(np.diagonal(ecef2ned_cov(res.cov[ok], res.pos[ok]), axis1=1, axis2=2))
+    return " / ".join(f"{v:.2f}" for v in (np.abs(d) <= s).mean(axis=0))
+
+
 def row(trace, opts: RunOptions) -> str:
-    """One table row: scores [m] and solved epochs of fused-nodnn, fused (withheld), fused (kept), and the
-    median / 95th percentile error of the epochs only the kept prior placed."""
+    """One table row: scores [m] and solved epochs of fused-nodnn, fused (withheld), fused (kept), the
+    median / 95th percentile error of the epochs only the kept prior placed, the bridged flags of fused-nodnn and
+    fused, and fused's errors within 1 sigma where it flags."""
     res = run_modes(trace, ["fused-nodnn", "fused"], opts)
     res["kept"] = fused_kept_prior(trace, opts)
     score = {m: mode_metrics(trace, r)["gsdc_score"] for m, r in res.items()}
@@ -62,8 +75,10 @@ def row(trace, opts: RunOptions) -> str:
     e = h_error(res["kept"], trace.truth)[only]
     extra = f"{np.percentile(e, 50):.1f} / {np.percentile(e, 95):.1f}" if e.size else "-"
     n = {m: int(r.valid.sum()) for m, r in res.items()}
+    flags = f"{res['fused-nodnn'].info['epochs_bridged']} / {res['fused'].info['epochs_bridged']}"
     return (f"| {score['fused-nodnn']:.2f} ({n['fused-nodnn']}) | {score['fused']:.2f} ({n['fused']}) | "
-            f"{score['kept']:.2f} ({n['kept']}) | {res['fused'].info.get('learned_prior_withheld', 0)} | {extra} |")
+            f"{score['kept']:.2f} ({n['kept']}) | {res['fused'].info.get('learned_prior_withheld', 0)} | {extra} | "
+            f"{flags} | {within_sigma(res['fused'], trace.truth, res['fused'].info['bridged'])} |")
 
 
 def main() -> int:
@@ -73,10 +88,11 @@ def main() -> int:
     a = p.parse_args()
     opts = RunOptions(signals=parse_signals(a.signals))
     print("GSDC score [m] over the epochs each solved (solved epochs); 'only the kept prior': horizontal error "
-          "p50 / p95 [m] of the epochs the kept prior alone placed\n")
+          "p50 / p95 [m] of the epochs the kept prior alone placed; 'bridged': epochs flagged, fused-nodnn / fused; "
+          "'fused within 1 sigma': N / E / D at the epochs fused flags\n")
     print("| trace | measurements | fused-nodnn | fused, prior withheld (default) | fused, prior kept (before) "
-          "| epochs withheld | only the kept prior |")
-    print("|---|---|---|---|---|---|---|")
+          "| epochs withheld | only the kept prior | bridged | fused within 1 sigma, bridged |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for path in a.traces:
         trace = load_trace(path, signals=opts.signals)
         name = f"{path.parent.name}/{path.name}"

@@ -67,8 +67,9 @@ def bridged_words(info: dict) -> str:
     widened = info.get("bridged_widened")
     checked = (f"; the sigmas of {widened} widened where the graph without Doppler and carrier disagreed"
                if widened else "")
-    return (f"{info['epochs_bridged']} epochs bridged by the motion model alone (fewer than 4 satellites, no prior; "
-            f"longest stretch {info.get('longest_bridge_s', 0):.0f} s{checked}): column 'bridged' in estimates.csv")
+    return (f"{info['epochs_bridged']} epochs bridged by the motion model (fewer than 4 satellites and no prior but "
+            f"the network's, which reads those same satellites; longest stretch {info.get('longest_bridge_s', 0):.0f} s"
+            f"{checked}): column 'bridged' in estimates.csv")
 
 
 #: what a mode's learned parts did, in words, where its info has the key

@@ -1,7 +1,8 @@
 """What ``gnssfuse run`` and ``evaluate`` write per (trace, mode): ``estimates.csv`` and ``metrics.json``.
 
 ``estimates.csv`` columns: :data:`ESTIMATE_COLUMNS`, then :data:`SIGMA_COLUMNS` for modes with a covariance,
-then ``bridged`` (0/1) for the graph modes: 1 where fewer than 4 satellites and no prior determined the epoch.
+then ``bridged`` (0/1) for the graph modes: 1 where fewer than 4 satellites and no prior (the network's, which
+reads those same satellites, aside) determined the epoch.
 
 Heights are WGS84 ellipsoidal everywhere (``height_m``), as are the positions the exports
 (:mod:`fusion.io.export`) write.

@@ -78,18 +78,22 @@ def carrier_linked(raw: RawInputs | None, n_epochs: int) -> np.ndarray:
 
 def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     """Solved epochs that fewer than 4 satellites' pseudoranges and no prior determine (the motion model carries
-    them from their neighbours): ``bridged`` (E,) bool, their count and the longest such stretch [s],
-    so that a drift through an outage is flagged rather than passed off as a fix; and
+    them from their neighbours): ``bridged`` (E,) bool, their count and the longest such stretch [s]
+    (:func:`bridge_flags`), so that a drift through an outage is flagged rather than passed off as a fix; and
     ``bridged_without_doppler`` (E,) bool those where no Doppler measures the velocity either."""
     bridged = valid & pseudorange_gap(inp)
+    return {**bridge_flags(trace, bridged), "bridged_without_doppler": bridged & ~doppler_epochs(inp)}
+
+
+def bridge_flags(trace: Trace, bridged: np.ndarray) -> dict:
+    """``bridged`` (E,) bool as the flags: itself, its count (``epochs_bridged``) and the longest stretch of it
+    (``longest_bridge_s``), from the last epoch before it to the first after it [s]."""
     t = trace.t_ms.astype(float) / 1000.0
     edges = np.diff(np.r_[0, bridged.astype(int), 0])
     starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1) - 1
-    # a stretch lasts from the last determined epoch before it to the first after it
     before, after = np.maximum(starts - 1, 0), np.minimum(ends + 1, len(t) - 1)
     longest = float(np.max(t[after] - t[before], initial=0.0))
-    return {"bridged": bridged, "epochs_bridged": int(bridged.sum()), "longest_bridge_s": longest,
-            "bridged_without_doppler": bridged & ~doppler_epochs(inp)}
+    return {"bridged": bridged, "epochs_bridged": int(bridged.sum()), "longest_bridge_s": longest}
 
 
 def fuse(trace: Trace, wls: WlsResult, opts: RunOptions | None = None, provider: PriorProvider | None = None,

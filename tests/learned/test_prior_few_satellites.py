@@ -1,5 +1,7 @@
-"""The fused mode's learned prior is withheld where the graph without anything learned cannot place the epoch
-(learned.modes.prior_where_determined): the prior alone would place it, asked at an interpolated WLS guess."""
+"""The fused mode where too few satellites are seen: its learned prior is withheld where the graph without anything
+learned cannot place the epoch (learned.modes.prior_where_determined: the prior alone would place it, asked at an
+interpolated WLS guess), and its epochs of fewer than 4 satellites are flagged bridged, a prior there or not
+(learned.modes.flag_few_satellites)."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -59,3 +61,31 @@ def test_the_run_summary_says_how_many_epochs_lost_their_prior():
     assert "its prior withheld at 3 epochs the graph without it cannot place" in learned_words(
         {"learned_epochs_asked": 10, "learned_prior_withheld": 3})
     assert "withheld" not in learned_words({"learned_epochs_asked": 10, "learned_prior_withheld": 0})
+
+
+def test_fused_flags_the_epochs_of_too_few_satellites_its_prior_holds(monkeypatch):
+    """Three satellites on two frequencies at epochs 40-49: four pseudoranges, so the network is asked and its prior
+    holds those epochs; they are flagged and counted as fused-nodnn flags them, and the sigmas are left alone."""
+    from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+    from fusion.sim.simulate import SimConfig, simulate
+    from fusion.trace import SIGNALS
+
+    tr = simulate(n_epochs=80, nav=read_rinex_nav(default_nav_path()), seed=12,
+                  config=SimConfig(doppler=False, carrier=False, dual_frequency=True)).trace
+    mask = tr.mask.copy()
+    for k in range(40, 50):
+        ids, n = np.unique(tr.sat_id[k][tr.mask[k]], return_counts=True)
+        mask[k] &= np.isin(tr.sat_id[k], np.r_[ids[n == 2][:1], ids[n == 1][:2]])
+    tr = replace(tr, mask=mask)
+    opts = RunOptions(signals=SIGNALS)
+    res = run_modes(tr, ["fused-nodnn", "fused"], opts)
+    nodnn, fused = res["fused-nodnn"], res["fused"]
+    assert nodnn.info["epochs_bridged"] == 10 and nodnn.info["bridged"][40:50].all()
+    assert fused.valid.all() and fused.info["epochs_bridged"] == 10
+    assert np.array_equal(fused.info["bridged"], nodnn.info["bridged"])
+    assert fused.info["longest_bridge_s"] == nodnn.info["longest_bridge_s"]
+    # the graph's own flag (no prior) left those epochs unflagged; the covariance is the same either way
+    monkeypatch.setattr(learned.modes, "flag_few_satellites", lambda r, trace: r)
+    before = run_modes(tr, ["fused"], opts)["fused"]
+    assert before.info["epochs_bridged"] == 0
+    np.testing.assert_array_equal(before.cov, fused.cov)
