@@ -253,8 +253,10 @@ def prior_where_determined(learned: LearnedGraphInputs, solved: np.ndarray | Non
 def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult:
     """The ``fused`` mode: pseudoranges weighted by the per-satellite head (its power rising where the residuals
     exceed their model, :func:`sigma_power_by_factor`) + the learned position prior (widened there,
-    :func:`prior_by_factor`) + motion, from one network pass (and its sigmas
-    from a second, :func:`sigmas_again`); ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off."""
+    :func:`prior_by_factor`; withheld where the graph without it cannot place the epoch,
+    :func:`prior_where_determined`) + motion, from one network pass (and its sigmas from a second,
+    :func:`sigmas_again`); ``opts.learned_prior`` / ``opts.learned_sigmas`` switch each part off. Epochs of fewer
+    than 4 satellites are flagged bridged whether the prior holds them or not (:func:`flag_few_satellites`)."""
     corrector = Corrector.load(opts.weights, device=opts.device)
     at, start, solved = learned_guess_start_solved(trace, wls, opts)
     F = residual_factor(trace, at, opts)

@@ -38,19 +38,24 @@ def isam2(cfg: GraphConfig, carrier: bool = False) -> gtsam.ISAM2:
 
 
 def feed_epochs(isam: gtsam.ISAM2, trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> np.ndarray:
-    """Update ``isam`` epoch by epoch; returns (E,3) each epoch's estimate right after its own update.
+    """Update ``isam`` epoch by epoch; returns (E,3) each epoch's estimate right after its own update (NaN for
+    epochs never added).
 
-    Epochs of a motion component are held back until the component has an anchor (an epoch with
-    >= 4 satellites or a prior), because ISAM2 cannot take an undetermined update."""
+    Epochs of a motion component are held back until the component has an anchor, because ISAM2 cannot take an
+    undetermined update: an epoch with >= 4 satellites, or a prior at an epoch without pseudoranges (so without a
+    clock). A prior at an epoch of 1-3 satellites fixes the position but leaves the clock and (with Doppler of
+    fewer than 4 satellites) the velocity and drift to the epochs after it, and ISAM2's Gauss-Newton step, unlike
+    the batch solver's damped one, finds that singular (``fused`` on dual-frequency phones in deep streets). A
+    component without an anchor is never added."""
     epochs, graphs, values = graph_pieces(trace, inp, cfg).by_epoch()
-    anchor = (inp.n_sats >= 4) | inp.prior_ok
+    anchor = (inp.n_sats >= 4) | (inp.prior_ok & ~inp.sel.any(axis=1))
     online = np.full((trace.n_epochs, 3), np.nan)
     pending_f, pending_v, pending_k = gtsam.NonlinearFactorGraph(), gtsam.Values(), []
     anchored = False
     for k, g, v in zip(epochs, graphs, values):
         k = int(k)
         if not inp.pos_link[k]:
-            anchored = False               # a new motion component starts here
+            anchored, pending_k = False, []     # a new motion component starts here; an unanchored one is left out
         if pending_k:
             pending_f.push_back(g)
             pending_v.insert(v)
@@ -85,10 +90,12 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> tuple
         raise geometry_error(trace, exc) from None
     elapsed = time.perf_counter() - t0
     pos = np.full((E, 3), np.nan)
-    for k in np.flatnonzero(inp.keep):
+    added = inp.keep & np.isfinite(online).all(axis=1)
+    for k in np.flatnonzero(added):
         pos[k] = est.atPoint3(pos_key(int(k)))
-    valid = inp.keep & np.isfinite(pos).all(axis=1)
+    valid = added & np.isfinite(pos).all(axis=1)
     n = max(int(inp.keep.sum()), 1)
     return pos, valid, None, {"online_pos": online, "incremental_s": elapsed,
+                              "incremental_unanchored": int((inp.keep & ~added).sum()),
                               "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp),
                               "vel": read_velocities(est, np.flatnonzero(inp.keep), E)}

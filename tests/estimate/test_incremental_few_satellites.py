@@ -1,0 +1,77 @@
+"""The incremental smoother (ISAM2) on a phone with too few satellites: an update only where the stretch it opens is
+determined (fusion.estimate.graph.incremental.feed_epochs), and carrier pairs counted by satellite
+(fusion.estimate.graph.raw_inputs.tdcp_pairs)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+
+from fusion.cli import main as cli
+from fusion.estimate.graph.config import GraphConfig
+from fusion.estimate.graph.fuse import fuse
+from fusion.estimate.graph.raw_inputs import MIN_TDCP_SATS, tdcp_pairs
+from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+from fusion.modes import solve_initial
+from fusion.run_types import RunOptions
+from fusion.sim.simulate import SimConfig, simulate
+
+
+def test_fused_runs_incrementally_on_a_dual_frequency_gps_phone_in_deep_streets(tmp_path):
+    """A simulated GPS L1 + L5 phone with Doppler and carrier in the deep canyon: ISAM2 had found its first epoch
+    (three satellites, held by the network's prior) singular, and the run wrote nothing."""
+    assert cli(["simulate", "--out", str(tmp_path), "--scenario", "deep", "--constellations", "GPS", "--carrier",
+                "--seed", "3", "--collection", "d3", "--epochs", "120"]) == 0
+    out = tmp_path / "out"
+    assert cli(["run", str(tmp_path / "d3" / "SimPhone"), "--signals", "all", "--mode", "fused", "--incremental",
+                "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["mode"] == "fused" and metrics["epochs_solved"] > 60
+
+
+def test_incremental_waits_for_four_satellites_where_a_prior_starts_a_stretch_of_three():
+    """A dual-frequency phone's stretch of three satellites with a prior at every epoch, Doppler on all of them,
+    then four and more: the prior fixes the position but not the clock, velocity and drift, so ISAM2 takes the
+    stretch with the first epoch of four satellites (it had found its first epoch singular) and solves it all; a
+    stretch of three alone, cut off by gaps, is left out and counted. The batch solver places both."""
+    tr = simulate(n_epochs=60, nav=read_rinex_nav(default_nav_path()), seed=12,
+                  config=SimConfig(doppler=True, carrier=False, dual_frequency=True)).trace
+    mask = tr.mask.copy()
+    for k in range(0, 30):
+        ids, n = np.unique(tr.sat_id[k][tr.mask[k]], return_counts=True)
+        mask[k] &= np.isin(tr.sat_id[k], np.r_[ids[n == 2][:1], ids[n == 1][:2]])
+    tr = tr.select(np.r_[0:10, 25:60])                 # epochs 0-9 alone, then 25-29 (3 satellites) and 30-59
+    tr = dataclasses.replace(tr, mask=mask[np.r_[0:10, 25:60]])
+
+    def truth_prior(trace, init_pos, valid):
+        return trace.truth.copy(), np.tile(np.eye(3), (trace.n_epochs, 1, 1)), np.arange(trace.n_epochs) < 15
+
+    w = solve_initial(tr, RunOptions())
+    inc = fuse(tr, w, RunOptions(graph=GraphConfig(incremental=True)), provider=truth_prior, want_cov=False)
+    assert inc.info["incremental_unanchored"] == 10 and not inc.valid[:10].any() and inc.valid[10:].all()
+    assert np.nanmax(np.linalg.norm(inc.pos - tr.truth, axis=1)[10:]) < 10.0
+    batch = fuse(tr, w, RunOptions(), provider=truth_prior, want_cov=False)
+    assert batch.valid.all()
+
+
+def test_the_incremental_smoother_counts_a_carrier_pairs_satellites_the_batch_its_differences():
+    """Five differences of three satellites (two on two frequencies) repeat three directions: the incremental
+    smoother's pair keeps none, as with three single-frequency satellites; the batch graph keeps all five."""
+    tr = simulate(n_epochs=30, seed=7, config=SimConfig(doppler=True, carrier=True, slip_prob=0.0,
+                                                        dual_frequency=True)).trace
+    mask = tr.mask.copy()
+    for k in (20, 21):
+        ids, n = np.unique(tr.sat_id[k][tr.mask[k]], return_counts=True)
+        keep = np.r_[ids[n == 2][:2], ids[n == 1][:1]]
+        assert len(keep) == 3
+        mask[k] &= np.isin(tr.sat_id[k], keep)
+    tr = dataclasses.replace(tr, mask=mask)
+    assert tr.mask[21].sum() >= MIN_TDCP_SATS
+    above, link = np.ones(tr.mask.shape, bool), np.arange(tr.n_epochs) - 1
+    counts = {}
+    prev, _ = tdcp_pairs(tr, above, link, GraphConfig(incremental=True), counts)
+    assert not (prev[21] >= 0).any() and (prev[22] < 0).all()        # 22 pairs with the thinned 21: the same three
+    assert counts["carrier_too_few_satellites"] >= 2 * tr.mask[21].sum() and (prev[19] >= 0).sum() >= MIN_TDCP_SATS
+    batch, _ = tdcp_pairs(tr, above, link, GraphConfig(), {})
+    assert (batch[21] >= 0).sum() == tr.mask[21].sum()
