@@ -3,7 +3,6 @@ determined (fusion.estimate.graph.incremental.feed_epochs), and carrier pairs co
 (fusion.estimate.graph.raw_inputs.tdcp_pairs)."""
 from __future__ import annotations
 
-import dataclasses
 import json
 
 import numpy as np
@@ -16,6 +15,7 @@ from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
 from fusion.sim.simulate import SimConfig, simulate
+from tests.thinning import three_satellites
 
 
 def test_fused_runs_incrementally_on_a_dual_frequency_gps_phone_in_deep_streets(tmp_path):
@@ -37,12 +37,8 @@ def test_incremental_waits_for_four_satellites_where_a_prior_starts_a_stretch_of
     stretch of three alone, cut off by gaps, is left out and counted. The batch solver places both."""
     tr = simulate(n_epochs=60, nav=read_rinex_nav(default_nav_path()), seed=12,
                   config=SimConfig(doppler=True, carrier=False, dual_frequency=True)).trace
-    mask = tr.mask.copy()
-    for k in range(0, 30):
-        ids, n = np.unique(tr.sat_id[k][tr.mask[k]], return_counts=True)
-        mask[k] &= np.isin(tr.sat_id[k], np.r_[ids[n == 2][:1], ids[n == 1][:2]])
-    tr = tr.select(np.r_[0:10, 25:60])                 # epochs 0-9 alone, then 25-29 (3 satellites) and 30-59
-    tr = dataclasses.replace(tr, mask=mask[np.r_[0:10, 25:60]])
+    # epochs 0-9 alone, then 25-29 (3 satellites) and 30-59
+    tr = three_satellites(tr, range(30)).select(np.r_[0:10, 25:60])
 
     def truth_prior(trace, init_pos, valid):
         return trace.truth.copy(), np.tile(np.eye(3), (trace.n_epochs, 1, 1)), np.arange(trace.n_epochs) < 15
@@ -60,13 +56,7 @@ def test_the_incremental_smoother_counts_a_carrier_pairs_satellites_the_batch_it
     smoother's pair keeps none, as with three single-frequency satellites; the batch graph keeps all five."""
     tr = simulate(n_epochs=30, seed=7, config=SimConfig(doppler=True, carrier=True, slip_prob=0.0,
                                                         dual_frequency=True)).trace
-    mask = tr.mask.copy()
-    for k in (20, 21):
-        ids, n = np.unique(tr.sat_id[k][tr.mask[k]], return_counts=True)
-        keep = np.r_[ids[n == 2][:2], ids[n == 1][:1]]
-        assert len(keep) == 3
-        mask[k] &= np.isin(tr.sat_id[k], keep)
-    tr = dataclasses.replace(tr, mask=mask)
+    tr = three_satellites(tr, (20, 21), on_two=2)
     assert tr.mask[21].sum() >= MIN_TDCP_SATS
     above, link = np.ones(tr.mask.shape, bool), np.arange(tr.n_epochs) - 1
     counts = {}

@@ -15,6 +15,7 @@ from fusion.modes import run_modes
 from fusion.prepare.load import load_trace
 from fusion.run_types import RunOptions
 from learned.modes import prior_where_determined
+from tests.thinning import three_satellites
 
 
 def test_the_prior_is_withheld_exactly_where_the_unlearned_graph_left_the_epoch_unsolved():
@@ -72,11 +73,7 @@ def test_fused_flags_the_epochs_of_too_few_satellites_its_prior_holds(monkeypatc
 
     tr = simulate(n_epochs=80, nav=read_rinex_nav(default_nav_path()), seed=12,
                   config=SimConfig(doppler=False, carrier=False, dual_frequency=True)).trace
-    mask = tr.mask.copy()
-    for k in range(40, 50):
-        ids, n = np.unique(tr.sat_id[k][tr.mask[k]], return_counts=True)
-        mask[k] &= np.isin(tr.sat_id[k], np.r_[ids[n == 2][:1], ids[n == 1][:2]])
-    tr = replace(tr, mask=mask)
+    tr = three_satellites(tr, range(40, 50))
     opts = RunOptions(signals=SIGNALS)
     res = run_modes(tr, ["fused-nodnn", "fused"], opts)
     nodnn, fused = res["fused-nodnn"], res["fused"]
