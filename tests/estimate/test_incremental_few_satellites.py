@@ -46,6 +46,8 @@ def test_incremental_waits_for_four_satellites_where_a_prior_starts_a_stretch_of
     w = solve_initial(tr, RunOptions())
     inc = fuse(tr, w, RunOptions(graph=GraphConfig(incremental=True)), provider=truth_prior, want_cov=False)
     assert inc.info["incremental_unanchored"] == 10 and not inc.valid[:10].any() and inc.valid[10:].all()
+    vel = inc.info["vel"]                              # read where added, NaN where left out
+    assert np.isfinite(vel[10:]).all() and np.isnan(vel[:10]).all()
     assert np.nanmax(np.linalg.norm(inc.pos - tr.truth, axis=1)[10:]) < 10.0
     batch = fuse(tr, w, RunOptions(), provider=truth_prior, want_cov=False)
     assert batch.valid.all()

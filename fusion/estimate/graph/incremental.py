@@ -98,4 +98,4 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> tuple
     return pos, valid, None, {"online_pos": online, "incremental_s": elapsed,
                               "incremental_unanchored": int((inp.keep & ~added).sum()),
                               "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp),
-                              "vel": read_velocities(est, np.flatnonzero(inp.keep), E)}
+                              "vel": read_velocities(est, np.flatnonzero(added), E)}
