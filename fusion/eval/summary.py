@@ -72,6 +72,20 @@ def bridged_words(info: dict) -> str:
             f"{checked}): column 'bridged' in estimates.csv")
 
 
+def incremental_words(info: dict) -> str:
+    """What the incremental smoother left out or solved twice (``incremental_unanchored``, ``incremental_retried``),
+    in words; empty where it did neither."""
+    said = []
+    if info.get("incremental_unanchored"):
+        said.append(f"{info['incremental_unanchored']} epochs left out (a stretch with no epoch of four satellites "
+                    "or a prior without pseudoranges to start it; the batch solver, without --incremental, places "
+                    "what the motion model can)")
+    if info.get("incremental_retried"):
+        said.append("solved a second time, where ISAM2 found the system singular: carrier-phase pairs counted by "
+                    "satellite, not by signal, and each carrier clock held loosely at the code clock")
+    return "incremental smoother: " + "; ".join(said) if said else ""
+
+
 #: what a mode's learned parts did, in words, where its info has the key
 LEARNED_WORDS = (("learned_epochs_asked", learned_words), ("learned_move_h_p50_m", move_words),
                  ("learned_doppler_sigmas", doppler_head_words))
@@ -97,6 +111,8 @@ def run_summary(record: dict) -> str:
                      "drift of its own")
     if info.get("epochs_bridged"):
         lines.append(bridged_words(info))
+    if incremental_words(info):
+        lines.append(incremental_words(info))
     m = record.get("metrics") or {}
     if "within1sigma_n" in m:
         lines.append("errors within the mode's 1 sigma, N / E / D: "

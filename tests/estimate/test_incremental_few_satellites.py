@@ -1,6 +1,6 @@
 """The incremental smoother (ISAM2) on a phone with too few satellites: an update only where the stretch it opens is
-determined (fusion.estimate.graph.incremental.feed_epochs), and carrier pairs counted by satellite
-(fusion.estimate.graph.raw_inputs.tdcp_pairs)."""
+determined (fusion.estimate.graph.incremental.feed_epochs), and a retry with carrier pairs counted by satellite
+(fusion.estimate.graph.fuse.incremental_or_retry, fusion.estimate.graph.raw_inputs.tdcp_pairs)."""
 from __future__ import annotations
 
 import json
@@ -11,6 +11,7 @@ from fusion.cli import main as cli
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.fuse import fuse
 from fusion.estimate.graph.raw_inputs import MIN_TDCP_SATS, tdcp_pairs
+from fusion.eval.summary import incremental_words, run_summary
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
@@ -28,6 +29,26 @@ def test_fused_runs_incrementally_on_a_dual_frequency_gps_phone_in_deep_streets(
                 "--out", str(out)]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["mode"] == "fused" and metrics["epochs_solved"] > 60
+    assert "incremental_retried" not in metrics["info"]          # solved at the first try
+    assert incremental_words(metrics["info"]) == ""
+
+
+def test_incremental_retries_with_carrier_pairs_counted_by_satellite_where_isam2_finds_the_system_singular(tmp_path):
+    """A simulated GPS L1 + L5 phone in deep streets whose carrier pairs of three or four satellites on two
+    frequencies ISAM2 finds singular: the smoother solves it once more, its pairs counted by satellite and its
+    carrier clocks held loosely at the code clock, and places every epoch the batch graph places."""
+    assert cli(["simulate", "--out", str(tmp_path), "--scenario", "deep", "--constellations", "GPS", "--carrier",
+                "--seed", "8", "--collection", "d8", "--epochs", "200"]) == 0
+    solved = {}
+    for extra in ([], ["--incremental"]):
+        out = tmp_path / f"out{len(extra)}"
+        assert cli(["run", str(tmp_path / "d8" / "SimPhone"), "--signals", "all", "--mode", "fused-nodnn",
+                    "--out", str(out), *extra]) == 0
+        metrics = json.loads((out / "metrics.json").read_text())
+        solved[len(extra)] = metrics["epochs_solved"]
+    assert metrics["info"]["incremental_retried"] == 1
+    assert solved[1] == solved[0] > 80
+    assert "incremental smoother: solved a second time" in run_summary(metrics)
 
 
 def test_incremental_waits_for_four_satellites_where_a_prior_starts_a_stretch_of_three():
@@ -46,6 +67,7 @@ def test_incremental_waits_for_four_satellites_where_a_prior_starts_a_stretch_of
     w = solve_initial(tr, RunOptions())
     inc = fuse(tr, w, RunOptions(graph=GraphConfig(incremental=True)), provider=truth_prior, want_cov=False)
     assert inc.info["incremental_unanchored"] == 10 and not inc.valid[:10].any() and inc.valid[10:].all()
+    assert incremental_words(inc.info).startswith("incremental smoother: 10 epochs left out")
     vel = inc.info["vel"]                              # read where added, NaN where left out
     assert np.isfinite(vel[10:]).all() and np.isnan(vel[:10]).all()
     assert np.nanmax(np.linalg.norm(inc.pos - tr.truth, axis=1)[10:]) < 10.0
@@ -53,17 +75,19 @@ def test_incremental_waits_for_four_satellites_where_a_prior_starts_a_stretch_of
     assert batch.valid.all()
 
 
-def test_the_incremental_smoother_counts_a_carrier_pairs_satellites_the_batch_its_differences():
-    """Five differences of three satellites (two on two frequencies) repeat three directions: the incremental
-    smoother's pair keeps none, as with three single-frequency satellites; the batch graph keeps all five."""
+def test_a_carrier_pair_counts_its_satellites_only_where_asked():
+    """Five differences of three satellites (two on two frequencies) repeat three directions: with
+    ``tdcp_min_distinct_sats`` = 5 (the incremental smoother's retry) the pair keeps none, as with three
+    single-frequency satellites; by default it keeps all five, in the batch graph and the incremental one."""
     tr = simulate(n_epochs=30, seed=7, config=SimConfig(doppler=True, carrier=True, slip_prob=0.0,
                                                         dual_frequency=True)).trace
     tr = three_satellites(tr, (20, 21), on_two=2)
     assert tr.mask[21].sum() >= MIN_TDCP_SATS
     above, link = np.ones(tr.mask.shape, bool), np.arange(tr.n_epochs) - 1
     counts = {}
-    prev, _ = tdcp_pairs(tr, above, link, GraphConfig(incremental=True), counts)
+    prev, _ = tdcp_pairs(tr, above, link, GraphConfig(tdcp_min_distinct_sats=MIN_TDCP_SATS), counts)
     assert not (prev[21] >= 0).any() and (prev[22] < 0).all()        # 22 pairs with the thinned 21: the same three
     assert counts["carrier_too_few_satellites"] >= 2 * tr.mask[21].sum() and (prev[19] >= 0).sum() >= MIN_TDCP_SATS
-    batch, _ = tdcp_pairs(tr, above, link, GraphConfig(), {})
-    assert (batch[21] >= 0).sum() == tr.mask[21].sum()
+    for cfg in (GraphConfig(), GraphConfig(incremental=True)):
+        kept, _ = tdcp_pairs(tr, above, link, cfg, {})
+        assert (kept[21] >= 0).sum() == tr.mask[21].sum()

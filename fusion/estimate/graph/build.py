@@ -236,6 +236,12 @@ def add_carriers(p: GraphPieces, trace: Trace, inp: EpochInputs, cfg: GraphConfi
     unit = gtsam.noiseModel.Isotropic.Sigma(1, 1.0)
     p.add(starts, [gtsam.PriorFactorDouble(carrier_clock_key(int(k) - 1), float(inp.init_clock_m[k - 1]), unit)
                    for k in starts])
+    if cfg.carrier_clock_prior_m > 0:
+        # where the robust loss has all but switched off an epoch's carrier differences, nothing else holds its
+        # carrier clock, and ISAM2's undamped step finds the system singular: a loose prior at the code clock
+        loose = gtsam.noiseModel.Isotropic.Sigma(1, cfg.carrier_clock_prior_m)
+        p.add(ks, [gtsam.PriorFactorDouble(carrier_clock_key(int(k)), float(inp.init_clock_m[k]), loose)
+                   for k in ks])
     first = len(p.factors)
     p.add(*carrier_factors(trace, inp, cfg, has, lin_pos))
     p.carrier = slice(first, len(p.factors))

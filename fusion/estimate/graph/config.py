@@ -250,6 +250,17 @@ class GraphConfig:
     # made a few sigmas wider sits inside the robust loss's core, where it pulls harder than far outside it
     # (experiments/results/carrier_trust.md).
     tdcp_cn0_ref_dbhz: float = 0.0
+    # An epoch pair keeps its carrier differences only with at least this many distinct satellites among them (0:
+    # the differences alone are counted, MIN_TDCP_SATS of them). A second frequency repeats its satellite's
+    # direction; the batch solver's damped step settles such pairs, and they pay (counting satellites took a held-out
+    # simulated GPS L1 + L5 suburban trace 11.8 -> 21.9 m). The incremental smoother retries a trace with 5 where its
+    # undamped step found the system singular (fusion.estimate.graph.fuse.incremental_or_retry).
+    tdcp_min_distinct_sats: int = 0
+    # A prior on each carrier clock at the code clock, with this sigma [m] (0: none). The incremental smoother's
+    # retry takes 20 m (a thousand times the carrier factors' 2 cm floor): where the robust loss has all but switched
+    # off an epoch's carrier differences, nothing else holds its carrier clock. From the start it would cost the
+    # Pixel5 RINEX test trace 3 % in that mode (fused-nodnn 3.14 -> 3.24 m).
+    carrier_clock_prior_m: float = 0.0
     # In the fused mode, a time-differenced carrier's sigma x (its satellite's learned pseudorange sigma over the
     # physical model's, relative to the epoch's median and over learned_carrier_knee, never below 1) ** this
     # (fusion.estimate.graph.raw_inputs.carrier_sigma_by_pseudorange; 0: off). A reflected signal's carrier
@@ -348,7 +359,7 @@ class GraphConfig:
 MAY_BE_ZERO = {"prior_sigma_floor_m", "prior_factor_power", "doppler_check_window_s", "carrier_check_window_s",
                "pseudorange_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
                "tdcp_cn0_ref_dbhz", "learned_carrier_power", "learned_doppler_power",
-               "learned_carrier_min_count",
+               "learned_carrier_min_count", "tdcp_min_distinct_sats", "carrier_clock_prior_m",
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps", "cv_level_sigma_mps", "learned_sigma_power",

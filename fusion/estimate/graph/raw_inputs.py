@@ -99,12 +99,10 @@ def tdcp_pairs(trace: Trace, above: np.ndarray, clock_link: np.ndarray, cfg: Gra
     use = found & chained
     # a displacement and a carrier clock change are four unknowns: with fewer than MIN_TDCP_SATS
     # differences an epoch pair's carrier factors would leave them singular (or unchecked by the
-    # robust loss), so the pair keeps none. The incremental smoother counts satellites instead: a second
-    # frequency repeats its satellite's direction, and ISAM2's undamped update of one epoch found three satellites
-    # on two frequencies singular, where the batch solver's damped one and the motion model settle them (and
-    # they pay: a held-out simulated GPS L1 + L5 suburban trace scored 21.9 against 11.8 m without them)
-    n = satellite_counts(trace.sat_id[1:], use) if cfg.incremental else use.sum(axis=1)
-    few = use.any(axis=1) & (n < MIN_TDCP_SATS)
+    # robust loss), so the pair keeps none; nor with fewer distinct satellites than cfg.tdcp_min_distinct_sats
+    few = use.any(axis=1) & (use.sum(axis=1) < MIN_TDCP_SATS)
+    if cfg.tdcp_min_distinct_sats > 0:
+        few |= use.any(axis=1) & (satellite_counts(trace.sat_id[1:], use) < cfg.tdcp_min_distinct_sats)
     count_skip(counts, "carrier_too_few_satellites", use & few[:, None])
     use &= ~few[:, None]
     prev[1:] = np.where(use, same.argmax(axis=2), -1)
