@@ -222,6 +222,24 @@ def sigma_power_by_factor(F: np.ndarray | None, opts: RunOptions) -> float | np.
     return (g.learned_sigma_power + (g.learned_sigma_power_high - g.learned_sigma_power) * t)[:, None]
 
 
+def power_where_redundant(power: float | np.ndarray, trace: Trace, at: np.ndarray, opts: RunOptions
+                          ) -> tuple[float | np.ndarray, int]:
+    """The learned sigmas' ``power`` (a number or (E,1)) set to 0, the physical model's sigma, at the epochs where
+    fewer than ``GraphConfig.learned_sigma_min_sats`` distinct satellites are above the mask at ``at`` (E,3) ECEF,
+    and the count of such epochs (0: off, as shipped). The head judges each satellite against the others, and
+    four leave little to judge by; but on every tuning log where the rule acts it costs, and only a test trace
+    gains (experiments/results/few_satellite_sigmas.md)."""
+    n_min = opts.graph.learned_sigma_min_sats
+    if n_min <= 0:
+        return power, 0
+    sel, _ = sigma_model(trace, at, opts.elev_mask_deg)
+    few = satellite_counts(trace.sat_id, sel) < n_min
+    if not few.any():
+        return power, 0
+    per_epoch = np.broadcast_to(np.asarray(power, float).reshape(-1, 1), (trace.n_epochs, 1))
+    return np.where(few[:, None], 0.0, per_epoch), int(few.sum())
+
+
 def prior_by_factor(learned: LearnedGraphInputs, F: np.ndarray | None, opts: RunOptions) -> LearnedGraphInputs:
     """``learned`` with its prior covariance (E,3,3) x ``max(1, F / ref) ** power`` per epoch, F (E,) from
     :func:`residual_factor` (``GraphConfig.prior_factor_*``: why and how chosen).
@@ -260,8 +278,9 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
     corrector = Corrector.load(opts.weights, device=opts.device)
     at, start, solved = learned_guess_start_solved(trace, wls, opts)
     F = residual_factor(trace, at, opts)
-    power = sigma_power_by_factor(F, opts)
+    power, few = power_where_redundant(sigma_power_by_factor(F, opts), trace, at, opts)
     learned = prior_by_factor(graph_inputs(corrector, trace, wls, opts, at, power), F, opts)
+    learned.info = dict(learned.info or {}, learned_epochs_few_satellites=few)
     learned = prior_where_determined(learned, solved)
     learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start, power)
     # the solve with the learned inputs starts from the last solve's solution

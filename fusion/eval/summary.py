@@ -35,6 +35,9 @@ def learned_words(info: dict) -> str:
     if g.get("prior_withheld"):
         extra += (f"; its prior withheld at {g['prior_withheld']} epochs the graph without it cannot place (too few "
                   "satellites: the prior alone would place them, asked at a guess interpolated across the gap)")
+    if g.get("epochs_few_satellites"):
+        extra += (f"; its pseudorange sigmas left to the physical model at {g['epochs_few_satellites']} epochs of too "
+                  "few satellites to judge one against the others")
     if "carrier_sigmas_raised" in g:
         extra += (f"; {g['carrier_sigmas_raised']} carrier-phase differences given at least twice their sigma, "
                   "their satellites' pseudoranges distrusted (a reflection's carrier follows its path)")

@@ -62,6 +62,8 @@ def test_the_run_summary_says_how_many_epochs_lost_their_prior():
     assert "its prior withheld at 3 epochs the graph without it cannot place" in learned_words(
         {"learned_epochs_asked": 10, "learned_prior_withheld": 3})
     assert "withheld" not in learned_words({"learned_epochs_asked": 10, "learned_prior_withheld": 0})
+    assert "physical model at 4 epochs of too few satellites" in learned_words(
+        {"learned_epochs_asked": 10, "learned_epochs_few_satellites": 4})
 
 
 def test_fused_flags_the_epochs_of_too_few_satellites_its_prior_holds(monkeypatch):
@@ -86,3 +88,20 @@ def test_fused_flags_the_epochs_of_too_few_satellites_its_prior_holds(monkeypatc
     before = run_modes(tr, ["fused"], opts)["fused"]
     assert before.info["epochs_bridged"] == 0
     np.testing.assert_array_equal(before.cov, fused.cov)
+
+
+def test_the_learned_sigmas_power_is_zero_where_too_few_satellites_are_above_the_mask():
+    """learned.modes.power_where_redundant: epochs of fewer distinct satellites than learned_sigma_min_sats get
+    power 0 (the physical model's sigma); off (0) as shipped, the power passes through untouched."""
+    from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
+    from fusion.sim.simulate import SimConfig, simulate
+    from learned.modes import power_where_redundant
+    tr = simulate(n_epochs=20, nav=read_rinex_nav(default_nav_path()), seed=5,
+                  config=SimConfig(doppler=True, carrier=False, dual_frequency=True)).trace
+    tr = three_satellites(tr, range(5, 9), on_two=2)          # three satellites, five pseudoranges
+    opts = RunOptions()
+    assert power_where_redundant(4.0, tr, tr.truth, opts) == (4.0, 0)
+    graph = replace(opts.graph, learned_sigma_min_sats=4)
+    power, few = power_where_redundant(np.full((tr.n_epochs, 1), 3.0), tr, tr.truth, replace(opts, graph=graph))
+    assert few == 4 and power.shape == (tr.n_epochs, 1)
+    assert (power[5:9] == 0).all() and (np.delete(power, np.s_[5:9]) == 3.0).all()

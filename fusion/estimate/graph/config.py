@@ -124,6 +124,11 @@ class GraphConfig:
     # where F <= 1, the canyons a higher one, smartLoc as logged 4; experiments/results/sigma_power_ramp.md).
     learned_sigma_power_high: float = 4.0
     learned_sigma_power_f_high: float = 4.0
+    # At epochs of fewer distinct satellites than this above the mask, the fused mode's pseudorange sigmas are the
+    # physical model's (learned.modes.power_where_redundant; 0: off). 5 would take the Pixel5 RINEX test trace
+    # under a 30 degree mask 27.99 -> 21.87 m, but costs every tuning log where it acts (smartLoc GPS-only at 30
+    # degrees 49.38 -> 50.08 m, held-out simulated GPS phones 2.90 -> 3.06 m; few_satellite_sigmas.md).
+    learned_sigma_min_sats: int = 0
     # How many times the fused mode asks the network for those sigmas (learned.modes.sigmas_again): the
     # first pass at the graph without anything learned, each further one at the graph's answer with the sigmas
     # before (the prior and the biases stay the first pass's). Chosen on the logs whose gain is inside the trace:
@@ -359,7 +364,8 @@ class GraphConfig:
 MAY_BE_ZERO = {"prior_sigma_floor_m", "prior_factor_power", "doppler_check_window_s", "carrier_check_window_s",
                "pseudorange_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
                "tdcp_cn0_ref_dbhz", "learned_carrier_power", "learned_doppler_power",
-               "learned_carrier_min_count", "tdcp_min_distinct_sats", "carrier_clock_prior_m",
+               "learned_carrier_min_count", "learned_sigma_min_sats", "tdcp_min_distinct_sats",
+               "carrier_clock_prior_m",
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",
                "odom_speed_sigma_floor_mps", "cv_level_sigma_mps", "learned_sigma_power",
