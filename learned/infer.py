@@ -33,8 +33,24 @@ from learned.npz_weights import check_config, load_for_inference
 SHIPPED_WEIGHTS = Path(__file__).resolve().parent / "weights" / "gnssfuse_dnn.json"
 #: Training signal set assumed for checkpoints that do not record one (all were GPS L1 only).
 DEFAULT_SIGNALS = ("GPS_L1",)
-#: Epochs per forward pass at inference (bounded memory; 2,000-epoch traces go in one chunk).
-INFER_CHUNK = 4096
+#: Epochs per forward pass at inference: bounded memory, and epochs of like satellite counts together, so that
+#: each chunk pads its sets only to its own largest (benchmarks/bench_infer.py).
+INFER_CHUNK = 512
+#: The chunk outputs with a slot axis, (N,S).
+SLOT_OUTPUTS = ("sigma", "bias", "oor", "base")
+
+
+def chunks_by_size(n_real: np.ndarray):
+    """Row indices of chunks of at most ``INFER_CHUNK`` epochs, epochs sorted by their count of real slots
+    ``n_real`` (N,) (stable): yields (n,) int arrays covering 0..N-1 once."""
+    order = np.argsort(n_real, kind="stable")
+    for a in range(0, len(order), INFER_CHUNK):
+        yield order[a:a + INFER_CHUNK]
+
+
+def pad_slots(a: np.ndarray, n_slots: int) -> np.ndarray:
+    """(N,s) chunk output padded with zeros (False) to (N,n_slots)."""
+    return np.pad(a, ((0, 0), (0, n_slots - a.shape[1])))
 
 
 @dataclass
@@ -227,15 +243,20 @@ class Corrector:
             return np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)
         sat_pos, pr, m = take(trace.sat_pos[idx]), take(trace.pr[idx] - ctx["isb"]), take(mask)
         ctx = {k: take(v) for k, v in ctx.items()}
-        parts = [self._chunk(sat_pos[sl], pr[sl], m[sl], {k: v[sl] for k, v in ctx.items()}, guess[sl])
-                 for sl in (slice(a, a + INFER_CHUNK) for a in range(0, len(idx), INFER_CHUNK))]
+        parts, chunks = [], list(chunks_by_size(m.sum(1)))
+        for rows in chunks:
+            n = max(int(m[rows].sum(1).max()), 1)           # this chunk's slots: attention costs their square
+            part = self._chunk(sat_pos[rows, :n], pr[rows, :n], m[rows, :n],
+                               {k: v[rows, :n] for k, v in ctx.items()}, guess[rows])
+            parts.append({k: pad_slots(v, m.shape[1]) if k in SLOT_OUTPUTS else v for k, v in part.items()})
         counts = {}
         for p in parts:
             for k, v in p.pop("counts").items():
                 counts[k] = counts.get(k, 0) + v
-        out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        back = np.argsort(np.concatenate(chunks))
+        out = {k: np.concatenate([p[k] for p in parts])[back] for k in parts[0]}
         out["counts"] = counts
-        for k in ("sigma", "bias", "oor", "base"):      # back from compacted to trace slots
+        for k in SLOT_OUTPUTS:                          # back from compacted to trace slots
             full = np.zeros(mask.shape, out[k].dtype)
             np.put_along_axis(full, order, out[k], axis=1)
             out[k] = np.where(mask, full, False if k == "oor" else np.nan)

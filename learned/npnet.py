@@ -21,8 +21,15 @@ _LN_EPS = 1e-5
 
 
 def linear(w: dict, name: str, x: np.ndarray) -> np.ndarray:
-    """``x @ W^T + b`` with ``name.weight`` (out,in) and ``name.bias`` (out,)."""
-    return x @ w[f"{name}.weight"].T + w[f"{name}.bias"]
+    """``x @ W^T + b`` with ``name.weight`` (out,in) and ``name.bias`` (out,); x (..., in) -> (..., out)."""
+    return project(x, w[f"{name}.weight"], w[f"{name}.bias"])
+
+
+def project(x: np.ndarray, weight: np.ndarray, bias: np.ndarray) -> np.ndarray:
+    """``x @ weight^T + bias``, x (..., in), weight (out,in): as one matrix product over all leading axes (numpy
+    multiplies a stack of (S,in) matrices one by one, twice as slow at the sizes asked; bench_infer.py)."""
+    flat = x.reshape(-1, x.shape[-1]) @ weight.T + bias
+    return flat.reshape(x.shape[:-1] + (weight.shape[0],))
 
 
 def layer_norm(w: dict, name: str, x: np.ndarray) -> np.ndarray:
@@ -41,19 +48,22 @@ def attention(w: dict, name: str, q: np.ndarray, kv: np.ndarray, n_heads: int,
     """``nn.MultiheadAttention(q, kv, kv, key_padding_mask=key_pad)``: q (B,L,D), kv (B,S,D), key_pad (B,S)
     True where padded (None: no padding) -> (B,L,D)."""
     D = q.shape[-1]
-    Wq, Wk, Wv = np.split(w[f"{name}.in_proj_weight"], 3)
-    bq, bk, bv = np.split(w[f"{name}.in_proj_bias"], 3)
+    W, b = w[f"{name}.in_proj_weight"], w[f"{name}.in_proj_bias"]
     dh = D // n_heads
 
     def heads(a: np.ndarray) -> np.ndarray:        # (B,L,D) -> (B,H,L,dh)
         return a.reshape(a.shape[0], a.shape[1], n_heads, dh).transpose(0, 2, 1, 3)
-    Q, K, V = heads(q @ Wq.T + bq), heads(kv @ Wk.T + bk), heads(kv @ Wv.T + bv)
+    if q is kv:                                     # self-attention: the three projections in one product
+        Q, K, V = (heads(a) for a in np.split(project(q, W, b), 3, axis=-1))
+    else:
+        Q = heads(project(q, W[:D], b[:D]))
+        K, V = (heads(a) for a in np.split(project(kv, W[D:], b[D:]), 2, axis=-1))
     logits = (Q / np.float32(np.sqrt(dh))) @ K.transpose(0, 1, 3, 2)      # (B,H,L,S)
     if key_pad is not None:
         logits = np.where(key_pad[:, None, None, :], -np.inf, logits)
-    logits = logits - logits.max(-1, keepdims=True)
-    p = np.exp(logits)
-    p = p / p.sum(-1, keepdims=True)
+    logits -= logits.max(-1, keepdims=True)
+    p = np.exp(logits, out=logits)
+    p /= p.sum(-1, keepdims=True)
     out = (p @ V).transpose(0, 2, 1, 3).reshape(q.shape[0], q.shape[1], D)
     return linear(w, f"{name}.out_proj", out)
 

@@ -396,3 +396,23 @@ def test_the_shipped_network_reads_other_constellations(shipped_trace_dir):
     assert c_multi.info["meas_unseen_signal"] == 0 and np.median(c_multi.trust[ok]) > 0.5
     step = np.linalg.norm(c_multi.corr_ned[ok] - c_gps.corr_ned[ok], axis=1)
     assert np.median(step) < 3.0
+
+
+def test_chunks_of_like_satellite_counts_give_what_one_chunk_gives(monkeypatch):
+    """learned.infer.chunks_by_size: epochs sorted by their satellite count into chunks, each padded to its own
+    largest set, and put back in their order; a chunk of 7 epochs over a toy trace of 5-11 satellites gives what
+    one chunk of all gives (float32 sums over fewer padded slots: to 1e-5)."""
+    import learned.infer as infer
+    tr = toy_trace(40, seed=4, n_sats=(5, 11))
+    assert len(np.unique(tr.mask.sum(1))) > 3
+    corr = Corrector.load(SHIPPED_WEIGHTS)
+    guess, valid = tr.truth + 4.0, np.ones(tr.n_epochs, bool)
+    monkeypatch.setattr(infer, "INFER_CHUNK", 4096)
+    whole = corr.predict(tr, guess, valid)
+    monkeypatch.setattr(infer, "INFER_CHUNK", 7)
+    chunked = corr.predict(tr, guess, valid)
+    for name in ("mean_ecef", "cov_ecef", "sigma", "bias"):
+        np.testing.assert_allclose(getattr(chunked, name), getattr(whole, name), rtol=1e-4, atol=1e-5, err_msg=name)
+    rows = list(infer.chunks_by_size(tr.mask.sum(1)))
+    assert sorted(np.concatenate(rows).tolist()) == list(range(tr.n_epochs)) and max(map(len, rows)) == 7
+    assert (np.diff(tr.mask.sum(1)[np.concatenate(rows)]) >= 0).all()          # sorted by count
