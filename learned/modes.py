@@ -280,7 +280,8 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
     F = residual_factor(trace, at, opts)
     power, few = power_where_redundant(sigma_power_by_factor(F, opts), trace, at, opts)
     learned = prior_by_factor(graph_inputs(corrector, trace, wls, opts, at, power), F, opts)
-    learned.info = dict(learned.info or {}, learned_epochs_few_satellites=few)
+    if opts.graph.learned_sigma_min_sats > 0:
+        learned.info = dict(learned.info or {}, learned_epochs_few_satellites=few)
     learned = prior_where_determined(learned, solved)
     learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start, power)
     # the solve with the learned inputs starts from the last solve's solution
