@@ -258,8 +258,9 @@ class GraphConfig:
     # An epoch pair keeps its carrier differences only with at least this many distinct satellites among them (0:
     # the differences alone are counted, MIN_TDCP_SATS of them). A second frequency repeats its satellite's
     # direction; the batch solver's damped step settles such pairs, and they pay (counting satellites took a held-out
-    # simulated GPS L1 + L5 suburban trace 11.8 -> 21.9 m). The incremental smoother retries a trace with 5 where its
-    # undamped step found the system singular (fusion.estimate.graph.fuse.incremental_or_retry).
+    # simulated GPS L1 + L5 suburban trace 11.8 -> 21.9 m, a scratch run). The incremental smoother retries a trace
+    # with 5 where its undamped step found the system singular (fusion.estimate.graph.fuse.incremental_or_retry,
+    # experiments/results/incremental_retry.md).
     tdcp_min_distinct_sats: int = 0
     # A prior on each carrier clock at the code clock, with this sigma [m] (0: none). The incremental smoother's
     # retry takes 20 m (a thousand times the carrier factors' 2 cm floor): where the robust loss has all but switched
