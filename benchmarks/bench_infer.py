@@ -10,7 +10,6 @@ Traces: the Pixel5 RINEX trace with SP3/CLK (GPS, GLONASS, Galileo: 17-30 signal
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -19,14 +18,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import learned.infer as infer  # noqa: E402
+from benchmarks.bench_pixel5 import PRECISE, TRACE as PIXEL5  # noqa: E402
 from fusion.modes import solve_initial  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.prepare.raw_load import RawSources  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 
-SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
-PIXEL5 = SHARED / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5"
-PRECISE = SHARED / "ephemeris/precise"
 SHIPPED = REPO / "data/gsdc2021/train/2021-04-28-US-MTV-1/Pixel4"
 
 

@@ -223,15 +223,15 @@ def sigma_power_by_factor(F: np.ndarray | None, opts: RunOptions) -> float | np.
 
 
 def power_where_redundant(power: float | np.ndarray, trace: Trace, at: np.ndarray, opts: RunOptions
-                          ) -> tuple[float | np.ndarray, int]:
+                          ) -> tuple[float | np.ndarray, int | None]:
     """The learned sigmas' ``power`` (a number or (E,1)) set to 0, the physical model's sigma, at the epochs where
     fewer than ``GraphConfig.learned_sigma_min_sats`` distinct satellites are above the mask at ``at`` (E,3) ECEF,
-    and the count of such epochs (0: off, as shipped). The head judges each satellite against the others, and
+    and the count of such epochs (None: the rule is off, ``learned_sigma_min_sats`` 0 as shipped). The head judges each satellite against the others, and
     four leave little to judge by; but on every tuning log where the rule acts it costs, and only a test trace
     gains (experiments/results/few_satellite_sigmas.md)."""
     n_min = opts.graph.learned_sigma_min_sats
     if n_min <= 0:
-        return power, 0
+        return power, None
     sel, _ = sigma_model(trace, at, opts.elev_mask_deg)
     few = satellite_counts(trace.sat_id, sel) < n_min
     if not few.any():
@@ -280,7 +280,7 @@ def estimate_fused(trace: Trace, wls: WlsResult, opts: RunOptions) -> ModeResult
     F = residual_factor(trace, at, opts)
     power, few = power_where_redundant(sigma_power_by_factor(F, opts), trace, at, opts)
     learned = prior_by_factor(graph_inputs(corrector, trace, wls, opts, at, power), F, opts)
-    if opts.graph.learned_sigma_min_sats > 0:
+    if few is not None:
         learned.info = dict(learned.info or {}, learned_epochs_few_satellites=few)
     learned = prior_where_determined(learned, solved)
     learned, start = sigmas_again(corrector, trace, wls, opts, learned, at, start, power)

@@ -211,7 +211,7 @@ def _trace_section(ev: TraceEval, figs: dict[str, str]) -> list[str]:
         info = (rec or {}).get("info") or {}
         said = [f"{mode}: {words(info)}." for key, words in LEARNED_WORDS if key in info]
         said += [f"{mode}: {bridged_words(info)}."] if info.get("epochs_bridged") else []
-        said += [f"{mode}: {incremental_words(info)}."] if incremental_words(info) else []
+        said += [f"{mode}: {inc}."] if (inc := incremental_words(info)) else []
         lines += said + [""] if said else []
     if not ev.errors:
         lines += ["No ground truth: metrics unavailable; estimates are still written.", ""]

@@ -114,8 +114,8 @@ def run_summary(record: dict) -> str:
                      "drift of its own")
     if info.get("epochs_bridged"):
         lines.append(bridged_words(info))
-    if incremental_words(info):
-        lines.append(incremental_words(info))
+    if said := incremental_words(info):
+        lines.append(said)
     m = record.get("metrics") or {}
     if "within1sigma_n" in m:
         lines.append("errors within the mode's 1 sigma, N / E / D: "

@@ -100,7 +100,7 @@ def test_the_learned_sigmas_power_is_zero_where_too_few_satellites_are_above_the
                   config=SimConfig(doppler=True, carrier=False, dual_frequency=True)).trace
     tr = three_satellites(tr, range(5, 9), on_two=2)          # three satellites, five pseudoranges
     opts = RunOptions()
-    assert power_where_redundant(4.0, tr, tr.truth, opts) == (4.0, 0)
+    assert power_where_redundant(4.0, tr, tr.truth, opts) == (4.0, None)
     graph = replace(opts.graph, learned_sigma_min_sats=4)
     power, few = power_where_redundant(np.full((tr.n_epochs, 1), 3.0), tr, tr.truth, replace(opts, graph=graph))
     assert few == 4 and power.shape == (tr.n_epochs, 1)
