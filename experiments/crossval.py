@@ -145,7 +145,7 @@ def recipe(args, data: dict) -> TrainConfig:
     return TrainConfig(epochs=args.epochs, batch=args.batch, seed=args.seed, data=data, loss=w,
                        guess_mix=parse_guess_mix(args.guess_mix), output="wls", dropout=parse_dropout(args.dropout),
                        features=FeatureConfig(version=args.feature_version, inputs=tuple(inputs.split(","))),
-                       signals=args.signals, init=args.init)
+                       signals=args.signals, init=args.init, sat_dropout=args.sat_dropout)
 
 
 def eval_drive(drive: str, ckpt: Path, args) -> dict:
@@ -295,6 +295,7 @@ def parse_args(argv=None):
     p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3")
     p.add_argument("--inputs", default=None, help="input groups (default: the shipped recipe's, gnssfuse train --inputs)")
     p.add_argument("--dropout", default=None, help="feature dropout rates (gnssfuse train --dropout)")
+    p.add_argument("--sat-dropout", type=float, default=0.0, help="satellite dropout rate (gnssfuse train --sat-dropout)")
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
     p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")
     p.add_argument("--init", type=Path, default=None,

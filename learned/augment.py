@@ -108,3 +108,49 @@ def draw_mixed_guesses(truth: torch.Tensor, wls: torch.Tensor, usable: torch.Ten
     near_wls = w + torch.einsum("bji,bj->bi", ned_rotation_torch(w), u)
     is_box = (pick < box_frac) | ~usable
     return torch.where(is_box[:, None], box, near_wls), is_box
+
+
+# ------------------------------------------------------------------------------------ satellite thinning
+#: Slots whose satellite positions lie closer than this [m] are one satellite's signals (L1 and L5 of one
+#: satellite differ by their transmit times' microseconds: millimetres; two satellites by thousands of km).
+SAME_SATELLITE_M = 1000.0
+#: Fewest satellites a thinned sample keeps: a position and a clock.
+THIN_MIN_SATS = 4
+
+
+def satellite_groups(sat_pos: torch.Tensor, mask: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    """(N,S) long: for each slot the index of the first real slot of the same satellite (its own index
+    where it is the first, or not real). sat_pos (N,S,3) ECEF [m], mask (N,S) bool."""
+    S = mask.shape[1]
+    out = []
+    for a in range(0, mask.shape[0], chunk):
+        p, m = sat_pos[a:a + chunk], mask[a:a + chunk]
+        same = (torch.cdist(p, p) < SAME_SATELLITE_M) & m[:, None, :] & m[:, :, None]       # (n,S,S)
+        first = torch.where(same, torch.arange(S, device=p.device), S).min(dim=2).values
+        out.append(torch.where(m, first, torch.arange(S, device=p.device)))
+    return torch.cat(out)
+
+
+def thin_satellites(mask: torch.Tensor, groups: torch.Tensor, rate: float,
+                    generator: torch.Generator) -> torch.Tensor:
+    """Satellite dropout: with probability ``rate`` a sample keeps only k of its n satellites (all their
+    signals), k uniform in [THIN_MIN_SATS, n], the rest read as blocked, as a street canyon blocks them.
+    Teaches the network the few-satellite sets that open-sky training drives rarely hold.
+
+    mask (N,S) bool, groups (N,S) from :func:`satellite_groups`; returns the thinned mask (N,S). Draws three
+    (N,S)-or-(N,) uniforms from ``generator`` whatever the rate, so a run's later draws do not depend on it."""
+    N, S = mask.shape
+    dev = mask.device
+    u = torch.rand((N, S), generator=generator, device=dev, dtype=torch.float64)
+    pick = torch.rand(N, generator=generator, device=dev, dtype=torch.float64)
+    frac = torch.rand(N, generator=generator, device=dev, dtype=torch.float64)
+    first = mask & (groups == torch.arange(S, device=dev))                     # one slot per satellite
+    n = first.sum(1)
+    key = torch.where(first, u, torch.inf)
+    rank = torch.empty_like(key).scatter_(1, key.argsort(1), torch.arange(S, device=dev, dtype=key.dtype).expand(N, S))
+    span = (n - THIN_MIN_SATS + 1).clamp_min(1)
+    k = THIN_MIN_SATS + torch.floor(frac * span).to(n.dtype)
+    keep_sat = rank < k[:, None]                                               # on first slots
+    keep = torch.gather(keep_sat, 1, groups)
+    thinned = (pick < rate) & (n > THIN_MIN_SATS)
+    return mask & (keep | ~thinned[:, None])

@@ -33,7 +33,8 @@ import torch.nn.functional as F
 
 from fusion.errors import CheckpointError, DataError
 from learned import distributed as dist
-from learned.augment import draw_guesses, draw_mixed_guesses, epoch_generator, parse_guess_mix
+from learned.augment import (draw_guesses, draw_mixed_guesses, epoch_generator, parse_guess_mix, satellite_groups,
+                             thin_satellites)
 from learned.calibrate import calibrate_checkpoint
 from learned.checkpoint import read_checkpoint, save_checkpoint
 from learned.data import Samples
@@ -97,6 +98,9 @@ class TrainConfig:
     # a checkpoint whose weights start the run (pre-training elsewhere, e.g. on simulated traces); None:
     # weights drawn from the seed. The optimiser starts afresh either way.
     init: str | Path | None = None
+    # satellite dropout: per sample and epoch, the chance that it keeps only a few of its satellites
+    # (learned.augment.thin_satellites), as a street canyon leaves them; 0: off
+    sat_dropout: float = 0.0
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
@@ -112,6 +116,7 @@ class TrainConfig:
             "loss": vars(self.loss).copy(), "output": self.output,
             **({"dropout": dict(self.dropout)} if self.features.version > 2 else {}),
             **({"init": str(self.init)} if self.init is not None else {}),
+            **({"sat_dropout": self.sat_dropout} if self.sat_dropout > 0 else {}),
         }
 
 
@@ -182,6 +187,16 @@ def feature_dropout(t: dict, cfg: TrainConfig, generator: torch.Generator) -> di
             unknown[-1] = 1.0
             extra[..., sl] = torch.where(d[..., None], unknown, extra[..., sl])
     return dict(t, extra=extra, pr_sigma=prs)
+
+
+def satellite_dropout(t: dict, cfg: TrainConfig, generator: torch.Generator) -> dict:
+    """Sample tensors with this epoch's satellite dropout applied to ``mask`` (:func:`thin_satellites`); the
+    satellites of each slot (``sat_group``, (N,S)) are found once and kept in ``t``. Off: ``t`` as is."""
+    if cfg.sat_dropout <= 0:
+        return t
+    if "sat_group" not in t:
+        t["sat_group"] = satellite_groups(t["sat_pos"], t["mask"])
+    return dict(t, mask=thin_satellites(t["mask"], t["sat_group"], cfg.sat_dropout, generator))
 
 
 def guesses_for(t: dict, cfg: TrainConfig, generator: torch.Generator) -> torch.Tensor:
@@ -278,7 +293,8 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     now = cfg.to_checkpoint_config()
     # everything but the epoch count shapes the run: a resumed run must draw what an uninterrupted one would
     for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss", "batch",
-                "lr", "betas", "warmup_epochs", "val_frac", "wls_max_err", "signals", "output", "dropout"):
+                "lr", "betas", "warmup_epochs", "val_frac", "wls_max_err", "signals", "output", "dropout",
+                "sat_dropout"):
         if _resume_view(blob["config"], key) != _resume_view(now, key):
             raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
                                   f"({blob['config'].get(key)!r} in checkpoint vs {now.get(key)!r} now)")
@@ -377,7 +393,7 @@ def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: in
     gen = epoch_generator(cfg.seed, epoch, tr["truth"].device, rank=dist.rank())
     fixed = epoch_generator(cfg.seed, -1, tr["truth"].device)       # --no-augment: the same guesses every epoch
     guess = guesses_for(tr, cfg, gen if cfg.augment else fixed)
-    inp = make_inputs(feature_dropout(tr, cfg, gen), guess, cfg.features)
+    inp = make_inputs(satellite_dropout(feature_dropout(tr, cfg, gen), cfg, gen), guess, cfg.features)
     # one permutation shared by every rank (same seed), each rank taking its own shard of it
     order = dist.shard(torch.randperm(tr["truth"].shape[0], generator=epoch_generator(cfg.seed, epoch)))
     t1 = time.perf_counter()

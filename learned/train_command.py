@@ -98,7 +98,7 @@ def config_from_args(args, desc: dict) -> TrainConfig:
                        val_frac=args.val_frac, device=args.device, features=features, data=desc, guess_mix=mix,
                        wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate,
                        loss=parse_loss(args.loss), output=args.output, dropout=parse_dropout(args.dropout),
-                       signals=signals_of(args), init=args.init)
+                       signals=signals_of(args), init=args.init, sat_dropout=args.sat_dropout)
 
 
 def signals_of(args) -> tuple[str, ...]:
@@ -111,6 +111,8 @@ def check_args(args) -> None:
         raise DataError("need --epochs >= 1, --batch >= 1, 0 <= --val-frac < 1, --eta > 0")
     if args.wls_jitter < 0 or args.wls_max_err <= 0:
         raise DataError("need --wls-jitter >= 0 and --wls-max-err > 0")
+    if not 0 <= args.sat_dropout <= 1:
+        raise DataError(f"--sat-dropout: a rate in [0, 1], got {args.sat_dropout}")
 
 
 def summary(out: Path, hist: list[dict]) -> str:

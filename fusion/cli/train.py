@@ -39,6 +39,9 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
     p.add_argument("--dropout", default=None,
                    help="feature dropout (feature version 3): group=rate pairs, e.g. pr_sigma=0.25,signal=0.1; "
                         "groups not named keep the recipe's rates (learned/weights/TRAINING.md)")
+    p.add_argument("--sat-dropout", type=float, default=0.0, metavar="RATE",
+                   help="satellite dropout: per sample and epoch, the chance it keeps only 4..n of its n satellites "
+                        "(as a street canyon leaves them; default 0, off)")
     p.add_argument("--resume", action="store_true", help="continue from <out>.last")
     p.add_argument("--init", type=Path, default=None, metavar="CKPT",
                    help="start from this checkpoint's weights (pre-trained, e.g. on simulated traces; same network "
