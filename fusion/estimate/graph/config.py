@@ -236,6 +236,11 @@ class GraphConfig:
     # traces; as logged, every trace moved by -1.0 to +1.2 %. Carrier phase made worse did better unchecked
     # (0.518 against 0.541 x on the Pixel5), so its check is off (experiments/results/raw_sigma_check.md).
     doppler_check_window_s: float = 60.0
+    # An epoch keeps its Doppler only with at least this many distinct satellites among them (0: every epoch).
+    # Off: at 3 it rescued the Pixel5 laid in a simulated deep canyon (65.88 -> 36.99 m, a test trace, reported),
+    # but Doppler at few satellites is what carries the simulated traces thinned to three satellites (20.29 ->
+    # 27.41 m) and the random GPS-only deep drives (14.73 -> 15.41 m) (experiments/results/canyon_on_phone.md).
+    doppler_min_sats: int = 0
     carrier_check_window_s: float = 0.0
     # The same check on the pseudoranges (a clock per signal in the one-epoch fits; the sigmas it scales are
     # the learned ones in fused): a common factor per epoch, so the satellites' ratios stay and only the
@@ -365,7 +370,7 @@ class GraphConfig:
 MAY_BE_ZERO = {"prior_sigma_floor_m", "prior_factor_power", "doppler_check_window_s", "carrier_check_window_s",
                "pseudorange_check_window_s", "prr_sigma_floor_mps", "prr_cn0_ref_dbhz", "tdcp_sigma_floor_m",
                "tdcp_cn0_ref_dbhz", "learned_carrier_power", "learned_doppler_power",
-               "learned_carrier_min_count", "learned_sigma_min_sats", "tdcp_min_distinct_sats",
+               "learned_carrier_min_count", "learned_sigma_min_sats", "tdcp_min_distinct_sats", "doppler_min_sats",
                "carrier_clock_prior_m",
                "isam_settle", "isam_wildfire_m", "isam_relin_threshold",
                "isam_carrier_wildfire_m", "isam_carrier_relin_threshold", "clock_sigma_m",

@@ -73,6 +73,10 @@ def doppler_slots(trace: Trace, above: np.ndarray, has_clock: np.ndarray, cfg: G
     no_sat_vel = ok & ~bad_sigma & ~np.any(trace.sat_vel != 0, axis=-1)
     count_skip(counts, "doppler_without_satellite_velocity", no_sat_vel)
     use = ok & ~bad_sigma & ~no_sat_vel & above & has_clock[:, None]
+    if cfg.doppler_min_sats > 0:
+        few = satellite_counts(trace.sat_id, use) < cfg.doppler_min_sats
+        count_skip(counts, "doppler_few_satellites", use & few[:, None])
+        use = use & ~few[:, None]
     if cfg.motion != "cv":
         count_skip(counts, "doppler_without_velocity_states", use)
         use = np.zeros_like(use)
