@@ -295,7 +295,8 @@ def parse_args(argv=None):
     p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3")
     p.add_argument("--inputs", default=None, help="input groups (default: the shipped recipe's, gnssfuse train --inputs)")
     p.add_argument("--dropout", default=None, help="feature dropout rates (gnssfuse train --dropout)")
-    p.add_argument("--sat-dropout", type=float, default=0.0, help="satellite dropout rate (gnssfuse train --sat-dropout)")
+    p.add_argument("--sat-dropout", type=float, default=0.0,
+                   help="satellite dropout rate (gnssfuse train --sat-dropout)")
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")
     p.add_argument("--reuse", action="store_true", help="reuse fold checkpoints already in --out")
     p.add_argument("--init", type=Path, default=None,

@@ -137,8 +137,8 @@ def thin_satellites(mask: torch.Tensor, groups: torch.Tensor, rate: float,
     signals), k uniform in [THIN_MIN_SATS, n], the rest read as blocked, as a street canyon blocks them.
     Teaches the network the few-satellite sets that open-sky training drives rarely hold.
 
-    mask (N,S) bool, groups (N,S) from :func:`satellite_groups`; returns the thinned mask (N,S). Draws three
-    (N,S)-or-(N,) uniforms from ``generator`` whatever the rate, so a run's later draws do not depend on it."""
+    mask (N,S) bool, groups (N,S) from :func:`satellite_groups`; returns the thinned mask (N,S). The draws from
+    ``generator`` are the same whatever the rate."""
     N, S = mask.shape
     dev = mask.device
     u = torch.rand((N, S), generator=generator, device=dev, dtype=torch.float64)
@@ -147,7 +147,8 @@ def thin_satellites(mask: torch.Tensor, groups: torch.Tensor, rate: float,
     first = mask & (groups == torch.arange(S, device=dev))                     # one slot per satellite
     n = first.sum(1)
     key = torch.where(first, u, torch.inf)
-    rank = torch.empty_like(key).scatter_(1, key.argsort(1), torch.arange(S, device=dev, dtype=key.dtype).expand(N, S))
+    order = torch.arange(S, device=dev, dtype=key.dtype).expand(N, S)
+    rank = torch.empty_like(key).scatter_(1, key.argsort(1), order)             # each satellite's place in the draw
     span = (n - THIN_MIN_SATS + 1).clamp_min(1)
     k = THIN_MIN_SATS + torch.floor(frac * span).to(n.dtype)
     keep_sat = rank < k[:, None]                                               # on first slots

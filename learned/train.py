@@ -189,14 +189,15 @@ def feature_dropout(t: dict, cfg: TrainConfig, generator: torch.Generator) -> di
     return dict(t, extra=extra, pr_sigma=prs)
 
 
-def satellite_dropout(t: dict, cfg: TrainConfig, generator: torch.Generator) -> dict:
-    """Sample tensors with this epoch's satellite dropout applied to ``mask`` (:func:`thin_satellites`); the
-    satellites of each slot (``sat_group``, (N,S)) are found once and kept in ``t``. Off: ``t`` as is."""
+def satellite_dropout(t: dict, cfg: TrainConfig, generator: torch.Generator, samples: dict) -> dict:
+    """Sample tensors ``t`` with this epoch's satellite dropout applied to ``mask`` (:func:`thin_satellites`);
+    the satellite of each slot (``sat_group`` (N,S)) is found once and kept in ``samples``, the run's own
+    sample tensors. Off: ``t`` as is."""
     if cfg.sat_dropout <= 0:
         return t
-    if "sat_group" not in t:
-        t["sat_group"] = satellite_groups(t["sat_pos"], t["mask"])
-    return dict(t, mask=thin_satellites(t["mask"], t["sat_group"], cfg.sat_dropout, generator))
+    if "sat_group" not in samples:
+        samples["sat_group"] = satellite_groups(samples["sat_pos"], samples["mask"])
+    return dict(t, mask=thin_satellites(t["mask"], samples["sat_group"], cfg.sat_dropout, generator))
 
 
 def guesses_for(t: dict, cfg: TrainConfig, generator: torch.Generator) -> torch.Tensor:
@@ -393,7 +394,7 @@ def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: in
     gen = epoch_generator(cfg.seed, epoch, tr["truth"].device, rank=dist.rank())
     fixed = epoch_generator(cfg.seed, -1, tr["truth"].device)       # --no-augment: the same guesses every epoch
     guess = guesses_for(tr, cfg, gen if cfg.augment else fixed)
-    inp = make_inputs(satellite_dropout(feature_dropout(tr, cfg, gen), cfg, gen), guess, cfg.features)
+    inp = make_inputs(satellite_dropout(feature_dropout(tr, cfg, gen), cfg, gen, tr), guess, cfg.features)
     # one permutation shared by every rank (same seed), each rank taking its own shard of it
     order = dist.shard(torch.randperm(tr["truth"].shape[0], generator=epoch_generator(cfg.seed, epoch)))
     t1 = time.perf_counter()
