@@ -243,9 +243,10 @@ class Corrector:
             return np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)
         sat_pos, pr, m = take(trace.sat_pos[idx]), take(trace.pr[idx] - ctx["isb"]), take(mask)
         ctx = {k: take(v) for k, v in ctx.items()}
-        parts, chunks = [], list(chunks_by_size(m.sum(1)))
+        n_real = m.sum(1)
+        parts, chunks = [], list(chunks_by_size(n_real))
         for rows in chunks:
-            n = max(int(m[rows].sum(1).max()), 1)           # this chunk's slots: attention costs their square
+            n = max(int(n_real[rows[-1]]), 1)               # this chunk's largest set (sorted): attention costs n^2
             part = self._chunk(sat_pos[rows, :n], pr[rows, :n], m[rows, :n],
                                {k: v[rows, :n] for k, v in ctx.items()}, guess[rows])
             parts.append({k: pad_slots(v, m.shape[1]) if k in SLOT_OUTPUTS else v for k, v in part.items()})

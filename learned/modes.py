@@ -226,9 +226,9 @@ def power_where_redundant(power: float | np.ndarray, trace: Trace, at: np.ndarra
                           ) -> tuple[float | np.ndarray, int | None]:
     """The learned sigmas' ``power`` (a number or (E,1)) set to 0, the physical model's sigma, at the epochs where
     fewer than ``GraphConfig.learned_sigma_min_sats`` distinct satellites are above the mask at ``at`` (E,3) ECEF,
-    and the count of such epochs (None: the rule is off, ``learned_sigma_min_sats`` 0 as shipped). The head judges each satellite against the others, and
-    four leave little to judge by; but on every tuning log where the rule acts it costs, and only a test trace
-    gains (experiments/results/few_satellite_sigmas.md)."""
+    and the count of such epochs (None: the rule is off, ``learned_sigma_min_sats`` 0 as shipped). The head
+    judges each satellite against the others, and four leave little to judge by; but on every tuning log where
+    the rule acts it costs, and only a test trace gains (experiments/results/few_satellite_sigmas.md)."""
     n_min = opts.graph.learned_sigma_min_sats
     if n_min <= 0:
         return power, None

@@ -104,9 +104,9 @@ def tdcp_pairs(trace: Trace, above: np.ndarray, clock_link: np.ndarray, cfg: Gra
     # a displacement and a carrier clock change are four unknowns: with fewer than MIN_TDCP_SATS
     # differences an epoch pair's carrier factors would leave them singular (or unchecked by the
     # robust loss), so the pair keeps none; nor with fewer distinct satellites than cfg.tdcp_min_distinct_sats
-    few = use.any(axis=1) & (use.sum(axis=1) < MIN_TDCP_SATS)
+    few = use.sum(axis=1) < MIN_TDCP_SATS
     if cfg.tdcp_min_distinct_sats > 0:
-        few |= use.any(axis=1) & (satellite_counts(trace.sat_id[1:], use) < cfg.tdcp_min_distinct_sats)
+        few |= satellite_counts(trace.sat_id[1:], use) < cfg.tdcp_min_distinct_sats
     count_skip(counts, "carrier_too_few_satellites", use & few[:, None])
     use &= ~few[:, None]
     prev[1:] = np.where(use, same.argmax(axis=2), -1)
