@@ -50,6 +50,8 @@ def main(argv=None) -> int:
     p.add_argument("--first-seed", type=int, default=None, help="seeds count up from the one after this "
                    f"(default 0 for training, {HELD_OUT_SEED} held out)")
     p.add_argument("--carrier", action="store_true", help="carrier phase too (not in the shipped recipe's traces)")
+    p.add_argument("--broadcast-errors", action="store_true",
+                   help="the range errors broadcast corrections leave, too (not in the shipped recipe's traces)")
     p.add_argument("--constellations", default=None, help="e.g. GPS: a phone of one constellation (default: all four)")
     args = p.parse_args(argv)
     tracks, seed, prefix = (HELD_OUT_TRACKS, HELD_OUT_SEED, "ho") if args.held_out else (TRACKS, 0, "sim")
@@ -61,6 +63,7 @@ def main(argv=None) -> int:
             rc = cli(["simulate", "--out", str(args.out), "--scenario", scenario, "--trajectory", str(gt),
                       "--seed", str(seed), "--collection", f"{prefix}-{scenario}-{seed}", "--epochs", str(args.epochs)]
                      + (["--carrier"] if args.carrier else [])
+                     + (["--broadcast-errors"] if args.broadcast_errors else [])
                      + (["--constellations", args.constellations] if args.constellations else []))
             if rc:
                 return rc

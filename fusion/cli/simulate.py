@@ -62,6 +62,9 @@ def build_parser(prog: str = "gnssfuse simulate") -> argparse.ArgumentParser:
     ap.add_argument("--carrier", action="store_true",
                     help="carrier phase too (AccumulatedDeltaRange; a slip where an arc breaks or a signal "
                          "turns reflected or back)")
+    ap.add_argument("--broadcast-errors", action="store_true",
+                    help="also the slowly varying range errors broadcast corrections leave (orbit and clock, "
+                         "ionosphere, troposphere) on code and carrier")
     ap.add_argument("--constellations", default=None,
                     help="GPS,GLO,GAL,BDS or all (default GPS; scenarios all); no records in --nav: synthetic")
     ap.add_argument("--format", choices=FORMATS, default="auto",
@@ -108,7 +111,7 @@ def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
         cfg = config_from_options(args.scenario, args.constellations, sigma_m=args.sigma,
                                   elevation_noise=args.elevation_noise, elev_mask_deg=args.elev_mask,
                                   max_sats=args.max_sats, nlos=args.bias_scenario,
-                                  carrier=args.carrier)
+                                  carrier=args.carrier, broadcast_errors=args.broadcast_errors)
         cfg.validate()
         traj = _trajectory(args, rng)
     except ValueError as exc:

@@ -43,6 +43,8 @@ class SimConfig:
                      jump of the ambiguity by +-U[``slip_jump_m``] (see fusion.sim.doppler_carrier); with
                      ``slip_on_class_change`` a flagged slip wherever a satellite's signal turns reflected or
                      bent, or back (a tracking loop loses lock there).
+    broadcast_errors: also the slowly varying range errors the broadcast corrections leave (orbit and clock,
+                     ionosphere, troposphere; :mod:`fusion.sim.broadcast_errors`) on code and carrier.
     """
 
     sigma_m: float = 6.0
@@ -66,6 +68,7 @@ class SimConfig:
     slip_prob: float = 0.0
     slip_jump_m: tuple[float, float] = (5.0, 100.0)
     slip_on_class_change: bool = True
+    broadcast_errors: bool = False
     systems: tuple[str, ...] = ("G",)
     dual_frequency: bool = False
     cn0: Cn0Model | None = None
@@ -126,7 +129,7 @@ def scenario_config(name: str, **overrides) -> SimConfig:
 def config_from_options(scenario: str | None = None, constellations: str | None = None, *,
                         sigma_m: float | None = None, elevation_noise: bool = False,
                         elev_mask_deg: float | None = None, max_sats: int | None = None,
-                        nlos: bool = False, carrier: bool = False) -> SimConfig:
+                        nlos: bool = False, carrier: bool = False, broadcast_errors: bool = False) -> SimConfig:
     """The settings a command line asks for: the scenario preset (None: the GPS-only default), with
     every option given (not None / True) replacing the preset's value. ``max_sats`` 0 = no cap;
     ``constellations`` as :func:`fusion.sim.constellations.parse_systems` reads it."""
@@ -142,6 +145,8 @@ def config_from_options(scenario: str | None = None, constellations: str | None 
         over["nlos"] = True
     if carrier:
         over["carrier"] = True
+    if broadcast_errors:
+        over["broadcast_errors"] = True
     cfg = replace(cfg, **over)
     cfg.validate()
     return cfg

@@ -20,6 +20,7 @@ from fusion.geometry import C_LIGHT, ecef2ned_vec, elevation_azimuth, line_of_si
 from fusion.gpstime import format_gps_ms
 from fusion.io.rinex_nav import Navigation
 from fusion.nav.orbits import GpsNav
+from fusion.sim.broadcast_errors import broadcast_range_errors
 from fusion.sim.canyon import BLOCKED, LOS, classify, los_multipath, street_layout
 from fusion.sim.cn0 import CHIP_M, dll_sigma_m, doppler_sigma_scale, draw_cn0, los_cn0
 from fusion.sim.config import SimConfig
@@ -277,6 +278,14 @@ def simulate_arrays(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, nav
     return {k: np.concatenate([p[k] if k in PER_EPOCH else _pad_slots(p[k], S, k) for p in parts]) for k in parts[0]}
 
 
+def _keyed_child(rng: np.random.Generator, key: int) -> np.random.Generator:
+    """A generator of its own, fixed by ``rng``'s seed, its spawn count so far and ``key``, that neither draws
+    from ``rng`` nor spawns from it: a model switched on this way leaves every other array as the same seed gives
+    it without the model (a spawn would shift the children of later chunks)."""
+    seq = rng.bit_generator.seed_seq
+    return np.random.default_rng([seq.entropy, *seq.spawn_key, seq.n_children_spawned, key])
+
+
 def _pad_slots(a: np.ndarray, S: int, key: str) -> np.ndarray:
     """(E, s[, 3]) slot array padded to S slots with the Trace's filler (sigma 1, else 0 / False)."""
     widths = [(0, 0), (0, S - a.shape[1])] + [(0, 0)] * (a.ndim - 2)
@@ -313,6 +322,12 @@ def _simulate_chunk(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, sky
     out.update({k: v for k, v in slot_env.items() if k not in ("sigma", "prr_scale")})
     slots = dict(out, range=rng_m, clock_drift=clock_drift)
     out.update(doppler_carrier_arrays(t_ms, rx, seg_start, slots, pick, P, cfg, rng, env=dict(slot_env, vel=vel)))
+    if cfg.broadcast_errors:
+        code, carrier = broadcast_range_errors(t_ms, seg_start, out["sat_id"], sig_k, mask, iono, tropo,
+                                               _keyed_child(rng, 0xB40AD))
+        out["pr"] = out["pr"] + code
+        if "adr" in out:
+            out["adr"] = out["adr"] + carrier
     zero = ~mask
     for k in _ZEROED:
         if k in out:
