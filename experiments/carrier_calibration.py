@@ -6,20 +6,24 @@ GSDC 2021 derived files, smartLoc). Where the graph holds carrier, its track is 
 marginals say so, but the terms added for a smoother fed by pseudoranges alone (a metre of horizontal floor, a
 share of the one-epoch variance) are metres. This measures how far off those settings are at the epochs carrier
 phase ties to a neighbour (``info["carrier_linked"]``) and what a setting of their own, chosen by the grid and
-penalty of ``experiments/sigma_calibration.py`` over folds of traces, would do there and on the Pixel5. Nothing
-here is shipped (``experiments/results/carrier_calibration.md`` says why).
+penalty of ``experiments/sigma_calibration.py`` over folds of traces (one level for north and east: a car drives
+every way), would do there and on the Pixel5. Chosen on traces written with the range errors the broadcast
+corrections leave (``--broadcast-errors``), the ``fused`` setting is shipped as
+:data:`fusion.estimate.variance_factor.CARRIER_DEFAULTS` (``experiments/results/carrier_calibration.md``).
 
 Two stages, as there. ``collect`` runs fused-nodnn and fused with the calibration OFF on each trace (shipped
 weights: no network was trained on these traces) and keeps, per mode, what the tuning needs plus the carrier
 epochs; ``tune`` chooses per mode by leave-fold-out over the carrier epochs and prints the table.
 
-    python experiments/sim_city_traces.py --held-out --scenarios deep urban --first-seed 400 --carrier --out /tmp/simcarho2
-    python experiments/sim_city_traces.py --held-out --scenarios suburban --first-seed 500 --carrier --out /tmp/simcarsub2
-    python experiments/sim_city_traces.py --held-out --scenarios suburban urban --first-seed 600 --carrier \\
-        --constellations GPS --out /tmp/simgps2
-    python experiments/carrier_calibration.py collect --out /tmp/carcal --jobs 2 \\
-        /tmp/simcarho2/*/SimPhone /tmp/simcarsub2/*/SimPhone /tmp/simgps2/*/SimPhone
-    python experiments/carrier_calibration.py tune --out /tmp/carcal
+    python experiments/sim_city_traces.py --held-out --scenarios deep urban --first-seed 800 --carrier \\
+        --broadcast-errors --out /tmp/simbe_car
+    python experiments/sim_city_traces.py --held-out --scenarios suburban --first-seed 900 --carrier \\
+        --broadcast-errors --out /tmp/simbe_sub
+    python experiments/sim_city_traces.py --held-out --scenarios suburban urban --first-seed 1000 --carrier \\
+        --broadcast-errors --constellations GPS --out /tmp/simbe_gps
+    python experiments/carrier_calibration.py collect --out /tmp/carcal_be --jobs 2 \\
+        /tmp/simbe_car/*/SimPhone /tmp/simbe_sub/*/SimPhone /tmp/simbe_gps/*/SimPhone
+    python experiments/carrier_calibration.py tune --out /tmp/carcal_be --jobs 2
 """
 from __future__ import annotations
 
@@ -131,7 +135,7 @@ def held_out(items: dict, b: float, fl: np.ndarray) -> tuple[float, dict]:
     folds, each held-out trace's coverage (3,) and the summed penalty (:func:`sigma_calibration.miss`)."""
     cov, pen = {}, 0.0
     for held in folds_of(list(items)):
-        a = fit_a([(e, v, F, x) for n, (e, v, F, x) in items.items() if n not in held], b, fl)
+        a = fit_a([(e, v, F, x) for n, (e, v, F, x) in items.items() if n not in held], b, fl, tie_horizontal=True)
         for n in held:
             e, v, F, x = items[n]
             cov[n] = within(e, scaled(v, F, a, b, fl, x))
@@ -152,7 +156,8 @@ def tune_mode(data: dict, names: list[str], mode: str) -> tuple[SigmaCalibration
                 best = (SigmaCalibration(b=b, floor_m=(fh, fh, fv), window_s=w, snapshot=c, factor_from=src,
                                          disagreement=dis), pen, cov)
     cal, pen, cov = best
-    a = fit_a(list(carrier_items(data, names, mode, cal).values()), cal.b, np.array(cal.floor_m))
+    a = fit_a(list(carrier_items(data, names, mode, cal).values()), cal.b, np.array(cal.floor_m),
+              tie_horizontal=True)
     return replace(cal, a=tuple(round(float(x), 4) for x in a)), pen, cov
 
 

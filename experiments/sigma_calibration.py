@@ -170,9 +170,10 @@ def scaled(var, F, a, b, floor, extra=0.0):
     return np.asarray(a)[None, :] * np.maximum(F, 1e-6)[:, None] ** b * var + np.asarray(floor)[None, :] ** 2 + extra
 
 
-def fit_a(items, b: float, floor: np.ndarray) -> np.ndarray:
+def fit_a(items, b: float, floor: np.ndarray, tie_horizontal: bool = False) -> np.ndarray:
     """(3,) per-axis level that puts 0.683 of the pooled |err| of ``items`` ((err, var, F, extra) tuples, extra
-    (E,3) the disagreement term) within 1 sigma, by bisection in log a (coverage grows with a)."""
+    (E,3) the disagreement term) within 1 sigma, by bisection in log a (coverage grows with a);
+    ``tie_horizontal``: one level for north and east, from their mean coverage."""
     err = np.concatenate([e for e, _, _, _ in items])
     var = np.concatenate([scaled(v, F, np.ones(3), b, np.zeros(3)) for _, v, F, _ in items])
     ext = np.concatenate([np.broadcast_to(x, e.shape) for e, _, _, x in items])
@@ -182,6 +183,8 @@ def fit_a(items, b: float, floor: np.ndarray) -> np.ndarray:
     for _ in range(30):
         mid = (lo + hi) / 2
         cov = (err <= np.sqrt(np.exp(mid) * var + floor ** 2 + ext)).mean(0)
+        if tie_horizontal:
+            cov[:2] = cov[:2].mean()
         lo, hi = np.where(cov < 0.6827, mid, lo), np.where(cov < 0.6827, hi, mid)
     return np.exp((lo + hi) / 2)
 

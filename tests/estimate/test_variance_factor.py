@@ -258,3 +258,33 @@ def test_only_least_squares_positions_count_as_fitted():
     assert fitted_positions("wls", {}) and fitted_positions("dnn", {"output": "wls"})
     assert not fitted_positions("dnn", {"output": "correction"})       # WLS plus the paper's correction
     assert not fitted_positions("fused", {}) and not fitted_positions("fused-nodnn", {})
+
+
+def test_carrier_tied_epochs_take_the_carrier_setting_and_the_others_keep_theirs(short_trace):
+    """calibrate_graph: the epochs ``info["carrier_linked"]`` marks get the mode's CARRIER_DEFAULTS, the rest what
+    DEFAULTS gives them; a trace without carrier is calibrated as before, and nothing moves a position."""
+    from dataclasses import replace
+    from fusion.estimate.variance_factor import CARRIER_DEFAULTS, calibrate_graph, calibrate_result, wls_track
+    from fusion.modes import run_modes, solve_initial
+    from fusion.run_types import RunOptions
+    opts = RunOptions()
+    wls = solve_initial(short_trace, opts)
+    raw = run_modes(short_trace, ["fused"], RunOptions(sigma_calibration=False), wls=wls)["fused"]
+    linked = np.zeros(short_trace.n_epochs, bool)
+    linked[100:200] = True
+    fresh = lambda tied: replace(raw, cov=raw.cov.copy(), info=dict(raw.info, carrier_linked=tied))  # noqa: E731
+    args = (short_trace, "fused", *raw.info["pr_noise"])
+    track = wls_track(short_trace, wls, opts.elev_mask_deg)
+    want = {name: calibrate_result(fresh(linked), *args, cal=cal, wls=track, unlearned=raw.info["unlearned_pos"]).cov
+            for name, cal in (("default", DEFAULTS["fused"]), ("carrier", CARRIER_DEFAULTS["fused"]))}
+    got = calibrate_graph(fresh(linked), short_trace, "fused", opts, wls)
+    ok = raw.valid
+    assert got.pos.tobytes() == raw.pos.tobytes()
+    np.testing.assert_allclose(got.cov[ok & linked], want["carrier"][ok & linked])
+    np.testing.assert_allclose(got.cov[ok & ~linked], want["default"][ok & ~linked])
+    assert not np.allclose(want["carrier"][ok & linked], want["default"][ok & linked])
+    assert got.info["carrier_calibrated"] == int((ok & linked).sum())
+    none = calibrate_graph(fresh(np.zeros_like(linked)), short_trace, "fused", opts, wls)
+    np.testing.assert_array_equal(none.cov, want["default"])
+    assert "carrier_calibrated" not in none.info
+    assert "fused-nodnn" not in CARRIER_DEFAULTS               # its own setting gained nothing on the tuning traces
