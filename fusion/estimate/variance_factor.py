@@ -91,9 +91,11 @@ DEFAULTS: dict[str, SigmaCalibration] = {
 #: one: its track there is right in shape to centimetres, and what remains is the slowly varying error the broadcast
 #: corrections leave (about a metre), which no residual sees: a floor, little of the factor's scaling, and no share of
 #: the disagreement. Tuned leave-traces-out on held-out simulated city traces with carrier phase and those errors
-#: (``experiments/carrier_calibration.py``; one level for north and east); on the Pixel5 RINEX test trace (reported,
-#: not tuned on) ``fused`` went from 0.93 / 0.98 / 0.80 to 0.70 / 0.76 / 0.69 within 1 sigma. ``fused-nodnn``'s own
-#: setting gained nothing there (``experiments/results/carrier_calibration.md``).
+#: (``experiments/carrier_calibration.py``; one level for north and east): held out, 45 -> 32 of 60 trace-axes outside
+#: 0.55-0.80, though 14 are now too confident (7 before). On the Pixel5 RINEX test trace (reported, not tuned on)
+#: ``fused`` went 0.93 / 0.98 / 0.80 -> 0.70 / 0.76 / 0.69 within 1 sigma with broadcast GPS, 0.71 / 0.97 / 0.73 ->
+#: 0.39 / 0.91 / 0.61 with SP3/CLK (a 1.2 m north offset under the floor). ``fused-nodnn``'s own setting gained
+#: nothing there (``experiments/results/carrier_calibration.md``).
 CARRIER_DEFAULTS: dict[str, SigmaCalibration] = {
     "fused": SigmaCalibration(a=(0.0399, 0.0399, 1.7549), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=15.0,
                               snapshot=0.3, factor_from="wls"),
