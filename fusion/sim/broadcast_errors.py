@@ -27,7 +27,7 @@ from fusion.trace import SIGNALS
 
 #: 1-sigma SISRE [m] per Android constellationType (sat_id // 1000): GPS, GLONASS, QZSS, BeiDou, Galileo.
 SISRE_M = {1: 0.6, 3: 1.8, 4: 0.6, 5: 1.0, 6: 0.3}
-#: correlation time of the SISRE [s]: ephemerides are fitted over hours and replaced every one to four
+#: correlation time of the SISRE [s]: ephemerides are fitted over hours and replaced every one to four hours
 SISRE_TAU_S = 3600.0
 #: 1-sigma share of the slant ionospheric delay the broadcast model leaves, per trace and per satellite
 IONO_SHARE, IONO_SAT_SHARE = 0.3, 0.1
