@@ -213,7 +213,10 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "asked at 10 epochs, 80 measurements" in text and "3 measurements with inputs outside" in text
     assert "12 measurements of signals it cannot read" in text and "switched off in 1" in text
     assert "4 epochs bridged" in text and "longest stretch 4 s" in text and "widened" not in text
-    assert "Doppler head" not in text and "drift of its own" not in text
+    assert "Doppler head" not in text and "drift of its own" not in text and "carrier phase ties" not in text
+    text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
+                        "info": {**info, "carrier_calibrated": 7}})
+    assert "sigmas of the 7 epochs carrier phase ties to a neighbour: calibrated as such" in text
     text = run_summary({"trace": "a/b", "epochs_solved": 10, "epochs_total": 10, "mode": "fused", "skipped": {},
                         "info": {**info, "bridged_widened": 3}})
     assert "longest stretch 4 s; the sigmas of 3 widened where the graph without Doppler and carrier disagreed" in text

@@ -120,6 +120,9 @@ def run_summary(record: dict) -> str:
     if "within1sigma_n" in m:
         lines.append("errors within the mode's 1 sigma, N / E / D: "
                      + " / ".join(f"{m[f'within1sigma_{a}']:.2f}" for a in "ned") + " (a Gaussian: 0.68)")
+    if info.get("carrier_calibrated"):
+        lines.append(f"sigmas of the {info['carrier_calibrated']} epochs carrier phase ties to a neighbour: calibrated "
+                     "as such (a metre's floor for what broadcast corrections leave)")
     if record.get("covariance") is False:
         why = " (--incremental computes no marginals)" if "incremental_s" in info else ""
         lines.append(f"no covariance from this run{why}: estimates.csv has no sigma columns, and a .pos export "
