@@ -1,0 +1,73 @@
+"""How `fused`'s reported sigmas hold where a real phone meets buildings: the Pixel5 RINEX test trace laid in the
+simulated street canyons of ``experiments/canyon_on_phone.py``, each axis's share of errors within 1 sigma with the
+carrier-tied epochs' own setting (:data:`fusion.estimate.variance_factor.CARRIER_DEFAULTS`) and without it. A test
+trace: reported, nothing chosen on it (``experiments/results/carrier_calibration.md``).
+
+    python experiments/canyon_calibration.py [--seeds 0 1 2]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
+
+from canyon_on_phone import NAV, PIXEL5, in_canyon  # noqa: E402
+import fusion.estimate.variance_factor as vf  # noqa: E402
+from fusion.eval.metrics import ned_errors  # noqa: E402
+from fusion.geometry import ecef2ned_cov  # noqa: E402
+from fusion.modes import run_modes, solve_initial  # noqa: E402
+from fusion.options import load_options, parse_signals  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
+from fusion.run_types import RunOptions  # noqa: E402
+from fusion.sim.canyon import CanyonModel  # noqa: E402
+
+#: the streets of canyon_on_phone.py's two runs: its default and the deep one (--height 30 100 --width 12 25)
+STREETS = {"ordinary": CanyonModel(height_m=(15.0, 60.0), width_m=(15.0, 35.0)),
+           "deep": CanyonModel(height_m=(30.0, 100.0), width_m=(12.0, 25.0))}
+
+
+def within(trace, res) -> np.ndarray:
+    """(3,) share of the solved epochs' |error| within the reported 1 sigma, per NED axis."""
+    err = ned_errors(res.pos, trace.truth)
+    ok = np.isfinite(err).all(axis=1) & res.valid
+    sigma = np.sqrt(np.diagonal(ecef2ned_cov(res.cov[ok], res.pos[ok]), axis1=1, axis2=2))
+    return (np.abs(err[ok]) <= sigma).mean(axis=0)
+
+
+def fused_with_and_without(trace, opts: RunOptions) -> tuple[np.ndarray, np.ndarray, int]:
+    """within() without and with CARRIER_DEFAULTS, and how many epochs took the carrier setting."""
+    wls = solve_initial(trace, opts)
+    shipped = dict(vf.CARRIER_DEFAULTS)
+    try:
+        vf.CARRIER_DEFAULTS.clear()
+        before = within(trace, run_modes(trace, ["fused"], opts, wls=wls)["fused"])
+    finally:
+        vf.CARRIER_DEFAULTS.update(shipped)
+    res = run_modes(trace, ["fused"], opts, wls=wls)["fused"]
+    return before, within(trace, res), int(res.info.get("carrier_calibrated", 0))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    args = p.parse_args()
+    opts = RunOptions(signals=parse_signals(None), nav=(NAV,))
+    trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
+    fmt = lambda x: " / ".join(f"{v:.2f}" for v in x)  # noqa: E731
+    print("| streets | seed | fused without the carrier setting | with it | carrier-calibrated epochs |")
+    print("|---|---|---|---|---|")
+    for name, model in STREETS.items():
+        for seed in args.seeds:
+            before, after, n = fused_with_and_without(in_canyon(trace, model, seed)[0], opts)
+            print(f"| {name} | {seed} | {fmt(before)} | {fmt(after)} | {n} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
