@@ -38,7 +38,8 @@ CHUNK_EPOCHS = 5_000
 PER_EPOCH = ("clock", "keep", "rx_vel", "clock_drift", "street")
 #: Slot arrays set to 0 on padding.
 _ZEROED = ("sat_pos", "sat_vel", "pr", "el", "az", "noise", "bias", "sat_clock_m", "sat_clock_drift_mps",
-           "flight_s", "iono", "tropo", "prr", "adr", "cn0", "nlos_delay", "multipath", "prr_error", "loss_db")
+           "flight_s", "iono", "tropo", "prr", "adr", "cn0", "nlos_delay", "multipath", "prr_error", "loss_db",
+           "broadcast")
 
 
 def sky_for(nav, cfg: SimConfig) -> Sky:
@@ -326,6 +327,7 @@ def _simulate_chunk(t_ms: np.ndarray, rx: np.ndarray, seg_start: np.ndarray, sky
         code, carrier = broadcast_range_errors(t_ms, seg_start, out["sat_id"], sig_k, mask, iono, tropo,
                                                _keyed_child(rng, 0xB40AD))
         out["pr"] = out["pr"] + code
+        out["broadcast"] = code
         if "adr" in out:
             out["adr"] = out["adr"] + carrier
     zero = ~mask

@@ -67,6 +67,8 @@ class SimResult:
     rx_vel_mps: (E, 3) true receiver ECEF velocity, clock_drift_mps: (E,) true clock drift
               (with ``SimConfig.doppler``; else None).
     ambiguity_m: (E, S) true carrier ambiguity of each slot (with ``SimConfig.carrier``; else None).
+    broadcast_m: (E, S) the code's error the broadcast corrections leave [m] (with ``SimConfig.broadcast_errors``;
+              else None; :mod:`fusion.sim.broadcast_errors`).
 
     With a C/N0 model (``SimConfig.cn0``; else None): hidden labels for analysis, never model inputs:
     los_class: (E, S) int8 0 LOS, 1 NLOS, 2 diffracted (:data:`fusion.sim.canyon.CLASS_NAMES`).
@@ -90,6 +92,7 @@ class SimResult:
     rx_vel_mps: np.ndarray | None = None
     clock_drift_mps: np.ndarray | None = None
     ambiguity_m: np.ndarray | None = None
+    broadcast_m: np.ndarray | None = None
     los_class: np.ndarray | None = None
     nlos_delay_m: np.ndarray | None = None
     multipath_m: np.ndarray | None = None
@@ -122,7 +125,7 @@ def _to_result(arrs: dict[str, np.ndarray], t_ms: np.ndarray, rx: np.ndarray, se
         elev_deg=cut["el"], az_deg=cut["az"], sat_clock_m=cut["sat_clock_m"],
         sat_clock_drift_mps=cut["sat_clock_drift_mps"], flight_s=cut["flight_s"],
         iono_m=cut["iono"], tropo_m=cut["tropo"], rx_vel_mps=cut.get("rx_vel"),
-        clock_drift_mps=cut.get("clock_drift"), ambiguity_m=cut.get("ambiguity"),
+        clock_drift_mps=cut.get("clock_drift"), ambiguity_m=cut.get("ambiguity"), broadcast_m=cut.get("broadcast"),
         los_class=cut.get("cls"), nlos_delay_m=cut.get("nlos_delay"), multipath_m=cut.get("multipath"),
         prr_error_mps=cut.get("prr_error"), loss_db=cut.get("loss_db"), street=cut.get("street"),
     )

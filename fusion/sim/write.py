@@ -18,7 +18,8 @@ The device_gnss writer fills
 - ``ground_truth.csv``: ``UnixTimeMillis``, ``LatitudeDegrees``, ``LongitudeDegrees``,
   ``AltitudeMeters`` (ellipsoidal, no GSDC 2021 height error), speed and bearing.
 - ``sim_labels.csv`` (with a C/N0 model): the hidden truth of every measurement: class (LOS, NLOS,
-  DIFFRACTED), extra NLOS path, LOS multipath error, range-rate error, power loss, the true noise.
+  DIFFRACTED), extra NLOS path, LOS multipath error, range-rate error, power loss, the true noise, and (with
+  ``--broadcast-errors``) the error the broadcast corrections leave.
   It is for analysing results only: no loader reads it and no model may take it as input.
 """
 from __future__ import annotations
@@ -106,6 +107,8 @@ def label_table(result) -> pd.DataFrame | None:
     })
     if result.street is not None:
         df["Street"] = result.street[e]
+    if result.broadcast_m is not None:
+        df["BroadcastErrorM"] = np.round(result.broadcast_m[e, s], 4)
     return df
 
 

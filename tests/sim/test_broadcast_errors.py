@@ -76,3 +76,23 @@ def test_gauss_markov_holds_its_sigma_and_restarts_per_trace():
     assert abs(lag1 - np.exp(-1 / 100)) < 0.01
     across = np.corrcoef(x[199::200][:-1].ravel(), x[200::200].ravel())[0, 1]   # last epoch vs next trace's first
     assert abs(across) < 0.1
+
+
+def test_the_labels_hold_the_error_and_the_pseudorange_decomposes(pair, tmp_path):
+    """pr = range + clock + noise + NLOS path + multipath + broadcast error, to the micrometre; sim_labels.csv
+    carries the last as BroadcastErrorM (and only when the errors are on)."""
+    import pandas as pd
+
+    from fusion.geometry import line_of_sight
+    from fusion.sim.write import LABELS_FILE, write_device_gnss
+    off, on = pair
+    assert off.broadcast_m is None and on.broadcast_m is not None
+    tr = on.trace
+    rng_m, _ = line_of_sight(tr.sat_pos, tr.truth)
+    resid = tr.pr - rng_m - on.clock_m[:, None] - on.noise_m - on.nlos_delay_m - on.multipath_m - on.broadcast_m
+    assert np.abs(resid[tr.mask]).max() < 1e-6
+    write_device_gnss(on, tmp_path, "c", "P")
+    write_device_gnss(off, tmp_path, "d", "P")
+    labels = pd.read_csv(tmp_path / "c" / "P" / LABELS_FILE)
+    np.testing.assert_allclose(labels["BroadcastErrorM"], np.round(on.broadcast_m[tr.mask], 4), atol=1e-9)
+    assert "BroadcastErrorM" not in pd.read_csv(tmp_path / "d" / "P" / LABELS_FILE)
