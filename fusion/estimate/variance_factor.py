@@ -266,7 +266,7 @@ def wls_track(trace: Trace, wls, elev_mask_deg: float) -> tuple[np.ndarray, np.n
 
 def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np.ndarray,
                      bias: np.ndarray | None = None, cal: SigmaCalibration | None = None,
-                     wls: tuple | None = None, unlearned: np.ndarray | None = None):
+                     wls: tuple | None = None, unlearned: np.ndarray | None = None, snap: np.ndarray | None = None):
     """A mode's :class:`~fusion.run_types.ModeResult` with its covariance calibrated in place (positions
     untouched) and the factor's median in ``info["variance_factor_p50"]``.
 
@@ -274,8 +274,9 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     and its factor where ``cal.factor_from == "own"``); wls: :func:`wls_track` (the factor where
     ``cal.factor_from == "wls"``); cal: :data:`DEFAULTS` of ``mode`` unless given; unlearned (E,3) ECEF: the
     mode's answer without the network (dnn: the WLS it corrected; fused: the same graph solved without the
-    learned inputs), for its :func:`disagreement_var` (None: no such term). A result without a covariance is
-    returned as it is."""
+    learned inputs), for its :func:`disagreement_var` (None: no such term); snap (E,3): :func:`snapshot_var` at
+    the result's positions with ``sel`` and ``sigma`` where the caller has it (None: computed if ``cal`` needs it).
+    A result without a covariance is returned as it is."""
     if result.cov is None or not np.asarray(result.valid).any():
         return result
     cal = cal or DEFAULTS[mode]
@@ -285,7 +286,8 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     else:
         f = track_factor(trace, pos, sel, sigma, bias, cal.window_s, cal.min_dof,
                          fitted=fitted_positions(mode, result.info))
-    snap = snapshot_var(trace, pos, sel, sigma) if cal.snapshot > 0 else None
+    if cal.snapshot > 0 and snap is None:
+        snap = snapshot_var(trace, pos, sel, sigma)
     dis = None
     if cal.disagreement > 0 and unlearned is not None:
         dis = disagreement_var(trace.t_ms.astype(float) / 1000.0, pos, unlearned, cal.window_s)
@@ -321,12 +323,15 @@ def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     track = wls_track(trace, wls, opts.elev_mask_deg)
     linked = np.asarray(result.info.get("carrier_linked", np.zeros(trace.n_epochs, bool)), bool) \
         & np.asarray(result.valid, bool)
-    carrier = None
+    carrier, snap = None, None
     if mode in CARRIER_DEFAULTS and linked.any():
+        # both settings take the same one-epoch variances: computed once
+        snap = snapshot_var(trace, np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan), *noise[:2])
         carrier = replace(result, cov=result.cov.copy(), info=dict(result.info))
         carrier = calibrate_result(carrier, trace, mode, *noise, cal=CARRIER_DEFAULTS[mode], wls=track,
-                                   unlearned=result.info.get("unlearned_pos")).cov
-    result = calibrate_result(result, trace, mode, *noise, wls=track, unlearned=result.info.get("unlearned_pos"))
+                                   unlearned=result.info.get("unlearned_pos"), snap=snap).cov
+    result = calibrate_result(result, trace, mode, *noise, wls=track, unlearned=result.info.get("unlearned_pos"),
+                              snap=snap)
     if carrier is not None:
         result.cov = np.where(linked[:, None, None], carrier, result.cov)
         result.info["carrier_calibrated"] = int(linked.sum())

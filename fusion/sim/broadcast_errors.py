@@ -43,18 +43,23 @@ def gauss_markov(t_s: np.ndarray, seg_start: np.ndarray, n: int, sigma: np.ndarr
                  rng: np.random.Generator) -> np.ndarray:
     """(E, n) stationary first-order Gauss-Markov processes with 1-sigma ``sigma`` (n,) and correlation time
     ``tau_s``, sampled at times t_s (E,) [s], started afresh (from the stationary distribution) at every
-    ``seg_start`` (E,) bool."""
-    out = np.empty((t_s.shape[0], n))
-    x = np.zeros(n)
-    for k in range(t_s.shape[0]):
-        w = rng.standard_normal(n) * sigma
-        if seg_start[k] or k == 0:
-            x = w
-        else:
-            a = np.exp(-max(t_s[k] - t_s[k - 1], 0.0) / tau_s)
-            x = a * x + np.sqrt(1.0 - a * a) * w
-        out[k] = x
-    return out
+    ``seg_start`` (E,) bool (the first epoch is always a start).
+
+    x_k = a_k x_(k-1) + sqrt(1 - a_k^2) w_k with a_k = exp(-dt_k / tau) is, within a segment,
+    x_k = A_k * sum_(j<=k) c_j w_j / A_j with A_k the product of the a's so far: running sums instead of a loop over
+    the epochs (A_k = exp(-(t_k - t_start) / tau) stays far above underflow for any drive: a day is e^-24)."""
+    E = t_s.shape[0]
+    w = rng.standard_normal((E, n)) * sigma
+    start = np.asarray(seg_start, bool).copy()
+    start[:1] = True
+    seg = np.cumsum(start) - 1
+    since = t_s - t_s[np.flatnonzero(start)][seg]                     # seconds since the segment's start
+    a = np.exp(-np.maximum(np.diff(t_s, prepend=t_s[:1]), 0.0) / tau_s)
+    c = np.where(start, 1.0, np.sqrt(1.0 - a * a))                      # a start is a stationary draw
+    A = np.exp(-since / tau_s)
+    run = np.cumsum(c[:, None] * w / A[:, None], axis=0)
+    run -= np.vstack([np.zeros((1, n)), run[:-1]])[np.flatnonzero(start)][seg]      # restart per segment
+    return A[:, None] * run
 
 
 def broadcast_range_errors(t_ms: np.ndarray, seg_start: np.ndarray, sat_id: np.ndarray, signal: np.ndarray,
