@@ -23,8 +23,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 from canyon_on_phone import NAV, PIXEL5, in_canyon  # noqa: E402
 from pixel5_table import ORBITS  # noqa: E402
 import fusion.estimate.variance_factor as vf  # noqa: E402
-from fusion.eval.metrics import ned_errors  # noqa: E402
-from fusion.geometry import ecef2ned_cov  # noqa: E402
+from fusion.eval.metrics import mode_metrics, trace_errors  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
@@ -36,28 +35,24 @@ STREETS = {"ordinary": CanyonModel(height_m=(15.0, 60.0), width_m=(15.0, 35.0)),
            "deep": CanyonModel(height_m=(30.0, 100.0), width_m=(12.0, 25.0))}
 
 
-def within(trace, res) -> np.ndarray:
-    """(3,) share of the solved epochs' |error| within the reported 1 sigma, per NED axis."""
-    err = ned_errors(res.pos, trace.truth)
-    ok = np.isfinite(err).all(axis=1) & res.valid
-    sigma = np.sqrt(np.diagonal(ecef2ned_cov(res.cov[ok], res.pos[ok]), axis1=1, axis2=2))
-    return (np.abs(err[ok]) <= sigma).mean(axis=0)
-
-
-def fused_with_and_without(trace, opts: RunOptions) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-    """within() without and with CARRIER_DEFAULTS, how many epochs took the carrier setting, and the mean and
-    spread (2, 3) of the NED errors [m] (the positions are the same either way)."""
+def fused_with_and_without(trace, opts: RunOptions) -> tuple[dict, dict]:
+    """``fused``'s :func:`~fusion.eval.metrics.mode_metrics` without and with CARRIER_DEFAULTS (the positions are
+    the same either way) and, with them, the signed mean and spread of its NED errors [m] (``mean_*``, ``sd_*``)
+    and how many epochs took the carrier setting (``carrier_calibrated``)."""
     wls = solve_initial(trace, opts)
     shipped = dict(vf.CARRIER_DEFAULTS)
     try:
         vf.CARRIER_DEFAULTS.clear()
-        before = within(trace, run_modes(trace, ["fused"], opts, wls=wls)["fused"])
+        before = mode_metrics(trace, run_modes(trace, ["fused"], opts, wls=wls)["fused"])
     finally:
         vf.CARRIER_DEFAULTS.update(shipped)
     res = run_modes(trace, ["fused"], opts, wls=wls)["fused"]
-    err = ned_errors(res.pos, trace.truth)
-    err = err[np.isfinite(err).all(axis=1) & res.valid]
-    return before, within(trace, res), int(res.info.get("carrier_calibrated", 0)), np.stack([err.mean(0), err.std(0)])
+    err = trace_errors(trace, res)
+    err = err[np.isfinite(err).all(axis=1)]
+    after = dict(mode_metrics(trace, res), carrier_calibrated=int(res.info.get("carrier_calibrated", 0)),
+                 **{f"mean_{a}": err[:, i].mean() for i, a in enumerate("ned")},
+                 **{f"sd_{a}": err[:, i].std() for i, a in enumerate("ned")})
+    return before, after
 
 
 def main() -> int:
@@ -68,15 +63,16 @@ def main() -> int:
     orbits = ORBITS["CODE SP3/CLK, multi-GNSS (+ hour1180.21n ionosphere)"] if args.sp3 else {"nav": (NAV,)}
     opts = RunOptions(signals=parse_signals(None), **orbits)
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
-    fmt = lambda x: " / ".join(f"{v:.2f}" for v in x)  # noqa: E731
+    fmt = lambda m, key: " / ".join(f"{m[f'{key}_{a}']:.2f}" for a in "ned")  # noqa: E731
     print("| streets | seed | fused without the carrier setting | with it | carrier-calibrated epochs "
           "| error mean N / E / D [m] | error spread [m] |")
     print("|---|---|---|---|---|---|---|")
     rows = [("as logged", "-", trace)] + [(name, seed, in_canyon(trace, model, seed)[0])
                                           for name, model in STREETS.items() for seed in args.seeds]
     for name, seed, tr in rows:
-        before, after, n, err = fused_with_and_without(tr, opts)
-        print(f"| {name} | {seed} | {fmt(before)} | {fmt(after)} | {n} | {fmt(err[0])} | {fmt(err[1])} |", flush=True)
+        before, after = fused_with_and_without(tr, opts)
+        print(f"| {name} | {seed} | {fmt(before, 'within1sigma')} | {fmt(after, 'within1sigma')} | "
+              f"{after['carrier_calibrated']} | {fmt(after, 'mean')} | {fmt(after, 'sd')} |", flush=True)
     return 0
 
 
