@@ -77,24 +77,27 @@ def drive_dir(data: Path, drive: str, phone: str = "Pixel4") -> Path:
     return data / drive / phone
 
 
-def cached_samples(f: Path, trace):
-    """Training samples (with graph positions) of the trace ``trace()`` makes, kept in ``f``: they cost a graph
-    solve."""
+def cached_samples(f: Path, trace, slow_s: float = 0.0):
+    """Training samples (with graph positions; with the pseudoranges' fast error part where ``slow_s`` > 0,
+    ``--slow-target``) of the trace ``trace()`` makes, kept in ``f``: they cost a graph solve."""
+    if slow_s > 0:
+        f = f.with_name(f"{f.stem}_slow{slow_s:g}{f.suffix}")
     if f.is_file():
         return pickle.loads(f.read_bytes())
-    s = samples_from_trace(trace(), real=True, with_graph=True)
+    s = samples_from_trace(trace(), real=True, with_graph=True, slow_window_s=slow_s)
     f.write_bytes(pickle.dumps(s))
     return s
 
 
-def drive_samples(data: Path, drive: str, cache: Path, phone: str = "Pixel4", signals=("GPS_L1",)):
+def drive_samples(data: Path, drive: str, cache: Path, phone: str = "Pixel4", signals=("GPS_L1",),
+                  slow_s: float = 0.0):
     """Training samples of one drive, cached (:func:`cached_samples`)."""
     return cached_samples(cache / f"{drive}_{phone}_{'-'.join(signals)}.pkl",
-                          lambda: load_trace(drive_dir(data, drive, phone), signals=signals))
+                          lambda: load_trace(drive_dir(data, drive, phone), signals=signals), slow_s)
 
 
 def canyon_samples(data: Path, drive: str, cache: Path, kind: str, seed: int, signals=("GPS_L1",),
-                   cn0: bool = False):
+                   cn0: bool = False, slow_s: float = 0.0):
     """Training samples of one drive seen from simulated streets (``canyon_on_phone.in_canyon``: "ordinary" the
     simulator's default streets, "deep" its high-rise core; ``seed`` the layout), cached like
     :func:`drive_samples`. Only the fold's own training drives are so used, so no fold sees its unseen drives.
@@ -108,7 +111,7 @@ def canyon_samples(data: Path, drive: str, cache: Path, kind: str, seed: int, si
         return in_canyon(with_model_cn0(logged, seed) if cn0 else logged, DEEP if kind == "deep" else CanyonModel(),
                          seed)[0]
     return cached_samples(cache / f"{drive}_Pixel4_{'-'.join(signals)}_canyon-{kind}-{seed}{'-cn0' if cn0 else ''}.pkl",
-                          trace)
+                          trace, slow_s)
 
 
 def train_fold(fold: str, args) -> Path:
@@ -119,10 +122,12 @@ def train_fold(fold: str, args) -> Path:
     torch.set_num_threads(1)
     table = fold_table(args)
     drives = [d for f, ds in table.items() if f != fold for d in ds]
-    parts = [drive_samples(args.data, d, args.out / "cache", signals=args.signals) for d in drives]
-    parts += [drive_samples(x.parent.parent, x.parent.name, args.out / "cache", x.name, args.signals)
-              for x in args.extra]
-    parts += [canyon_samples(args.data, d, args.out / "cache", kind, seed, args.signals, args.canyon_cn0)
+    parts = [drive_samples(args.data, d, args.out / "cache", signals=args.signals, slow_s=args.slow_target)
+             for d in drives]
+    parts += [drive_samples(x.parent.parent, x.parent.name, args.out / "cache", x.name, args.signals,
+                            args.slow_target) for x in args.extra]
+    parts += [canyon_samples(args.data, d, args.out / "cache", kind, seed, args.signals, args.canyon_cn0,
+                             args.slow_target)
               for d in drives for kind, seed in args.canyon]
     samples = concat_samples([replace(p, trace=np.zeros(len(p), int)) for p in parts])
     # validation: one whole drive of the nine, so the best epoch is the one that generalises
@@ -145,7 +150,8 @@ def recipe(args, data: dict) -> TrainConfig:
     return TrainConfig(epochs=args.epochs, batch=args.batch, seed=args.seed, data=data, loss=w,
                        guess_mix=parse_guess_mix(args.guess_mix), output="wls", dropout=parse_dropout(args.dropout),
                        features=FeatureConfig(version=args.feature_version, inputs=tuple(inputs.split(","))),
-                       signals=args.signals, init=args.init, sat_dropout=args.sat_dropout)
+                       signals=args.signals, init=args.init, sat_dropout=args.sat_dropout,
+                       slow_target_s=args.slow_target)
 
 
 def eval_drive(drive: str, ckpt: Path, args) -> dict:
@@ -295,6 +301,9 @@ def parse_args(argv=None):
     p.add_argument("--guess-mix", default="box=0.2,wls=0.5,graph=0.3")
     p.add_argument("--inputs", default=None, help="input groups (default: the shipped recipe's, gnssfuse train --inputs)")
     p.add_argument("--dropout", default=None, help="feature dropout rates (gnssfuse train --dropout)")
+    p.add_argument("--slow-target", type=float, default=0.0, metavar="S",
+                   help="train the per-satellite losses on each pseudorange's error averaged over a centred S s "
+                        "along its arc (TrainConfig.slow_target_s; 0: one epoch's error, the recipe)")
     p.add_argument("--sat-dropout", type=float, default=0.0,
                    help="satellite dropout rate (gnssfuse train --sat-dropout)")
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")

@@ -50,6 +50,8 @@ class Samples:
     graph: (N,3) ECEF no-prior factor-graph (fused-nodnn) position of the sample's trace (NaN where the
         graph left the epoch unsolved), or None.
     ctx: per-slot context (:mod:`learned.context`), (N,S) arrays keyed by ``CONTEXT_KEYS``, or None.
+    pr_fast: (N,S) the part of each pseudorange's error at the truth that a short window along its arc averages
+        away (:func:`fast_error`; 0 on padding), or None. Training labels only, never a model input.
     """
 
     sat_pos: np.ndarray
@@ -64,6 +66,7 @@ class Samples:
     clock: np.ndarray | None = None
     graph: np.ndarray | None = None
     ctx: dict[str, np.ndarray] | None = None
+    pr_fast: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.pr.shape[0])
@@ -85,12 +88,13 @@ class Samples:
                        None if self.wls is None else self.wls[idx], None if self.real is None else self.real[idx],
                        None if self.clock is None else self.clock[idx],
                        None if self.graph is None else self.graph[idx],
-                       None if self.ctx is None else {k: v[idx] for k, v in self.ctx.items()})
+                       None if self.ctx is None else {k: v[idx] for k, v in self.ctx.items()},
+                       None if self.pr_fast is None else self.pr_fast[idx])
 
 
 def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0, *, real: bool = False,
-                       with_wls: bool = True, clock: np.ndarray | None = None, with_graph: bool = False
-                       ) -> Samples:
+                       with_wls: bool = True, clock: np.ndarray | None = None, with_graph: bool = False,
+                       slow_window_s: float = 0.0) -> Samples:
     """Epochs of one trace with finite truth and >= 4 satellites above the mask (at the truth).
 
     ``with_wls``: also solve WLS on the whole trace (:func:`learned.context.context_wls`, no truth), keep each
@@ -99,6 +103,8 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     ``with_graph``: also solve the no-prior factor graph on the whole trace (:func:`graph_positions`);
     samples without a graph position (unsolved epoch, or a trace the graph cannot solve) are counted in
     ``skipped["graph_invalid"]`` and keep NaN there.
+    ``slow_window_s`` > 0: also keep each pseudorange's fast error part (:func:`fast_error` over that window) as
+    ``pr_fast``, so that training can target the lasting part alone.
     """
     if trace.truth is None:
         raise DataError(f"{trace.name}: no ground truth, cannot be used for training")
@@ -114,7 +120,11 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
     ctx = slot_context(trace, w, elev_mask_deg).as_dict() if w is not None else None
     # Real slots first, padding trimmed; padded slots zeroed so no stale measurement lingers there.
     extra = [ctx[k][idx] for k in CONTEXT_KEYS] if ctx is not None else []
-    sat_pos, pr, mask, *extra = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask, *extra)
+    fast = fast_error(trace, slow_window_s)[idx] if slow_window_s > 0 else None
+    sat_pos, pr, mask, *extra = compact_slots(trace.sat_pos[idx], trace.pr[idx], mask, *extra,
+                                              *([] if fast is None else [fast]))
+    if fast is not None:
+        fast = np.where(mask, np.nan_to_num(extra.pop()), 0.0)
     sat_pos, pr = sat_pos * mask[..., None], pr * mask
     if ctx is not None:
         # every signal's pseudoranges on the reference signal's clock (learned.context: ``isb``)
@@ -133,7 +143,39 @@ def samples_from_trace(trace: Trace, elev_mask_deg: float = 10.0, index: int = 0
         raise DataError(f"{trace.name}: clock must have shape ({trace.n_epochs},), got {np.shape(clock)}")
     return Samples(sat_pos, pr, mask, truth, np.full(len(idx), index), [trace.name], skipped, wls,
                    np.full(len(idx), bool(real)), None if clock is None else np.asarray(clock, float)[idx], graph,
-                   ctx)
+                   ctx, fast)
+
+
+def fast_error(trace: Trace, window_s: float) -> np.ndarray:
+    """(E,S) each pseudorange's error at the truth minus its mean over the centred ``window_s`` along its
+    satellite and signal (NaN where the slot or the truth is missing). The error is taken after the epoch's
+    median (the receiver clock, and any bias all slots share); what is left after the window mean is what a
+    smoother averages away, and the mean, what it cannot: multipath and reflections that last."""
+    from fusion.geometry import line_of_sight
+
+    ok = trace.mask & np.isfinite(trace.truth).all(1)[:, None] if trace.truth is not None else None
+    out = np.full(trace.pr.shape, np.nan)
+    if ok is None or not ok.any():
+        return out
+    rng, _ = line_of_sight(trace.sat_pos, np.nan_to_num(trace.truth))
+    r = np.where(ok, trace.pr - rng, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)            # epochs without a slot: all-NaN rows
+        e = r - np.nanmedian(r, axis=1, keepdims=True)
+    ii, ss = np.nonzero(ok & np.isfinite(e))
+    t = trace.t_ms[ii] / 1000.0
+    arc = np.unique((trace.sat_id[ii, ss].astype(np.int64) << 8) + trace.signal[ii, ss].astype(np.int64),
+                    return_inverse=True)[1]
+    # one sorted axis: arcs laid end to end, far enough apart that no window reaches the next
+    key = arc * (np.ptp(t) + 2.0 * window_s + 1.0) + (t - t.min())
+    order = np.argsort(key, kind="stable")
+    k, v = key[order], e[ii, ss][order]
+    cs = np.concatenate([[0.0], np.cumsum(v)])
+    lo, hi = np.searchsorted(k, k - window_s / 2, "left"), np.searchsorted(k, k + window_s / 2, "right")
+    fast = np.empty_like(v)
+    fast[order] = v - (cs[hi] - cs[lo]) / (hi - lo)
+    out[ii, ss] = fast
+    return out
 
 
 def graph_positions(trace: Trace, wls, opts=None) -> np.ndarray:
@@ -179,9 +221,12 @@ def concat_samples(parts: list[Samples]) -> Samples:
     ctx = None if any(p.ctx is None for p in parts) else {
         k: np.concatenate([np.pad(p.ctx[k], [(0, 0), (0, S - p.mask.shape[1])], constant_values=float(k == "pr_sigma"))
                            for p in parts]) for k in CONTEXT_KEYS}
+    # parts without the fast part (toy or simulated batches) are all lasting error: zero
+    fast = None if all(p.pr_fast is None for p in parts) else np.concatenate(
+        [pad(np.zeros(p.pr.shape) if p.pr_fast is None else p.pr_fast) for p in parts])
     return Samples(np.concatenate([pad(p.sat_pos) for p in parts]), np.concatenate([pad(p.pr) for p in parts]),
                    np.concatenate([pad(p.mask) for p in parts]), np.concatenate([p.truth for p in parts]),
-                   np.concatenate(trace), names, skipped, wls, real, clock, graph, ctx)
+                   np.concatenate(trace), names, skipped, wls, real, clock, graph, ctx, fast)
 
 
 def split_random(samples: Samples, val_frac: float, rng: np.random.Generator) -> tuple[Samples, Samples]:

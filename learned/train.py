@@ -41,7 +41,7 @@ from learned.data import Samples
 from learned.features import (CATEGORY_GROUPS, OPTIONAL_GROUPS, FeatureConfig, context_channels, features_torch,
                               target_torch)
 from learned.heads import report_sigma
-from learned.losses import gaussian_nll, position_loss, sat_nll
+from learned.losses import gaussian_nll, position_loss, sat_nll, weighted_ls_step
 from learned.forward import OUTPUTS, outputs, predict_all, take
 from learned.ensemble import is_manifest
 from learned.guard import input_ranges, widened_ranges
@@ -101,6 +101,9 @@ class TrainConfig:
     # satellite dropout: per sample and epoch, the chance that it keeps only a few of its satellites
     # (learned.augment.thin_satellites), as a street canyon leaves them; 0: off
     sat_dropout: float = 0.0
+    # > 0: the per-satellite losses target each pseudorange's error averaged over this centred window [s] along
+    # its arc (Samples.pr_fast taken out), the part a smoother cannot average away; 0: one epoch's error
+    slow_target_s: float = 0.0
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
@@ -117,6 +120,7 @@ class TrainConfig:
             **({"dropout": dict(self.dropout)} if self.features.version > 2 else {}),
             **({"init": str(self.init)} if self.init is not None else {}),
             **({"sat_dropout": self.sat_dropout} if self.sat_dropout > 0 else {}),
+            **({"slow_target_s": self.slow_target_s} if self.slow_target_s > 0 else {}),
         }
 
 
@@ -146,6 +150,8 @@ def sample_tensors(s: Samples, fcfg: FeatureConfig, device, max_err: float = mat
             "real": torch.as_tensor(s.real_or_false(), device=device),
             # the simulator's true clock: only for the paper-leak experiment (FeatureConfig(clock="given"))
             **({} if s.clock is None else {"clock": torch.as_tensor(s.clock, **f64)}),
+            # the lasting part of each pseudorange (TrainConfig.slow_target_s): a label, never an input
+            **({} if s.pr_fast is None else {"pr_target": torch.as_tensor(s.pr - s.pr_fast, **f64)}),
             **_guess_source("wls", s.wls_or_nan(), s.truth, max_err, device), **graph}
 
 
@@ -228,14 +234,19 @@ def make_inputs(t: dict, guess: torch.Tensor, fcfg: FeatureConfig) -> dict:
 
 # ---------------------------------------------------------------------------------------- the step
 def batch_loss(out: dict, b: dict, w: LossWeights, use_nll: bool) -> torch.Tensor:
-    """The weighted sum of the three losses and the shrink term on one batch."""
+    """The weighted sum of the three losses and the shrink term on one batch. Where the batch carries
+    ``pr_target`` (the pseudoranges' lasting part), the per-satellite NLL and the learned-weight position are
+    scored on it instead of the measured pseudoranges, which the network still reads."""
     loss = w.correction * F.mse_loss(out["mean"], b["y"])
     if use_nll:
         loss = loss + w.correction * gaussian_nll(out["mean"].detach(), out["logvar"], b["y"])
+    pr = b.get("pr_target", b["pr"])
     if w.sat:
-        loss = loss + w.sat * sat_nll(b["sat_pos"], b["pr"], b["mask"], b["truth"], out["sigma"], out["bias"])
+        loss = loss + w.sat * sat_nll(b["sat_pos"], pr, b["mask"], b["truth"], out["sigma"], out["bias"])
     if w.wls:
-        loss = loss + w.wls * position_loss(out["pos"], b["truth"], b["R"], w.wls_scale)
+        pos = out["pos"] if pr is b["pr"] else weighted_ls_step(b["sat_pos"], pr, b["mask"], b["guess"],
+                                                                out["sigma"], out["bias"])[0]
+        loss = loss + w.wls * position_loss(pos, b["truth"], b["R"], w.wls_scale)
     if w.shrink:
         loss = loss + w.shrink * head_departure(out, b["mask"])
     return loss
@@ -347,6 +358,9 @@ def check_inputs(train_s: Samples, val_s: Samples, cfg: TrainConfig, device) -> 
         raise DataError("no training samples after filtering (truth present, >= 4 satellites)")
     if cfg.output not in OUTPUTS:
         raise DataError(f"output must be one of {OUTPUTS}, got {cfg.output!r}")
+    if (cfg.slow_target_s > 0) != (train_s.pr_fast is not None):
+        raise DataError(f"slow_target_s {cfg.slow_target_s} needs training samples built with the same window "
+                        "(learned.data.samples_from_trace(slow_window_s=...)), and 0 samples without it")
 
 
 def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *, resume: bool = False,
