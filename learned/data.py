@@ -314,13 +314,14 @@ def simulated_traces(n_traces: int, epochs_per_trace: int, *, seed: int, bias: b
 
 
 def build_samples(traces: list[Trace], elev_mask_deg: float = 10.0, real: list[bool] | None = None,
-                  with_wls: bool = True, with_graph: bool = False) -> Samples:
+                  with_wls: bool = True, with_graph: bool = False, slow_window_s: float = 0.0) -> Samples:
     """Samples of every trace; ``real[i]`` tags trace i as phone data (default: none); ``with_graph``
-    also solves each trace's no-prior factor graph (``Samples.graph``)."""
+    also solves each trace's no-prior factor graph (``Samples.graph``); ``slow_window_s`` > 0 keeps the
+    pseudoranges' fast error part (``Samples.pr_fast``)."""
     real = [False] * len(traces) if real is None else list(real)
     # index 0 per part: concat_samples numbers the traces
     return concat_samples([samples_from_trace(t, elev_mask_deg, 0, real=r, with_wls=with_wls,
-                                              with_graph=with_graph)
+                                              with_graph=with_graph, slow_window_s=slow_window_s)
                            for t, r in zip(traces, real, strict=True)])
 
 
