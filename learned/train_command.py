@@ -49,9 +49,10 @@ def parse_loss(text: str) -> LossWeights:
 
 def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, seed: int, elev_mask_deg: float,
                        with_graph: bool = False, raw_sources: RawSources | None = None,
-                       signals: tuple[str, ...] = ("GPS_L1",)) -> tuple[Samples, dict]:
+                       signals: tuple[str, ...] = ("GPS_L1",), slow_window_s: float = 0.0) -> tuple[Samples, dict]:
     """``sim`` / ``toy``: simulated Gaussian traces; ``sim-bias`` / ``toy-bias``: the Gaussian + NLOS-bias
-    scenario (seed + 1, other drives); anything else: real trace folders."""
+    scenario (seed + 1, other drives); anything else: real trace folders. ``slow_window_s``: as
+    :func:`learned.data.build_samples`."""
     traces, real, desc = [], [], {"sources": sources}
     for src in sources:
         if src in ("sim", "toy", "sim-bias", "toy-bias"):
@@ -64,7 +65,7 @@ def load_training_data(sources: list[str], *, sim_traces: int, sim_epochs: int, 
             new = load_real_traces([src], signals=signals, raw_sources=raw_sources)
             real += [True] * len(new)
         traces += new
-    samples = build_samples(traces, elev_mask_deg, real=real, with_graph=with_graph)
+    samples = build_samples(traces, elev_mask_deg, real=real, with_graph=with_graph, slow_window_s=slow_window_s)
     desc.update(traces=samples.names, n_samples=len(samples), skipped=samples.skipped)
     return samples, desc
 
@@ -98,7 +99,8 @@ def config_from_args(args, desc: dict) -> TrainConfig:
                        val_frac=args.val_frac, device=args.device, features=features, data=desc, guess_mix=mix,
                        wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate,
                        loss=parse_loss(args.loss), output=args.output, dropout=parse_dropout(args.dropout),
-                       signals=signals_of(args), init=args.init, sat_dropout=args.sat_dropout)
+                       signals=signals_of(args), init=args.init, sat_dropout=args.sat_dropout,
+                       slow_target_s=args.slow_target)
 
 
 def signals_of(args) -> tuple[str, ...]:
@@ -113,6 +115,8 @@ def check_args(args) -> None:
         raise DataError("need --wls-jitter >= 0 and --wls-max-err > 0")
     if not 0 <= args.sat_dropout <= 1:
         raise DataError(f"--sat-dropout: a rate in [0, 1], got {args.sat_dropout}")
+    if args.slow_target < 0:
+        raise DataError(f"--slow-target: a window in seconds >= 0, got {args.slow_target}")
 
 
 def summary(out: Path, hist: list[dict]) -> str:
@@ -140,7 +144,8 @@ def run(args: argparse.Namespace, prog: str = "gnssfuse train", progress: bool =
     samples, desc = load_training_data(sources, sim_traces=args.sim_traces, sim_epochs=args.sim_epochs,
                                        seed=args.seed, elev_mask_deg=args.elev_mask,
                                        with_graph=cfg.guess_mix.get("graph", 0.0) > 0,
-                                       raw_sources=RawSources(tuple(args.nav), args.sp3, args.clk), signals=cfg.signals)
+                                       raw_sources=RawSources(tuple(args.nav), args.sp3, args.clk), signals=cfg.signals,
+                                       slow_window_s=cfg.slow_target_s)
     split = {"blocks": split_blocks, "random": split_random, "traces": split_traces}[args.val_split]
     train_s, val_s = split(samples, args.val_frac, np.random.default_rng(args.seed))
     desc.update(n_train=len(train_s), n_val=len(val_s), val_split=args.val_split)

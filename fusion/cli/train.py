@@ -42,6 +42,9 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
     p.add_argument("--sat-dropout", type=float, default=0.0, metavar="RATE",
                    help="satellite dropout: per sample and epoch, the chance it keeps only 4..n of its n satellites "
                         "(as a street canyon leaves them; default 0, off)")
+    p.add_argument("--slow-target", type=float, default=0.0, metavar="S",
+                   help="score the per-satellite losses on each pseudorange's error averaged over a centred S s along "
+                        "its arc, the part a smoother cannot average away (default 0: one epoch's error)")
     p.add_argument("--resume", action="store_true", help="continue from <out>.last")
     p.add_argument("--init", type=Path, default=None, metavar="CKPT",
                    help="start from this checkpoint's weights (pre-trained, e.g. on simulated traces; same network "

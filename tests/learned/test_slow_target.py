@@ -88,11 +88,22 @@ def test_the_losses_read_the_target_not_the_measurement():
     rng = (b["sat_pos"] - b["truth"][:, None]).norm(dim=-1)
     b["pr"] = rng + torch.randn(B, S, generator=g, dtype=torch.float64) * 5
     b["guess"] = b["truth"] + 3.0
-    out = {"mean": torch.zeros(B, 3), "logvar": torch.zeros(B, 3), "sigma": torch.full((B, S), 3.0, dtype=torch.float64),
-           "bias": torch.zeros(B, S, dtype=torch.float64)}
+    out = {"mean": torch.zeros(B, 3), "logvar": torch.zeros(B, 3),
+           "sigma": torch.full((B, S), 3.0, dtype=torch.float64), "bias": torch.zeros(B, S, dtype=torch.float64)}
     from learned.losses import weighted_ls_step
     out["pos"] = weighted_ls_step(b["sat_pos"], b["pr"], b["mask"], b["guess"], out["sigma"], out["bias"])[0]
     w = LossWeights(shrink=0.0)
     plain = batch_loss(out, b, w, False)
     assert torch.isclose(batch_loss(out, dict(b, pr_target=b["pr"].clone()), w, False), plain)
     assert batch_loss(out, dict(b, pr_target=rng.clone()), w, False) < plain       # no error left to score
+
+
+def test_the_train_command_takes_the_window_and_refuses_a_negative_one(tmp_path):
+    from fusion.cli.train import main
+    out = tmp_path / "slow.pt"
+    args = ["--data", "toy", "--sim-traces", "2", "--sim-epochs", "40", "--epochs", "1", "--quiet", "--threads", "1"]
+    assert main(args + ["--out", str(out), "--slow-target", "10"]) == 0
+    assert read_checkpoint(out)["config"]["slow_target_s"] == 10.0
+    with pytest.raises(DataError, match="--slow-target"):
+        main(args + ["--out", str(tmp_path / "neg.pt"), "--slow-target", "-1"])
+    assert not (tmp_path / "neg.pt").exists()
