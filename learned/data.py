@@ -25,6 +25,7 @@ import numpy as np
 
 from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.graph.fuse import fuse
+from fusion.geometry import line_of_sight
 from fusion.prepare.load import find_traces, load_trace
 from fusion.prepare.raw_load import RawSources
 from fusion.modes import solve_initial
@@ -151,8 +152,6 @@ def fast_error(trace: Trace, window_s: float) -> np.ndarray:
     satellite and signal (NaN where the slot or the truth is missing). The error is taken after the epoch's
     median (the receiver clock, and any bias all slots share); what is left after the window mean is what a
     smoother averages away, and the mean, what it cannot: multipath and reflections that last."""
-    from fusion.geometry import line_of_sight
-
     ok = trace.mask & np.isfinite(trace.truth).all(1)[:, None] if trace.truth is not None else None
     out = np.full(trace.pr.shape, np.nan)
     if ok is None or not ok.any():
