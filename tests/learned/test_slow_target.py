@@ -9,12 +9,15 @@ import numpy as np
 import pytest
 import torch
 
+from fusion.cli.train import main
 from fusion.errors import DataError
 from fusion.geometry import line_of_sight
 from learned.checkpoint import read_checkpoint
 from learned.data import build_samples, fast_error, split_random
+from learned.features import line_of_sight_torch
+from learned.losses import weighted_ls_step
 from learned.toy import toy_dataset
-from learned.train import TrainConfig, batch_loss, train, LossWeights
+from learned.train import LossWeights, TrainConfig, batch_loss, train
 
 
 def _brute_fast(tr, window_s):
@@ -85,12 +88,11 @@ def test_the_losses_read_the_target_not_the_measurement():
          "truth": torch.randn(B, 3, generator=g, dtype=torch.float64) * 10 + torch.tensor([6.37e6, 0, 0]),
          "mask": torch.ones(B, S, dtype=torch.bool), "y": torch.zeros(B, 3),
          "R": torch.eye(3, dtype=torch.float64).expand(B, 3, 3)}
-    rng = (b["sat_pos"] - b["truth"][:, None]).norm(dim=-1)
+    rng, _ = line_of_sight_torch(b["sat_pos"], b["truth"])
     b["pr"] = rng + torch.randn(B, S, generator=g, dtype=torch.float64) * 5
     b["guess"] = b["truth"] + 3.0
     out = {"mean": torch.zeros(B, 3), "logvar": torch.zeros(B, 3),
            "sigma": torch.full((B, S), 3.0, dtype=torch.float64), "bias": torch.zeros(B, S, dtype=torch.float64)}
-    from learned.losses import weighted_ls_step
     out["pos"] = weighted_ls_step(b["sat_pos"], b["pr"], b["mask"], b["guess"], out["sigma"], out["bias"])[0]
     w = LossWeights(shrink=0.0)
     plain = batch_loss(out, b, w, False)
@@ -99,7 +101,6 @@ def test_the_losses_read_the_target_not_the_measurement():
 
 
 def test_the_train_command_takes_the_window_and_refuses_a_negative_one(tmp_path):
-    from fusion.cli.train import main
     out = tmp_path / "slow.pt"
     args = ["--data", "toy", "--sim-traces", "2", "--sim-epochs", "40", "--epochs", "1", "--quiet", "--threads", "1"]
     assert main(args + ["--out", str(out), "--slow-target", "10"]) == 0
