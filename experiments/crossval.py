@@ -180,7 +180,9 @@ def eval_drive(drive: str, ckpt: Path, args) -> dict:
 def ensemble_fold(fold: str, args) -> Path:
     """The manifest of the ``--ensemble-of`` runs' networks for ``fold``."""
     from learned.ensemble import write_manifest
-    return write_manifest(args.out / f"fold_{fold}.json", [r / f"fold_{fold}.pt" for r in args.ensemble_of])
+    few = (args.few_below, [r / f"fold_{fold}.pt" for r in args.few_satellite_of]) if args.few_satellite_of else None
+    return write_manifest(args.out / f"fold_{fold}.json", [r / f"fold_{fold}.pt" for r in args.ensemble_of],
+                          few=few)
 
 
 def fold_network(folder: Path, fold: str) -> Path:
@@ -311,6 +313,10 @@ def parse_args(argv=None):
     p.add_argument("--init", type=Path, default=None,
                    help="each fold's network starts from this checkpoint's weights (pre-training; gnssfuse train "
                         "--init)")
+    p.add_argument("--few-satellite-of", type=Path, nargs="*", default=[], metavar="RUN",
+                   help="with --ensemble-of: runs whose fold networks answer at epochs of fewer than --few-below "
+                        "satellites (learned.ensemble's few_satellites)")
+    p.add_argument("--few-below", type=int, default=6)
     p.add_argument("--ensemble-of", type=Path, nargs="*", default=[],
                    help="cross-validation folders (one per seed) whose fold networks are evaluated as ensembles")
     p.add_argument("--from-results", action="store_true",

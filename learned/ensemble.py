@@ -10,7 +10,10 @@ On disk an ensemble is a small JSON manifest beside ordinary checkpoints (each u
     {"format": "gnssfuse-ensemble", "members": ["gnssfuse_dnn_m0.pt", ...],
      "calibration": {"unseen_dnn": {"scale_ned": [...]}, "unseen_fused": {"scale_ned": [...]}}}
 
-Member paths are relative to the manifest's folder. ``calibration`` holds the per-axis variance scales
+Member paths are relative to the manifest's folder. An optional ``"few_satellites": {"below": N, "members":
+[...]}`` names networks of another recipe (e.g. trained with satellite dropout) that answer instead at the epochs
+where fewer than N distinct satellites are above the mask (``experiments/results/few_satellite_sigmas.md``).
+``calibration`` holds the per-axis variance scales
 fitted on unseen drives for the ensemble as a whole (``experiments/crossval.py --store-calibration``); the
 members' own unseen-drive scales, if any, are ignored (they were fitted on one network's covariance). The
 members must read the same features and signals; the Doppler head is the first member's.
@@ -26,6 +29,7 @@ import numpy as np
 
 from fusion.errors import CheckpointError, DataError
 from fusion.geometry import ned2ecef_cov, ned2ecef_vec
+from fusion.trace import satellite_counts
 from learned.infer import Corrector, Correction, _calibration_scales
 
 FORMAT = "gnssfuse-ensemble"
@@ -41,7 +45,7 @@ def is_manifest(path: str | Path) -> bool:
 
 def read_manifest(path: str | Path) -> tuple[list[Path], dict]:
     """(member checkpoint paths, ensemble calibration) of the manifest at ``path``; CheckpointError naming
-    the file when it is not one."""
+    the file when it is not one (:func:`read_few_satellites` reads its optional few-satellite members)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: ensemble manifest not found")
@@ -60,16 +64,36 @@ def read_manifest(path: str | Path) -> tuple[list[Path], dict]:
     return [path.parent / m for m in members], cal
 
 
-def write_manifest(path: str | Path, members: list[str | Path], calibration: dict | None = None) -> Path:
-    """Write the manifest atomically, ``members`` stored relative to its folder (kept beside it, the folder
-    moves whole)."""
+def read_few_satellites(path: str | Path) -> tuple[int, list[Path]]:
+    """(below, member paths) of the manifest's ``few_satellites`` entry; (0, []) where it has none."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    few = json.loads(path.read_text()).get("few_satellites")
+    if few is None:
+        return 0, []
+    below, members = (few.get(k) if isinstance(few, dict) else None for k in ("below", "members"))
+    if not isinstance(below, int) or below < 5 or not isinstance(members, list) or not members \
+            or not all(isinstance(m, str) and m for m in members):
+        raise CheckpointError(f"{path}: 'few_satellites' must be {{\"below\": an integer >= 5, \"members\": "
+                              "[checkpoint file names]}")
+    return below, [path.parent / m for m in members]
+
+
+def _relative(members: list[str | Path], path: Path) -> list[str]:
     missing = [str(m) for m in members if not Path(m).is_file()]
     if not members or missing:
         raise CheckpointError(f"{path}: an ensemble needs existing member checkpoints; missing {missing or 'all'}")
-    rel = [Path(os.path.relpath(Path(m).resolve(), path.parent.resolve())).as_posix() for m in members]
-    doc = {"format": FORMAT, "members": rel, "calibration": dict(calibration or {})}
+    return [Path(os.path.relpath(Path(m).resolve(), path.parent.resolve())).as_posix() for m in members]
+
+
+def write_manifest(path: str | Path, members: list[str | Path], calibration: dict | None = None,
+                   few: tuple[int, list[str | Path]] | None = None) -> Path:
+    """Write the manifest atomically, ``members`` (and ``few``: below, members) stored relative to its folder
+    (kept beside it, the folder moves whole)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"format": FORMAT, "members": _relative(members, path), "calibration": dict(calibration or {})}
+    if few is not None:
+        doc["few_satellites"] = {"below": int(few[0]), "members": _relative(few[1], path)}
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc, indent=1) + "\n")
     os.replace(tmp, path)
@@ -80,7 +104,8 @@ def store_ensemble_calibration(path: str | Path, scales: dict) -> None:
     """Merge ``scales`` (name -> :func:`learned.calibrate.sigma_scale` dict, e.g. ``unseen_fused``) into the
     manifest's calibration."""
     paths, cal = read_manifest(path)
-    write_manifest(path, paths, {**cal, **scales})
+    below, few = read_few_satellites(path)
+    write_manifest(path, paths, {**cal, **scales}, (below, few) if few else None)
 
 
 def member_paths(weights: Path, out: Path) -> tuple[list[Path], list[Path]]:
@@ -104,7 +129,8 @@ def write_derived_manifest(weights: Path, out: Path, members: list[Path]) -> Non
     for an ensemble, its manifest ``out`` naming them, with the base ensemble's calibration; nothing for one
     network."""
     if is_manifest(weights):
-        write_manifest(out, members, read_manifest(weights)[1])
+        below, few = read_few_satellites(weights)      # kept as they are: the command changed the members only
+        write_manifest(out, members, read_manifest(weights)[1], (below, few) if few else None)
 
 
 class Ensemble(Corrector):
@@ -112,7 +138,7 @@ class Ensemble(Corrector):
     mode's :meth:`graph_inputs`, the providers) then works as for one network."""
 
     def __init__(self, members: list[Corrector], calibration: dict | None = None, path: Path | None = None,
-                 calibrated: bool = True):
+                 calibrated: bool = True, few: "Ensemble | None" = None, few_below: int = 0):
         first = members[0]
         for m in members[1:]:
             if m.features != first.features or m.signals != first.signals or m.output != first.output:
@@ -131,12 +157,18 @@ class Ensemble(Corrector):
         # the members applied their validation scales already; the ensemble's unseen-drive ones go on top
         scales = _calibration_scales({"calibration": calibration or {}}, path, calibrated)
         self.var_scale = {k: (scales[k] if k in UNSEEN else np.ones(3)) for k in scales}
+        if few is not None and (few.features != first.features or few.signals != first.signals):
+            raise CheckpointError(f"{path}: the few-satellite members read other features or signals")
+        self.few, self.few_below = few, few_below
 
     @classmethod
     def load(cls, path: str | Path, device: str = "cpu", calibrated: bool = True) -> "Ensemble":
         paths, cal = read_manifest(path)
+        below, few = read_few_satellites(path)
+        few_ens = cls([Corrector.load(p, device=device, calibrated=calibrated) for p in few], cal, Path(path),
+                      calibrated) if few else None
         return cls([Corrector.load(p, device=device, calibrated=calibrated) for p in paths], cal, Path(path),
-                   calibrated)
+                   calibrated, few_ens, below)
 
     def predict(self, trace, init_pos: np.ndarray, valid: np.ndarray, elev_mask_deg: float | None = None,
                 output: str | None = None, drop: np.ndarray | None = None) -> Correction:
@@ -150,7 +182,21 @@ class Ensemble(Corrector):
                 # the context (a plain WLS of the whole trace) is the same for every member: computed once
                 share_context(m, self.members)
         scale = self.var_scale["unseen_dnn"] if output == self.output else np.ones(3)
-        return combine(outs, np.asarray(init_pos, float), scale)
+        res = combine(outs, np.asarray(init_pos, float), scale)
+        if self.few is not None:
+            rows = res.valid & (satellite_counts(trace.sat_id, np.isfinite(res.base)) < self.few_below)
+            few = self.few.predict(trace, init_pos, np.asarray(valid) & rows, elev_mask_deg, output, drop) \
+                if rows.any() else None
+            res.info["few_satellite_epochs"] = 0 if few is None else int((rows & few.valid).sum())
+            if few is not None:
+                take_rows(res, few, rows & few.valid)
+        return res
+
+
+def take_rows(res: Correction, other: Correction, rows: np.ndarray) -> None:
+    """``other``'s answers in place of ``res``'s at the epochs ``rows`` (E,) bool."""
+    for name in ("mean_ecef", "cov_ecef", "corr_ned", "cov_ned", "sigma", "bias", "base", "trust"):
+        getattr(res, name)[rows] = getattr(other, name)[rows]
 
 
 def share_context(first: Corrector, members: list[Corrector]) -> None:

@@ -175,3 +175,29 @@ def test_guard_counts_are_every_members_reasons_at_their_most():
     assert set(got) == set(ia) | set(ib) | {"members"}
     assert all(got[k] == max(ia.get(k, 0), ib.get(k, 0)) for k in set(ia) | set(ib))
     np.testing.assert_allclose(a.var_scale["unseen_dnn"], 9.0)       # the member given keeps its own scale
+
+
+def test_few_satellite_members_answer_where_satellites_are_few_and_travel_with_the_manifest(tmp_path):
+    from fusion.trace import satellite_counts
+    from learned.ensemble import read_few_satellites
+    main = [_tiny(tmp_path / "w" / f"m{i}.pt", i) for i in range(2)]
+    few = [_tiny(tmp_path / "w" / f"f{i}.pt", 10 + i) for i in range(2)]
+    m = write_manifest(tmp_path / "w" / "ens.json", main, few=(7, few))
+    store_ensemble_calibration(m, {"unseen_fused": {"scale_ned": [2.0, 2.0, 2.0]}})    # keeps the entry
+    assert read_few_satellites(m) == (7, few)
+    tr, init, valid = _trace()
+    tr.mask[::3, 4:] = False                              # every third epoch: four satellites
+    ens = Corrector.load(m)
+    c = ens.predict(tr, init, valid)
+    plain = Ensemble([Corrector.load(p) for p in main]).predict(tr, init, valid)
+    alone = Ensemble([Corrector.load(p) for p in few]).predict(tr, init, valid)
+    rows = c.valid & (satellite_counts(tr.sat_id, np.isfinite(plain.base)) < 7)
+    assert rows.any() and (~rows & c.valid).any() and c.info["few_satellite_epochs"] == rows.sum()
+    for k in ("corr_ned", "cov_ned", "sigma", "bias"):
+        np.testing.assert_allclose(getattr(c, k)[rows], getattr(alone, k)[rows], atol=1e-4, err_msg=k)
+        np.testing.assert_allclose(getattr(c, k)[~rows], getattr(plain, k)[~rows], atol=1e-4, err_msg=k)
+    assert not np.allclose(plain.corr_ned[rows], alone.corr_ned[rows])
+    (tmp_path / "w" / "bad.json").write_text(json.dumps({"format": "gnssfuse-ensemble", "members": ["m0.pt"],
+                                                          "few_satellites": {"below": 3, "members": ["f0.pt"]}}))
+    with pytest.raises(CheckpointError, match="bad.json.*few_satellites"):
+        Corrector.load(tmp_path / "w" / "bad.json")
