@@ -249,12 +249,19 @@ def main(argv: list[str] | None = None) -> int:
                                 description="Write the manifest that makes checkpoints of one recipe an ensemble.")
     p.add_argument("members", type=Path, nargs="+", help="checkpoints (.pt) trained with different seeds")
     p.add_argument("--out", type=Path, required=True, help="the manifest to write (.json), beside or above them")
+    p.add_argument("--few", type=Path, nargs="+", default=[], metavar="CKPT",
+                   help="networks of another recipe (e.g. --sat-dropout) that answer at epochs of few satellites")
+    p.add_argument("--few-below", type=int, default=6, metavar="N",
+                   help="with --few: they answer where fewer than N distinct satellites are above the mask (>= 5)")
     args = p.parse_args(argv)
     try:
         if not is_manifest(args.out):
             raise CheckpointError(f"{args.out}: a manifest's name ends in {SUFFIX}")
-        Ensemble([Corrector.load(m) for m in args.members], path=args.out)      # one recipe, loadable
-        print(write_manifest(args.out, args.members))
+        if args.few and args.few_below < 5:
+            raise CheckpointError(f"--few-below {args.few_below}: the network needs four satellites; give 5 or more")
+        few = Ensemble([Corrector.load(m) for m in args.few], path=args.out) if args.few else None
+        Ensemble([Corrector.load(m) for m in args.members], path=args.out, few=few)      # one recipe, loadable
+        print(write_manifest(args.out, args.members, few=(args.few_below, args.few) if args.few else None))
     except CheckpointError as exc:
         print(f"{p.prog}: error: {exc}", file=sys.stderr)
         return 2

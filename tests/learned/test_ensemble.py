@@ -162,6 +162,11 @@ def test_manifest_command(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "ends in .json" in err[0] and "share one recipe" in err[1]
     assert not (tmp_path / "f.json").exists()
+    assert main([str(a), "--few", str(b), "--few-below", "5", "--out", str(tmp_path / "g.json")]) == 0
+    from learned.ensemble import read_few_satellites
+    assert read_few_satellites(tmp_path / "g.json") == (5, [b])
+    assert main([str(a), "--few", str(b), "--few-below", "4", "--out", str(tmp_path / "h.json")]) == 2
+    assert "--few-below 4" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
 
 
 def test_guard_counts_are_every_members_reasons_at_their_most():
