@@ -67,6 +67,7 @@ def read_manifest(path: str | Path) -> tuple[list[Path], dict]:
 def read_few_satellites(path: str | Path) -> tuple[int, list[Path]]:
     """(below, member paths) of the manifest's ``few_satellites`` entry; (0, []) where it has none."""
     path = Path(path)
+    read_manifest(path)                                   # a file that is no manifest: its one-line error
     few = json.loads(path.read_text()).get("few_satellites")
     if few is None:
         return 0, []
