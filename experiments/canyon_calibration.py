@@ -20,7 +20,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from canyon_on_phone import NAV, PIXEL5, in_canyon  # noqa: E402
+from canyon_on_phone import DEEP, NAV, PIXEL5, in_canyon  # noqa: E402
 from pixel5_table import ORBITS  # noqa: E402
 import fusion.estimate.variance_factor as vf  # noqa: E402
 from fusion.eval.metrics import mode_metrics, trace_errors  # noqa: E402
@@ -31,8 +31,7 @@ from fusion.run_types import RunOptions  # noqa: E402
 from fusion.sim.canyon import CanyonModel  # noqa: E402
 
 #: the streets of canyon_on_phone.py's two runs: its default and the deep one (--height 30 100 --width 12 25)
-STREETS = {"ordinary": CanyonModel(height_m=(15.0, 60.0), width_m=(15.0, 35.0)),
-           "deep": CanyonModel(height_m=(30.0, 100.0), width_m=(12.0, 25.0))}
+STREETS = {"ordinary": CanyonModel(), "deep": DEEP}
 
 
 def fused_with_and_without(trace, opts: RunOptions) -> tuple[dict, dict]:

@@ -25,9 +25,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
+from fusion.estimate.graph.bridged_check import disagreement  # noqa: E402
 from fusion.estimate.graph.fuse import estimate_fused_nodnn  # noqa: E402
+from fusion.estimate.variance_factor import centred_sums  # noqa: E402
 from fusion.eval.metrics import summarize, trace_errors  # noqa: E402
-from fusion.geometry import ecef2ned_cov, ecef2ned_vec  # noqa: E402
 from fusion.modes import solve_initial  # noqa: E402
 from fusion.options import add_signals_option, load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
@@ -44,25 +45,15 @@ class Gate:
 
 def disagreeing(a: ModeResult, b: ModeResult, k: float) -> np.ndarray:
     """(E,) bool epochs both solved where a horizontal axis differs by more than ``k`` combined sigmas."""
-    both = a.valid & b.valid & np.isfinite(a.cov).all(axis=(1, 2)) & np.isfinite(b.cov).all(axis=(1, 2))
     out = np.zeros(len(a.valid), bool)
-    if both.any():
-        p = a.pos[both]
-        d = ecef2ned_vec(p - b.pos[both], p)[:, :2]
-        var = (np.diagonal(ecef2ned_cov(a.cov[both], p), axis1=1, axis2=2)
-               + np.diagonal(ecef2ned_cov(b.cov[both], p), axis1=1, axis2=2))[:, :2]
-        out[both] = (np.abs(d) > k * np.sqrt(var)).any(axis=1)
+    rows, _, beyond = disagreement(a, b, np.ones(len(a.valid), bool), k)
+    out[rows] = beyond[:, :2].any(axis=1)
     return out
 
 
 def within(t_s: np.ndarray, rows: np.ndarray, window_s: float) -> np.ndarray:
     """(E,) bool epochs within ``window_s`` of a ``rows`` epoch; ``t_s`` (E,) sorted times [s]."""
-    tf = t_s[rows]
-    if not len(tf):
-        return rows.copy()
-    i = np.clip(np.searchsorted(tf, t_s), 1, len(tf) - 1) if len(tf) > 1 else np.zeros(len(t_s), int)
-    gap = np.minimum(np.abs(t_s - tf[i]), np.abs(t_s - tf[np.maximum(i - 1, 0)]))
-    return gap <= window_s
+    return centred_sums(t_s, rows, 2 * window_s) > 0
 
 
 def down_weighted(trace: Trace, rows: np.ndarray, scale: float) -> Trace:
@@ -98,14 +89,12 @@ def folder_row(path: str, opts: RunOptions, gate: Gate) -> tuple[str, dict]:
 
 def canyon_rows(gate: Gate) -> list[tuple[str, dict]]:
     """The Pixel5 test trace with broadcast GPS, in the deep streets of ``canyon_on_phone.md`` (seeds 0-2)."""
-    from canyon_on_phone import in_canyon
+    from canyon_on_phone import DEEP, in_canyon
     from few_satellites import NAV, PIXEL5
-    from fusion.sim.canyon import CanyonModel
 
     opts = RunOptions(signals=None, nav=(NAV,))
     trace = load_trace(PIXEL5, min_sats=1, **load_options(opts))
-    model = CanyonModel(height_m=(30.0, 100.0), width_m=(12.0, 25.0))
-    return [(f"Pixel5, deep streets seed {s}", scores(in_canyon(trace, model, s)[0], opts, gate)) for s in range(3)]
+    return [(f"Pixel5, deep streets seed {s}", scores(in_canyon(trace, DEEP, s)[0], opts, gate)) for s in range(3)]
 
 
 def main() -> int:

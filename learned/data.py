@@ -25,6 +25,7 @@ import numpy as np
 
 from fusion.errors import DataError, GnssfuseError
 from fusion.estimate.graph.fuse import fuse
+from fusion.estimate.variance_factor import centred_sums
 from fusion.geometry import line_of_sight
 from fusion.prepare.load import find_traces, load_trace
 from fusion.prepare.raw_load import RawSources
@@ -169,10 +170,8 @@ def fast_error(trace: Trace, window_s: float) -> np.ndarray:
     key = arc * (np.ptp(t) + 2.0 * window_s + 1.0) + (t - t.min())
     order = np.argsort(key, kind="stable")
     k, v = key[order], e[ii, ss][order]
-    cs = np.concatenate([[0.0], np.cumsum(v)])
-    lo, hi = np.searchsorted(k, k - window_s / 2, "left"), np.searchsorted(k, k + window_s / 2, "right")
     fast = np.empty_like(v)
-    fast[order] = v - (cs[hi] - cs[lo]) / (hi - lo)
+    fast[order] = v - centred_sums(k, v, window_s) / centred_sums(k, np.ones_like(v), window_s)
     out[ii, ss] = fast
     return out
 

@@ -264,6 +264,11 @@ def wls_track(trace: Trace, wls, elev_mask_deg: float) -> tuple[np.ndarray, np.n
     return pos, sel & np.asarray(wls.used, bool), sigma
 
 
+def solved_positions(result) -> np.ndarray:
+    """(E,3) a result's positions, NaN where it did not solve the epoch."""
+    return np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan)
+
+
 def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np.ndarray,
                      bias: np.ndarray | None = None, cal: SigmaCalibration | None = None,
                      wls: tuple | None = None, unlearned: np.ndarray | None = None, snap: np.ndarray | None = None):
@@ -280,7 +285,7 @@ def calibrate_result(result, trace: Trace, mode: str, sel: np.ndarray, sigma: np
     if result.cov is None or not np.asarray(result.valid).any():
         return result
     cal = cal or DEFAULTS[mode]
-    pos = np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan)
+    pos = solved_positions(result)
     if cal.factor_from == "wls" and wls is not None:
         f = track_factor(trace, wls[0], wls[1], wls[2], None, cal.window_s, cal.min_dof, fitted=True)
     else:
@@ -303,8 +308,7 @@ def calibrate_snapshot(result, trace: Trace, mode: str, opts, wls, used: np.ndar
     ``opts.sigma_calibration``."""
     if not getattr(opts, "sigma_calibration", False) or result.cov is None:
         return result
-    sel, sigma = sigma_model(trace, np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan),
-                             opts.elev_mask_deg)
+    sel, sigma = sigma_model(trace, solved_positions(result), opts.elev_mask_deg)
     cal = DEFAULTS[mode]
     track = wls_track(trace, wls, opts.elev_mask_deg) if cal.factor_from == "wls" else None   # else unused
     return calibrate_result(result, trace, mode, sel if used is None else sel & used, sigma, cal=cal, wls=track,
@@ -326,7 +330,7 @@ def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     carrier, snap = None, None
     if mode in CARRIER_DEFAULTS and linked.any():
         # both settings take the same one-epoch variances: computed once
-        snap = snapshot_var(trace, np.where(np.asarray(result.valid, bool)[:, None], result.pos, np.nan), *noise[:2])
+        snap = snapshot_var(trace, solved_positions(result), *noise[:2])
         carrier = replace(result, cov=result.cov.copy(), info=dict(result.info))
         carrier = calibrate_result(carrier, trace, mode, *noise, cal=CARRIER_DEFAULTS[mode], wls=track,
                                    unlearned=result.info.get("unlearned_pos"), snap=snap).cov

@@ -30,24 +30,34 @@ def bridged_with_doppler(result: ModeResult) -> np.ndarray:
     return bridged & ~without & result.valid
 
 
+def disagreement(result: ModeResult, reference: ModeResult, rows: np.ndarray, n_sigma: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where both results have a covariance among ``rows`` (E,) bool: those rows (E,) bool, the NED difference
+    ``result - reference`` (n,3) [m] there, and (n,3) bool where it exceeds ``n_sigma`` times the two results'
+    combined sigma on the axis."""
+    rows = rows & result.valid & reference.valid & np.isfinite(reference.cov).all(axis=(1, 2)) \
+        & np.isfinite(result.cov).all(axis=(1, 2))
+    pos = result.pos[rows]
+    d = ecef2ned_vec(pos - reference.pos[rows], pos)
+    both = (np.diagonal(ecef2ned_cov(result.cov[rows], pos), axis1=1, axis2=2)
+            + np.diagonal(ecef2ned_cov(reference.cov[rows], pos), axis1=1, axis2=2))
+    return rows, d, np.abs(d) > n_sigma * np.sqrt(both)
+
+
 def widen_by_disagreement(result: ModeResult, reference: ModeResult, rows: np.ndarray, n_sigma: float
                           ) -> int:
     """Add, in place, the squared NED disagreement with ``reference`` to ``result``'s variance on each axis of
-    ``rows`` (E,) bool where it exceeds ``n_sigma`` times the two results' combined sigma. Returns the count of
-    epochs widened."""
+    ``rows`` (E,) bool where it exceeds ``n_sigma`` times the two results' combined sigma (:func:`disagreement`).
+    Returns the count of epochs widened."""
     if reference.cov is None:
         return 0
-    rows = rows & reference.valid & np.isfinite(reference.cov).all(axis=(1, 2))
+    rows, d, beyond = disagreement(result, reference, rows, n_sigma)
     if not rows.any():
         return 0
     pos = result.pos[rows]
-    ned = ecef2ned_cov(result.cov[rows], pos)
-    ref = ecef2ned_cov(reference.cov[rows], pos)
-    d = ecef2ned_vec(pos - reference.pos[rows], pos)
-    both = np.diagonal(ned, axis1=1, axis2=2) + np.diagonal(ref, axis1=1, axis2=2)
-    add = np.where(np.abs(d) > n_sigma * np.sqrt(both), d ** 2, 0.0)
+    add = np.where(beyond, d ** 2, 0.0)
     result.cov = result.cov.copy()
-    result.cov[rows] = ned2ecef_cov(ned + add[:, :, None] * np.eye(3), pos)
+    result.cov[rows] = ned2ecef_cov(ecef2ned_cov(result.cov[rows], pos) + add[:, :, None] * np.eye(3), pos)
     return int((add > 0).any(axis=1).sum())
 
 
