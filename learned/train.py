@@ -104,6 +104,10 @@ class TrainConfig:
     # > 0: the per-satellite losses target each pseudorange's error averaged over this centred window [s] along
     # its arc (Samples.pr_fast taken out), the part a smoother cannot average away; 0: one epoch's error
     slow_target_s: float = 0.0
+    # > 0: validate and save an exponential moving average of the weights, updated after every step with this
+    # decay (torch.optim.swa_utils; 0.999 averages over about 1,000 steps, two epochs of the recipe): one
+    # epoch's weights carry the noise of its last batches. 0: the trained weights themselves
+    ema_decay: float = 0.0
 
     def warmup(self) -> int:
         return max(1, self.epochs // 10) if self.warmup_epochs is None else self.warmup_epochs
@@ -121,6 +125,7 @@ class TrainConfig:
             **({"init": str(self.init)} if self.init is not None else {}),
             **({"sat_dropout": self.sat_dropout} if self.sat_dropout > 0 else {}),
             **({"slow_target_s": self.slow_target_s} if self.slow_target_s > 0 else {}),
+            **({"ema_decay": self.ema_decay} if self.ema_decay > 0 else {}),
         }
 
 
@@ -259,8 +264,9 @@ def head_departure(out: dict, mask: torch.Tensor) -> torch.Tensor:
     return (dep * mask).sum() / mask.sum().clamp_min(1)
 
 
-def train_epoch(model, opt, inp: dict, cfg: TrainConfig, epoch: int, order: torch.Tensor) -> float:
-    """One pass over the rows ``order`` in batches; returns the mean loss."""
+def train_epoch(model, opt, inp: dict, cfg: TrainConfig, epoch: int, order: torch.Tensor, average=None) -> float:
+    """One pass over the rows ``order`` in batches (``average``: a weight average updated after each step, or
+    None); returns the mean loss."""
     model.train()
     total = torch.zeros((), dtype=torch.float64, device=order.device)
     for a in range(0, order.numel(), cfg.batch):
@@ -270,6 +276,8 @@ def train_epoch(model, opt, inp: dict, cfg: TrainConfig, epoch: int, order: torc
         loss.backward()
         dist.average_gradients(model)
         opt.step()
+        if average is not None:
+            average.update_parameters(model)
         total += loss.detach().double() * b["x"].shape[0]  # read once per epoch: no GPU sync per step
     return float(total) / max(order.numel(), 1)
 
@@ -287,15 +295,23 @@ def estimate_loss(model, inp: dict, cfg: TrainConfig) -> dict:
 
 
 # ------------------------------------------------------------------------------------- the loop
+def weight_average(model, cfg: TrainConfig):
+    """The exponential moving average of ``model``'s weights that :attr:`TrainConfig.ema_decay` asks for, or None."""
+    if cfg.ema_decay <= 0:
+        return None
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+    return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
+
+
 def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
-    """Model, optimizer, start epoch and history (from ``last`` when resuming)."""
+    """Model, optimizer, weight average (or None), start epoch and history (from ``last`` when resuming)."""
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.model, **cfg.to_checkpoint_config()["model"]["hparams"]).to(device)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, betas=cfg.betas)
     if not resume:
         if cfg.init is not None:
             model.load_state_dict(pretrained_state(Path(cfg.init), cfg, device))
-        return model, opt, 0, []
+        return model, opt, weight_average(model, cfg), 0, []
     if not last.is_file():
         raise CheckpointError(f"{last}: no checkpoint to resume from")
     blob = read_checkpoint(last, map_location=device)
@@ -306,13 +322,16 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     # everything but the epoch count shapes the run: a resumed run must draw what an uninterrupted one would
     for key in ("model", "eta", "augment", "seed", "features", "data", "guess_mix", "wls_jitter", "loss", "batch",
                 "lr", "betas", "warmup_epochs", "val_frac", "wls_max_err", "signals", "output", "dropout",
-                "sat_dropout"):
+                "sat_dropout", "ema_decay"):
         if _resume_view(blob["config"], key) != _resume_view(now, key):
             raise CheckpointError(f"{last}: cannot resume, {key!r} differs "
                                   f"({blob['config'].get(key)!r} in checkpoint vs {now.get(key)!r} now)")
     model.load_state_dict(blob["model_state"])
     opt.load_state_dict(blob["optimizer_state"])
-    return model, opt, int(blob["epoch"]), list(blob["history"])
+    average = weight_average(model, cfg)
+    if average is not None:
+        average.load_state_dict(blob["average_state"])
+    return model, opt, average, int(blob["epoch"]), list(blob["history"])
 
 
 def pretrained_state(path: Path, cfg: TrainConfig, device) -> dict:
@@ -369,7 +388,8 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
     out, device = Path(out), dist.device_for(cfg.device)
     last = out.with_name(out.name + ".last")
     check_inputs(train_s, val_s, cfg, device)
-    model, opt, start, history = setup(cfg, last, resume, device)
+    model, opt, average, start, history = setup(cfg, last, resume, device)
+    kept = model if average is None else average.module     # what is validated and saved
     dist.broadcast_parameters(model)
     tr = sample_tensors(train_s, cfg.features, device, cfg.wls_max_err)
     va = validation_inputs(sample_tensors(val_s, cfg.features, device, cfg.wls_max_err), cfg.features) \
@@ -384,26 +404,27 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
                                                   ckpt_cfg["input_ranges"])
     bar = progress_bar(cfg, start) if progress and dist.is_main() else None
     for epoch in range(start, cfg.epochs):
-        rec = run_epoch(model, opt, tr, va, cfg, epoch)
+        rec = run_epoch(model, opt, tr, va, cfg, epoch, average)
         history.append(rec)
         if dist.is_main():
             if rec["val_score_m"] < best:
                 best = rec["val_score_m"]
-                save_checkpoint(out, model, ckpt_cfg, epoch=epoch + 1, history=history)
+                save_checkpoint(out, kept, ckpt_cfg, epoch=epoch + 1, history=history)
             save_checkpoint(last, model, ckpt_cfg, optimizer_state=opt.state_dict(), epoch=epoch + 1,
-                            history=history)
+                            history=history, average_state=None if average is None else average.state_dict())
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{rec['train_loss']:.3f}", val=f"{rec['val_score_m']:.2f}m")
     if dist.is_main():
-        finish(model, out, ckpt_cfg, history, start, va, val_s, cfg)
+        finish(kept, out, ckpt_cfg, history, start, va, val_s, cfg)
     dist.barrier()
     return history
 
 
-def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: int) -> dict:
-    """Fresh guesses, one training pass over this rank's shard, validation; the epoch's history record
-    (with the time spent making inputs and in the forward/backward/step loop, for the benchmarks)."""
+def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: int, average=None) -> dict:
+    """Fresh guesses, one training pass over this rank's shard, validation (of the weight average where there
+    is one); the epoch's history record (with the time spent making inputs and in the forward/backward/step
+    loop, for the benchmarks)."""
     t0 = time.perf_counter()
     gen = epoch_generator(cfg.seed, epoch, tr["truth"].device, rank=dist.rank())
     fixed = epoch_generator(cfg.seed, -1, tr["truth"].device)       # --no-augment: the same guesses every epoch
@@ -412,10 +433,11 @@ def run_epoch(model, opt, tr: dict, va: dict | None, cfg: TrainConfig, epoch: in
     # one permutation shared by every rank (same seed), each rank taking its own shard of it
     order = dist.shard(torch.randperm(tr["truth"].shape[0], generator=epoch_generator(cfg.seed, epoch)))
     t1 = time.perf_counter()
-    loss = train_epoch(model, opt, inp, cfg, epoch, order.to(tr["truth"].device))
+    loss = train_epoch(model, opt, inp, cfg, epoch, order.to(tr["truth"].device), average)
     rec = {"epoch": epoch + 1, "train_loss": loss, "samples": int(order.numel()), "world_size": dist.world_size(),
            "nll": epoch >= cfg.warmup(), "feature_s": t1 - t0, "model_s": time.perf_counter() - t1}
-    rec.update(estimate_loss(model, va, cfg) if va is not None and dist.is_main() else {"val_score_m": loss})
+    kept = model if average is None else average.module
+    rec.update(estimate_loss(kept, va, cfg) if va is not None and dist.is_main() else {"val_score_m": loss})
     rec["time_s"] = time.perf_counter() - t0
     return rec
 

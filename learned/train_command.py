@@ -100,7 +100,7 @@ def config_from_args(args, desc: dict) -> TrainConfig:
                        wls_jitter=args.wls_jitter, wls_max_err=args.wls_max_err, calibrate=not args.no_calibrate,
                        loss=parse_loss(args.loss), output=args.output, dropout=parse_dropout(args.dropout),
                        signals=signals_of(args), init=args.init, sat_dropout=args.sat_dropout,
-                       slow_target_s=args.slow_target)
+                       slow_target_s=args.slow_target, ema_decay=args.ema)
 
 
 def signals_of(args) -> tuple[str, ...]:
@@ -117,6 +117,8 @@ def check_args(args) -> None:
         raise DataError(f"--sat-dropout: a rate in [0, 1], got {args.sat_dropout}")
     if args.slow_target < 0:
         raise DataError(f"--slow-target: a window in seconds >= 0, got {args.slow_target}")
+    if not 0 <= args.ema < 1:
+        raise DataError(f"--ema: a decay in [0, 1), got {args.ema}")
 
 
 def summary(out: Path, hist: list[dict]) -> str:

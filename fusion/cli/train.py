@@ -45,6 +45,9 @@ def build_parser(prog: str = "gnssfuse train") -> argparse.ArgumentParser:
     p.add_argument("--slow-target", type=float, default=0.0, metavar="S",
                    help="score the per-satellite losses on each pseudorange's error averaged over a centred S s along "
                         "its arc, the part a smoother cannot average away (default 0: one epoch's error)")
+    p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
+                   help="validate and save an exponential moving average of the weights with this decay per step "
+                        "(e.g. 0.999; default 0: the trained weights)")
     p.add_argument("--resume", action="store_true", help="continue from <out>.last")
     p.add_argument("--init", type=Path, default=None, metavar="CKPT",
                    help="start from this checkpoint's weights (pre-trained, e.g. on simulated traces; same network "

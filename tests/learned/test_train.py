@@ -94,7 +94,7 @@ def test_resume_with_more_epochs_keeps_the_default_warmup(tiny, tmp_path):
     tr, va = tiny
     train(tr, va, TrainConfig(epochs=1, seed=1), tmp_path / "w.pt", progress=False)
     more = TrainConfig(epochs=40, seed=1)                   # its own default warm-up would be 4
-    _, _, start, history = setup(more, tmp_path / "w.pt.last", True, torch.device("cpu"))
+    _, _, _, start, history = setup(more, tmp_path / "w.pt.last", True, torch.device("cpu"))
     assert start == 1 and len(history) == 1 and more.warmup() == 1
     with pytest.raises(CheckpointError, match="'warmup_epochs' differs"):
         setup(TrainConfig(epochs=40, seed=1, warmup_epochs=4), tmp_path / "w.pt.last", True, torch.device("cpu"))
@@ -109,7 +109,7 @@ def test_resume_needs_only_the_dropout_rates_of_the_groups_read(tiny, tmp_path):
     blob = torch.load(tmp_path / "d.pt.last", weights_only=True)
     del blob["config"]["dropout"]["heading"]                       # as written before "heading" existed
     torch.save(blob, tmp_path / "d.pt.last")
-    _, _, start, _ = setup(TrainConfig(epochs=2, **cfg), tmp_path / "d.pt.last", True, torch.device("cpu"))
+    _, _, _, start, _ = setup(TrainConfig(epochs=2, **cfg), tmp_path / "d.pt.last", True, torch.device("cpu"))
     assert start == 1
     with pytest.raises(CheckpointError, match="'dropout' differs"):
         setup(TrainConfig(epochs=2, dropout={"cn0": 0.9}, **cfg), tmp_path / "d.pt.last", True, torch.device("cpu"))
