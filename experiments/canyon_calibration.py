@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,6 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 from canyon_on_phone import DEEP, NAV, PIXEL5, in_canyon  # noqa: E402
 from pixel5_table import ORBITS  # noqa: E402
-import fusion.estimate.variance_factor as vf  # noqa: E402
 from fusion.eval.metrics import mode_metrics, trace_errors  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
@@ -39,12 +39,8 @@ def fused_with_and_without(trace, opts: RunOptions) -> tuple[dict, dict]:
     the same either way) and, with them, the signed mean and spread of its NED errors [m] (``mean_*``, ``sd_*``)
     and how many epochs took the carrier setting (``carrier_calibrated``)."""
     wls = solve_initial(trace, opts)
-    shipped = dict(vf.CARRIER_DEFAULTS)
-    try:
-        vf.CARRIER_DEFAULTS.clear()
-        before = mode_metrics(trace, run_modes(trace, ["fused"], opts, wls=wls)["fused"])
-    finally:
-        vf.CARRIER_DEFAULTS.update(shipped)
+    general = replace(opts, carrier_sigma_calibration=False)
+    before = mode_metrics(trace, run_modes(trace, ["fused"], general, wls=wls)["fused"])
     res = run_modes(trace, ["fused"], opts, wls=wls)["fused"]
     err = trace_errors(trace, res)
     err = err[np.isfinite(err).all(axis=1)]

@@ -38,6 +38,9 @@ class RunOptions:
     # reported covariances follow each mode's windowed a-posteriori variance factor
     # (fusion.estimate.variance_factor); positions are the same either way
     sigma_calibration: bool = True
+    # ... with each mode's own setting at the epochs carrier phase ties (variance_factor.CARRIER_DEFAULTS); False:
+    # those epochs take the mode's general setting too
+    carrier_sigma_calibration: bool = True
     # the fused graph's settings, Doppler / carrier / incremental switches included
     graph: GraphConfig = field(default_factory=GraphConfig)
 

@@ -320,7 +320,8 @@ def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     slots, sigmas, biases, each (E,S), left there by the solve), the shared WLS solution ``wls`` and, for
     ``fused``, its solve without anything learned (``info["unlearned_pos"]``, (E,3)), when
     ``opts.sigma_calibration``; at the epochs carrier phase ties (``info["carrier_linked"]``) the mode's
-    :data:`CARRIER_DEFAULTS` where it has one (their count in ``info["carrier_calibrated"]``)."""
+    :data:`CARRIER_DEFAULTS` where it has one and ``opts.carrier_sigma_calibration`` (their count in
+    ``info["carrier_calibrated"]``)."""
     noise = result.info.get("pr_noise")
     if not getattr(opts, "sigma_calibration", False) or noise is None or result.cov is None:
         return result
@@ -328,7 +329,7 @@ def calibrate_graph(result, trace: Trace, mode: str, opts, wls):
     linked = np.asarray(result.info.get("carrier_linked", np.zeros(trace.n_epochs, bool)), bool) \
         & np.asarray(result.valid, bool)
     carrier, snap = None, None
-    if mode in CARRIER_DEFAULTS and linked.any():
+    if getattr(opts, "carrier_sigma_calibration", True) and mode in CARRIER_DEFAULTS and linked.any():
         # both settings take the same one-epoch variances: computed once
         snap = snapshot_var(trace, solved_positions(result), *noise[:2])
         carrier = replace(result, cov=result.cov.copy(), info=dict(result.info))

@@ -262,7 +262,8 @@ def test_only_least_squares_positions_count_as_fitted():
 
 def test_carrier_tied_epochs_take_the_carrier_setting_and_the_others_keep_theirs(short_trace):
     """calibrate_graph: the epochs ``info["carrier_linked"]`` marks get the mode's CARRIER_DEFAULTS, the rest what
-    DEFAULTS gives them; a trace without carrier is calibrated as before, and nothing moves a position."""
+    DEFAULTS gives them; a trace without carrier, or a run with ``carrier_sigma_calibration`` off, is calibrated as
+    before, and nothing moves a position."""
     from dataclasses import replace
     from fusion.estimate.variance_factor import CARRIER_DEFAULTS, calibrate_graph, calibrate_result, wls_track
     from fusion.modes import run_modes, solve_initial
@@ -287,4 +288,7 @@ def test_carrier_tied_epochs_take_the_carrier_setting_and_the_others_keep_theirs
     none = calibrate_graph(fresh(np.zeros_like(linked)), short_trace, "fused", opts, wls)
     np.testing.assert_array_equal(none.cov, want["default"])
     assert "carrier_calibrated" not in none.info
+    general = calibrate_graph(fresh(linked), short_trace, "fused", replace(opts, carrier_sigma_calibration=False), wls)
+    np.testing.assert_array_equal(general.cov, want["default"])             # the switch: every epoch the general
+    assert "carrier_calibrated" not in general.info
     assert "fused-nodnn" not in CARRIER_DEFAULTS               # its own setting gained nothing on the tuning traces
