@@ -151,7 +151,8 @@ def recipe(args, data: dict) -> TrainConfig:
                        guess_mix=parse_guess_mix(args.guess_mix), output="wls", dropout=parse_dropout(args.dropout),
                        features=FeatureConfig(version=args.feature_version, inputs=tuple(inputs.split(","))),
                        signals=args.signals, init=args.init, sat_dropout=args.sat_dropout,
-                       slow_target_s=args.slow_target, ema_decay=args.ema)
+                       slow_target_s=args.slow_target, ema_decay=args.ema,
+                       hparams={"dropout": args.model_dropout} if args.model_dropout > 0 else {})
 
 
 def eval_drive(drive: str, ckpt: Path, args) -> dict:
@@ -308,6 +309,8 @@ def parse_args(argv=None):
                         "along its arc (TrainConfig.slow_target_s; 0: one epoch's error, the recipe)")
     p.add_argument("--sat-dropout", type=float, default=0.0,
                    help="satellite dropout rate (gnssfuse train --sat-dropout)")
+    p.add_argument("--model-dropout", type=float, default=0.0, metavar="P",
+                   help="the set transformer's layers' dropout in training (0: none, the recipe)")
     p.add_argument("--ema", type=float, default=0.0, metavar="DECAY",
                    help="weight average's decay per step (gnssfuse train --ema; 0: off, the recipe)")
     p.add_argument("--jobs", type=int, default=1, help="folds in parallel processes")

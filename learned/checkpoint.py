@@ -29,16 +29,15 @@ FORMAT_VERSION = 1
 
 
 def save_checkpoint(path: str | Path, model: nn.Module, config: dict, *, optimizer_state: dict | None = None,
-                    epoch: int = 0, history: list | None = None, average_state: dict | None = None) -> Path:
+                    epoch: int = 0, history: list | None = None, extra: dict | None = None) -> Path:
     """Write atomically (temp file + rename) so an interrupted save never leaves a truncated checkpoint.
-    ``average_state``: a weight average's state beside the trained weights (a resumable run's, :mod:`learned.train`)."""
+    ``extra``: more entries of tensors (what a resumable run needs beside its weights, :mod:`learned.train`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     blob = {"format": FORMAT, "format_version": FORMAT_VERSION, "config": config,
             "model_state": model.state_dict(), "optimizer_state": optimizer_state,
             "epoch": int(epoch), "history": list(history or [])}
-    if average_state is not None:
-        blob["average_state"] = average_state
+    blob.update(extra or {})
     tmp = path.with_name(path.name + ".tmp")
     torch.save(blob, tmp)
     os.replace(tmp, path)

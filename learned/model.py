@@ -58,14 +58,15 @@ class PMA(nn.Module):
 
 class SetTransformer(nn.Module):
     def __init__(self, d_in: int = 4, d_model: int = 64, n_heads: int = 4, dim_feedforward: int = 64,
-                 n_encoder: int = 2, n_decoder: int = 2, d_out: int = 3):
+                 n_encoder: int = 2, n_decoder: int = 2, d_out: int = 3, dropout: float = 0.0):
+        """``dropout``: the transformer layers' dropout in training (inference, in eval mode, has none)."""
         super().__init__()
         self.embed = nn.Sequential(nn.Linear(d_in, d_model), nn.ReLU())
         self.encoder = nn.ModuleList(nn.TransformerEncoderLayer(
-            d_model, n_heads, dim_feedforward, dropout=0.0, batch_first=True) for _ in range(n_encoder))
+            d_model, n_heads, dim_feedforward, dropout=dropout, batch_first=True) for _ in range(n_encoder))
         self.pool = PMA(d_model, n_heads)
         self.decoder = nn.ModuleList(nn.TransformerDecoderLayer(
-            d_model, n_heads, dim_feedforward, dropout=0.0, batch_first=True) for _ in range(n_decoder))
+            d_model, n_heads, dim_feedforward, dropout=dropout, batch_first=True) for _ in range(n_decoder))
         self.head = nn.Linear(d_model, d_out)
         self.logvar_head = nn.Linear(d_model, d_out)
         self.sat_head = nn.Linear(d_model, 2)

@@ -303,6 +303,15 @@ def weight_average(model, cfg: TrainConfig):
     return AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
 
 
+def resume_state(average) -> dict:
+    """What a resumed run needs beside the weights and the optimizer: the global generator's state (the layers'
+    dropout draws from it) and the weight average's, where there is one."""
+    state = {"rng_state": torch.get_rng_state()}
+    if average is not None:
+        state["average_state"] = average.state_dict()
+    return state
+
+
 def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
     """Model, optimizer, weight average (or None), start epoch and history (from ``last`` when resuming)."""
     torch.manual_seed(cfg.seed)
@@ -328,6 +337,8 @@ def setup(cfg: TrainConfig, last: Path, resume: bool, device) -> tuple:
                                   f"({blob['config'].get(key)!r} in checkpoint vs {now.get(key)!r} now)")
     model.load_state_dict(blob["model_state"])
     opt.load_state_dict(blob["optimizer_state"])
+    if "rng_state" in blob:                     # the layers' dropout draws from it (hparams "dropout")
+        torch.set_rng_state(blob["rng_state"])
     average = weight_average(model, cfg)
     if average is not None:
         average.load_state_dict(blob["average_state"])
@@ -411,7 +422,7 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
                 best = rec["val_score_m"]
                 save_checkpoint(out, kept, ckpt_cfg, epoch=epoch + 1, history=history)
             save_checkpoint(last, model, ckpt_cfg, optimizer_state=opt.state_dict(), epoch=epoch + 1,
-                            history=history, average_state=None if average is None else average.state_dict())
+                            history=history, extra=resume_state(average))
         if bar is not None:
             bar.update(1)
             bar.set_postfix(loss=f"{rec['train_loss']:.3f}", val=f"{rec['val_score_m']:.2f}m")

@@ -64,6 +64,19 @@ def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
         train(tr, va, TrainConfig(epochs=1), tmp_path / "none.pt", resume=True, progress=False)
 
 
+def test_a_network_with_dropout_resumes_as_an_uninterrupted_run(tiny, tmp_path):
+    """The layers' dropout draws from the global generator: its state travels in ``<out>.last``."""
+    tr, va = tiny
+    cfg = dict(seed=3, warmup_epochs=1, hparams={"dropout": 0.2})
+    train(tr, va, TrainConfig(epochs=2, **cfg), tmp_path / "full.pt", progress=False)
+    train(tr, va, TrainConfig(epochs=1, **cfg), tmp_path / "part.pt", progress=False)
+    torch.manual_seed(99)                                    # what ran in between must not matter
+    train(tr, va, TrainConfig(epochs=2, **cfg), tmp_path / "part.pt", resume=True, progress=False)
+    full, part = (read_checkpoint(tmp_path / f"{n}.pt.last") for n in ("full", "part"))
+    assert _same(full["model_state"], part["model_state"])
+    assert read_checkpoint(tmp_path / "full.pt")["config"]["model"]["hparams"]["dropout"] == 0.2
+
+
 def test_a_run_starts_from_a_pretrained_network_and_says_so(tiny, tmp_path):
     tr, va = tiny
     pre = tmp_path / "pre.pt"

@@ -61,3 +61,4 @@ def test_cli_writes_the_decay_and_refuses_one_outside_zero_to_one(tmp_path):
     assert read_checkpoint(out)["config"]["ema_decay"] == 0.99
     with pytest.raises(DataError, match="--ema"):
         main(["--data", "toy", "--epochs", "1", "--ema", "1.5", "--out", str(tmp_path / "x.pt")])
+
