@@ -310,8 +310,8 @@ def _check_member_recipe(corr: Corrector, doc: str, command: str) -> None:
 
     cfg = corr.config
     assert corr.features.clock == "median" and corr.signals[0] == "GPS_L1"
-    if corr.signals != ("GPS_L1",):                       # trained on more signals: the recipe says so
-        assert " --signals all " in command
+    if corr.signals != ("GPS_L1",):                       # trained on more signals: the recipe names them
+        assert f" SIGNALS={','.join(corr.signals)} " in command and " --signals $SIGNALS " in command
     model, blob = load_model(corr.path)
     assert f"{count_parameters(model):,} parameters" in doc
     mix = ",".join(f"{k}={v:g}" for k, v in cfg["guess_mix"].items())
