@@ -22,7 +22,6 @@ GPS L1 + L5 alone).
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -33,6 +32,7 @@ import pandas as pd
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
 from fusion.estimate.graph.config import GraphConfig  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
@@ -41,6 +41,7 @@ from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.trace import SIGNALS  # noqa: E402
+from sim_city_traces import street_kind  # noqa: E402
 
 BEFORE = dict(tdcp_cn0_ref_dbhz=0.0, learned_carrier_power=0.0, learned_carrier_knee=1.0)
 #: name -> GraphConfig settings (the shipped defaults for the rest)
@@ -81,7 +82,7 @@ def reflected_slots(trace, folder: Path) -> np.ndarray:
 def score_trace(folder: str) -> list[dict]:
     """One row per variant and mode: the trace's GSDC score [m]."""
     trace = load_trace(folder, signals="all")
-    kind = re.search(r"-(deep|urban|suburban)-", folder)
+    kind = street_kind(folder)
     gps_only = all(SIGNALS[i].startswith("GPS") for i in np.unique(trace.signal[trace.mask]))
     opts0 = RunOptions(signals=None)
     wls = solve_initial(trace, opts0)
@@ -94,7 +95,7 @@ def score_trace(folder: str) -> list[dict]:
         res = run_modes(tr, list(MODES), opts, wls)
         for m in MODES:
             rows.append(dict(trace=Path(folder).parent.name, variant=name,
-                             kind=(kind.group(1) if kind else "-") + (" (GPS)" if gps_only else ""),
+                             kind=(kind or "-") + (" (GPS)" if gps_only else ""),
                              mode=m, score=mode_metrics(tr, res[m])["gsdc_score"]))
     return rows
 

@@ -33,20 +33,19 @@ from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.ensemble import write_manifest  # noqa: E402
+from sim_city_traces import street_kind  # noqa: E402
 
 SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
 SMARTLOC = SHARED / "smartloc/Berlin_Potsdamer_Platz"
 PIXEL5 = SHARED / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5"
 NAV = SHARED / "ephemeris/gps_nav/hour1180.21n"
-KINDS = ("suburban", "urban", "deep")
 
 
 def logs(sims: list[Path]) -> list[tuple[str, Path, RunOptions]]:
     """(group, folder, options) of every log: smartLoc, the simulated traces (every signal), the Pixel5."""
     out = [("smartLoc", SMARTLOC, RunOptions(signals=None))]
     for s in sims:
-        kind = next((k for k in KINDS if re.search(rf"(^|[-_]){k}([-_]|$)", s.parent.name)), "simulated")
-        out.append((kind, s, RunOptions(signals=parse_signals("all"))))
+        out.append((street_kind(s.parent.name) or "simulated", s, RunOptions(signals=parse_signals("all"))))
     return out + [("Pixel5 (test)", PIXEL5, RunOptions(signals=None, nav=(NAV,)))]
 
 

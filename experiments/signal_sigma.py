@@ -34,6 +34,7 @@ import pandas as pd
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.io.gnss_log import read_gnss_log  # noqa: E402
@@ -43,9 +44,9 @@ from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.prepare.raw_trace import CN0_REF, pr_sigma_model  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from fusion.trace import SIGNALS, Trace  # noqa: E402
+from sim_city_traces import street_kind  # noqa: E402
 
 MODES = ("wls", "fused-nodnn", "fused")
-KINDS = ("suburban", "urban", "deep")
 
 
 def md(df: pd.DataFrame) -> str:
@@ -98,7 +99,7 @@ def sims(paths: list[Path], factors: np.ndarray, nav: tuple[Path, ...] = ()) -> 
     rows = []
     for p in paths:
         trace = load_trace(p, min_sats=1, **load_options(opts))
-        kind = next((k for k in KINDS if f"-{k}-" in p.parent.name), "log")
+        kind = street_kind(p.parent.name) or "log"
         for table, f in (("x 1", np.ones(len(SIGNALS))), ("factors", factors)):
             t = as_rinex(trace, f)
             res = run_modes(t, list(MODES), opts)

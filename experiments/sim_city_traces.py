@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -36,9 +37,18 @@ SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "d
 #: replayed tracks (training drives only: never a test trace's road)
 TRACKS = ("2020-05-14-US-MTV-2", "2020-05-29-US-MTV-1", "2020-06-04-US-MTV-1", "2020-07-08-US-MTV-1")
 SCENARIOS = ("urban", "suburban")
+#: the street kinds (simulator scenarios) a written trace's collection name can carry
+STREET_KINDS = ("suburban", "urban", "deep")
 #: the held-out set's tracks (``--held-out``) and its first seed
 HELD_OUT_TRACKS = ("2020-05-21-US-MTV-1", "2020-06-11-US-MTV-1", "2020-05-21-US-MTV-2", "2020-05-29-US-MTV-2")
 HELD_OUT_SEED = 100
+
+
+def street_kind(name: str | Path) -> str | None:
+    """The street kind a trace written here carries in its name (``<prefix>-<scenario>-<seed>``, or a path through
+    that folder), or None."""
+    found = re.search(r"-(" + "|".join(STREET_KINDS) + r")-", str(name))
+    return found.group(1) if found else None
 
 
 def main(argv=None) -> int:

@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
+from sim_city_traces import STREET_KINDS, street_kind  # noqa: E402
 from fusion.eval.metrics import mode_metrics  # noqa: E402
 from fusion.modes import run_modes  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
@@ -41,7 +42,6 @@ VARIANTS = {
     "Geman-McClure 2 on every graph": {"robust": "gm", "robust_k": 2.0, "learned_robust": "gm",
                                        "learned_robust_k": 2.0},
 }
-KINDS = ("suburban", "urban", "deep")
 
 
 def score(job: tuple[Path, str, dict, str, tuple]) -> tuple[str, str, str, float]:
@@ -93,8 +93,8 @@ def main() -> int:
         r = {"GSDC fused-nodnn (mean of 12)": np.mean([s for n, m, s in mine if n.startswith("20")])}
         for m in ("fused-nodnn", "fused"):
             r[f"smartLoc {m}"] = next(s for n, mm, s in mine if n.startswith("smartloc") and mm == m)
-            for kind in KINDS if args.sims else ():
-                r[f"sims {kind} {m}"] = np.mean([s for n, mm, s in mine if f"-{kind}-" in n and mm == m])
+            for kind in STREET_KINDS if args.sims else ():
+                r[f"sims {kind} {m}"] = np.mean([s for n, mm, s in mine if street_kind(n) == kind and mm == m])
         rows[v] = r
     table("GSDC score [m]", rows)
     return 0

@@ -46,3 +46,11 @@ def test_recipes_sharing_their_first_run_get_manifests_of_their_own(tmp_path):
         assert three[fold] != two[fold] and three[fold].parent == two[fold].parent == runs[0]
         assert [p.parent.name for p in read_manifest(three[fold])[0]] == ["s0", "s1", "s2"]
         assert len(read_manifest(two[fold])[0]) == 2
+
+
+def test_street_kind_reads_the_kind_sim_city_traces_writes_into_a_name():
+    _module()                                                  # puts experiments/ on the path
+    from sim_city_traces import street_kind
+    assert street_kind("ho-suburban-102") == "suburban" and street_kind("sim-urban-7") == "urban"
+    assert street_kind("/tmp/simdeepho/ho-deep-301/SimPhone") == "deep"
+    assert street_kind("ho-urban-105/SimPhone") == "urban" and street_kind("smartloc/Berlin") is None
