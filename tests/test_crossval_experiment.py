@@ -1,25 +1,13 @@
 """experiments/crossval.py's report: the pooled ratios printed to the millimetre."""
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _crossval():
-    spec = importlib.util.spec_from_file_location("crossval", REPO / "experiments" / "crossval.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+from tests.experiment_module import experiment_module
 
 
 def test_pooled_ratios_pool_every_fold_and_skip_a_pair_not_run():
-    mod = _crossval()
+    mod = experiment_module("crossval")
     rng = np.random.default_rng(0)
     errs = {m: [rng.normal(0, s, (200, 3)) for _ in range(4)] for m, s in (("fused-nodnn", 2.0), ("fused", 1.0))}
     results = {f: {f"d{i}": {m: {"err": errs[m][2 * j + i]} for m in errs} for i in range(2)}

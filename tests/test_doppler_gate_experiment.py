@@ -2,28 +2,15 @@
 down-weights (or drops) Doppler and carrier of those epochs only."""
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.sim.simulate import SimConfig, simulate_dataset
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _gate():
-    spec = importlib.util.spec_from_file_location("doppler_gate", REPO / "experiments" / "doppler_gate.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod            # its dataclass resolves its annotations through sys.modules
-    spec.loader.exec_module(mod)
-    return mod
+from tests.experiment_module import experiment_module
 
 
 def test_within_matches_the_brute_force_distance_to_the_nearest_flagged_epoch():
-    mod = _gate()
+    mod = experiment_module("doppler_gate")
     rng = np.random.default_rng(0)
     t = np.cumsum(rng.choice([1.0, 1.0, 1.0, 7.0], 300))          # 1 s epochs with gaps
     for p in (0.0, 0.01, 0.2):
@@ -34,7 +21,7 @@ def test_within_matches_the_brute_force_distance_to_the_nearest_flagged_epoch():
 
 
 def test_down_weighted_touches_only_the_gated_epochs():
-    mod = _gate()
+    mod = experiment_module("doppler_gate")
     nav = read_rinex_nav(default_nav_path())
     tr = simulate_dataset(1, 20, seed=1, nav=nav, config=SimConfig(doppler=True, carrier=True))[0]
     rows = np.zeros(tr.n_epochs, bool)

@@ -2,23 +2,13 @@
 over logs and folds."""
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location("fold_ensembles", REPO / "experiments" / "fold_ensembles.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+from tests.experiment_module import experiment_module
 
 
 def test_simulated_traces_are_grouped_by_their_street_kind_and_read_with_every_signal():
-    mod = _module()
+    mod = experiment_module("fold_ensembles")
     sims = [Path(f"/x/{n}/SimPhone") for n in ("ho-urban-101", "ho-suburban-102", "ho-deep-301", "walk-7")]
     got = mod.logs(sims)
     assert [g for g, _, _ in got] == ["smartLoc", "urban", "suburban", "deep", "simulated", "Pixel5 (test)"]
@@ -26,7 +16,7 @@ def test_simulated_traces_are_grouped_by_their_street_kind_and_read_with_every_s
 
 
 def test_the_table_gives_each_recipe_the_mean_of_its_folds_means():
-    mod = _module()
+    mod = experiment_module("fold_ensembles")
     got = {("fused-nodnn", "deep"): [10.0, 12.0], ("r", "deep", "AB"): [4.0, 6.0], ("r", "deep", "CD"): [8.0, 8.0]}
     lines = mod.table(got, ["r"], ["deep"]).splitlines()
     assert lines[2] == "| (`fused-nodnn`) | 11.00 |"
@@ -35,7 +25,7 @@ def test_the_table_gives_each_recipe_the_mean_of_its_folds_means():
 
 def test_recipes_sharing_their_first_run_get_manifests_of_their_own(tmp_path):
     from learned.ensemble import read_manifest
-    mod = _module()
+    mod = experiment_module("fold_ensembles")
     runs = [tmp_path / f"s{i}" for i in range(3)]
     for r in runs:
         r.mkdir()
@@ -49,7 +39,7 @@ def test_recipes_sharing_their_first_run_get_manifests_of_their_own(tmp_path):
 
 
 def test_street_kind_reads_the_kind_sim_city_traces_writes_into_a_name():
-    _module()                                                  # puts experiments/ on the path
+    experiment_module("fold_ensembles")                                                  # puts experiments/ on the path
     from sim_city_traces import street_kind
     assert street_kind("ho-suburban-102") == "suburban" and street_kind("sim-urban-7") == "urban"
     assert street_kind("/tmp/simdeepho/ho-deep-301/SimPhone") == "deep"

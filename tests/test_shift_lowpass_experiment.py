@@ -1,25 +1,13 @@
 """experiments/shift_lowpass.py: the moving mean skips incomplete rows, and a shift moves north and east only."""
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location("shift_lowpass", REPO / "experiments" / "shift_lowpass.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+from tests.experiment_module import experiment_module
 
 
 def test_moving_mean_is_centred_and_skips_rows_with_a_nan():
-    mod = _module()
+    mod = experiment_module("shift_lowpass")
     x = np.array([[1.0], [np.nan], [3.0], [5.0], [7.0]])
     m = mod.moving_mean(x, 3)
     assert np.allclose(m[:, 0], [1.0, 2.0, 4.0, 5.0, 6.0])          # row 1's window holds rows 0 and 2 only
@@ -28,7 +16,7 @@ def test_moving_mean_is_centred_and_skips_rows_with_a_nan():
 
 
 def test_a_shift_moves_the_horizontal_by_alpha_times_the_slow_difference():
-    mod = _module()
+    mod = experiment_module("shift_lowpass")
     fused = np.zeros((50, 3))
     toward = np.tile([2.0, -1.0, 5.0], (50, 1))
     out = mod.shifted(fused, toward, fused, 0.5, 0)
