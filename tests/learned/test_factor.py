@@ -96,7 +96,9 @@ def test_one_epoch_factor_with_the_phone_inputs_matches_the_trace_prediction(con
                                         pr_sigma=tr.pr_sigma[0], cn0=tr.cn0[0],
                                         signal=np.array(["GPS_L1"] * tr.mask.shape[1]))
     np.testing.assert_allclose(mean, whole.mean_ecef[0], atol=1e-6)
-    np.testing.assert_allclose(cov, whole.cov_ecef[0], rtol=1e-6, atol=1e-9)
+    # the network runs in float32: one epoch against a batch of four differs in the last digits (BLAS sums in
+    # another order), by 2e-6 of an off-diagonal term on one machine; a wrong input moves it by percent
+    np.testing.assert_allclose(cov, whole.cov_ecef[0], rtol=1e-5, atol=1e-6 * np.abs(whole.cov_ecef[0]).max())
     # the sigma is read: a different one moves the answer
     _, other, _ = learned_prior_factor(corr, tr.sat_pos[0], tr.pr[0], tr.mask[0], guess[0], 1,
                                        pr_sigma=np.ones(tr.mask.shape[1]), cn0=tr.cn0[0])
