@@ -28,6 +28,7 @@ import os
 import sys
 from itertools import product
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -270,12 +271,30 @@ def tune_mode(data: dict, mode: str) -> tuple[SigmaCalibration, dict, float]:
             if pen < best[0]:
                 best = (pen, cov, w, b, fl, c, src, dis)
     pen, cov, w, b, fl, c, src, dis = best
-    base = with_snapshot(data, base_var(data, mode), mode, c)
-    a = fit_a([(data[n][f"{mode}/err"], base[n], factor(data[n], mode, w, src), dis * disagreement(data[n], mode, w))
-               for n in names], b, fl)
-    cal = SigmaCalibration(a=tuple(round(float(x), 4) for x in a), b=b, floor_m=tuple(float(x) for x in fl), window_s=w,
-                           snapshot=c, factor_from=src, disagreement=dis)
-    return cal, cov, pen
+    return refit(data, mode, SigmaCalibration(a=(1.0, 1.0, 1.0), b=b, floor_m=tuple(float(x) for x in fl),
+                                              window_s=w, snapshot=c, factor_from=src, disagreement=dis)), cov, pen
+
+
+def refit(data: dict, mode: str, setting: SigmaCalibration) -> SigmaCalibration:
+    """``setting`` with its levels a fitted on every tuning drive."""
+    names = [n for ds in tune_folds(data).values() for n in ds]
+    base = with_snapshot(data, base_var(data, mode), mode, setting.snapshot)
+    w = setting.window_s
+    a = fit_a([(data[n][f"{mode}/err"], base[n], factor(data[n], mode, w, setting.factor_from),
+                setting.disagreement * disagreement(data[n], mode, w)) for n in names], setting.b,
+              np.array(setting.floor_m))
+    return replace(setting, a=tuple(round(float(x), 4) for x in a))
+
+
+def kept_mode(data: dict, mode: str) -> tuple[SigmaCalibration, dict, float]:
+    """As :func:`tune_mode`, for the setting in ``variance_factor.DEFAULTS`` kept (``tune --keep``): its levels
+    refitted, its held-out coverages and penalty."""
+    pen, cov = held_out(data, mode, DEFAULTS[mode])
+    return refit(data, mode, DEFAULTS[mode]), cov, pen
+
+
+def tuned_mode(data: dict, mode: str, keep: tuple[str, ...]) -> tuple[SigmaCalibration, dict, float]:
+    return kept_mode(data, mode) if mode in keep else tune_mode(data, mode)
 
 
 def held_out(data: dict, mode: str, cal: SigmaCalibration) -> tuple[float, dict]:
@@ -326,12 +345,13 @@ def tune(args) -> None:
     print("the trace's epochs.\n")
     chosen = {}
     with ProcessPoolExecutor(args.jobs) as pool:
-        tuned = dict(zip(MODES, pool.map(tune_mode, [data] * len(MODES), MODES)))
+        tuned = dict(zip(MODES, pool.map(tuned_mode, [data] * len(MODES), MODES, [tuple(args.keep)] * len(MODES))))
     for mode in MODES:
         cal, held, pen = tuned[mode]
         chosen[mode] = cal
         base, after_base = base_var(data, mode), with_snapshot(data, base_var(data, mode), mode, cal.snapshot)
-        print(f"## {mode}\n\nchosen: window {cal.window_s:g} s, b = {cal.b:g}, floor N/E/D {fmt(np.array(cal.floor_m))} m, "
+        how = "kept (tune --keep), levels refitted" if mode in args.keep else "chosen"
+        print(f"## {mode}\n\n{how}: window {cal.window_s:g} s, b = {cal.b:g}, floor N/E/D {fmt(np.array(cal.floor_m))} m, "
               f"snapshot share {cal.snapshot:g}, factor from {cal.factor_from}, disagreement share {cal.disagreement:g}, "
               f"a N/E/D = {fmt(np.array(cal.a))} (leave-fold-out penalty {pen:.3f})\n")
         shipped_pen, shipped = held_out(data, mode, DEFAULTS[mode])
@@ -363,6 +383,8 @@ def main() -> int:
     p.add_argument("--out", type=Path, required=True, help="cache folder (one .npz per trace)")
     p.add_argument("--fold-weights", type=Path, default=Path("/tmp/sigcal/weights"))
     p.add_argument("--jobs", type=int, default=1)
+    p.add_argument("--keep", nargs="*", default=[], choices=MODES, metavar="MODE",
+                   help="tune: keep these modes' settings in variance_factor.DEFAULTS, refitting their levels only")
     args = p.parse_args()
     collect(args) if args.stage == "collect" else tune(args)
     return 0

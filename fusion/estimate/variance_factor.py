@@ -79,11 +79,11 @@ def fitted_positions(mode: str, info: dict) -> bool:
 #: (pooled, unseen-drive) calibration.
 DEFAULTS: dict[str, SigmaCalibration] = {
     "wls": SigmaCalibration(a=(1.0615, 1.0661, 1.18), b=1.5, window_s=15.0, snapshot=0.3),
-    "dnn": SigmaCalibration(a=(1.5195, 1.3787, 1.8536), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+    "dnn": SigmaCalibration(a=(1.7678, 1.642, 2.2151), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=15.0,
                             snapshot=0.3),
     "fused-nodnn": SigmaCalibration(a=(1.1312, 1.4488, 1.32), b=1.5, floor_m=(0.0, 0.0, 2.0), window_s=15.0,
                                     snapshot=0.3, factor_from="wls"),
-    "fused": SigmaCalibration(a=(0.7542, 0.7867, 1.0776), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
+    "fused": SigmaCalibration(a=(0.7789, 0.7913, 1.1364), b=1.5, floor_m=(1.0, 1.0, 0.0), window_s=300.0,
                               snapshot=0.3, disagreement=1.0),
 }
 
