@@ -351,8 +351,9 @@ def tune(args) -> None:
         chosen[mode] = cal
         base, after_base = base_var(data, mode), with_snapshot(data, base_var(data, mode), mode, cal.snapshot)
         how = "kept (tune --keep), levels refitted" if mode in args.keep else "chosen"
-        print(f"## {mode}\n\n{how}: window {cal.window_s:g} s, b = {cal.b:g}, floor N/E/D {fmt(np.array(cal.floor_m))} m, "
-              f"snapshot share {cal.snapshot:g}, factor from {cal.factor_from}, disagreement share {cal.disagreement:g}, "
+        print(f"## {mode}\n\n{how}: window {cal.window_s:g} s, b = {cal.b:g}, "
+              f"floor N/E/D {fmt(np.array(cal.floor_m))} m, snapshot share {cal.snapshot:g}, "
+              f"factor from {cal.factor_from}, disagreement share {cal.disagreement:g}, "
               f"a N/E/D = {fmt(np.array(cal.a))} (leave-fold-out penalty {pen:.3f})\n")
         shipped_pen, shipped = held_out(data, mode, DEFAULTS[mode])
         print(f"held out, drive-axes outside {BAND[0]}-{BAND[1]}: {outside(held)}; the setting in "
