@@ -39,7 +39,7 @@ def test_recipes_sharing_their_first_run_get_manifests_of_their_own(tmp_path):
 
 
 def test_street_kind_reads_the_kind_sim_city_traces_writes_into_a_name():
-    experiment_module("fold_ensembles")                                                  # puts experiments/ on the path
+    experiment_module("fold_ensembles")                        # puts experiments/ on the path
     from sim_city_traces import street_kind
     assert street_kind("ho-suburban-102") == "suburban" and street_kind("sim-urban-7") == "urban"
     assert street_kind("/tmp/simdeepho/ho-deep-301/SimPhone") == "deep"
