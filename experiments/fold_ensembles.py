@@ -14,7 +14,6 @@ their folder's name (suburban, urban, deep).
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
 from dataclasses import replace
@@ -26,7 +25,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
+from adapt_eval import SMARTLOC  # noqa: E402
 from crossval import FOLDS2  # noqa: E402
+from few_satellites import NAV, PIXEL5  # noqa: E402
 from fusion.eval.metrics import summarize, trace_errors  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
@@ -34,11 +35,6 @@ from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 from learned.ensemble import write_manifest  # noqa: E402
 from sim_city_traces import street_kind  # noqa: E402
-
-SHARED = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data"))
-SMARTLOC = SHARED / "smartloc/Berlin_Potsdamer_Platz"
-PIXEL5 = SHARED / "gsdc2021/train/2021-04-28-US-MTV-1/Pixel5"
-NAV = SHARED / "ephemeris/gps_nav/hour1180.21n"
 
 
 def logs(sims: list[Path]) -> list[tuple[str, Path, RunOptions]]:
