@@ -27,6 +27,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from fusion.estimate.variance_factor import centred_sums  # noqa: E402
 from fusion.eval.metrics import summarize  # noqa: E402
 
 WINDOWS = (60, 300, 900, 0)          # 0: the whole drive
@@ -37,14 +38,10 @@ def moving_mean(x: np.ndarray, window: int) -> np.ndarray:
     """Centred moving mean over ``window`` rows (0: every row) of x (E,k), rows with a NaN skipped -> (E,k); NaN
     where the window holds no complete row."""
     ok = np.isfinite(x).all(1)
-    if window <= 0:
-        window = 2 * len(x) + 1
-    c = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), np.where(ok[:, None], x, 0.0)]), 0)
-    n = np.concatenate([[0.0], np.cumsum(ok)])
-    i = np.arange(len(x))
-    lo, hi = np.clip(i - window // 2, 0, len(x)), np.clip(i + window // 2 + 1, 0, len(x))
+    sums = centred_sums(np.arange(len(x), dtype=float), np.c_[np.where(ok[:, None], x, 0.0), ok],
+                        window if window > 0 else np.inf)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return (c[hi] - c[lo]) / (n[hi] - n[lo])[:, None]
+        return sums[:, :-1] / sums[:, -1:]
 
 
 def shifted(fused: np.ndarray, toward: np.ndarray, away: np.ndarray, alpha: float, window: int) -> np.ndarray:
