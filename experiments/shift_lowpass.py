@@ -44,11 +44,17 @@ def moving_mean(x: np.ndarray, window: int) -> np.ndarray:
         return sums[:, :-1] / sums[:, -1:]
 
 
+def slow_move(toward: np.ndarray, away: np.ndarray, window: int) -> np.ndarray:
+    """(E,3) the moving mean of (toward - away) (E,3) NED, horizontally only (0 down and where no window holds a
+    complete row)."""
+    move = moving_mean(toward - away, window)
+    move[:, 2] = 0.0
+    return np.where(np.isfinite(move), move, 0.0)
+
+
 def shifted(fused: np.ndarray, toward: np.ndarray, away: np.ndarray, alpha: float, window: int) -> np.ndarray:
-    """fused (E,3) NED errors moved by alpha x the moving mean of (toward - away) (E,3), horizontally only."""
-    shift = moving_mean(toward - away, window)
-    shift[:, 2] = 0.0
-    return fused + alpha * np.where(np.isfinite(shift), shift, 0.0)
+    """fused (E,3) NED errors moved by alpha x :func:`slow_move`."""
+    return fused + alpha * slow_move(toward, away, window)
 
 
 def scores(results: dict) -> list[tuple[str, int, float, float]]:
@@ -56,14 +62,13 @@ def scores(results: dict) -> list[tuple[str, int, float, float]]:
     drives = [results[f][d] for f in results for d in results[f]]
     rows = []
     for variant, alphas in ALPHAS.items():
+        pairs = [(r["dnn"]["err"], r["fused"]["err"]) if variant == "toward dnn"
+                 else (r["fused"]["err"], r["fused-nodnn"]["err"]) for r in drives]
         for window in WINDOWS:
+            moves = [slow_move(toward, away, window) for toward, away in pairs]
             for a in alphas:
-                err = []
-                for r in drives:
-                    toward, away = ((r["dnn"]["err"], r["fused"]["err"]) if variant == "toward dnn"
-                                    else (r["fused"]["err"], r["fused-nodnn"]["err"]))
-                    err.append(shifted(r["fused"]["err"], toward, away, a, window))
-                rows.append((variant, window, a, summarize(np.concatenate(err))["gsdc_score"]))
+                err = np.concatenate([r["fused"]["err"] + a * m for r, m in zip(drives, moves)])
+                rows.append((variant, window, a, summarize(err)["gsdc_score"]))
     return rows
 
 
