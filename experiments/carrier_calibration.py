@@ -43,8 +43,8 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 from sigma_calibration import (BAND, GRID, TESTS, calibrated_var, disagreement, factor, fit_a, flag, fmt,  # noqa: E402
                                miss, mode_record, scaled, within)
-from fusion.estimate.variance_factor import (DEFAULTS, SigmaCalibration, epoch_chi2, whitened_residuals,  # noqa: E402
-                                             wls_track)
+from fusion.estimate.variance_factor import (CARRIER_DEFAULTS, DEFAULTS, SigmaCalibration, epoch_chi2,  # noqa: E402
+                                             whitened_residuals, wls_track)
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options, parse_signals  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
@@ -161,6 +161,25 @@ def tune_mode(data: dict, names: list[str], mode: str) -> tuple[SigmaCalibration
     return replace(cal, a=tuple(round(float(x), 4) for x in a)), pen, cov
 
 
+def n_outside(cov: dict) -> int:
+    """How many trace-axes of ``cov`` (trace -> (3,) coverage) fall outside :data:`BAND`."""
+    return sum(int(((c < BAND[0]) | (c > BAND[1])).sum()) for c in cov.values())
+
+
+def shipped_scores(data: dict, names: list[str], mode: str) -> str | None:
+    """The setting shipped in :data:`CARRIER_DEFAULTS` scored on these runs: its levels as they are, and refitted
+    leave-fold-out as the grid's are (a line for the table's header; None: ``mode`` ships none)."""
+    cal = CARRIER_DEFAULTS.get(mode)
+    if cal is None:
+        return None
+    items, fl = carrier_items(data, names, mode, cal), np.array(cal.floor_m)
+    as_is = {n: within(e, scaled(v, F, cal.a, cal.b, fl, x)) for n, (e, v, F, x) in items.items()}
+    pen, held = held_out(items, cal.b, fl)
+    return (f"the setting shipped in variance_factor.CARRIER_DEFAULTS, a N/E/D = {fmt(np.array(cal.a))}: its levels "
+            f"as they are, penalty {sum(miss(c) for c in as_is.values()):.3f}, {n_outside(as_is)} trace-axes out; "
+            f"its levels refitted leave-fold-out, penalty {pen:.3f}, {n_outside(held)} out")
+
+
 def calibrated(d: dict, mode: str, cal: SigmaCalibration, carrier_cal: SigmaCalibration | None) -> np.ndarray:
     """(E,3) the variances as the pipeline would report them: ``carrier_cal`` at the carrier epochs (None: ``cal``)."""
     out = calibrated_var(d, with_snapshot(d, mode, cal), mode, cal)
@@ -184,15 +203,18 @@ def tune(args) -> None:
     for mode in MODES:
         cal, pen, held = tuned[mode]
         chosen[mode] = cal
-        n_out = sum(int(((c < BAND[0]) | (c > BAND[1])).sum()) for c in held.values())
+        n_out = n_outside(held)
         before = {n: within(carrier_only(data[n], mode, data[n][f"{mode}/err"]),
                             calibrated(data[n], mode, DEFAULTS[mode], None)) for n in names}
-        n_before = sum(int(((c < BAND[0]) | (c > BAND[1])).sum()) for c in before.values())
+        n_before = n_outside(before)
         print(f"## {mode}\n\nchosen: window {cal.window_s:g} s, b = {cal.b:g}, floor N/E/D "
               f"{fmt(np.array(cal.floor_m))} m, snapshot share {cal.snapshot:g}, factor from {cal.factor_from}, "
               f"disagreement share {cal.disagreement:g}, a N/E/D = {fmt(np.array(cal.a))} (leave-fold-out penalty "
               f"{pen:.3f}); held out, {n_out} of {3 * len(held)} trace-axes outside {BAND[0]}-{BAND[1]} at the "
               f"carrier epochs ({n_before} with DEFAULTS)\n")
+        shipped = shipped_scores(data, names, mode)
+        if shipped:
+            print(f"{shipped}\n")
         print("| trace | carrier epochs | before, carrier epochs | held out, carrier epochs | final, carrier epochs "
               "| before, all epochs | final, all epochs |")
         print("|---|---|---|---|---|---|---|")
