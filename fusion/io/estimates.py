@@ -2,7 +2,8 @@
 
 ``estimates.csv`` columns: :data:`ESTIMATE_COLUMNS`, then :data:`SIGMA_COLUMNS` for modes with a covariance,
 then ``bridged`` (0/1) for the graph modes: 1 where fewer than 4 satellites and no prior (the network's, which
-reads those same satellites, aside) determined the epoch.
+reads those same satellites, aside) determined the epoch; then :data:`VELOCITY_COLUMNS` for the graph modes
+with velocity states (the default constant-velocity motion model) on a trace with Doppler.
 
 Heights are WGS84 ellipsoidal everywhere (``height_m``), as are the positions the exports
 (:mod:`fusion.io.export`) write.
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from fusion.geometry import ecef2geodetic, ecef2ned_cov
+from fusion.geometry import ecef2geodetic, ecef2ned_cov, ecef2ned_vec
 from fusion.run_types import ModeResult
 from fusion.trace import Trace
 
@@ -24,6 +25,10 @@ ESTIMATE_COLUMNS = ["gps_millis", "lat_deg", "lon_deg", "height_m", "x_m", "y_m"
 #: 1-sigma position uncertainty in the local north/east/down frame at the estimate, for modes with a
 #: covariance (empty cells where an epoch has none).
 SIGMA_COLUMNS = ["sigma_n_m", "sigma_e_m", "sigma_d_m"]
+#: The graph's velocity at the epoch [m/s], north/east/down at the estimate, where its Doppler factors measure it
+#: (empty cells elsewhere: the motion model's velocity alone is no better than a difference of the positions,
+#: experiments/velocity_output.py).
+VELOCITY_COLUMNS = ["vel_n_mps", "vel_e_mps", "vel_d_mps"]
 #: How estimates.csv writes floats: 10 significant digits (0.1 mm in ECEF, 1e-8 degree).
 FLOAT_FORMAT = "%.10g"
 #: The off-diagonal NED covariances [m^2] the RTKLIB .pos export needs (not in estimates.csv).
@@ -63,6 +68,13 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     if isinstance(bridged, np.ndarray) and bridged.shape == ok.shape:
         # 1: fewer than 4 satellites and no prior, the motion model carried the epoch
         frame["bridged"] = bridged[ok].astype(int)
+    vel, measured = result.info.get("vel"), result.info.get("doppler_epochs")
+    if isinstance(vel, np.ndarray) and vel.shape == (len(ok), 3) and isinstance(measured, np.ndarray) \
+            and measured.shape == ok.shape and measured.any():
+        ned = ecef2ned_vec(vel[ok], pos) if len(pos) else np.zeros((0, 3))
+        ned[~measured[ok]] = np.nan
+        for i, name in enumerate(VELOCITY_COLUMNS):
+            frame[name] = ned[:, i]
     return frame
 
 

@@ -5,8 +5,9 @@ height above mean sea level and its separation field the geoid height N (ellipso
 with no geoid model we write the WGS84 ellipsoidal height as the altitude and N = 0, which keeps
 ``altitude + N`` equal to the ellipsoidal height for readers that add them (as :mod:`fusion.io.nmea`
 does). Fix quality 1 (autonomous GPS) for every mode; HDOP is left empty. RMC's speed over ground
-[knots] and course [degrees true] come from the track itself (:func:`ground_velocity`), empty where an epoch
-has no neighbour within :data:`MAX_SPEED_GAP_S` (course also below :data:`MIN_COURSE_MPS`, where it is noise).
+[knots] and course [degrees true] are the graph's velocity where the frame has it (``vel_n_mps``, ``vel_e_mps``:
+the graph modes), else they come from the track itself (:func:`ground_velocity`), empty where an epoch has no
+neighbour within :data:`MAX_SPEED_GAP_S`; course is empty below :data:`MIN_COURSE_MPS`, where it is noise.
 """
 from __future__ import annotations
 
@@ -67,9 +68,27 @@ def ground_velocity(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     b = np.where((i < n - 1) & ~np.r_[gap, True], i + 1, i)
     dt = np.where(b > a, t[b] - t[a], np.nan)
     ned = ecef2ned_vec((xyz[b] - xyz[a]) / dt[:, None], xyz)
-    speed = np.hypot(ned[:, 0], ned[:, 1])
-    course = np.degrees(np.arctan2(ned[:, 1], ned[:, 0])) % 360.0
+    return speed_course(ned[:, 0], ned[:, 1])
+
+
+def speed_course(north: np.ndarray, east: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Speed over ground [m/s] and course [deg true, 0..360) (N,) of velocities (N,) north and east [m/s];
+    course NaN below :data:`MIN_COURSE_MPS`."""
+    speed = np.hypot(north, east)
+    course = np.degrees(np.arctan2(east, north)) % 360.0
     return speed, np.where(speed >= MIN_COURSE_MPS, course, np.nan)
+
+
+def rmc_velocity(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Speed [m/s] and course [deg] per row for RMC: the frame's velocity columns where they are finite (the
+    graph's own velocity), :func:`ground_velocity` of the track elsewhere."""
+    speed, course = ground_velocity(frame)
+    if {"vel_n_mps", "vel_e_mps"} <= set(frame.columns):
+        north, east = frame["vel_n_mps"].to_numpy(float), frame["vel_e_mps"].to_numpy(float)
+        own = np.isfinite(north) & np.isfinite(east)
+        s_own, c_own = speed_course(north, east)
+        speed, course = np.where(own, s_own, speed), np.where(own, c_own, course)
+    return speed, course
 
 
 def _fields_or_empty(values: np.ndarray, fmt: str) -> list[str]:
@@ -84,7 +103,7 @@ def nmea_lines(frame: pd.DataFrame) -> list[str]:
     lat, ns = _angle(frame["lat_deg"].to_numpy(float), 2, "NS")
     lon, ew = _angle(frame["lon_deg"].to_numpy(float), 3, "EW")
     n_sats = (frame["n_sats"] if "n_sats" in frame else pd.Series(0, index=frame.index)).astype(int).tolist()
-    speed, course = ground_velocity(frame)
+    speed, course = rmc_velocity(frame)
     sog, cog = _fields_or_empty(speed * KNOTS_PER_MPS, ".3f"), _fields_or_empty(course, ".2f")
     bodies = []
     for t, la, n, lo, e, h, k, v, c in zip(iso, lat, ns.tolist(), lon, ew.tolist(), frame["height_m"].tolist(),

@@ -218,3 +218,32 @@ def test_nmea_rmc_leaves_speed_empty_across_a_gap(tmp_path):
     assert rmc[0][7] and rmc[1][7] and rmc[2][7] == "" and rmc[2][8] == ""    # the lone last fix: no speed
     still = frame.assign(lat_deg=37.4)
     assert [f.split("*")[0].split(",")[8] for f in nmea_lines(still) if f[3:6] == "RMC"] == ["", "", ""]
+
+
+def test_graph_velocity_becomes_ned_columns_and_rmc_speed(tmp_path):
+    """A graph mode's velocity states (info["vel"], ECEF) are written north/east/down at the estimate where
+    Doppler measures them, and RMC takes its speed and course from them rather than from the track (which here
+    stands still); without Doppler anywhere there are no velocity columns."""
+    from fusion.geometry import ned2ecef_vec
+    from fusion.io.estimates import VELOCITY_COLUMNS, estimates_frame
+    from fusion.io.nmea_write import KNOTS_PER_MPS, nmea_lines
+
+    trace, result, llh = _trace_and_result(37.4, -122.1, E=6)
+    still = np.where(result.valid[:, None], geodetic2ecef(np.repeat(llh[:1], 6, axis=0)), np.nan)
+    want = np.array([3.0, -4.0, 0.5])                                    # m/s north, east, down
+    vel = ned2ecef_vec(np.tile(want, (6, 1)), geodetic2ecef(llh[:1]).repeat(6, axis=0))
+    doppler = np.ones(6, bool)
+    doppler[2] = False                                                   # an epoch without a Doppler factor
+    result = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": doppler})
+    frame = estimates_frame(trace, result)
+    assert list(frame.columns[-3:]) == VELOCITY_COLUMNS
+    got = frame[VELOCITY_COLUMNS].to_numpy()
+    np.testing.assert_allclose(np.delete(got, 2, axis=0), np.tile(want, (4, 1)), atol=1e-9)
+    assert np.isnan(got[2]).all()
+    rmc = [ln.split("*")[0].split(",") for ln in nmea_lines(frame) if ln[3:6] == "RMC"]
+    speeds = [f[7] for f in rmc]
+    assert float(speeds[0]) == pytest.approx(5.0 * KNOTS_PER_MPS, abs=1e-3)
+    assert float(rmc[0][8]) == pytest.approx(np.degrees(np.arctan2(-4.0, 3.0)) % 360, abs=0.01)
+    assert float(speeds[2]) == pytest.approx(0.0, abs=1e-3)              # no Doppler: the (still) track's speed
+    none = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": np.zeros(6, bool)})
+    assert "vel_n_mps" not in estimates_frame(trace, none)

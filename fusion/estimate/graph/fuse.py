@@ -64,6 +64,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     info.update(bridged_epochs(trace, inp, valid))
     info["pr_noise"] = (inp.sel, inp.sigma, inp.pr_bias)     # for fusion.estimate.variance_factor
     info["carrier_linked"] = carrier_linked(inp.raw, E)       # experiments/carrier_calibration.py
+    info["doppler_epochs"] = doppler_epochs(inp)              # where estimates.csv writes info["vel"]
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 

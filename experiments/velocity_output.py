@@ -1,0 +1,79 @@
+"""The graph's velocity as ``estimates.csv`` writes it (``vel_n_mps`` ...), against the truth and against the
+difference of the track's own positions (what RMC's speed was before the graph's velocity was written).
+
+The truth's velocity is the central difference of the reference receiver's 10 Hz positions (its SPAN NMEA log),
+interpolated to the receiver epochs: a velocity over 0.2 s, where the track's own difference spans two seconds at
+1 Hz. Horizontal error |v - v_truth| over the epochs where both exist; the Pixel5 RINEX test trace (Doppler and
+carrier; reported, nothing tuned on it) and a GSDC 2021 derived file (no Doppler: the motion model alone gives
+the velocity).
+
+    python experiments/velocity_output.py
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
+
+from few_satellites import NAV, PIXEL5  # noqa: E402
+from fusion.geometry import ecef2ned_vec, geodetic2ecef  # noqa: E402
+from fusion.io.nmea import read_span_nmea  # noqa: E402
+from fusion.modes import run_modes, solve_initial  # noqa: E402
+from fusion.options import load_options  # noqa: E402
+from fusion.prepare.load import load_trace  # noqa: E402
+from fusion.run_types import RunOptions  # noqa: E402
+
+GSDC = REPO.parent / "shared" / "data" / "gsdc2021" / "train" / "2020-05-14-US-MTV-1" / "Pixel4"
+MODES = ("fused-nodnn", "fused")
+
+
+def central_difference(t_s: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """(E,3) velocity [m/s] of positions (E,3) by central differences (one-sided at the ends)."""
+    return np.gradient(pos, t_s, axis=0)
+
+
+def horizontal_errors(v: np.ndarray, v_ref: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """(n,) horizontal |v - v_ref| [m/s] where both (E,3) ECEF are finite, in the NED frame at ``at`` (E,3)."""
+    ok = np.isfinite(v).all(axis=1) & np.isfinite(v_ref).all(axis=1) & np.isfinite(at).all(axis=1)
+    ned = ecef2ned_vec(v[ok] - v_ref[ok], at[ok])
+    return np.hypot(ned[:, 0], ned[:, 1])
+
+
+def truth_velocity(folder: Path, t_ms: np.ndarray) -> np.ndarray:
+    """(E,3) ECEF velocity [m/s] of the folder's 10 Hz SPAN log at the times ``t_ms`` (E,) (GPS ms)."""
+    span = read_span_nmea(next((folder / "supplemental").glob("SPAN_*.nmea")))
+    v = central_difference(span.t_ms.to_numpy() / 1000.0,
+                           geodetic2ecef(span[["lat_deg", "lon_deg", "height_m"]].to_numpy(float)))
+    return np.column_stack([np.interp(t_ms, span.t_ms, v[:, i], left=np.nan, right=np.nan) for i in range(3)])
+
+
+def rows(name: str, folder: Path, opts: RunOptions) -> list[str]:
+    trace = load_trace(folder, **load_options(opts))
+    t = trace.t_ms / 1000.0
+    truth_v = truth_velocity(folder, trace.t_ms)
+    results = run_modes(trace, list(MODES), opts, wls=solve_initial(trace, opts))
+    out = []
+    for mode, res in results.items():
+        for what, v in (("graph velocity", res.info["vel"]), ("track difference", central_difference(t, res.pos))):
+            h = horizontal_errors(v, truth_v, trace.truth)
+            out.append(f"| {name} | {mode} | {what} | {np.percentile(h, 50):.3f} | {np.percentile(h, 95):.3f} | "
+                       f"{len(h)} |")
+    return out
+
+
+def main() -> int:
+    print("| trace | mode | velocity | horizontal error p50 [m/s] | p95 [m/s] | epochs |\n|---|---|---|---|---|---|")
+    for line in rows("Pixel5 RINEX, broadcast GPS", PIXEL5, RunOptions(signals=None, nav=(NAV,))):
+        print(line)
+    for line in rows("2020-05-14-US-MTV-1 Pixel4 (no Doppler)", GSDC, RunOptions()):
+        print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
