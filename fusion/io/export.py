@@ -1,8 +1,9 @@
 """``gnssfuse run --export``: the estimates in the formats a user opens elsewhere.
 
 Each writer takes the frame of :func:`fusion.io.estimates.export_frame` (one row per solved epoch:
-gps_millis, lat_deg, lon_deg, height_m (WGS84 ellipsoidal), n_sats, and the NED sigmas and
-covariances when the mode has them), a path and a name, and writes ``OUT/estimates.<format>``.
+gps_millis, lat_deg, lon_deg, height_m (WGS84 ellipsoidal), n_sats, the NED sigmas and
+covariances when the mode has them, and the graph's NED velocity where Doppler measures it), a path and a
+name, and writes ``OUT/estimates.<format>``.
 Adding a format is one writer module and one line here.
 """
 from __future__ import annotations

@@ -6,8 +6,9 @@ with no geoid model we write the WGS84 ellipsoidal height as the altitude and N 
 ``altitude + N`` equal to the ellipsoidal height for readers that add them (as :mod:`fusion.io.nmea`
 does). Fix quality 1 (autonomous GPS) for every mode; HDOP is left empty. RMC's speed over ground
 [knots] and course [degrees true] are the graph's velocity where the frame has it (``vel_n_mps``, ``vel_e_mps``:
-the graph modes), else they come from the track itself (:func:`ground_velocity`), empty where an epoch has no
-neighbour within :data:`MAX_SPEED_GAP_S`; course is empty below :data:`MIN_COURSE_MPS`, where it is noise.
+the graph modes, at epochs whose Doppler measures it), else they come from the track itself
+(:func:`ground_velocity`), empty where an epoch has no neighbour within :data:`MAX_SPEED_GAP_S`; course is empty
+below :data:`MIN_COURSE_MPS`, where it is noise.
 """
 from __future__ import annotations
 
