@@ -220,7 +220,7 @@ def test_nmea_rmc_leaves_speed_empty_across_a_gap(tmp_path):
     assert [f.split("*")[0].split(",")[8] for f in nmea_lines(still) if f[3:6] == "RMC"] == ["", "", ""]
 
 
-def test_graph_velocity_becomes_ned_columns_and_rmc_speed(tmp_path):
+def test_graph_velocity_becomes_ned_columns_and_rmc_speed():
     """A graph mode's velocity states (info["vel"], ECEF) are written north/east/down at the estimate where
     Doppler measures them, and RMC takes its speed and course from them rather than from the track (which here
     stands still); without Doppler anywhere there are no velocity columns."""
