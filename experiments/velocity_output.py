@@ -5,7 +5,8 @@ The truth's velocity is the central difference of the reference receiver's 10 Hz
 interpolated to the receiver epochs: a velocity over 0.2 s, where the track's own difference spans two seconds at
 1 Hz. Horizontal error |v - v_truth| over the epochs where both exist; the Pixel5 RINEX test trace (Doppler and
 carrier; reported, nothing tuned on it) and a GSDC 2021 derived file (no Doppler: the motion model alone gives
-the velocity).
+the velocity). For the velocity ``estimates.csv`` writes, also the share of its errors within its written 1 and
+2 sigma per axis (a Gaussian: 0.68 and 0.95).
 
     python experiments/velocity_output.py
 """
@@ -22,6 +23,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 from few_satellites import NAV, PIXEL5  # noqa: E402
 from fusion.geometry import ecef2ned_vec, geodetic2ecef  # noqa: E402
+from fusion.io.estimates import VELOCITY_COLUMNS, VELOCITY_SIGMA_COLUMNS, estimates_frame  # noqa: E402
 from fusion.io.nmea import read_span_nmea  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
@@ -62,12 +64,27 @@ def rows(name: str, folder: Path, opts: RunOptions) -> list[str]:
         for what, v in (("graph velocity", res.info["vel"]), ("track difference", central_difference(t, res.pos))):
             h = horizontal_errors(v, truth_v, trace.truth)
             out.append(f"| {name} | {mode} | {what} | {np.percentile(h, 50):.3f} | {np.percentile(h, 95):.3f} | "
-                       f"{len(h)} |")
+                       f"{len(h)} | {within_sigma(trace, res, truth_v) if what == 'graph velocity' else '-'} |")
     return out
 
 
+def within_sigma(trace, res, truth_v: np.ndarray) -> str:
+    """Share of the written velocity's errors within its written 1 and 2 sigma, N / E / D ("-": none written)."""
+    frame = estimates_frame(trace, res)
+    if VELOCITY_SIGMA_COLUMNS[0] not in frame:
+        return "-"
+    ok = res.valid & np.isfinite(res.pos).all(axis=1)
+    ref = ecef2ned_vec(truth_v[ok], res.pos[ok])
+    err = np.abs(frame[VELOCITY_COLUMNS].to_numpy() - ref)
+    sig = frame[VELOCITY_SIGMA_COLUMNS].to_numpy()
+    use = np.isfinite(err).all(axis=1) & np.isfinite(sig).all(axis=1)
+    share = lambda k: " / ".join(f"{x:.2f}" for x in (err[use] <= k * sig[use]).mean(axis=0))   # noqa: E731
+    return f"{share(1)} ({share(2)})"
+
+
 def main() -> int:
-    print("| trace | mode | velocity | horizontal error p50 [m/s] | p95 [m/s] | epochs |\n|---|---|---|---|---|---|")
+    print("| trace | mode | velocity | horizontal error p50 [m/s] | p95 [m/s] | epochs | within 1 (2) sigma, N / E / D "
+          "|\n|---|---|---|---|---|---|---|")
     for line in rows("Pixel5 RINEX, broadcast GPS", PIXEL5, RunOptions(signals=None, nav=(NAV,))):
         print(line)
     for line in rows("2020-05-14-US-MTV-1 Pixel4 (no Doppler)", GSDC, RunOptions()):

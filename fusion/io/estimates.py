@@ -2,8 +2,9 @@
 
 ``estimates.csv`` columns: :data:`ESTIMATE_COLUMNS`, then :data:`SIGMA_COLUMNS` for modes with a covariance,
 then ``bridged`` (0/1) for the graph modes: 1 where fewer than 4 satellites and no prior (the network's, which
-reads those same satellites, aside) determined the epoch; then :data:`VELOCITY_COLUMNS` for the graph modes
-with velocity states (the default constant-velocity motion model) on a trace with Doppler.
+reads those same satellites, aside) determined the epoch; then :data:`VELOCITY_COLUMNS` and
+:data:`VELOCITY_SIGMA_COLUMNS` for the graph modes with velocity states (the default constant-velocity motion
+model) on a trace with Doppler.
 
 Heights are WGS84 ellipsoidal everywhere (``height_m``), as are the positions the exports
 (:mod:`fusion.io.export`) write.
@@ -29,6 +30,9 @@ SIGMA_COLUMNS = ["sigma_n_m", "sigma_e_m", "sigma_d_m"]
 #: (empty cells elsewhere: the motion model's velocity alone is no better than a difference of the positions,
 #: experiments/velocity_output.py).
 VELOCITY_COLUMNS = ["vel_n_mps", "vel_e_mps", "vel_d_mps"]
+#: Their 1-sigma [m/s] from the graph's marginals, where its solver gives them (the banded solver, the default;
+#: empty cells after GTSAM's solvers). Raw marginals: no variance factor scales them, as it does the positions'.
+VELOCITY_SIGMA_COLUMNS = ["sigma_vn_mps", "sigma_ve_mps", "sigma_vd_mps"]
 #: How estimates.csv writes floats: 10 significant digits (0.1 mm in ECEF, 1e-8 degree).
 FLOAT_FORMAT = "%.10g"
 #: The off-diagonal NED covariances [m^2] the RTKLIB .pos export needs (not in estimates.csv).
@@ -75,6 +79,11 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
         ned[~measured[ok]] = np.nan
         for i, name in enumerate(VELOCITY_COLUMNS):
             frame[name] = ned[:, i]
+        vel_cov = result.info.get("vel_cov")
+        sig = ned_sigmas(pos, vel_cov[ok]) if isinstance(vel_cov, np.ndarray) else np.full(ned.shape, np.nan)
+        sig[~measured[ok]] = np.nan
+        for i, name in enumerate(VELOCITY_SIGMA_COLUMNS):
+            frame[name] = sig[:, i]
     return frame
 
 

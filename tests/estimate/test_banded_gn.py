@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import gtsam
 import numpy as np
 import pytest
 
@@ -14,6 +15,7 @@ from fusion.estimate.graph.build import graph_pieces
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.fuse import fuse
 from fusion.estimate.graph.inputs import prepare_inputs
+from fusion.estimate.graph.keys import vel_key
 from fusion.estimate.graph.priors import learned_from_providers
 from fusion.estimate.graph.vector_graph import from_values, to_values, vector_graph
 from fusion.estimate.wls import solve_wls
@@ -112,9 +114,14 @@ def test_banded_solution_is_gtsams(raw_sim, doppler_sim, case):
     for key, value in a["isb_m"].items():
         assert value == pytest.approx(b["isb_m"][key], abs=1e-6)
     if a["vel"] is None:
-        assert b["vel"] is None
+        assert b["vel"] is None and a["vel_cov"] is None
     else:
         np.testing.assert_allclose(a["vel"], b["vel"], atol=1e-6)
+        # the velocity marginals of the same recursion as the positions', against GTSAM's own
+        sol, epochs = b["batch_solution"], np.flatnonzero(banded[1])[::7]
+        marg = gtsam.Marginals(sol.graph, sol.values)
+        ref = np.array([marg.marginalCovariance(vel_key(int(k))) for k in epochs])
+        np.testing.assert_allclose(a["vel_cov"][epochs], ref, rtol=1e-5, atol=1e-12)
 
 
 def test_a_gtsam_solution_starts_the_banded_solver(raw_sim):

@@ -1,5 +1,5 @@
-"""The graph's velocity in estimates.csv: where Doppler measures it, close to the true velocity; absent on a trace
-without Doppler."""
+"""The graph's velocity in estimates.csv: where Doppler measures it, close to the true velocity, with sigmas that
+cover its errors; absent on a trace without Doppler."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -8,7 +8,7 @@ import numpy as np
 
 from fusion.estimate.graph.fuse import estimate_fused_nodnn
 from fusion.geometry import ecef2ned_vec
-from fusion.io.estimates import VELOCITY_COLUMNS, estimates_frame
+from fusion.io.estimates import VELOCITY_COLUMNS, VELOCITY_SIGMA_COLUMNS, estimates_frame
 from fusion.io.rinex_nav import default_nav_path, read_rinex_nav
 from fusion.modes import solve_initial
 from fusion.run_types import RunOptions
@@ -28,6 +28,11 @@ def test_velocity_columns_follow_the_doppler():
     speed = np.hypot(truth[:, 0], truth[:, 1])
     assert np.median(speed) > 3.0                                  # a moving receiver, so the check means something
     assert np.median(np.hypot(err[:, 0], err[:, 1])) < 0.3         # Doppler noise 0.2 m/s per satellite
+    # the graph's velocity marginals: the simulator's noise is the noise the graph assumes, so they hold
+    sig = frame[VELOCITY_SIGMA_COLUMNS].to_numpy()
+    assert np.isfinite(sig).all() and (sig > 0).all()
+    assert ((np.abs(err) <= 2 * sig).mean(axis=0) > 0.85).all()
+    assert (np.median(np.abs(err) / sig, axis=0) > 0.3).all()      # and are not a blanket
     # the same trace without its Doppler: the graph keeps velocity states, but nothing measures them
     no_doppler = replace(trace, prr=None, prr_sigma=None, prr_ok=None)
     res = estimate_fused_nodnn(no_doppler, solve_initial(no_doppler, opts), opts)

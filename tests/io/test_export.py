@@ -221,11 +221,12 @@ def test_nmea_rmc_leaves_speed_empty_across_a_gap(tmp_path):
 
 
 def test_graph_velocity_becomes_ned_columns_and_rmc_speed():
-    """A graph mode's velocity states (info["vel"], ECEF) are written north/east/down at the estimate where
-    Doppler measures them, and RMC takes its speed and course from them rather than from the track (which here
-    stands still); without Doppler anywhere there are no velocity columns."""
+    """A graph mode's velocity states (info["vel"], ECEF) and their marginals (info["vel_cov"]) are written
+    north/east/down at the estimate where Doppler measures them, and RMC takes its speed and course from them
+    rather than from the track (which here stands still); without Doppler anywhere there are no velocity
+    columns."""
     from fusion.geometry import ned2ecef_vec
-    from fusion.io.estimates import VELOCITY_COLUMNS, estimates_frame
+    from fusion.io.estimates import VELOCITY_COLUMNS, VELOCITY_SIGMA_COLUMNS, estimates_frame
     from fusion.io.nmea_write import KNOTS_PER_MPS, nmea_lines
 
     trace, result, llh = _trace_and_result(37.4, -122.1, E=6)
@@ -234,12 +235,15 @@ def test_graph_velocity_becomes_ned_columns_and_rmc_speed():
     vel = ned2ecef_vec(np.tile(want, (6, 1)), geodetic2ecef(llh[:1]).repeat(6, axis=0))
     doppler = np.ones(6, bool)
     doppler[2] = False                                                   # an epoch without a Doppler factor
-    result = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": doppler})
+    vel_cov = ned2ecef_cov(np.tile(np.diag([0.01, 0.04, 0.09]), (6, 1, 1)), geodetic2ecef(llh[:1]).repeat(6, axis=0))
+    info = {"vel": vel, "doppler_epochs": doppler, "vel_cov": vel_cov}
+    result = ModeResult(pos=still, valid=result.valid, cov=None, info=info)
     frame = estimates_frame(trace, result)
-    assert list(frame.columns[-3:]) == VELOCITY_COLUMNS
-    got = frame[VELOCITY_COLUMNS].to_numpy()
+    assert list(frame.columns[-6:]) == VELOCITY_COLUMNS + VELOCITY_SIGMA_COLUMNS
+    got, sig = frame[VELOCITY_COLUMNS].to_numpy(), frame[VELOCITY_SIGMA_COLUMNS].to_numpy()
     np.testing.assert_allclose(np.delete(got, 2, axis=0), np.tile(want, (4, 1)), atol=1e-9)
-    assert np.isnan(got[2]).all()
+    np.testing.assert_allclose(np.delete(sig, 2, axis=0), np.tile([0.1, 0.2, 0.3], (4, 1)), atol=1e-9)
+    assert np.isnan(got[2]).all() and np.isnan(sig[2]).all()
     rmc = [ln.split("*")[0].split(",") for ln in nmea_lines(frame) if ln[3:6] == "RMC"]
     speeds = [f[7] for f in rmc]
     assert float(speeds[0]) == pytest.approx(5.0 * KNOTS_PER_MPS, abs=1e-3)

@@ -163,7 +163,7 @@ def _solve_banded(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorG
     pos[epochs] = sol.x[vec.layout.start["pos"][epochs, None] + np.arange(3)]
     t2 = time.perf_counter()
     try:
-        cov = _banded_cov(trace, inp, cfg, vec, sol.x) if want_cov else None
+        cov, vel_cov = _banded_cov(trace, inp, cfg, vec, sol.x) if want_cov else (None, None)
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
     valid = np.zeros(E, bool)
@@ -171,20 +171,22 @@ def _solve_banded(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorG
     info = {"factors": vec.n_factors, "iterations": sol.iterations, "final_error": sol.error, "solver_fell_back": 0,
             "build_s": t1 - t0, "solve_s": t2 - t1, "cov_s": time.perf_counter() - t2, "graph_patched": 0,
             "isb_m": vector_isb_estimates(vec.layout, sol.x, inp),
-            "vel": vector_velocities(vec.layout, sol.x, epochs, E)}
+            "vel": vector_velocities(vec.layout, sol.x, epochs, E), "vel_cov": vel_cov}
     info["batch_solution"] = BatchSolution(None, [], None, inp, cfg, pos, valid, dict(info), vector=vec, x=sol.x)
     return pos, valid, cov, info
 
 
-def _banded_cov(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorGraph, x: np.ndarray) -> np.ndarray:
-    """(E,3,3) position marginals of the banded solution x (N,): from its information matrix, or from GTSAM's
-    graph at x where the chain recursion does not pay (a wide band)."""
+def _banded_cov(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorGraph, x: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(E,3,3) position and velocity marginals of the banded solution x (N,): from its information matrix in one
+    recursion; where that does not pay (a wide band), the positions' from GTSAM's graph at x and no velocities'
+    (None, as without velocity states)."""
     epochs = np.flatnonzero(inp.keep)
-    cov = banded_marginals(vec, x, epochs, trace.n_epochs)
-    if cov is None:
-        pieces = graph_pieces(trace, inp, cfg)
-        cov = marginal_positions(pieces.graph(), to_values(vec.layout, x), epochs, trace.n_epochs, pieces.dense)
-    return cov
+    got = banded_marginals(vec, x, epochs, trace.n_epochs, ("pos", "vel"))
+    if got is not None:
+        return got["pos"], got.get("vel")
+    pieces = graph_pieces(trace, inp, cfg)
+    return marginal_positions(pieces.graph(), to_values(vec.layout, x), epochs, trace.n_epochs, pieces.dense), None
 
 
 def _solve_gtsam(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool, start: BatchSolution | None,
@@ -234,11 +236,11 @@ def _reuse(trace: Trace, start: BatchSolution, want_cov: bool):
     t0 = time.perf_counter()
     epochs = np.flatnonzero(start.inp.keep)
     try:
-        cov = None if not want_cov else (
+        cov, vel_cov = (None, None) if not want_cov else (
             _banded_cov(trace, start.inp, start.cfg, start.vector, start.x) if start.vector is not None
-            else marginal_positions(start.graph, start.values, epochs, trace.n_epochs, start.dense))
+            else (marginal_positions(start.graph, start.values, epochs, trace.n_epochs, start.dense), None))
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
     info = {**start.info, "build_s": 0.0, "solve_s": 0.0, "cov_s": time.perf_counter() - t0, "iterations": 0,
-            "reused_solution": 1, "batch_solution": start}
+            "reused_solution": 1, "batch_solution": start, "vel_cov": vel_cov}
     return start.pos.copy(), start.valid.copy(), cov, info

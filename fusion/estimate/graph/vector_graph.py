@@ -366,21 +366,25 @@ def same_layout(a: Layout, b: Layout) -> bool:
     return a.n == b.n and a.isb == b.isb and all(np.array_equal(a.start[k], b.start[k]) for k in a.start)
 
 
-def banded_marginals(vec: VectorGraph, x: np.ndarray, epochs: np.ndarray, E: int) -> np.ndarray | None:
-    """(E,3,3) ECEF position marginal covariances at the solution x (N,) (NaN off ``epochs``), from the
-    information matrix there (robust losses reweighted, as ``gtsam.Marginals`` linearises); None where the
-    recursion of :func:`~fusion.estimate.graph.marginals.information_marginals` does not pay. RuntimeError
-    where the graph is singular at the solution."""
-    cov = np.full((E, 3, 3), np.nan)
-    if not len(epochs):
-        return cov
+def banded_marginals(vec: VectorGraph, x: np.ndarray, epochs: np.ndarray, E: int,
+                     states: tuple[str, ...] = ("pos",)) -> dict[str, np.ndarray] | None:
+    """state -> (E,3,3) ECEF marginal covariances of that 3-vector state ("pos", "vel") at the solution x (N,)
+    (NaN off ``epochs``; a state the layout lacks is left out), from the information matrix there (robust losses
+    reweighted, as ``gtsam.Marginals`` linearises), one recursion for all; None where the recursion of
+    :func:`~fusion.estimate.graph.marginals.information_marginals` does not pay. RuntimeError where the graph is
+    singular at the solution."""
+    states = tuple(k for k in states if len(epochs) and vec.layout.start[k][epochs[0]] >= 0)
+    out = {k: np.full((E, 3, 3), np.nan) for k in states}
+    if not len(epochs) or not states:
+        return out
     r, c, h = information_triplets(vec.system, x)
-    p0 = vec.layout.start["pos"][epochs]
+    p0 = np.concatenate([vec.layout.start[k][epochs] for k in states])
     got = information_marginals(r, c, h, vec.layout.n, vec.layout.n_local, p0)
     if got is None:
         return None
-    cov[epochs] = got
-    return cov
+    for i, k in enumerate(states):
+        out[k][epochs] = got[i * len(epochs):(i + 1) * len(epochs)]
+    return out
 
 
 def vector_isb_estimates(lay: Layout, x: np.ndarray, inp: EpochInputs) -> dict[str, float]:
