@@ -373,7 +373,7 @@ def banded_marginals(vec: VectorGraph, x: np.ndarray, epochs: np.ndarray, E: int
     reweighted, as ``gtsam.Marginals`` linearises), one recursion for all; None where the recursion of
     :func:`~fusion.estimate.graph.marginals.information_marginals` does not pay. RuntimeError where the graph is
     singular at the solution."""
-    states = tuple(k for k in states if len(epochs) and vec.layout.start[k][epochs[0]] >= 0)
+    states = tuple(k for k in states if not len(epochs) or vec.layout.start[k][epochs[0]] >= 0)
     out = {k: np.full((E, 3, 3), np.nan) for k in states}
     if not len(epochs) or not states:
         return out
