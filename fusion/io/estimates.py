@@ -31,7 +31,8 @@ SIGMA_COLUMNS = ["sigma_n_m", "sigma_e_m", "sigma_d_m"]
 #: experiments/velocity_output.py).
 VELOCITY_COLUMNS = ["vel_n_mps", "vel_e_mps", "vel_d_mps"]
 #: Their 1-sigma [m/s] from the graph's marginals, where its solver gives them (the banded solver, the default;
-#: empty cells after GTSAM's solvers). Raw marginals: no variance factor scales them, as it does the positions'.
+#: not after GTSAM's solvers: ISAM2, or a band too wide for the recursion). Raw marginals: no variance factor
+#: scales them, as it does the positions'.
 VELOCITY_SIGMA_COLUMNS = ["sigma_vn_mps", "sigma_ve_mps", "sigma_vd_mps"]
 #: How estimates.csv writes floats: 10 significant digits (0.1 mm in ECEF, 1e-8 degree).
 FLOAT_FORMAT = "%.10g"
@@ -80,10 +81,11 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
         for i, name in enumerate(VELOCITY_COLUMNS):
             frame[name] = ned[:, i]
         vel_cov = result.info.get("vel_cov")
-        sig = ned_sigmas(pos, vel_cov[ok]) if isinstance(vel_cov, np.ndarray) else np.full(ned.shape, np.nan)
-        sig[~measured[ok]] = np.nan
-        for i, name in enumerate(VELOCITY_SIGMA_COLUMNS):
-            frame[name] = sig[:, i]
+        if isinstance(vel_cov, np.ndarray) and vel_cov.shape == (len(ok), 3, 3):
+            sig = ned_sigmas(pos, vel_cov[ok])
+            sig[~measured[ok]] = np.nan
+            for i, name in enumerate(VELOCITY_SIGMA_COLUMNS):
+                frame[name] = sig[:, i]
     return frame
 
 

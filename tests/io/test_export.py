@@ -251,3 +251,5 @@ def test_graph_velocity_becomes_ned_columns_and_rmc_speed():
     assert float(speeds[2]) == pytest.approx(0.0, abs=1e-3)              # no Doppler: the (still) track's speed
     none = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": np.zeros(6, bool)})
     assert "vel_n_mps" not in estimates_frame(trace, none)
+    no_cov = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": doppler})
+    assert list(estimates_frame(trace, no_cov).columns[-3:]) == VELOCITY_COLUMNS     # ISAM2: no marginals
