@@ -24,6 +24,7 @@ Prints a markdown table of GSDC scores [m] per drive and pooled (``experiments/r
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -42,7 +43,7 @@ from fusion.io.gsdc import DERIVED_DELAY_MS  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.trace import Trace  # noqa: E402
 
-TRAIN = REPO.parent / "shared" / "data" / "gsdc2021" / "train"
+TRAIN = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data")) / "gsdc2021" / "train"
 #: A satellite's arc ends where its measurements stop for longer than this [ms].
 ARC_GAP_MS = 10_000
 #: Epochs with fewer used satellites add nothing (four fit exactly).

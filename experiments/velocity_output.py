@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
-from few_satellites import NAV, PIXEL5  # noqa: E402
+from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
 from fusion.geometry import ecef2ned_vec, geodetic2ecef  # noqa: E402
 from fusion.io.estimates import VELOCITY_COLUMNS, VELOCITY_SIGMA_COLUMNS, estimates_frame  # noqa: E402
 from fusion.io.nmea import read_span_nmea  # noqa: E402
@@ -30,7 +30,7 @@ from fusion.options import load_options  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.run_types import RunOptions  # noqa: E402
 
-GSDC = REPO.parent / "shared" / "data" / "gsdc2021" / "train" / "2020-05-14-US-MTV-1" / "Pixel4"
+GSDC = SHARED / "gsdc2021" / "train" / "2020-05-14-US-MTV-1" / "Pixel4"
 MODES = ("fused-nodnn", "fused")
 
 
