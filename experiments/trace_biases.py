@@ -24,7 +24,6 @@ Prints a markdown table of GSDC scores [m] per drive and pooled (``experiments/r
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -34,7 +33,9 @@ import pandas as pd
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "experiments"))
 
+from few_satellites import SHARED  # noqa: E402
 from fusion.estimate.variance_factor import sigma_model  # noqa: E402
 from fusion.estimate.wls import solve_wls  # noqa: E402
 from fusion.eval.metrics import ned_errors, summarize  # noqa: E402
@@ -43,7 +44,7 @@ from fusion.io.gsdc import DERIVED_DELAY_MS  # noqa: E402
 from fusion.prepare.load import load_trace  # noqa: E402
 from fusion.trace import Trace  # noqa: E402
 
-TRAIN = Path(os.environ.get("GNSSFUSE_SHARED_DATA", REPO.parent / "shared" / "data")) / "gsdc2021" / "train"
+TRAIN = SHARED / "gsdc2021" / "train"
 #: A satellite's arc ends where its measurements stop for longer than this [ms].
 ARC_GAP_MS = 10_000
 #: Epochs with fewer used satellites add nothing (four fit exactly).
