@@ -42,7 +42,7 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from sigma_calibration import (BAND, GRID, TESTS, calibrated_var, disagreement, factor, fit_a, flag, fmt,  # noqa: E402
-                               miss, mode_record, scaled, within)
+                               miss, mode_record, n_outside, scaled, within)
 from fusion.estimate.variance_factor import (CARRIER_DEFAULTS, DEFAULTS, SigmaCalibration, epoch_chi2,  # noqa: E402
                                              whitened_residuals, wls_track)
 from fusion.modes import run_modes, solve_initial  # noqa: E402
@@ -159,11 +159,6 @@ def tune_mode(data: dict, names: list[str], mode: str) -> tuple[SigmaCalibration
     a = fit_a(list(carrier_items(data, names, mode, cal).values()), cal.b, np.array(cal.floor_m),
               tie_horizontal=True)
     return replace(cal, a=tuple(round(float(x), 4) for x in a)), pen, cov
-
-
-def n_outside(cov: dict) -> int:
-    """How many trace-axes of ``cov`` (trace -> (3,) coverage) fall outside :data:`BAND`."""
-    return sum(int(((c < BAND[0]) | (c > BAND[1])).sum()) for c in cov.values())
 
 
 def shipped_scores(data: dict, names: list[str], mode: str) -> str | None:

@@ -307,10 +307,14 @@ def held_out(data: dict, mode: str, cal: SigmaCalibration) -> tuple[float, dict]
                           cal.disagreement, dv)
 
 
+def n_outside(cov: dict) -> int:
+    """How many of the drive-axes in ``cov`` (trace -> (3,) coverages) fall outside :data:`BAND`."""
+    return sum(int(((c < BAND[0]) | (c > BAND[1])).sum()) for c in cov.values())
+
+
 def outside(cov: dict) -> str:
-    """How many of the drive-axes in ``cov`` (trace -> (3,) coverages) fall outside :data:`BAND`, of how many."""
-    c = np.array(list(cov.values()))
-    return f"{int(((c < BAND[0]) | (c > BAND[1])).sum())} of {c.size}"
+    """:func:`n_outside` of how many."""
+    return f"{n_outside(cov)} of {sum(np.size(c) for c in cov.values())}"
 
 
 def fmt(c: np.ndarray) -> str:
