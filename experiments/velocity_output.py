@@ -22,8 +22,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "experiments"))
 
 from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
+from fusion.eval.metrics import within_sigma  # noqa: E402
 from fusion.geometry import ecef2ned_vec, geodetic2ecef  # noqa: E402
-from fusion.io.estimates import VELOCITY_COLUMNS, VELOCITY_SIGMA_COLUMNS, estimates_frame  # noqa: E402
 from fusion.io.nmea import read_span_nmea  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
@@ -64,21 +64,19 @@ def rows(name: str, folder: Path, opts: RunOptions) -> list[str]:
         for what, v in (("graph velocity", res.info["vel"]), ("track difference", central_difference(t, res.pos))):
             h = horizontal_errors(v, truth_v, trace.truth)
             out.append(f"| {name} | {mode} | {what} | {np.percentile(h, 50):.3f} | {np.percentile(h, 95):.3f} | "
-                       f"{len(h)} | {within_sigma(trace, res, truth_v) if what == 'graph velocity' else '-'} |")
+                       f"{len(h)} | {sigma_shares(res, truth_v) if what == 'graph velocity' else '-'} |")
     return out
 
 
-def within_sigma(trace, res, truth_v: np.ndarray) -> str:
-    """Share of the written velocity's errors within its written 1 and 2 sigma, N / E / D ("-": none written)."""
-    frame = estimates_frame(trace, res)
-    if VELOCITY_SIGMA_COLUMNS[0] not in frame:
+def sigma_shares(res, truth_v: np.ndarray) -> str:
+    """Share of the velocity's errors within its 1 and 2 sigma, N / E / D, at the epochs ``estimates.csv`` writes
+    them (where Doppler measures the velocity; "-": no marginals)."""
+    vel_cov, measured = res.info.get("vel_cov"), res.info.get("doppler_epochs")
+    if vel_cov is None or measured is None or not measured.any():
         return "-"
-    ok = res.valid & np.isfinite(res.pos).all(axis=1)
-    ref = ecef2ned_vec(truth_v[ok], res.pos[ok])
-    err = np.abs(frame[VELOCITY_COLUMNS].to_numpy() - ref)
-    sig = frame[VELOCITY_SIGMA_COLUMNS].to_numpy()
-    use = np.isfinite(err).all(axis=1) & np.isfinite(sig).all(axis=1)
-    share = lambda k: " / ".join(f"{x:.2f}" for x in (err[use] <= k * sig[use]).mean(axis=0))   # noqa: E731
+    ok = measured & np.isfinite(res.pos).all(axis=1) & np.isfinite(truth_v).all(axis=1)
+    w = within_sigma(ecef2ned_vec(res.info["vel"][ok] - truth_v[ok], res.pos[ok]), res.pos[ok], vel_cov[ok])
+    share = lambda k: " / ".join(f"{w[f'within{k}sigma_{ax}']:.2f}" for ax in "ned")   # noqa: E731
     return f"{share(1)} ({share(2)})"
 
 
