@@ -73,20 +73,25 @@ def estimates_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     if isinstance(bridged, np.ndarray) and bridged.shape == ok.shape:
         # 1: fewer than 4 satellites and no prior, the motion model carried the epoch
         frame["bridged"] = bridged[ok].astype(int)
-    vel, measured = result.info.get("vel"), result.info.get("doppler_epochs")
-    if isinstance(vel, np.ndarray) and vel.shape == (len(ok), 3) and isinstance(measured, np.ndarray) \
-            and measured.shape == ok.shape and measured.any():
-        ned = ecef2ned_vec(vel[ok], pos) if len(pos) else np.zeros((0, 3))
-        ned[~measured[ok]] = np.nan
-        for i, name in enumerate(VELOCITY_COLUMNS):
-            frame[name] = ned[:, i]
-        vel_cov = result.info.get("vel_cov")
-        if isinstance(vel_cov, np.ndarray) and vel_cov.shape == (len(ok), 3, 3):
-            sig = ned_sigmas(pos, vel_cov[ok])
-            sig[~measured[ok]] = np.nan
-            for i, name in enumerate(VELOCITY_SIGMA_COLUMNS):
-                frame[name] = sig[:, i]
+    _add_velocity(frame, result.info, ok, pos)
     return frame
+
+
+def _add_velocity(frame: pd.DataFrame, info: dict, ok: np.ndarray, pos: np.ndarray) -> None:
+    """:data:`VELOCITY_COLUMNS` (and :data:`VELOCITY_SIGMA_COLUMNS` where the solver gave marginals) into
+    ``frame``, the rows of the solved epochs ``ok`` (E,) at their positions ``pos`` (N,3), where ``info``'s
+    ``doppler_epochs`` say Doppler measured the velocity; nothing without a velocity or any such epoch."""
+    vel, measured, vel_cov = info.get("vel"), info.get("doppler_epochs"), info.get("vel_cov")
+    if not (isinstance(vel, np.ndarray) and vel.shape == (len(ok), 3) and isinstance(measured, np.ndarray)
+            and measured.shape == ok.shape and measured.any()):
+        return
+    columns = [(VELOCITY_COLUMNS, ecef2ned_vec(vel[ok], pos) if len(pos) else np.zeros((0, 3)))]
+    if isinstance(vel_cov, np.ndarray) and vel_cov.shape == (len(ok), 3, 3):
+        columns.append((VELOCITY_SIGMA_COLUMNS, ned_sigmas(pos, vel_cov[ok])))
+    for names, values in columns:
+        values[~measured[ok]] = np.nan
+        for i, name in enumerate(names):
+            frame[name] = values[:, i]
 
 
 def export_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
