@@ -64,7 +64,6 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     info.update(bridged_epochs(trace, inp, valid))
     info["pr_noise"] = (inp.sel, inp.sigma, inp.pr_bias)     # for fusion.estimate.variance_factor
     info["carrier_linked"] = carrier_linked(inp.raw, E)       # experiments/carrier_calibration.py
-    info["doppler_epochs"] = doppler_epochs(inp)              # where estimates.csv writes info["vel"]
     return ModeResult(pos=pos, valid=valid, cov=cov, info=info)
 
 
@@ -107,9 +106,10 @@ def bridged_epochs(trace: Trace, inp: EpochInputs, valid: np.ndarray) -> dict:
     """Solved epochs that fewer than 4 satellites' pseudoranges and no prior determine (the motion model carries
     them from their neighbours): ``bridged`` (E,) bool, their count and the longest such stretch [s]
     (:func:`bridge_flags`), so that a drift through an outage is flagged rather than passed off as a fix; and
-    ``bridged_without_doppler`` (E,) bool those where no Doppler measures the velocity either."""
-    bridged = valid & pseudorange_gap(inp)
-    return {**bridge_flags(trace, bridged), "bridged_without_doppler": bridged & ~doppler_epochs(inp)}
+    ``bridged_without_doppler`` (E,) bool those where no Doppler measures the velocity either; and
+    ``doppler_epochs`` (E,) bool every epoch whose velocity Doppler measures (where estimates.csv writes it)."""
+    bridged, doppler = valid & pseudorange_gap(inp), doppler_epochs(inp)
+    return {**bridge_flags(trace, bridged), "bridged_without_doppler": bridged & ~doppler, "doppler_epochs": doppler}
 
 
 def bridge_flags(trace: Trace, bridged: np.ndarray) -> dict:
