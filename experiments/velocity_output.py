@@ -6,13 +6,17 @@ interpolated to the receiver epochs: a velocity over 0.2 s, where the track's ow
 1 Hz. Horizontal error |v - v_truth| over the epochs where both exist; the Pixel5 RINEX test trace (Doppler and
 carrier; reported, nothing tuned on it) and a GSDC 2021 derived file (no Doppler: the motion model alone gives
 the velocity). For the velocity ``estimates.csv`` writes, also the share of its errors within its written 1 and
-2 sigma per axis (a Gaussian: 0.68 and 0.95).
+2 sigma per axis (a Gaussian: 0.68 and 0.95). Where RTKLIB is installed, the velocity its single-point
+solution estimates from the same log's Doppler (``rnx2rtkp -p 0`` with ``out-outvel = on``) at its own epochs.
 
     python experiments/velocity_output.py
 """
 from __future__ import annotations
 
+import shutil
+import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +27,8 @@ sys.path.insert(0, str(REPO / "experiments"))
 
 from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
 from fusion.eval.metrics import within_sigma  # noqa: E402
-from fusion.geometry import ecef2ned_vec, geodetic2ecef  # noqa: E402
+from fusion.geometry import ecef2ned_vec, geodetic2ecef, ned2ecef_vec  # noqa: E402
+from fusion.gpstime import WEEK_S  # noqa: E402
 from fusion.io.nmea import read_span_nmea  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
@@ -80,11 +85,46 @@ def sigma_shares(res, truth_v: np.ndarray) -> str:
     return f"{share(1)} ({share(2)})"
 
 
+def rtklib_velocity(obs: Path, nav: Path, t_ms: np.ndarray, at: np.ndarray) -> np.ndarray | None:
+    """(E,3) ECEF velocity [m/s] of RTKLIB's single-point solution at the epochs ``t_ms`` (E,) (NaN where it
+    gives none), its east/north/up turned at ``at`` (E,3); None without ``rnx2rtkp``."""
+    exe = shutil.which("rnx2rtkp")
+    if exe is None:
+        return None
+    with tempfile.TemporaryDirectory() as tmp:
+        conf, pos = Path(tmp) / "vel.conf", Path(tmp) / "rtk.pos"
+        conf.write_text("out-outvel =on\nout-timeform =tow\n")
+        subprocess.run([exe, "-k", str(conf), "-p", "0", "-o", str(pos), str(obs), str(nav)], capture_output=True,
+                       check=True)
+        rows = np.array([ln.split() for ln in pos.read_text().splitlines() if ln and not ln.startswith("%")], float)
+    t = np.round(rows[:, 0] * WEEK_S * 1000 + rows[:, 1] * 1000).astype(np.int64)
+    idx = np.clip(np.searchsorted(t_ms, t), 0, t_ms.size - 1)
+    ok = np.abs(t_ms[idx] - t) <= 1
+    v = np.full((t_ms.size, 3), np.nan)
+    v[idx[ok]] = rows[ok][:, 15:18] * np.array([1.0, 1.0, -1.0])          # vn, ve, -vu: north/east/down
+    have = np.isfinite(v).all(axis=1) & np.isfinite(at).all(axis=1)
+    v[have] = ned2ecef_vec(v[have], at[have])
+    return v
+
+
+def rtklib_row(name: str, folder: Path, opts: RunOptions) -> str:
+    """The table's row for RTKLIB's single-point velocity on the log (a note without ``rnx2rtkp``)."""
+    trace = load_trace(folder, **load_options(opts))
+    v = rtklib_velocity(next((folder / "supplemental").glob("*.21o")), opts.nav[0], trace.t_ms, trace.truth)
+    if v is None:
+        return f"| {name} | RTKLIB rnx2rtkp -p 0 | not installed (apt-get install rtklib) | - | - | - | - |"
+    h = horizontal_errors(v, truth_velocity(folder, trace.t_ms), trace.truth)
+    return (f"| {name} | RTKLIB rnx2rtkp -p 0 | its Doppler velocity | {np.percentile(h, 50):.3f} | "
+            f"{np.percentile(h, 95):.3f} | {len(h)} | - |")
+
+
 def main() -> int:
     print("| trace | mode | velocity | horizontal error p50 [m/s] | p95 [m/s] | epochs | within 1 (2) sigma, N / E / D "
           "|\n|---|---|---|---|---|---|---|")
-    for line in rows("Pixel5 RINEX, broadcast GPS", PIXEL5, RunOptions(signals=None, nav=(NAV,))):
+    pixel5 = RunOptions(signals=None, nav=(NAV,))
+    for line in rows("Pixel5 RINEX, broadcast GPS", PIXEL5, pixel5):
         print(line)
+    print(rtklib_row("Pixel5 RINEX, broadcast GPS", PIXEL5, pixel5))
     for line in rows("2020-05-14-US-MTV-1 Pixel4 (no Doppler)", GSDC, RunOptions()):
         print(line)
     return 0

@@ -38,6 +38,8 @@ VELOCITY_SIGMA_COLUMNS = ["sigma_vn_mps", "sigma_ve_mps", "sigma_vd_mps"]
 FLOAT_FORMAT = "%.10g"
 #: The off-diagonal NED covariances [m^2] the RTKLIB .pos export needs (not in estimates.csv).
 COVARIANCE_COLUMNS = ["cov_ne_m2", "cov_nd_m2", "cov_ed_m2"]
+#: The same of the velocity [m^2/s^2], where :data:`VELOCITY_SIGMA_COLUMNS` are written (not in estimates.csv).
+VELOCITY_COVARIANCE_COLUMNS = ["cov_vne_m2s2", "cov_vnd_m2s2", "cov_ved_m2s2"]
 
 
 def ned_covariances(pos: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -96,15 +98,25 @@ def _add_velocity(frame: pd.DataFrame, info: dict, ok: np.ndarray, pos: np.ndarr
 
 def export_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     """:func:`estimates_frame` + ``n_sats`` (satellites measured at the epoch) + :data:`COVARIANCE_COLUMNS`
-    when the mode gives a covariance: what the writers of :mod:`fusion.io.export` read."""
+    when the mode gives a covariance (+ :data:`VELOCITY_COVARIANCE_COLUMNS` where the velocity has sigmas):
+    what the writers of :mod:`fusion.io.export` read."""
     ok = _solved(result)
     frame = estimates_frame(trace, result)
     frame["n_sats"] = trace.mask[ok].sum(axis=1)
+    pos = result.pos[ok]
     if result.cov is not None:
-        ned = ned_covariances(result.pos[ok], np.asarray(result.cov, float)[ok])
-        for name, (i, j) in zip(COVARIANCE_COLUMNS, ((0, 1), (0, 2), (1, 2))):
-            frame[name] = ned[:, i, j]
+        _add_off_diagonal(frame, COVARIANCE_COLUMNS, pos, np.asarray(result.cov, float)[ok])
+    if VELOCITY_SIGMA_COLUMNS[0] in frame:
+        _add_off_diagonal(frame, VELOCITY_COVARIANCE_COLUMNS, pos, result.info["vel_cov"][ok])
+        frame.loc[frame[VELOCITY_SIGMA_COLUMNS[0]].isna(), VELOCITY_COVARIANCE_COLUMNS] = np.nan
     return frame
+
+
+def _add_off_diagonal(frame: pd.DataFrame, names: list[str], pos: np.ndarray, cov: np.ndarray) -> None:
+    """The NE, ND and ED terms of the ECEF covariances ``cov`` (N,3,3) at ``pos`` (N,3) as ``names``."""
+    ned = ned_covariances(pos, cov)
+    for name, (i, j) in zip(names, ((0, 1), (0, 2), (1, 2)), strict=True):
+        frame[name] = ned[:, i, j]
 
 
 def run_record(trace: Trace, mode: str, result: ModeResult, metrics: dict | None) -> dict:

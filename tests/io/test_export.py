@@ -253,3 +253,40 @@ def test_graph_velocity_becomes_ned_columns_and_rmc_speed():
     assert "vel_n_mps" not in estimates_frame(trace, none)
     no_cov = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": doppler})
     assert list(estimates_frame(trace, no_cov).columns[-3:]) == VELOCITY_COLUMNS     # ISAM2: no marginals
+
+
+def test_pos_velocity_columns_as_rnx2rtkp_writes_them(tmp_path):
+    """With the graph's velocity, the .pos lines carry rnx2rtkp's ``out-outvel`` columns: vn, ve, vu (up =
+    -down), their sigmas and the signed square roots of the NE / EU / UN covariances; an epoch without Doppler
+    gets zeros (RTKLIB's unknown), and RTKLIB's pos2kml still reads the file where installed."""
+    from fusion.geometry import ned2ecef_vec
+    from fusion.io.rtklib_pos import VELOCITY_HEADER
+
+    trace, result, llh = _trace_and_result(-33.86, 151.2, E=6)
+    at = geodetic2ecef(llh)
+    want = np.array([3.0, -4.0, 0.5])                                    # m/s north, east, down
+    vel_ned_cov = np.array([[0.04, 0.01, -0.02], [0.01, 0.09, 0.03], [-0.02, 0.03, 0.16]])
+    doppler = np.ones(6, bool)
+    doppler[2] = False
+    info = {"vel": ned2ecef_vec(np.tile(want, (6, 1)), at), "doppler_epochs": doppler,
+            "vel_cov": ned2ecef_cov(np.tile(vel_ned_cov, (6, 1, 1)), at)}
+    frame = export_frame(trace, ModeResult(pos=result.pos, valid=result.valid, cov=result.cov, info=info))
+    path = write_exports(frame, tmp_path, ("pos",), "synthetic (fused)")[0]
+    assert VELOCITY_HEADER in path.read_text()
+    names = ["week", "tow", "lat", "lon", "h", "Q", "ns", "sdn", "sde", "sdu", "sdne", "sdeu", "sdun", "age", "ratio",
+             "vn", "ve", "vu", "sdvn", "sdve", "sdvu", "sdvne", "sdveu", "sdvun"]
+    pos = pd.read_csv(path, sep=r"\s+", comment="%", header=None, names=names)
+    assert len(pos) == 5                                                 # epoch 4 unsolved
+    measured = pos.drop(index=2)                                         # epoch 2: no Doppler
+    np.testing.assert_allclose(measured[["vn", "ve", "vu"]], np.tile([3.0, -4.0, -0.5], (4, 1)), atol=1e-5)
+    np.testing.assert_allclose(measured[["sdvn", "sdve", "sdvu"]], np.tile([0.2, 0.3, 0.4], (4, 1)), atol=1e-5)
+    # ENU cross terms: NE as is, EU = -ED, UN = -ND, each sign(q) sqrt|q|
+    np.testing.assert_allclose(measured[["sdvne", "sdveu", "sdvun"]], np.tile([0.1, -np.sqrt(0.03), np.sqrt(0.02)],
+                                                                              (4, 1)), atol=1e-5)
+    assert (pos.loc[2, names[15:]] == 0).all()
+    np.testing.assert_allclose(pos[["sdn", "sde", "sdu"]], frame[["sigma_n_m", "sigma_e_m", "sigma_d_m"]], atol=1e-4)
+    if shutil.which("pos2kml"):
+        out = tmp_path / "rtklib.kml"
+        subprocess.run(["pos2kml", "-a", "-o", str(out), str(path)], capture_output=True, check=True)
+        assert sum(c.tag.endswith("}coordinates") and len(c.text.split()) == 1
+                   for c in ET.parse(out).getroot().iter()) == 5
