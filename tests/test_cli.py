@@ -240,14 +240,15 @@ def test_the_run_summary_says_what_the_network_and_the_graph_did():
     assert "moved the solution by 0.81 m horizontally at the median epoch (2.50 m at the 95th percentile)" in text
 
 
-def test_incremental_runs_say_they_have_no_covariance(shipped_trace_dir, tmp_path, capsys):
-    """ISAM2 computes no marginals: the run says so instead of silently leaving the sigmas out."""
+def test_incremental_runs_write_the_graphs_marginals(shipped_trace_dir, tmp_path, capsys):
+    """ISAM2's estimate gets the same graph's marginals (fusion.estimate.graph.batch.marginals_at), calibrated
+    as the batch solver's are: sigma columns, and the run says how many errors fall within them."""
     out = tmp_path / "inc"
     assert main(["run", str(shipped_trace_dir), "--mode", "fused-nodnn", "--incremental", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert "no covariance from this run (--incremental computes no marginals)" in printed and "within" not in printed
-    assert json.loads((out / "metrics.json").read_text())["covariance"] is False
-    assert "sigma_n_m" not in (out / "estimates.csv").read_text().splitlines()[0]
+    assert "no covariance from this run" not in printed and "errors within the mode's 1 sigma" in printed
+    assert json.loads((out / "metrics.json").read_text())["covariance"] is True
+    assert "sigma_n_m" in (out / "estimates.csv").read_text().splitlines()[0]
 
 
 def test_the_report_says_per_mode_what_the_learned_parts_and_the_motion_model_did():

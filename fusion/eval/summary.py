@@ -124,7 +124,7 @@ def run_summary(record: dict) -> str:
         lines.append(f"sigmas of the {info['carrier_calibrated']} epochs carrier phase ties to a neighbour: calibrated "
                      "as such (a metre's floor for what broadcast corrections leave)")
     if record.get("covariance") is False:
-        why = " (--incremental computes no marginals)" if "incremental_s" in info else ""
+        why = " (the graph was singular at ISAM2's estimate)" if info.get("incremental_no_marginals") else ""
         lines.append(f"no covariance from this run{why}: estimates.csv has no sigma columns, and a .pos export "
                      "writes 0 for them, RTKLIB's 'unknown'")
     lines.append(DATUM)

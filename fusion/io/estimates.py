@@ -30,8 +30,8 @@ SIGMA_COLUMNS = ["sigma_n_m", "sigma_e_m", "sigma_d_m"]
 #: (empty cells elsewhere: the motion model's velocity alone is no better than a difference of the positions,
 #: experiments/velocity_output.py).
 VELOCITY_COLUMNS = ["vel_n_mps", "vel_e_mps", "vel_d_mps"]
-#: Their 1-sigma [m/s] from the graph's marginals, where its solver gives them (the banded solver, the default;
-#: not after GTSAM's solvers: ISAM2, or a band too wide for the recursion). Raw marginals: no variance factor
+#: Their 1-sigma [m/s] from the graph's marginals, where the banded recursion gives them (after the banded solver,
+#: the default, and ISAM2; not where the band is too wide for the recursion). Raw marginals: no variance factor
 #: scales them, as it does the positions'.
 VELOCITY_SIGMA_COLUMNS = ["sigma_vn_mps", "sigma_ve_mps", "sigma_vd_mps"]
 #: How estimates.csv writes floats: 10 significant digits (0.1 mm in ECEF, 1e-8 degree).

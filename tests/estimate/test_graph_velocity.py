@@ -33,6 +33,11 @@ def test_velocity_columns_follow_the_doppler():
     assert np.isfinite(sig).all() and (sig > 0).all()
     assert ((np.abs(err) <= 2 * sig).mean(axis=0) > 0.85).all()
     assert (np.median(np.abs(err) / sig, axis=0) > 0.3).all()      # and are not a blanket
+    # ISAM2 (--incremental) on the same graph: its velocity with the same graph's marginals at its estimate
+    inc = estimate_fused_nodnn(trace, solve_initial(trace, opts), replace(opts, graph=replace(opts.graph,
+                                                                                          incremental=True)))
+    inc_sig = estimates_frame(trace, inc)[VELOCITY_SIGMA_COLUMNS].to_numpy()
+    np.testing.assert_allclose(inc_sig, sig, rtol=0.05)
     # the same trace without its Doppler: the graph keeps velocity states, but nothing measures them
     no_doppler = replace(trace, prr=None, prr_sigma=None, prr_ok=None)
     res = estimate_fused_nodnn(no_doppler, solve_initial(no_doppler, opts), opts)

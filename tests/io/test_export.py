@@ -252,7 +252,7 @@ def test_graph_velocity_becomes_ned_columns_and_rmc_speed():
     none = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": np.zeros(6, bool)})
     assert "vel_n_mps" not in estimates_frame(trace, none)
     no_cov = ModeResult(pos=still, valid=result.valid, cov=None, info={"vel": vel, "doppler_epochs": doppler})
-    assert list(estimates_frame(trace, no_cov).columns[-3:]) == VELOCITY_COLUMNS     # ISAM2: no marginals
+    assert list(estimates_frame(trace, no_cov).columns[-3:]) == VELOCITY_COLUMNS     # no marginals (a band too wide)
 
 
 def test_pos_velocity_columns_as_rnx2rtkp_writes_them(tmp_path):

@@ -189,6 +189,19 @@ def _banded_cov(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorGra
     return marginal_positions(pieces.graph(), to_values(vec.layout, x), epochs, trace.n_epochs, pieces.dense), None
 
 
+def marginals_at(trace: Trace, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """(E,3,3) position and velocity marginals of the graph ``inp`` and ``cfg`` build, at another solver's answer
+    ``values`` (ISAM2's), which holds the variables of every kept epoch: the banded recursion where the graph has a
+    vectorised copy, else GTSAM's graph (positions only; velocities None). RuntimeError where the graph is
+    singular there."""
+    vec = vector_graph(trace, inp, cfg)
+    if vec is not None:
+        return _banded_cov(trace, inp, cfg, vec, from_values(vec.layout, values))
+    pieces = graph_pieces(trace, inp, cfg)
+    return marginal_positions(pieces.graph(), values, np.flatnonzero(inp.keep), trace.n_epochs, pieces.dense), None
+
+
 def _solve_gtsam(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool, start: BatchSolution | None,
                  initial: gtsam.Values | None = None, handed_over: int | None = None):
     """:func:`solve_batch` on GTSAM's graph: patched from ``start``'s where :func:`patchable` allows, else built,

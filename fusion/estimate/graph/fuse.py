@@ -51,7 +51,7 @@ def solve_graph(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig
     if not inp.keep.any():
         pos, valid, cov, info = np.full((E, 3), np.nan), np.zeros(E, bool), None, {}
     elif cfg.incremental:
-        pos, valid, cov, info, inp = incremental_or_retry(trace, wls, opts, cfg, learned, inp)
+        pos, valid, cov, info, inp = incremental_or_retry(trace, wls, opts, cfg, learned, inp, want_cov)
     else:
         pos, valid, cov, info = solve_batch(trace, inp, cfg, want_cov, start)
     info.update(inp.dropped)
@@ -72,7 +72,7 @@ RETRY_CARRIER_CLOCK_PRIOR_M = 20.0
 
 
 def incremental_or_retry(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: GraphConfig,
-                         learned: LearnedGraphInputs | None, inp: EpochInputs):
+                         learned: LearnedGraphInputs | None, inp: EpochInputs, want_cov: bool = True):
     """:func:`solve_incremental`'s (pos, valid, cov, info) and the inputs it solved. Where ISAM2's undamped step finds
     the system singular and the graph holds carrier phase, the trace is solved once more with carrier pairs counted
     by distinct satellites (``GraphConfig.tdcp_min_distinct_sats`` = ``MIN_TDCP_SATS``) and a loose prior on each
@@ -82,14 +82,14 @@ def incremental_or_retry(trace: Trace, wls: WlsResult, opts: RunOptions, cfg: Gr
     switched off holds its carrier clock by nothing (the Pixel5 RINEX test trace with SP3/CLK). Both from the start
     would cost that trace with broadcast GPS 3-14 % in this mode (``GraphConfig``'s comments)."""
     try:
-        return (*solve_incremental(trace, inp, cfg), inp)
+        return (*solve_incremental(trace, inp, cfg, want_cov), inp)
     except GeometryError:
         if inp.raw is None or not inp.raw.has_tdcp or cfg.tdcp_min_distinct_sats >= MIN_TDCP_SATS:
             raise
     cfg = replace(cfg, tdcp_min_distinct_sats=MIN_TDCP_SATS,
                   carrier_clock_prior_m=cfg.carrier_clock_prior_m or RETRY_CARRIER_CLOCK_PRIOR_M)
     inp = prepare_inputs(trace, wls, cfg, opts.elev_mask_deg, learned)
-    pos, valid, cov, info = solve_incremental(trace, inp, cfg)
+    pos, valid, cov, info = solve_incremental(trace, inp, cfg, want_cov)
     return pos, valid, cov, {**info, "incremental_retried": 1}, inp
 
 

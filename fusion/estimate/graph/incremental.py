@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import gtsam
 import numpy as np
 
-from fusion.estimate.graph.batch import read_velocities
+from fusion.estimate.graph.batch import marginals_at, read_velocities
 from fusion.estimate.graph.build import graph_pieces
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.inputs import EpochInputs
@@ -71,12 +72,15 @@ def feed_epochs(isam: gtsam.ISAM2, trace: Trace, inp: EpochInputs, cfg: GraphCon
     return online
 
 
-def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> tuple[np.ndarray, np.ndarray, None, dict]:
+def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool = True
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, dict]:
     """ISAM2, one epoch at a time, with the same factors as the batch graph.
 
     ``pos`` is the final smoothed estimate; ``info["online_pos"]`` (E,3) holds each epoch's estimate
-    right after its own update. No covariances (None): per-epoch ISAM2 marginals cost more than the
-    solve itself.
+    right after its own update. ``cov`` (``want_cov``): the smoothed position marginals at the final estimate,
+    from the batch solver's one recursion over the same graph (not ISAM2's Bayes tree, whose per-epoch
+    queries cost more than the solve), with the velocity's as ``info["vel_cov"]``; None where the graph is
+    singular at the estimate (``incremental_no_marginals``).
     """
     E = trace.n_epochs
     isam = isam2(cfg, carrier=inp.raw is not None and inp.raw.has_tdcp)
@@ -95,7 +99,14 @@ def solve_incremental(trace: Trace, inp: EpochInputs, cfg: GraphConfig) -> tuple
         pos[k] = est.atPoint3(pos_key(int(k)))
     valid = added & np.isfinite(pos).all(axis=1)
     n = max(int(inp.keep.sum()), 1)
-    return pos, valid, None, {"online_pos": online, "incremental_s": elapsed,
-                              "incremental_unanchored": int((inp.keep & ~added).sum()),
-                              "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp),
-                              "vel": read_velocities(est, np.flatnonzero(added), E)}
+    info = {"online_pos": online, "incremental_s": elapsed, "incremental_unanchored": int((inp.keep & ~added).sum()),
+            "ms_per_epoch": 1000.0 * elapsed / n, "isb_m": isb_estimates(est, inp),
+            "vel": read_velocities(est, np.flatnonzero(added), E)}
+    cov, t1 = None, time.perf_counter()
+    if want_cov:
+        try:      # a component left out is whole (feed_epochs): the rest is the graph ISAM2 solved
+            cov, info["vel_cov"] = marginals_at(trace, replace(inp, keep=added), cfg, est)
+        except RuntimeError:
+            info["incremental_no_marginals"] = 1
+        info["cov_s"] = time.perf_counter() - t1
+    return pos, valid, cov, info
