@@ -62,12 +62,15 @@ def ecef2ned_cov(cov_ecef: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
 
 def ned2ecef_cov(cov_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
     """NED covariances (..., 3, 3) at ``ref_ecef`` (..., 3) -> ECEF: R^T C R (inverse of
-    :func:`ecef2ned_cov`). A diagonal NED covariance may be passed as its (..., 3) variances."""
-    cov_ned = np.asarray(cov_ned, float)
-    if cov_ned.shape[-2:] != (3, 3):
-        cov_ned = cov_ned[..., :, None] * np.eye(3)
+    :func:`ecef2ned_cov`)."""
     R = ned_rotation(ref_ecef)
-    return np.swapaxes(R, -1, -2) @ cov_ned @ R
+    return np.swapaxes(R, -1, -2) @ np.asarray(cov_ned, float) @ R
+
+
+def ned2ecef_diag(var_ned: np.ndarray, ref_ecef: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) ECEF covariances of diagonal NED ones given by their variances (..., 3) at ``ref_ecef``
+    (..., 3). A function of its own: three epochs' variances (3, 3) are not one covariance matrix."""
+    return ned2ecef_cov(np.asarray(var_ned, float)[..., :, None] * np.eye(3), ref_ecef)
 
 
 def norm3(v: np.ndarray) -> np.ndarray:

@@ -88,3 +88,16 @@ def test_sagnac_rotation_and_line_of_sight_keep_their_bits():
         d = want - rx[:, None, :]
         assert np.array_equal(rng_m, np.linalg.norm(d, axis=-1))
         assert np.array_equal(los, d / np.maximum(np.linalg.norm(d, axis=-1), 1.0)[..., None])
+
+
+def test_three_epochs_of_ned_variances_are_three_diagonal_covariances():
+    """(3,3) variances of three epochs are not one 3x3 covariance (a three-epoch trace's motion model was
+    built from such a misreading, non-symmetric, and the graph's Cholesky failed)."""
+    from fusion.geometry import ecef2ned_cov, geodetic2ecef, ned2ecef_diag
+
+    ref = geodetic2ecef(np.array([[37.4, -122.1, 10.0], [37.5, -122.0, 20.0], [-33.9, 151.2, 0.0]]))
+    var = np.array([[1.0, 4.0, 9.0], [2.0, 3.0, 5.0], [0.5, 0.5, 0.1]])
+    cov = ned2ecef_diag(var, ref)
+    assert cov.shape == (3, 3, 3)
+    np.testing.assert_allclose(cov, np.swapaxes(cov, 1, 2), atol=1e-12)
+    np.testing.assert_allclose(ecef2ned_cov(cov, ref), var[:, :, None] * np.eye(3), atol=1e-12)

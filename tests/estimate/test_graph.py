@@ -140,6 +140,16 @@ def test_learned_prior_helps_and_incremental_matches_batch(trace, wls):
 
 
 @pytest.mark.parametrize("motion", ["rw", "cv"])
+@pytest.mark.parametrize("incremental", [False, True])
+def test_a_trace_of_three_epochs_solves(trace, motion, incremental):
+    """Three epochs' motion variances (3,3) were once read as one covariance matrix (fusion.geometry)."""
+    short = trace.select(np.arange(3))
+    res = fuse(short, solve_wls(short), RunOptions(), cfg=GraphConfig(motion=motion, incremental=incremental))
+    assert res.valid.all() and np.all(np.linalg.eigvalsh(res.cov)[:, 0] > 0)
+    assert np.max(h_err(short, res.pos, res.valid)) < 10.0
+
+
+@pytest.mark.parametrize("motion", ["rw", "cv"])
 def test_both_motion_models_solve(trace, wls, motion):
     res = fuse(trace, wls, RunOptions(), cfg=GraphConfig(motion=motion), want_cov=False)
     assert res.valid.all()

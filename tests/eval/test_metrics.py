@@ -79,14 +79,14 @@ def test_cdf():
 
 def test_within_sigma_reads_a_gaussian_as_calibrated_and_names_an_overconfident_axis():
     from fusion.eval.metrics import within_sigma
-    from fusion.geometry import geodetic2ecef, ned2ecef_cov
+    from fusion.geometry import geodetic2ecef, ned2ecef_diag
 
     rng = np.random.default_rng(0)
     n = 20000
     pos = np.tile(geodetic2ecef(np.array([[37.4, -122.1, 10.0]])), (n, 1))
     sd = np.array([1.0, 2.0, 3.0])
     err = rng.standard_normal((n, 3)) * sd
-    cov = ned2ecef_cov(np.tile(sd ** 2, (n, 1)), pos)
+    cov = ned2ecef_diag(np.tile(sd ** 2, (n, 1)), pos)
     got = within_sigma(err, pos, cov)
     for ax in "ned":
         assert abs(got[f"within1sigma_{ax}"] - 0.683) < 0.015 and abs(got[f"within2sigma_{ax}"] - 0.954) < 0.01

@@ -13,7 +13,7 @@ from fusion.errors import GeometryError
 from fusion.estimate.graph.config import GraphConfig
 from fusion.estimate.graph.factors import velocity_prior_factor_v, zero_point
 from fusion.estimate.graph.keys import pos_key, vel_key
-from fusion.geometry import ned2ecef_cov, ned_rotation
+from fusion.geometry import ned2ecef_diag, ned_rotation
 
 #: Loose velocity prior at the start of a component [m/s] (cars stay well inside it).
 START_VEL_SIGMA_MPS = 50.0
@@ -28,7 +28,7 @@ class RandomWalkMotion:
     def __init__(self, init_pos: np.ndarray, dt: np.ndarray, cfg: GraphConfig):
         dt = np.maximum(dt, 1e-3)
         var_h, var_v = (cfg.rw_sigma_h_mps * dt) ** 2, (cfg.rw_sigma_v_mps * dt) ** 2
-        self.cov = ned2ecef_cov(np.stack([var_h, var_h, var_v], axis=-1), init_pos)
+        self.cov = ned2ecef_diag(np.stack([var_h, var_h, var_v], axis=-1), init_pos)
 
     def add_values(self, k: int, values: gtsam.Values) -> None:
         """No variables beyond the position."""
@@ -60,7 +60,7 @@ class ConstantVelocityMotion:
         dts = np.maximum(dt, 1e-3)
         walk = dts * np.asarray(accel_scale, float) ** 2
         var_h, var_v = cfg.cv_accel_h ** 2 * walk, cfg.cv_accel_v ** 2 * walk
-        self.vel_cov = ned2ecef_cov(np.stack([var_h, var_h, var_v], axis=-1), init_pos)
+        self.vel_cov = ned2ecef_diag(np.stack([var_h, var_h, var_v], axis=-1), init_pos)
         self.pos_sqrt_info = 1.0 / (cfg.cv_pos_sigma_m * np.sqrt(dts))
         # (E,3) ECEF down direction over the level prior's sigma: the prior's whitened row
         self.level_row = ned_rotation(init_pos)[:, 2, :] / level_sigma_mps if level_sigma_mps > 0 else None
