@@ -217,7 +217,7 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     count_skip(skipped, "records_bad_satellite_count", bad)
     keep = ~(event | wrong)
     kept = np.flatnonzero(keep)
-    _check_increasing(t_ns[kept], line_no[kept], path)
+    kept = kept[_later_epochs(t_ns[kept], line_no[kept], path, skipped)]
     epoch_of = np.repeat(np.arange(kept.size), n_sat[kept])
     first = np.repeat(e_line[kept] + 1, n_sat[kept])
     sat = first + (np.arange(first.size) - np.repeat(np.cumsum(n_sat[kept]) - n_sat[kept], n_sat[kept]))
@@ -226,11 +226,17 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     return epochs, np.column_stack([starts[sat], ends[sat], epoch_of])
 
 
-def _check_increasing(t_ns: np.ndarray, line_no: np.ndarray, path: Path) -> None:
-    """Epoch times (K,) must increase; line_no (K,) names the first that does not."""
-    back = np.flatnonzero(np.diff(t_ns) <= 0)
-    if back.size:
-        raise DataError(f"{path}:{line_no[back[0] + 1]}: epoch time does not increase")
+def _later_epochs(t_ns: np.ndarray, line_no: np.ndarray, path: Path, skipped: dict[str, int]) -> np.ndarray:
+    """(K,) bool: the epoch records (times (K,), file lines (K,)) later than every record before them. A record
+    written twice, or a stretch written again after later ones, is skipped and counted, with a warning naming the
+    first such line: the file's first word on an epoch stands."""
+    later = t_ns > np.maximum.accumulate(np.r_[np.iinfo(np.int64).min, t_ns[:-1]])
+    if not later.all():
+        first = line_no[np.flatnonzero(~later)[0]]
+        warnings.warn(f"{path}:{first}: epoch not later than one before it (written twice, or time going back); "
+                      f"{int((~later).sum())} such record(s) skipped", stacklevel=3)
+    count_skip(skipped, "epochs_not_later", ~later)
+    return later
 
 
 def _v2_frame(body: np.ndarray, head: ObsHeader, path: Path, skipped: dict[str, int]) -> pd.DataFrame:
@@ -243,7 +249,8 @@ def _v2_frame(body: np.ndarray, head: ObsHeader, path: Path, skipped: dict[str, 
     starts, ends = line_bounds(body)
     t_ns, _, _ = epoch_fields(char_matrix(body, starts[epoch_line], ends[epoch_line], 35), head, path,
                               first_no + epoch_line)
-    _check_increasing(t_ns, first_no + epoch_line, path)
+    later = _later_epochs(t_ns, first_no + epoch_line, path, skipped)
+    t_ns, epoch_line, n_sat, flag, obs_start = (a[later] for a in (t_ns, epoch_line, n_sat, flag, obs_start))
     epoch_of, system, prn_chars, fields, first = satellite_fields(body, epoch_line, n_sat, obs_start, n_types)
     prn, prn_bad = sat_number(prn_chars)
     epochs = {"t_ns": t_ns, "clock_reset": flag == 1, "epoch_of": epoch_of, "line_no": first_no + first}

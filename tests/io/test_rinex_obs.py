@@ -141,6 +141,29 @@ def test_truncated_final_record_is_counted(tmp_path):
     assert raw.n_epochs == 4
 
 
+def _records(text: str) -> tuple[list[str], list[str]]:
+    """The fixture's header lines and its epoch records, each record's lines joined."""
+    lines = text.splitlines(keepends=True)
+    starts = [k for k, l in enumerate(lines) if l.startswith(">")]
+    return lines[:starts[0]], ["".join(lines[a:b]) for a, b in zip(starts, starts[1:] + [len(lines)])]
+
+
+@pytest.mark.parametrize("version", [3, 2])
+def test_a_record_written_twice_or_time_going_back_is_skipped_and_counted(tmp_path, version):
+    """Epoch 1 written twice, then epochs 0-1 again after epoch 3: the file's first word on each epoch stands,
+    the three others are counted with a warning naming the first one's line, and every good epoch is kept."""
+    head, rec = _records(FIXTURE.read_text())
+    text = "".join(head + [rec[0], rec[1], rec[1], rec[2], rec[3], rec[0], rec[1], rec[4]])
+    if version == 2:
+        text = _to_v2(text)
+    line = len(head) + rec[0].count("\n") + rec[1].count("\n") + 1 if version == 3 else r"\d+"
+    with pytest.warns(UserWarning, match=rf"x\.21o:{line}: epoch not later than one before it.*3 such record"):
+        raw = read_rinex_obs(_write(tmp_path, text))
+    ref = read_rinex_obs(FIXTURE)
+    assert raw.skipped.get("epochs_not_later") == 3 and raw.n_epochs == 5
+    assert raw.frame.equals(ref.frame)
+
+
 def test_event_and_power_failure_flags(tmp_path):
     lines = _lines()
     epochs = [k for k, l in enumerate(lines) if l.startswith(">")]
