@@ -223,6 +223,40 @@ def identify_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, 
     return fails, remove, decided
 
 
+#: A residual above this [m] is beyond the subset test's one linear step, whose linearisation point such a fault
+#: pulls as far off (a millisecond-ambiguous pseudorange is 300 km wrong): :func:`exclude_gross` first.
+GROSS_RESIDUAL_M = 1000.0
+
+
+def exclude_gross(fit: FitState, eligible: np.ndarray, settings: WlsSettings) -> tuple[FitState, np.ndarray]:
+    """The epochs in ``eligible`` (E,) whose fit leaves a residual above :data:`GROSS_RESIDUAL_M`: the slot of
+    the largest standardised residual removed and the epoch re-solved, up to ``settings.max_exclusions`` times
+    while more than 5 slots stay. Kept where the re-solve converges with every residual below the bound (the
+    usual test then judges the rest), undone elsewhere. Returns the fit and (E,) the slots it removed (counted
+    as outliers)."""
+    after, removed = fit, np.zeros(fit.used.shape, bool)
+    for _ in range(settings.max_exclusions):
+        _, _, r, _ = normal_equations(after.sat_pos, after.pr, after.weights, after.x)
+        gross = eligible & (np.where(after.used, np.abs(r), 0.0).max(1) > GROSS_RESIDUAL_M)
+        gross &= after.used.sum(1) > 5
+        if not gross.any():
+            break
+        worst = np.argmax(np.where(after.used, np.abs(r) * np.sqrt(after.w_prior), -1.0), axis=1)
+        rows = np.flatnonzero(gross)
+        removed[rows, worst[rows]] = True
+        after = after.replace(used=fit.used & ~removed)
+        after = after.solve(gross, after.weights, settings.max_iter, settings.tol_m, settings.max_cond)
+    tried = removed.any(1)
+    if not tried.any():
+        return fit, removed
+    _, _, r, _ = normal_equations(after.sat_pos, after.pr, after.weights, after.x)
+    undo = tried & ~(after.conv & ~after.bad & ~after.runaway
+                     & (np.where(after.used, np.abs(r), 0.0).max(1) <= GROSS_RESIDUAL_M))
+    after, removed[undo] = _undo(fit, after, undo), False
+    count_skip(fit.dropped, "outlier", removed)
+    return after.replace(w_fit=after.weights), removed
+
+
 def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,
                    separation: float = SEPARATION,
                    identified: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> FitState:

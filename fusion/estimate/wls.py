@@ -20,7 +20,10 @@ Procedure
    20,000 km distant satellite does not move measurably with a metre-level position change).
 3. Fine stage: weighted Gauss-Newton to a 0.1 mm step, at most ``max_iter`` iterations.
 4. Robust stage (:mod:`fusion.estimate.raim`). ``robust="exclude"`` (``True``; the default of
-   :func:`solve_wls` and of the pipeline): RAIM-style fault detection and exclusion - a chi-square
+   :func:`solve_wls` and of the pipeline): first, an epoch left with a residual above 1 km (a
+   millisecond-ambiguous pseudorange) loses its largest one and is re-solved, one at a time
+   (:func:`fusion.estimate.raim.exclude_gross`: the test below linearises at a fit such a fault pulls
+   tens of kilometres off); then RAIM-style fault detection and exclusion - a chi-square
    test on the weighted residuals, then the smallest set of satellites (at most ``max_exclusions``,
    never below 5 left) whose removal passes it excluded; an epoch no allowed exclusion repairs is
    kept, ``flagged``, and solved with Huber weights so that the fault it holds pulls less. An
@@ -92,7 +95,7 @@ from fusion.errors import DataError
 from fusion.estimate.clock_bridge import interpolate_clock, solve_fixed_clock
 from fusion.estimate.lsq import ill_conditioned, normal_equations
 from fusion.estimate.neighbour_fde import exclude_by_neighbours
-from fusion.estimate.raim import exclude_faults, huber_irls, identify_faults, variance_factor
+from fusion.estimate.raim import exclude_faults, exclude_gross, huber_irls, identify_faults, variance_factor
 from fusion.estimate.variance_factor import calibrate_snapshot
 from fusion.estimate.wls_state import SIGMA0_M, FitState, WlsSettings  # noqa: F401 (SIGMA0_M: public here too)
 from fusion.geometry import ecef2geodetic, elevation_azimuth, line_of_sight
@@ -246,7 +249,9 @@ def solve_wls_arrays(sat_pos: np.ndarray, pr: np.ndarray, mask: np.ndarray, sigm
     fit = fit.solve(alive, fit.w_prior, cfg.max_iter, cfg.tol_m, cfg.max_cond)
     eligible = alive & fit.conv & ~fit.bad & ~fit.runaway
     if cfg.robust == "exclude":
+        fit, gross = exclude_gross(fit, eligible, cfg)
         fit, scale = _exclude(fit, eligible, cfg, t_ms)
+        fit = fit.replace(n_excluded=fit.n_excluded + gross.sum(1))
         if fit.flagged.any():
             fit = huber_irls(fit, fit.flagged, cfg, scale=scale,
                              sigma_factor=reported_sigma_factor(sigma, fit.used) if cfg.irls_reported else None)

@@ -251,6 +251,21 @@ def test_fde_finds_two_faults_and_leaves_clean_epochs_alone():
     assert np.linalg.norm(res.pos - rx, axis=1).max() < 5.0 and not res.flagged.any()
 
 
+@pytest.mark.parametrize("fault_m", [300e3, 1e6])
+def test_a_gross_fault_is_excluded_though_one_linear_step_cannot_judge_it(fault_m):
+    """A millisecond-ambiguous pseudorange (300 km) or worse pulls the fit tens of kilometres off, where the
+    subset test's single linear step cannot see that its removal repairs the epoch: it is removed and the epoch
+    re-solved first (fusion.estimate.raim.exclude_gross). A fault of 200 m stays with the usual test."""
+    sat, pr, mask, rx, _ = synthetic(E=3)
+    pr = pr + np.random.default_rng(11).normal(0, 1.0, pr.shape)
+    pr[0, 1] += fault_m                                 # the 50 degree satellite, the epoch a trace starts with
+    pr[1, 2] += 200.0
+    res = solve_wls_arrays(sat, pr, mask, None, robust="exclude")
+    assert res.n_excluded.tolist() == [1, 1, 0] and res.dropped["outlier"] == 2
+    assert res.excluded[0, 1] and res.excluded[1, 2] and not res.flagged.any()
+    assert np.linalg.norm(res.pos - rx, axis=1).max() < 5.0
+
+
 def test_fde_flags_what_it_cannot_decide():
     sat, pr, mask, rx, _ = synthetic(E=2, sky=SKY[:5])
     pr[0, 1] += 200.0                                  # five satellites: detected, not identifiable
