@@ -23,6 +23,7 @@ clocks serve different signal pairs. Group delays are kept per signal class
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -189,7 +190,7 @@ def _records(lines: list[str], head: _Header, path: Path, skipped: dict[str, int
     record; other systems are skipped and counted."""
     if head.frames is not None:
         return _v4_records(head.frames, path, skipped)
-    out = []
+    out, bad = [], []
     i, n = head.body, len(lines)
     while i < n:
         line = lines[i]
@@ -205,13 +206,33 @@ def _records(lines: list[str], head: _Header, path: Path, skipped: dict[str, int
         n_lines = _R3_RECORD_LINES[sys_letter]
         span = _record_span(lines, i, n_lines) if head.version >= 3 else min(n_lines, n - i)
         if span < n_lines:
-            raise DataError(f"{path}:{i + 1}: truncated ephemeris record ({span} of {n_lines} lines present)")
-        if sys_letter in _KEPLER or sys_letter == "R":
-            out.append(_record(lines[i:i + n_lines], sys_letter, head.version, path, i + 1))
+            bad.append(f"{path}:{i + 1}: truncated ephemeris record ({span} of {n_lines} lines present)")
+        elif sys_letter in _KEPLER or sys_letter == "R":
+            _read_record(out, bad, lines[i:i + n_lines], sys_letter, head.version, path, i + 1)
         else:
             count_skip(skipped, f"records_{sys_letter}_not_modelled", 1)
         i += span
+    _skip_unreadable(bad, skipped, out)
     return out
+
+
+def _read_record(out: list, bad: list[str], rec: list[str], sys_letter: str, version: float, path: Path,
+                 line_no: int) -> None:
+    """:func:`_record` appended to ``out``, or its error to ``bad``: one broken record costs itself alone."""
+    try:
+        out.append(_record(rec, sys_letter, version, path, line_no))
+    except DataError as exc:
+        bad.append(str(exc))
+
+
+def _skip_unreadable(bad: list[str], skipped: dict[str, int], read: list) -> None:
+    """One warning naming the first record that could not be read, and their count (``records_unreadable``);
+    a file none of whose records could be read (``read`` empty) is refused, by the first one's error."""
+    if bad and not read:
+        raise DataError(f"{bad[0]} (no ephemeris record of the file could be read)")
+    if bad:
+        warnings.warn(f"{bad[0]}; {len(bad)} ephemeris record(s) skipped", stacklevel=4)
+        count_skip(skipped, "records_unreadable", len(bad))
 
 
 def _frames(lines: list[str], body: int, path: Path) -> list[tuple[int, list[str], list[str]]]:
@@ -236,7 +257,7 @@ def _frames(lines: list[str], body: int, path: Path) -> list[tuple[int, list[str
 def _v4_records(frames: list, path: Path, skipped: dict[str, int]) -> list[tuple[str, int, int, list[float]]]:
     """The modelled ephemerides of RINEX 4 frames (:data:`_V4_MESSAGES`), read as RINEX 3 records (a
     GLONASS FDMA body of 4.01 on carries a fifth line, read past here); other messages skipped and counted."""
-    out = []
+    out, bad = [], []
     for i, fields, body in frames:
         if not fields or fields[0] != "EPH":
             continue                      # ION (read by the header), STO, EOP: nothing to model
@@ -248,10 +269,12 @@ def _v4_records(frames: list, path: Path, skipped: dict[str, int]) -> list[tuple
             continue
         n_lines = _R3_RECORD_LINES[sys_letter]
         if len(body) < n_lines:
-            raise DataError(f"{path}:{i + 1}: truncated ephemeris record ({len(body)} of {n_lines} lines present)")
+            bad.append(f"{path}:{i + 1}: truncated ephemeris record ({len(body)} of {n_lines} lines present)")
+            continue
         if body[0][:3].replace(" ", "0").upper() != fields[1].upper():
             raise DataError(f"{path}:{i + 2}: record of {body[0][:3]!r} under the marker for {fields[1]!r}")
-        out.append(_record(body[:n_lines], sys_letter, 3.0, path, i + 2))
+        _read_record(out, bad, body[:n_lines], sys_letter, 3.0, path, i + 2)
+    _skip_unreadable(bad, skipped, out)
     return out
 
 
@@ -333,12 +356,34 @@ def _kepler_table(recs: list, path: str, skipped: dict[str, int]) -> GpsNav:
     toe_ms = (week * WEEK_S * 1000).astype(np.int64) + np.round(toe_sow * 1000).astype(np.int64) + offset_ms
     toc_ms = toc_sys + offset_ms
     sat_id = np.array([_CTYPE[s] for s in letters], np.int64) * 1000 + svid
-    keep = _healthy_unique(sat_id * 2 + msg, toe_ms, params["health"], skipped)
+    keep = _healthy_unique(sat_id * 2 + msg, toe_ms, params["health"], skipped) & _plausible_orbits(
+        params, letters, svid, path, skipped)
     sel = np.flatnonzero(keep)
     sel = sel[np.lexsort((toe_ms[sel], msg[sel], sat_id[sel]))]
     return GpsNav(prn=svid[sel], toc_ms=toc_ms[sel], toe_ms=toe_ms[sel],
                   params={k: v[sel] for k, v in params.items()}, source=path, skipped=skipped,
                   sat_id=sat_id[sel], msg=msg[sel])
+
+
+#: Every GNSS orbit's semi-major axis lies within these [m] (GPS 26,560 km ... GEO / IGSO / QZSS 42,164 km), and
+#: its eccentricity below ORBIT_E_MAX (QZSS: 0.075): a record outside is a corrupt one.
+ORBIT_A_RANGE_M = (1.0e7, 5.0e7)
+ORBIT_E_MAX = 0.2
+
+
+def _plausible_orbits(params: dict[str, np.ndarray], letters: np.ndarray, svid: np.ndarray, path: str,
+                      skipped: dict[str, int]) -> np.ndarray:
+    """(N,) bool: Keplerian records whose orbit a GNSS satellite can fly; the others skipped and counted
+    (``records_implausible_orbit``), with a warning naming their satellites."""
+    a = params["sqrt_a"] ** 2
+    ok = (a > ORBIT_A_RANGE_M[0]) & (a < ORBIT_A_RANGE_M[1]) & (params["e"] >= 0) & (params["e"] < ORBIT_E_MAX)
+    if not ok.all():
+        sats = sorted({f"{c}{n % 1000:02d}" for c, n in zip(letters[~ok], svid[~ok])})
+        warnings.warn(f"{path}: {int((~ok).sum())} ephemeris record(s) with an orbit no GNSS satellite flies "
+                      f"(semi-major axis outside 10,000-50,000 km, or eccentricity >= {ORBIT_E_MAX}) skipped: "
+                      f"{', '.join(sats)}", stacklevel=4)
+        count_skip(skipped, "records_implausible_orbit", ~ok)
+    return ok
 
 
 def galileo_message(letters: np.ndarray, data_source: np.ndarray) -> np.ndarray:
@@ -445,7 +490,8 @@ def _leap_at_gps_ms(t_ms: int) -> int:
 def read_rinex_nav(path: str | Path) -> GpsNav:
     """GPS records only of a RINEX 2.x GPS or 3.x / 4.x (GPS / mixed) navigation file (the simulator's
     view). Raises :class:`DataError` (naming the file and line) for unreadable files, unsupported
-    versions, truncated records, or a file without a single healthy GPS record."""
+    versions, or a file without a single healthy GPS record; a record cut short or unreadable is skipped and
+    counted (``records_unreadable``), with a warning."""
     path = Path(path)
     lines = _read_lines(path)
     if lines and "RINEX VERSION" in lines[0] and lines[0][:9].strip().startswith("2") and lines[0][20:21] != "N":
@@ -454,7 +500,7 @@ def read_rinex_nav(path: str | Path) -> GpsNav:
     skipped: dict[str, int] = {}
     recs = _records(lines, head, path, skipped)
     count_skip(skipped, "non_gps_records", sum(r[0] != "G" for r in recs))
-    for k in [k for k in skipped if k.startswith("records_") and not k.startswith("records_G_")]:
+    for k in [k for k in skipped if k.endswith("_not_modelled") and not k.startswith("records_G_")]:
         count_skip(skipped, "non_gps_records", skipped.pop(k))
     recs = [r for r in recs if r[0] == "G" and 1 <= r[1] <= 32]
     if not recs:

@@ -86,13 +86,19 @@ def test_bad_nav_files(tmp_path):
     with pytest.raises(DataError, match="no GPS records"):
         read_rinex_nav(glonass2)
     header, recs = _records(default_nav_path(), 2)
+    # a broken record costs itself alone, with a warning and a count; a file with none readable is refused
     trunc = tmp_path / "trunc.21n"
     trunc.write_text("\n".join(header + recs[0] + recs[1][:5]) + "\n")
-    with pytest.raises(DataError, match=r"trunc\.21n:\d+: truncated"):
-        read_rinex_nav(trunc)
+    with pytest.warns(UserWarning, match=r"trunc\.21n:\d+: truncated ephemeris record .*1 ephemeris record"):
+        nav = read_rinex_nav(trunc)
+    assert len(nav) == 1 and nav.skipped["records_unreadable"] == 1
     garbage = tmp_path / "garbage.21n"
-    garbage.write_text("\n".join(header + [recs[0][0]] + [recs[0][1].replace("0.", "x.", 1)] + recs[0][2:]) + "\n")
-    with pytest.raises(DataError, match=r"garbage\.21n:\d+: cannot read number"):
+    bad = [recs[0][0]] + [recs[0][1].replace("0.", "x.", 1)] + recs[0][2:]
+    garbage.write_text("\n".join(header + bad + recs[1]) + "\n")
+    with pytest.warns(UserWarning, match=r"garbage\.21n:\d+: cannot read number"):
+        assert len(read_rinex_nav(garbage)) == 1
+    garbage.write_text("\n".join(header + bad) + "\n")
+    with pytest.raises(DataError, match=r"garbage\.21n:\d+: cannot read number .*no ephemeris record"):
         read_rinex_nav(garbage)
     with pytest.raises(DataError, match="not found"):
         read_rinex_nav(tmp_path / "missing.21n")
@@ -100,6 +106,22 @@ def test_bad_nav_files(tmp_path):
     text.write_text("hello\n")
     with pytest.raises(DataError, match="not a RINEX"):
         read_rinex_nav(text)
+
+
+def test_a_record_of_an_orbit_no_satellite_flies_is_skipped(tmp_path):
+    """sqrt(A) a thousand times too small (a corrupt record): the satellite is left without that ephemeris, with
+    a warning naming it and a count, rather than pulling every position it enters."""
+    header, recs = _records(default_nav_path(), 2)
+    corrupt = list(recs[1])
+    sqrt_a = float(corrupt[2][60:79].replace("D", "E"))
+    corrupt[2] = corrupt[2][:60] + f"{sqrt_a / 1000:19.12E}".replace("E", "D") + corrupt[2][79:]
+    p = tmp_path / "corrupt.21n"
+    p.write_text("\n".join(header + recs[0] + corrupt) + "\n")
+    prn = int(corrupt[0][:2])
+    with pytest.warns(UserWarning, match=rf"corrupt\.21n: 1 ephemeris record\(s\) with an orbit .*G{prn:02d}"):
+        nav = read_rinex_nav(p)
+    assert len(nav) == 1 and nav.skipped["records_implausible_orbit"] == 1
+    assert nav.params["sqrt_a"][0] == pytest.approx(float(recs[0][2][60:79].replace("D", "E")))
 
 
 def test_unhealthy_records_dropped(tmp_path):
