@@ -4,7 +4,9 @@ Times are UTC (GPS time minus the leap seconds), with milliseconds. GGA's altitu
 height above mean sea level and its separation field the geoid height N (ellipsoidal = altitude + N);
 with no geoid model we write the WGS84 ellipsoidal height as the altitude and N = 0, which keeps
 ``altitude + N`` equal to the ellipsoidal height for readers that add them (as :mod:`fusion.io.nmea`
-does). Fix quality 1 (autonomous GPS) for every mode; HDOP is left empty. RMC's speed over ground
+does). Fix quality 1 (autonomous GPS), and RMC's mode A, for every mode, but 6 and E (estimated, dead
+reckoning) at the graph's ``bridged`` epochs, where fewer than four satellites and no prior fixed the position
+and the motion model carried it; HDOP is left empty. RMC's speed over ground
 [knots] and course [degrees true] are the graph's velocity where the frame has it (``vel_n_mps``, ``vel_e_mps``:
 the graph modes, at epochs whose Doppler measures it), else they come from the track itself
 (:func:`ground_velocity`), empty where an epoch has no neighbour within :data:`MAX_SPEED_GAP_S`; course is empty
@@ -106,14 +108,22 @@ def nmea_lines(frame: pd.DataFrame) -> list[str]:
     n_sats = (frame["n_sats"] if "n_sats" in frame else pd.Series(0, index=frame.index)).astype(int).tolist()
     speed, course = rmc_velocity(frame)
     sog, cog = _fields_or_empty(speed * KNOTS_PER_MPS, ".3f"), _fields_or_empty(course, ".2f")
+    bridged = bridged_rows(frame)
     bodies = []
-    for t, la, n, lo, e, h, k, v, c in zip(iso, lat, ns.tolist(), lon, ew.tolist(), frame["height_m"].tolist(),
-                                           n_sats, sog, cog):
+    for t, la, n, lo, e, h, k, v, c, dr in zip(iso, lat, ns.tolist(), lon, ew.tolist(), frame["height_m"].tolist(),
+                                               n_sats, sog, cog, bridged.tolist()):
         hms, dmy = t[11:13] + t[14:16] + t[17:23], t[8:10] + t[5:7] + t[2:4]
         pos = f"{la},{n},{lo},{e}"
-        bodies += [f"{TALKER}GGA,{hms},{pos},1,{k:02d},,{h:.3f},M,0.000,M,,",
-                   f"{TALKER}RMC,{hms},A,{pos},{v},{c},{dmy},,,A"]
+        bodies += [f"{TALKER}GGA,{hms},{pos},{6 if dr else 1},{k:02d},,{h:.3f},M,0.000,M,,",
+                   f"{TALKER}RMC,{hms},A,{pos},{v},{c},{dmy},,,{'E' if dr else 'A'}"]
     return sentences(bodies)
+
+
+def bridged_rows(frame: pd.DataFrame) -> np.ndarray:
+    """(N,) bool: the rows the motion model carried (``bridged`` = 1), none where the frame has no such column."""
+    if "bridged" not in frame:
+        return np.zeros(len(frame), bool)
+    return frame["bridged"].fillna(0).to_numpy(float) == 1
 
 
 def write_nmea(frame: pd.DataFrame, path: Path, name: str = "") -> Path:

@@ -2,7 +2,8 @@
 RTKLIB's plotting and comparison tools (rtkplot, pos2kml, ...) and every reader of that format open it.
 
 Columns: GPS week and time of week, latitude, longitude (deg), WGS84 ellipsoidal height (m), Q
-(solution quality: 5 = single, which every gnssfuse mode is: no ambiguity is fixed), ns (satellites
+(solution quality: 5 = single, which every gnssfuse mode is: no ambiguity is fixed; 7 = dead reckoning, RTKLIB's
+own code, at the graph's ``bridged`` epochs, which the motion model carried), ns (satellites
 measured at the epoch), then sdn, sde, sdu and the signed square roots of the NE, EU and UN
 covariances (RTKLIB's convention), age and ratio. Where the mode gives no covariance the
 standard deviations are written as 0, as RTKLIB does for an unknown value.
@@ -21,9 +22,11 @@ import pandas as pd
 from fusion.gpstime import format_gps_ms
 from fusion.io.estimates import (COVARIANCE_COLUMNS, SIGMA_COLUMNS, VELOCITY_COLUMNS, VELOCITY_COVARIANCE_COLUMNS,
                                  VELOCITY_SIGMA_COLUMNS)
+from fusion.io.nmea_write import bridged_rows
 
 WEEK_MS = 604_800_000
 Q_SINGLE = 5
+Q_DEAD_RECKONING = 7
 HEADER = ("%  GPST          latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)   sde(m)   sdu(m)"
           "  sdne(m)  sdeu(m)  sdun(m) age(s)  ratio")
 VELOCITY_HEADER = "    vn(m/s)    ve(m/s)    vu(m/s)      sdvn     sdve     sdvu    sdvne    sdveu    sdvun"
@@ -70,14 +73,15 @@ def pos_lines(frame: pd.DataFrame, name: str = "") -> list[str]:
     lines = ["% program   : gnssfuse", f"% inp file  : {name}"]
     if len(t):
         lines += [f"% obs start : {format_gps_ms(int(t[0]))} GPST", f"% obs end   : {format_gps_ms(int(t[-1]))} GPST"]
-    lines += ["%", "% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,"
+    lines += ["%", "% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,7:dr,"
               "ns=# of satellites)", HEADER + (VELOCITY_HEADER if VELOCITY_COLUMNS[0] in frame else "")]
     n_sats = frame["n_sats"].to_numpy() if "n_sats" in frame else np.zeros(len(frame), int)
     sig = pos_sigmas(frame)
+    quality = np.where(bridged_rows(frame), Q_DEAD_RECKONING, Q_SINGLE)
     rows = zip(t // WEEK_MS, (t % WEEK_MS) / 1000.0, frame["lat_deg"].tolist(), frame["lon_deg"].tolist(),
-               frame["height_m"].tolist(), n_sats.tolist(), sig.tolist(), velocity_fields(frame))
-    for week, tow, lat, lon, h, ns, s, vel in rows:
-        lines.append(f"{week:4d} {tow:10.3f} {lat:14.9f} {lon:14.9f} {h:10.4f} {Q_SINGLE:3d} {ns:3d}"
+               frame["height_m"].tolist(), quality.tolist(), n_sats.tolist(), sig.tolist(), velocity_fields(frame))
+    for week, tow, lat, lon, h, q, ns, s, vel in rows:
+        lines.append(f"{week:4d} {tow:10.3f} {lat:14.9f} {lon:14.9f} {h:10.4f} {q:3d} {ns:3d}"
                      + "".join(f" {v:8.4f}" for v in s) + "   0.00    0.0" + vel)
     return lines
 

@@ -290,3 +290,19 @@ def test_pos_velocity_columns_as_rnx2rtkp_writes_them(tmp_path):
         subprocess.run(["pos2kml", "-a", "-o", str(out), str(path)], capture_output=True, check=True)
         assert sum(c.tag.endswith("}coordinates") and len(c.text.split()) == 1
                    for c in ET.parse(out).getroot().iter()) == 5
+
+
+def test_epochs_the_motion_model_carried_are_marked_dead_reckoning(tmp_path):
+    """The graph's bridged epochs (fewer than four satellites, no prior) are GGA quality 6 and RMC mode E
+    (estimated) in NMEA, and Q = 7 (RTKLIB's dead reckoning) in the .pos file; the others 1 / A and 5."""
+    trace, result, _ = _trace_and_result(37.4, -122.1, E=8)
+    bridged = np.zeros(8, bool)
+    bridged[[2, 3]] = True
+    frame = export_frame(trace, ModeResult(pos=result.pos, valid=result.valid, cov=result.cov,
+                                           info={"bridged": bridged}))
+    paths = {p.suffix[1:]: p for p in write_exports(frame, tmp_path, ("nmea", "pos"), "synthetic (fused)")}
+    lines = paths["nmea"].read_text().splitlines()
+    gga = [ln.split(",")[6] for ln in lines if ln[3:6] == "GGA"]
+    rmc = [ln.split("*")[0].split(",")[-1] for ln in lines if ln[3:6] == "RMC"]
+    assert gga == ["1", "1", "6", "6", "1", "1", "1"] and rmc == ["A", "A", "E", "E", "A", "A", "A"]   # epoch 4 unsolved
+    assert _read_pos(paths["pos"]).Q.tolist() == [5, 5, 7, 7, 5, 5, 5]
