@@ -218,6 +218,7 @@ def _epoch_records(body: np.ndarray, head: ObsHeader, path: Path,
     keep = ~(event | wrong)
     kept = np.flatnonzero(keep)
     kept = kept[_later_epochs(t_ns[kept], line_no[kept], path, skipped)]
+    count_skip(skipped, "epochs_no_satellites", n_sat[kept] == 0)     # an epoch with nothing in it leaves no row
     epoch_of = np.repeat(np.arange(kept.size), n_sat[kept])
     first = np.repeat(e_line[kept] + 1, n_sat[kept])
     sat = first + (np.arange(first.size) - np.repeat(np.cumsum(n_sat[kept]) - n_sat[kept], n_sat[kept]))
@@ -251,6 +252,7 @@ def _v2_frame(body: np.ndarray, head: ObsHeader, path: Path, skipped: dict[str, 
                               first_no + epoch_line)
     later = _later_epochs(t_ns, first_no + epoch_line, path, skipped)
     t_ns, epoch_line, n_sat, flag, obs_start = (a[later] for a in (t_ns, epoch_line, n_sat, flag, obs_start))
+    count_skip(skipped, "epochs_no_satellites", n_sat == 0)
     epoch_of, system, prn_chars, fields, first = satellite_fields(body, epoch_line, n_sat, obs_start, n_types)
     prn, prn_bad = sat_number(prn_chars)
     epochs = {"t_ns": t_ns, "clock_reset": flag == 1, "epoch_of": epoch_of, "line_no": first_no + first}

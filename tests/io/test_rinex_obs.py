@@ -164,6 +164,17 @@ def test_a_record_written_twice_or_time_going_back_is_skipped_and_counted(tmp_pa
     assert raw.frame.equals(ref.frame)
 
 
+@pytest.mark.parametrize("version", [3, 2])
+def test_an_epoch_record_without_satellites_is_counted(tmp_path, version):
+    """An epoch record announcing no satellite leaves no row: it is counted, not lost from the totals."""
+    head, rec = _records(FIXTURE.read_text())
+    empty = rec[2].splitlines(keepends=True)[0]
+    empty = empty[:32] + "  0" + empty[35:]
+    text = "".join(head + [rec[0], rec[1], empty, rec[3], rec[4]])
+    raw = read_rinex_obs(_write(tmp_path, _to_v2(text) if version == 2 else text))
+    assert raw.skipped.get("epochs_no_satellites") == 1 and raw.n_epochs == 4
+
+
 def test_event_and_power_failure_flags(tmp_path):
     lines = _lines()
     epochs = [k for k, l in enumerate(lines) if l.startswith(">")]
