@@ -158,11 +158,14 @@ def _say_unused(path: Path, sources: RawSources | None) -> None:
 
 
 def _raw_log(path: Path) -> tuple[Path, Path] | None:
-    """(trace folder, raw log) when ``path`` is a raw log or a folder with one and no GSDC file."""
-    if path.is_file() and path in raw_log_files(path.parent):
-        return path.parent, path
+    """(trace folder, raw log) when ``path`` is a raw log or a folder with one and no GSDC file. A log in (or a
+    folder named) ``supplemental/`` belongs to the folder above, where its truth lies."""
     if path.is_file() and path.parent.name == "supplemental" and path in raw_log_files(path.parent.parent):
         return path.parent.parent, path
+    if path.is_file() and path in raw_log_files(path.parent):
+        return path.parent, path
+    if path.is_dir() and path.name == "supplemental" and raw_log_files(path):
+        path = path.parent
     if not path.is_dir() or _measurement_files(path):
         return None
     logs = raw_log_files(path)

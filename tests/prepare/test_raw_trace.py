@@ -193,6 +193,11 @@ def test_raw_folder_through_cli(tmp_path, nav):
     assert tr.name == "drive/phone"
     expect = geodetic2ecef(np.c_[37.3958 + 1e-4 * 0.43 + 1e-4 * np.arange(5), np.full(5, -122.103), np.full(5, -5.0)])
     np.testing.assert_allclose(tr.truth, expect, atol=0.01)
+    # the log itself, or its supplemental/ folder, named instead: the same trace, truth included
+    for named in (folder / "supplemental" / "x.21o", folder / "supplemental"):
+        same = load_trace(named, signals=None, raw_sources=RawSources(nav=(default_nav_path(),)), min_sats=1)
+        assert same.name == "drive/phone"
+        np.testing.assert_allclose(same.truth, expect, atol=0.01)
     out = tmp_path / "out"
     rc = cli_main(["run", str(folder), "--nav", str(default_nav_path()), "--mode", "wls", "--out", str(out)])
     assert rc == 0 and (out / "estimates.csv").is_file() and (out / "metrics.json").is_file()
