@@ -293,7 +293,7 @@ def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: n
     if good.size == 0:
         if raw.approx_pos is None:
             raise DataError(f"{raw.path}: no epoch could be solved for the approximate receiver position "
-                            "the atmosphere models need")
+                            f"the atmosphere models need{_why_unsolved(epoch[ref], n_epochs)}")
         if not ref.all():
             # the header's position serves the atmosphere, but the other signals' biases (metres to hundreds
             # on phones) would stay in their pseudoranges: kilometres of error, not a solution
@@ -304,6 +304,14 @@ def _receiver_guess(epoch: np.ndarray, n_epochs: int, sat_pos: np.ndarray, pr: n
     prev = good[np.clip(np.searchsorted(good, np.arange(n_epochs)) - 1, 0, good.size - 1)]
     near = np.where(np.abs(prev - np.arange(n_epochs)) < np.abs(near - np.arange(n_epochs)), prev, near)
     return pos[near], clock
+
+
+def _why_unsolved(epoch: np.ndarray, n_epochs: int) -> str:
+    """What the reference signal's rows, their epochs (N,), say of why no epoch solved."""
+    most = int(np.bincount(epoch, minlength=n_epochs).max()) if epoch.size else 0
+    if most < 4:
+        return f": no epoch has 4 satellites on one signal (at most {most})"
+    return ": the pseudoranges agree on no position (a wrong observation type in the header, or corrupt values?)"
 
 
 def _inter_signal_bias(rows: pd.DataFrame, sat_pos: np.ndarray, pr: np.ndarray, rx: np.ndarray,

@@ -212,6 +212,16 @@ def test_raw_folder_through_cli(tmp_path, nav):
     assert cli_main(["run", str(empty), "--out", str(out)]) == 2
 
 
+def test_a_log_no_epoch_of_which_solves_says_why(tmp_path):
+    """GPS L5 alone in the Pixel5 log: three satellites at every epoch, and the refusal says so."""
+    folder = tmp_path / "phone"
+    folder.mkdir()
+    shutil.copy(P5_HEAD, folder / "x.21o")
+    with pytest.raises(DataError, match=r"x\.21o: no epoch could be solved .*no epoch has 4 satellites on one "
+                                        r"signal \(at most 3\)"):
+        load_trace(folder, signals=("GPS_L5",), raw_sources=RawSources(nav=(default_nav_path(),)), min_sats=1)
+
+
 def test_pixel5_targets(shared_data):
     """Issue targets on the Pixel5 RINEX trace with GPS broadcast navigation: wls no worse than
     RTKLIB single point (18.0 m) over >= 95 % of truth epochs (figures: benchmarks/bench_pixel5.py)."""
