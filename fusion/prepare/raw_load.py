@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import re
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from fusion.errors import DataError
 from fusion.io.discover import SYSTEM_NAMES, files_of_kind, is_gnss_logger, rinex_kind
 from fusion.io.truth import (GSDC2021_TRUTH_HEIGHT_ERROR_M, check_overlap, interp_gapped, llh_ecef,
                              read_truth_csv, warn_outside_bay_area)
-from fusion.trace import Trace, trace_folder_name
+from fusion.trace import Trace, count_skip, trace_folder_name
 
 #: GnssLogger logs.
 _LOG = re.compile(r"(gnss_?log.*\.txt)(\.gz)?$", re.IGNORECASE)
@@ -142,8 +143,21 @@ def load_raw_trace(folder: Path, log: Path, src: RawSources, *, signals=None, tr
                          name=name or trace_folder_name(folder))
     del raw     # the raw rows' memory serves the truth reader (fresh pages are slow to touch)
     if truth != "none":
-        trace.truth = _truth(folder, trace, truth, fix_truth_height)
+        trace.truth = _optional_truth(folder, trace, truth, fix_truth_height)
     return trace
+
+
+def _optional_truth(folder: Path, trace: Trace, truth: str, fix_truth_height: bool) -> np.ndarray | None:
+    """:func:`_truth`; found rather than asked for (``truth`` auto), a truth file that cannot be used (unreadable,
+    no overlap) costs the accuracy figures, not the run: a warning, a count (``truth_unusable``), no truth."""
+    try:
+        return _truth(folder, trace, truth, fix_truth_height)
+    except DataError as exc:
+        if truth != "auto":
+            raise
+        warnings.warn(f"{exc}; solved without truth (no accuracy figures)", stacklevel=2)
+        count_skip(trace.skipped, "truth_unusable", 1)
+        return None
 
 
 def _truth(folder: Path, trace: Trace, truth: str, fix_truth_height: bool) -> np.ndarray | None:

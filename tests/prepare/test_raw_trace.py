@@ -212,6 +212,21 @@ def test_raw_folder_through_cli(tmp_path, nav):
     assert cli_main(["run", str(empty), "--out", str(out)]) == 2
 
 
+def test_a_truth_file_that_cannot_be_used_costs_the_accuracy_not_the_run(tmp_path):
+    """A phone log beside a ground_truth.csv with no rows: solved without truth, with a warning and a count; asked
+    for explicitly (truth="csv"), the same file is refused."""
+    folder = tmp_path / "phone"
+    folder.mkdir()
+    shutil.copy(P5_HEAD, folder / "x.21o")
+    (folder / "ground_truth.csv").write_text("UnixTimeMillis,LatitudeDegrees,LongitudeDegrees,AltitudeMeters\n")
+    nav = RawSources(nav=(default_nav_path(),))
+    with pytest.warns(UserWarning, match=r"ground_truth\.csv: .*no data rows; solved without truth"):
+        tr = load_trace(folder, signals=None, raw_sources=nav, min_sats=1)
+    assert tr.truth is None and tr.skipped["truth_unusable"] == 1 and tr.n_epochs == 5
+    with pytest.raises(DataError, match="no data rows"):
+        load_trace(folder, signals=None, raw_sources=nav, min_sats=1, truth="csv")
+
+
 def test_a_log_no_epoch_of_which_solves_says_why(tmp_path):
     """GPS L5 alone in the Pixel5 log: three satellites at every epoch, and the refusal says so."""
     folder = tmp_path / "phone"
