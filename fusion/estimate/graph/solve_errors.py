@@ -26,7 +26,8 @@ def geometry_error(trace: Trace, exc: Exception) -> GeometryError:
     if m:
         k = int(m.group(2))
         return GeometryError(f"{epoch_label(trace, k)}: the graph cannot determine the {KEY_NAMES[m.group(1)]} "
-                             f"(singular system: too few satellites and no prior or motion link)")
+                             f"(singular system at {int(trace.mask[k].sum())} measured slots: too few satellites "
+                             f"and no prior or motion link, or an input far off its model)")
     return GeometryError(f"{trace.name}: factor graph solve failed: {msg.splitlines()[0] if msg else exc!r}")
 
 
