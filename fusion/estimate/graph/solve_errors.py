@@ -28,7 +28,7 @@ def geometry_error(trace: Trace, exc: Exception) -> GeometryError:
         return GeometryError(f"{epoch_label(trace, k)}: the graph cannot determine the {KEY_NAMES[m.group(1)]} "
                              f"(singular system at {int(trace.mask[k].sum())} measured slots: too few satellites "
                              f"and no prior or motion link, or an input far off its model)")
-    return GeometryError(f"{trace.name}: factor graph solve failed: {msg.splitlines()[0] if msg else exc!r}")
+    return GeometryError(f"{trace.name}: factor graph solve failed: {msg.splitlines()[0] if msg else repr(exc)}")
 
 
 def check_determined(trace: Trace, inp: EpochInputs) -> None:
