@@ -112,6 +112,13 @@ def export_frame(trace: Trace, result: ModeResult) -> pd.DataFrame:
     return frame
 
 
+def bridged_rows(frame: pd.DataFrame) -> np.ndarray:
+    """(N,) bool: the rows the motion model carried (``bridged`` = 1), none where the frame has no such column."""
+    if "bridged" not in frame:
+        return np.zeros(len(frame), bool)
+    return frame["bridged"].fillna(0).to_numpy(float) == 1
+
+
 def _add_off_diagonal(frame: pd.DataFrame, names: list[str], pos: np.ndarray, cov: np.ndarray) -> None:
     """The NE, ND and ED terms of the ECEF covariances ``cov`` (N,3,3) at ``pos`` (N,3) as ``names``."""
     ned = ned_covariances(pos, cov)

@@ -21,6 +21,7 @@ import pandas as pd
 
 from fusion.geometry import ecef2ned_vec, geodetic2ecef
 from fusion.gpstime import gps_ms_to_unix_ms
+from fusion.io.estimates import bridged_rows
 
 TALKER = "GN"    # any constellation
 KNOTS_PER_MPS = 3600.0 / 1852.0
@@ -117,13 +118,6 @@ def nmea_lines(frame: pd.DataFrame) -> list[str]:
         bodies += [f"{TALKER}GGA,{hms},{pos},{6 if dr else 1},{k:02d},,{h:.3f},M,0.000,M,,",
                    f"{TALKER}RMC,{hms},A,{pos},{v},{c},{dmy},,,{'E' if dr else 'A'}"]
     return sentences(bodies)
-
-
-def bridged_rows(frame: pd.DataFrame) -> np.ndarray:
-    """(N,) bool: the rows the motion model carried (``bridged`` = 1), none where the frame has no such column."""
-    if "bridged" not in frame:
-        return np.zeros(len(frame), bool)
-    return frame["bridged"].fillna(0).to_numpy(float) == 1
 
 
 def write_nmea(frame: pd.DataFrame, path: Path, name: str = "") -> Path:

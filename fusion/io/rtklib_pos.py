@@ -21,8 +21,7 @@ import pandas as pd
 
 from fusion.gpstime import format_gps_ms
 from fusion.io.estimates import (COVARIANCE_COLUMNS, SIGMA_COLUMNS, VELOCITY_COLUMNS, VELOCITY_COVARIANCE_COLUMNS,
-                                 VELOCITY_SIGMA_COLUMNS)
-from fusion.io.nmea_write import bridged_rows
+                                 VELOCITY_SIGMA_COLUMNS, bridged_rows)
 
 WEEK_MS = 604_800_000
 Q_SINGLE = 5
