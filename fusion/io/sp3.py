@@ -5,6 +5,7 @@ system (GPS for the IGS/CODE products we use). Bad or missing values become NaN.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +29,9 @@ class Sp3Orbits:
 
 
 def read_sp3(path: str | Path) -> Sp3Orbits:
-    """Read epoch (``*``) and position (``P``) records of an SP3 file (plain or gzipped)."""
+    """Read epoch (``*``) and position (``P``) records of an SP3 file (plain or gzipped). A position record cut
+    short is skipped, and an epoch written again (two files joined: each day ends with the next one's first
+    epoch) keeps its first block; both with a warning."""
     path = Path(path)
     lines = read_lines(path, "SP3")
     if not lines or not lines[0].startswith("#"):
@@ -39,6 +42,7 @@ def read_sp3(path: str | Path) -> Sp3Orbits:
         if ln.startswith("%c"):
             break
     times: list[int] = []
+    short: list[int] = []
     recs: dict[tuple[int, str], tuple[float, float, float]] = {}
     clks: dict[tuple[int, str], float] = {}
     for no, ln in enumerate(lines, 1):
@@ -50,6 +54,9 @@ def read_sp3(path: str | Path) -> Sp3Orbits:
             except (ValueError, IndexError):
                 raise DataError(f"{path}:{no}: cannot read epoch line {ln!r}") from None
         elif ln.startswith("P") and times:
+            if len(ln.rstrip("\r\n")) < 46:           # cut inside its coordinates: z would read a few digits
+                short.append(no)
+                continue
             try:
                 xyz = tuple(float(ln[4 + 14 * k: 18 + 14 * k]) for k in range(3))
             except ValueError:
@@ -74,4 +81,19 @@ def read_sp3(path: str | Path) -> Sp3Orbits:
         clock[ti, col[sat]] = c
     # 999999.999999 (or more) marks a missing clock; values are microseconds.
     clock[~(np.abs(clock) < 999_999.0)] = np.nan
-    return Sp3Orbits(np.asarray(times, np.int64), sats, pos * 1000.0, str(path), clock * 1e-6)
+    if short:
+        warnings.warn(f"{path}:{short[0]}: position record cut short; {len(short)} such record(s) skipped",
+                      stacklevel=2)
+    t = np.asarray(times, np.int64)
+    first = _first_of_each_epoch(t, path)
+    return Sp3Orbits(t[first], sats, pos[first] * 1000.0, str(path), clock[first] * 1e-6)
+
+
+def _first_of_each_epoch(t: np.ndarray, path: Path) -> np.ndarray:
+    """(T',) indices of the epochs (times (T,)) in time order, each time's first block only."""
+    order = np.argsort(t, kind="stable")
+    first = order[np.r_[True, np.diff(t[order]) > 0]]
+    if first.size < t.size:
+        warnings.warn(f"{path}: {t.size - first.size} epoch(s) written again (joined files?); the first block of "
+                      f"each kept", stacklevel=3)
+    return first

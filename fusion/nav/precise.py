@@ -58,18 +58,31 @@ def _columns(names: np.ndarray, sat_id: np.ndarray) -> np.ndarray:
     return np.where(ids[col] == sat_id, col, -1)
 
 
+#: A Lagrange window's samples may lie at most this many times the file's usual spacing apart: across a wider gap
+#: the polynomial swings (a two-epoch file, or an hours-long hole, put satellites kilometres off).
+MAX_GAP_SPACINGS = 1.5
+
+
 def _lagrange(t_ms: np.ndarray, t_ref: np.ndarray, values: np.ndarray, col: np.ndarray,
               t_q: np.ndarray) -> np.ndarray:
     """Interpolate (T, N, k) ``values`` of column ``col`` (Q,) at times ``t_q`` (Q,) [s since
-    t_ms[0]] with :data:`N_LAGRANGE` samples; NaN where any sample is missing or outside."""
+    t_ms[0]] with :data:`N_LAGRANGE` samples; NaN where any sample is missing, the file has fewer, the
+    window holds a gap (:data:`MAX_GAP_SPACINGS`) or the time is outside."""
     T = t_ms.size
-    n = min(N_LAGRANGE, T)
-    start = np.clip(np.searchsorted(t_ref, t_q) - N_LAGRANGE // 2, 0, max(T - N_LAGRANGE, 0))
-    win = start[:, None] + np.arange(n)[None, :]                             # (Q, n)
+    if T < N_LAGRANGE:
+        return np.full((t_q.size, values.shape[-1]), np.nan)
+    start = np.clip(np.searchsorted(t_ref, t_q) - N_LAGRANGE // 2, 0, T - N_LAGRANGE)
+    win = start[:, None] + np.arange(N_LAGRANGE)[None, :]                    # (Q, n)
     vw = values[win, col[:, None]]                                           # (Q, n, k)
-    out = np.einsum("qn,qnk->qk", _lagrange_weights(t_ref, start, n, t_q), vw)
-    inside = (t_q >= t_ref[0]) & (t_q <= t_ref[-1])
-    return np.where(inside[:, None], out, np.nan)
+    out = np.einsum("qn,qnk->qk", _lagrange_weights(t_ref, start, N_LAGRANGE, t_q), vw)
+    steps = np.diff(t_ref)
+    ok = (t_q >= t_ref[0]) & (t_q <= t_ref[-1]) & (_widest_step(steps, start) <= MAX_GAP_SPACINGS * np.median(steps))
+    return np.where(ok[:, None], out, np.nan)
+
+
+def _widest_step(steps: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """(Q,) the widest of the N_LAGRANGE - 1 steps (T-1,) between the samples of each window from ``start`` (Q,)."""
+    return steps[start[:, None] + np.arange(N_LAGRANGE - 1)[None, :]].max(axis=1)
 
 
 def _lagrange_weights(t_ref: np.ndarray, start: np.ndarray, n: int, t_q: np.ndarray) -> np.ndarray:

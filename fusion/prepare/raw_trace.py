@@ -32,7 +32,7 @@ from fusion.io.discover import SYSTEM_NAMES
 from fusion.io.clean import epochs_with_enough_rows
 from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
-from fusion.nav.precise import precise_states
+from fusion.nav.precise import N_LAGRANGE, precise_states
 from fusion.nav.sat_states import SIGNAL_CLASS, broadcast_states
 from fusion.prepare.multi_clock import multi_clock_positions
 from fusion.prepare.rate_check import check_rates
@@ -75,6 +75,7 @@ def raw_to_trace(raw: RawObs, nav=None, *, signals=None, precise=None, name: str
     rows = _select_rows(raw, nav, precise, signals, skipped)
     st = _states(rows, nav, precise, skipped)
     _check_coverage(raw, rows, st["ok"], nav, precise)
+    _check_clock_coverage(rows, precise)
     count_skip(skipped, "rows_no_ephemeris", ~st["ok"])
     rows, st = rows[st["ok"]].reset_index(drop=True), {k: v[st["ok"]] for k, v in st.items()}
     rows["iono_free"], rows["sigma_scale"] = False, 1.0
@@ -148,6 +149,20 @@ def _systems(nav, precise) -> set[str]:
     return precise.systems() if precise is not None else nav.systems()
 
 
+def _check_clock_coverage(rows: pd.DataFrame, precise) -> None:
+    """Warn where a clock file given beside the SP3 misses some of the log: the SP3's own clock column (its
+    coarser samples) serves those measurements, as it does without a clock file."""
+    clk = None if precise is None else precise.clk
+    if clk is None or not len(rows):
+        return
+    t = rows["t_ns"].to_numpy(np.int64) // 1_000_000
+    outside = (t < clk.t_ms[0]) | (t > clk.t_ms[-1])
+    if outside.any():
+        warnings.warn(f"{clk.source}: the clock file covers {format_gps_ms(int(clk.t_ms[0]))[:19]} to "
+                      f"{format_gps_ms(int(clk.t_ms[-1]))[:19]} GPS time; {int(outside.sum())} of {outside.size} "
+                      "measurements outside it take the SP3 file's own clocks", stacklevel=3)
+
+
 def _check_coverage(raw: RawObs, rows: pd.DataFrame, ok: np.ndarray, nav, precise) -> None:
     """Refuse a log no navigation record covers, naming the log's and the navigation's dates
     (a file of the wrong day is the usual cause); warn when most rows lack ephemerides."""
@@ -163,6 +178,10 @@ def _check_coverage(raw: RawObs, rows: pd.DataFrame, ok: np.ndarray, nav, precis
     msg = f"{raw.path}: the log runs {log_span} but the navigation ({files}) covers {cover}"
     if precise is None and nav is not None and len(nav.file_spans) > 1:     # which file is of which day
         msg += " (" + "; ".join(f"{Path(f).name}: {nav.records_text(f)}" for f in nav.file_spans) + ")"
+    inside = span is not None and span[0] <= t.min() and t.max() <= span[1]
+    if not ok.any() and precise is not None and inside:
+        raise DataError(msg + f": too few epochs, or a gap, to interpolate its orbits at the log's times (it takes "
+                              f"{N_LAGRANGE} evenly spaced epochs around each)")
     if not ok.any():
         raise DataError(msg + ": pass a navigation file of the log's day (--nav FILE)")
     warnings.warn(f"{msg}: {int((~ok).sum())} of {ok.size} measurements have no ephemeris", stacklevel=3)

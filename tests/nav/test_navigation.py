@@ -356,3 +356,42 @@ def test_beidou_b1c_takes_tgd1_and_b2a_no_group_delay(mixed):
     assert b1c == b1i
     assert b2a - b1i == pytest.approx(tgd1, abs=1e-15)
     assert b2i - b1i == pytest.approx(tgd1 - tgd2, abs=1e-15)
+
+
+def test_lagrange_declines_too_few_samples_and_windows_across_a_gap():
+    """Three samples of a file, or a window holding a hole of hours, would swing the polynomial kilometres off
+    (a precise orbit file cut short put the Pixel5 42 km north): NaN there, the usual answer elsewhere."""
+    from fusion.nav.precise import N_LAGRANGE, _lagrange
+
+    t_ref = np.arange(40) * 300.0
+    t_ref[20:] += 3 * 3600.0                                          # three hours missing after sample 19
+    values = np.sin(t_ref / 4000.0)[:, None, None]
+    col = np.zeros(4, np.int64)
+    t_q = np.array([600.0, 5600.0, 9300.0, t_ref[30] + 10.0])         # early, next to the hole, in it, well after
+    got = _lagrange((t_ref * 1000).astype(np.int64), t_ref, values, col, t_q)[:, 0]
+    assert np.isfinite(got[[0, 3]]).all() and np.isnan(got[[1, 2]]).all()
+    np.testing.assert_allclose(got[[0, 3]], np.sin(t_q[[0, 3]] / 4000.0), atol=1e-9)
+    few = t_ref[:N_LAGRANGE - 1]
+    assert np.isnan(_lagrange((few * 1000).astype(np.int64), few, values[:N_LAGRANGE - 1], col, t_q[:1])).all()
+
+
+def test_sp3_epochs_written_again_and_records_cut_short(tmp_path):
+    """Two days joined (each ends with the next one's first epoch) keep each epoch's first block, and a position
+    record cut inside its z coordinate is skipped, not read as a few digits; both with a warning."""
+    from fusion.io.sp3 import read_sp3
+
+    head = "#dP2021  4 28  0  0  0.00000000       3 ORBIT IGS14 HLM  COD\n%c M  cc GPS ccc cccc cccc cccc cccc ccccc\n"
+
+    def block(minute: int, x: float, cut: bool = False) -> str:
+        p = f"PG01{x:14.6f}{-15000.0:14.6f}{20000.0:14.6f}{12.5:14.6f}"
+        return f"*  2021  4 28  0 {minute:2d}  0.00000000\n" + (p[:40] if cut else p) + "\n"
+    p = tmp_path / "joined.sp3"
+    p.write_text(head + block(0, 10000.0) + block(5, 10001.0) + block(5, 99999.0) + block(10, 10002.0, cut=True)
+                 + "EOF\n")
+    with pytest.warns(UserWarning) as seen:
+        orb = read_sp3(p)
+    said = " ".join(str(w.message) for w in seen)
+    assert "1 epoch(s) written again" in said and "joined.sp3:10: position record cut short" in said
+    assert orb.t_ms.size == 3 and np.all(np.diff(orb.t_ms) == 300_000)
+    np.testing.assert_allclose(orb.pos[:2, 0, 0], [10_000_000.0, 10_001_000.0])
+    assert np.isnan(orb.pos[2, 0]).all()

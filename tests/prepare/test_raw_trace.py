@@ -378,3 +378,23 @@ def test_signals_none_of_which_solves_an_epoch_are_refused_not_left_biased(nav):
         raw_to_trace(raw, nav, signals=["GPS_L1", "GPS_L5"])
     tr = raw_to_trace(raw, nav, signals=["GPS_L1"])
     assert tr.n_epochs == 1 and tr.mask.sum() == 3
+
+
+def test_a_clock_file_that_misses_the_log_is_said(recwarn):
+    """A clock file beside the SP3 that covers another hour (the shared CODE file holds 19:30-20:30 only) leaves
+    the SP3's own clocks to the log: the run says so, with the file's span and how many measurements it misses."""
+    import pandas as pd
+    from fusion.io.clk import PreciseClocks
+    from fusion.nav.precise import PreciseOrbits
+    from fusion.prepare.raw_trace import _check_clock_coverage
+
+    t0 = gps_ms_from_calendar(2021, 4, 28, 19, 30, 0.0)
+    clk = PreciseClocks(t_ms=t0 + 30_000 * np.arange(121), sats=np.array(["G01"]), bias=np.zeros((121, 1)),
+                        source="day.clk")
+    rows = pd.DataFrame({"t_ns": (t0 + np.array([1_800_000, 3_600_000, 9_000_000, 9_001_000])) * 1_000_000})
+    with pytest.warns(UserWarning, match=r"day\.clk: the clock file covers 2021-04-28 19:30:00 to 2021-04-28 "
+                                         r"20:30:00 GPS time; 2 of 4 measurements outside it"):
+        _check_clock_coverage(rows, PreciseOrbits(sp3=None, clk=clk))
+    recwarn.clear()
+    _check_clock_coverage(rows.iloc[:2], PreciseOrbits(sp3=None, clk=clk))
+    assert not recwarn.list
