@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from fusion.errors import ConfigError
+from fusion.errors import ConfigError, GeometryError
 from fusion.estimate.graph.config import GraphConfig, graph_config_toml, load_graph_config
 
 
@@ -80,3 +80,17 @@ def test_clock_settings_without_effect_are_said(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_graph_config(f)
+
+
+@pytest.mark.parametrize("setting, said", [("robust_k", "error is not finite at its start"),
+                                           ("cv_accel_h", "noise covariance of the graph .* is not positive definite")])
+def test_settings_no_float_can_hold_are_a_one_line_error_not_the_wls_track(shipped_trace_dir, setting, said):
+    """A sigma of 1e-300 made the graph's error NaN (GTSAM then left the WLS track, written as the graph's) or
+    its Cholesky fail deep in numpy: now a GeometryError saying what is wrong."""
+    from fusion.modes import run_modes
+    from fusion.prepare.load import load_trace
+    from fusion.run_types import RunOptions
+
+    tr = load_trace(shipped_trace_dir)
+    with pytest.raises(GeometryError, match=said):
+        run_modes(tr, ["fused-nodnn"], RunOptions(graph=GraphConfig(**{setting: 1e-300})))

@@ -153,3 +153,21 @@ def test_odometry_on_a_trace_without_it_is_a_one_line_error(shipped_trace_dir, t
     assert main(["run", str(shipped_trace_dir), "--mode", "fused-nodnn", "--odometry", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "odometry was asked for" in err and err.strip().count("\n") == 0
+
+
+def test_a_standing_car_whose_log_reports_no_variance_still_solves():
+    """Odometry that reports zero speed and zero variances (smartLoc variants at a stop): the steps across and up
+    keep a floor (odometry.MIN_VAR_MPS2) instead of becoming exact, and the graph solves every epoch."""
+    from dataclasses import replace
+
+    from fusion.modes import run_modes
+    from fusion.run_types import RunOptions
+    from fusion.sim.simulate import simulate
+
+    tr = simulate(n_epochs=60, seed=3).trace
+    odo = _odometry(np.zeros(tr.n_epochs), np.zeros(tr.n_epochs))
+    odo[:, 6:] = 0.0
+    res = run_modes(replace(tr, odometry=odo), ["fused-nodnn"],
+                    RunOptions(graph=GraphConfig(use_odometry=True)))["fused-nodnn"]
+    assert res.valid.all() and np.isfinite(res.pos).all() and np.isfinite(res.info["final_error"])
+

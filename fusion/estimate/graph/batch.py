@@ -8,6 +8,7 @@ from dataclasses import dataclass, fields, is_dataclass, replace
 import gtsam
 import numpy as np
 
+from fusion.errors import GeometryError
 from fusion.estimate.graph.banded_gn import gauss_newton
 from fusion.estimate.graph.build import graph_pieces, prior_factors, pseudorange_factors, relinearise_carriers
 from fusion.estimate.graph.config import GraphConfig
@@ -232,6 +233,10 @@ def _solve_gtsam(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: boo
         cov = marginal_positions(graph, result, epochs, E, dense) if want_cov else None
     except RuntimeError as exc:
         raise geometry_error(trace, exc) from None
+    if not np.isfinite(opt.error):
+        # GTSAM leaves the start values (the WLS track) where the error is NaN: not an answer of this graph
+        raise GeometryError(f"{trace.name}: the graph's error is not finite at its start (a noise of zero, or a "
+                            "non-finite input or setting); nothing solved")
     t3 = time.perf_counter()
     valid = np.zeros(E, bool)
     valid[epochs] = np.isfinite(pos[epochs]).all(axis=1)

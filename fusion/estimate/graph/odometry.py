@@ -30,6 +30,8 @@ from fusion.trace import ODOMETRY_COLUMNS, Trace
 
 _VX, _VY, _VZ, _WZ = (ODOMETRY_COLUMNS.index(c) for c in ("vx", "vy", "vz", "wz"))
 _VAR_VX, _VAR_VY, _VAR_VZ = (ODOMETRY_COLUMNS.index(c) for c in ("var_vx", "var_vy", "var_vz"))
+#: The least velocity variance a step across or up takes [m^2/s^2] (1 cm/s).
+MIN_VAR_MPS2 = 1e-4
 #: gyro biases tried by the heading fit [rad/s]: +-0.01 (0.6 deg/s, far beyond a car's yaw-rate
 #: sensor) in steps of 2.5e-4 (a 4 deg heading change over a 5-minute drive)
 BIAS_GRID_RADPS = np.linspace(-0.01, 0.01, 81)
@@ -147,8 +149,9 @@ def _step_factors(ks: np.ndarray, step: np.ndarray, speed: np.ndarray, psi: np.n
     s = 0.5 * (speed[ks] + speed[ks - 1])
     var = lambda c: 0.5 * (odo[ks, c] + odo[ks - 1, c])                          # noqa: E731
     sd_along = dt[ks] * np.sqrt(var(_VAR_VX) + cfg.odom_speed_sigma_floor_mps ** 2)
-    sd_across = dt[ks] * np.sqrt(var(_VAR_VY) + (s * cfg.odom_heading_sigma_rad) ** 2)
-    sd_up = dt[ks] * np.sqrt(var(_VAR_VZ) + (s * cfg.odom_pitch_sigma_rad) ** 2)
+    # a standing car whose log reports no variance across or up would make these steps exact: a floor
+    sd_across = dt[ks] * np.sqrt(np.maximum(var(_VAR_VY) + (s * cfg.odom_heading_sigma_rad) ** 2, MIN_VAR_MPS2))
+    sd_up = dt[ks] * np.sqrt(np.maximum(var(_VAR_VZ) + (s * cfg.odom_pitch_sigma_rad) ** 2, MIN_VAR_MPS2))
     heading = 0.5 * (psi[ks] + psi[ks - 1])
     # rows: along, across, up in ENU; columns -> ECEF through NED
     along = np.stack([np.sin(heading), np.cos(heading), np.zeros_like(heading)], -1)   # NED of the unit heading

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from fusion.errors import GeometryError
 from fusion.estimate.graph.banded_gn import Blocks, System, information_triplets
 from fusion.estimate.graph.build import DISPLACEMENT_SIGMA_M, clocked_epochs, drift_clock_rw, level_sigma
 from fusion.estimate.graph.config import GraphConfig
@@ -145,7 +146,12 @@ def whitened_blocks(cols: np.ndarray, A: np.ndarray, b: np.ndarray, cov: np.ndar
     """Linear 3-D factors ``A x[cols] - b`` (A (M,3,n), b (M,3)) with covariance ``cov`` (M,3,3) (None:
     already whitened), whitened by the inverse of its Cholesky factor."""
     if cov is not None:
-        W = np.linalg.inv(np.linalg.cholesky(cov))
+        try:
+            W = np.linalg.inv(np.linalg.cholesky(cov))
+        except np.linalg.LinAlgError:
+            raise GeometryError("a 3-D noise covariance of the graph (motion, prior or odometry) is not positive "
+                                "definite: a sigma too small or too large for floating point in its "
+                                "settings?") from None
         A, b = W @ A, np.einsum("mij,mj->mi", W, b)
     return Blocks(cols, A, b, robust, k)
 
