@@ -17,6 +17,9 @@ def test_a_file_sets_fields_and_round_trips(tmp_path):
     assert load_graph_config(f) == cfg
     f.write_text('[graph]\nmax_gap_s = 4.0\n')
     assert load_graph_config(f).max_gap_s == 4.0
+    f.write_text('robust_k = 3.0\n[graph]\nmotion = "rw"\n')      # robust_k was dropped without a word
+    with pytest.raises(ConfigError, match=r"both outside and inside the \[graph\] table \('robust_k' outside\)"):
+        load_graph_config(f)
 
 
 @pytest.mark.parametrize("text, says", [('robust_kk = 3.0\n', "unknown graph setting 'robust_kk'"),

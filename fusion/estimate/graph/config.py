@@ -442,7 +442,12 @@ def load_graph_config(path, base: GraphConfig | None = None) -> GraphConfig:
         raise ConfigError(f"{path}: cannot read the graph config ({exc.strerror or exc})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not a TOML file ({exc})") from None
-    data = data.get("graph", data) if isinstance(data.get("graph"), dict) else data
+    if isinstance(data.get("graph"), dict):
+        if len(data) > 1:   # TOML puts every line after the [graph] header in the table: these came before it
+            others = ", ".join(repr(k) for k in data if k != "graph")
+            raise ConfigError(f"{path}: settings both outside and inside the [graph] table ({others} outside): "
+                              "put them all in one place")
+        data = data["graph"]
     types = {f.name: f.type for f in fields(GraphConfig)}
     out = {}
     for name, value in data.items():
