@@ -12,6 +12,8 @@ from __future__ import annotations
 import importlib
 from typing import Callable
 
+import numpy as np
+
 from fusion.errors import GnssfuseError, ModeUnavailableError
 from fusion.estimate.wls import WlsResult, solve_wls
 from fusion.run_types import ModeResult, RunOptions
@@ -53,4 +55,11 @@ def run_modes(trace: Trace, modes: list[str] | tuple[str, ...], opts: RunOptions
     opts = opts or RunOptions()
     funcs = {m: get_mode(m) for m in modes}  # fail on a bad mode name before any work
     wls = solve_initial(trace, opts) if wls is None else wls
-    return {m: f(trace, wls, opts) for m, f in funcs.items()}
+    return {m: _finite(f(trace, wls, opts)) for m, f in funcs.items()}
+
+
+def _finite(result: ModeResult) -> ModeResult:
+    """``result`` with an epoch whose position is not finite counted unsolved (a network with NaN weights answers
+    NaN), so that the epochs said solved are the rows estimates.csv writes."""
+    result.valid = np.asarray(result.valid, bool) & np.isfinite(result.pos).all(axis=1)
+    return result

@@ -31,7 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fusion.errors import CheckpointError, DataError
+from fusion.errors import CheckpointError, DataError, GnssfuseError
 from learned import distributed as dist
 from learned.augment import (draw_guesses, draw_mixed_guesses, epoch_generator, parse_guess_mix, satellite_groups,
                              thin_satellites)
@@ -417,6 +417,9 @@ def train(train_s: Samples, val_s: Samples, cfg: TrainConfig, out: str | Path, *
     for epoch in range(start, cfg.epochs):
         rec = run_epoch(model, opt, tr, va, cfg, epoch, average)
         history.append(rec)
+        if not (math.isfinite(rec["train_loss"]) and math.isfinite(rec["val_score_m"])):
+            raise GnssfuseError(f"training diverged in epoch {epoch + 1}: its loss is not finite (a lower --lr?); "
+                                f"{out} is left as it was")
         if dist.is_main():
             if rec["val_score_m"] < best:
                 best = rec["val_score_m"]

@@ -4,6 +4,7 @@ under ``torchrun --nproc_per_node N`` (:mod:`learned.distributed`)."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -109,8 +110,10 @@ def signals_of(args) -> tuple[str, ...]:
 
 
 def check_args(args) -> None:
-    if args.epochs < 1 or args.batch < 1 or not (0 <= args.val_frac < 1) or args.eta <= 0:
+    if args.epochs < 1 or args.batch < 1 or not (0 <= args.val_frac < 1) or not 0 < args.eta < math.inf:
         raise DataError("need --epochs >= 1, --batch >= 1, 0 <= --val-frac < 1, --eta > 0")
+    if not 0 < args.lr < math.inf:
+        raise DataError(f"--lr: a learning rate > 0, got {args.lr}")
     if args.wls_jitter < 0 or args.wls_max_err <= 0:
         raise DataError("need --wls-jitter >= 0 and --wls-max-err > 0")
     if not 0 <= args.sat_dropout <= 1:

@@ -117,3 +117,21 @@ def test_a_mode_that_cannot_import_is_unavailable_not_failed(monkeypatch):
     with pytest.raises(GnssfuseError, match="unknown mode") as exc:
         pipeline.get_mode("nope")
     assert not isinstance(exc.value, ModeUnavailableError)
+
+
+def test_an_epoch_a_mode_answers_nan_is_counted_unsolved(shipped_trace_dir, tmp_path, monkeypatch, capsys):
+    """A mode whose answer is NaN where it calls the epoch valid (a network with NaN weights did) must not be
+    said solved: the epochs counted are the rows estimates.csv writes."""
+    import fusion.estimate.wls as wls_module
+    from fusion import modes as pipeline
+
+    def half_nan(trace, wls, opts):
+        res = wls_module.estimate_wls(trace, wls, opts)
+        res.pos = np.where((np.arange(trace.n_epochs) % 2 == 0)[:, None], res.pos, np.nan)
+        return res
+    monkeypatch.setattr(wls_module, "half_nan", half_nan, raising=False)
+    monkeypatch.setitem(pipeline.MODES, "wls", "fusion.estimate.wls:half_nan")
+    assert main(["run", str(shipped_trace_dir), "--mode", "wls", "--out", str(tmp_path)]) == 0
+    rows = len(pd.read_csv(tmp_path / "estimates.csv"))
+    assert json.loads((tmp_path / "metrics.json").read_text())["epochs_solved"] == rows
+    assert f" {rows}/" in capsys.readouterr().out

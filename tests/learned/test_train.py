@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fusion.errors import CheckpointError, DataError
+from fusion.errors import CheckpointError, DataError, GnssfuseError
 from learned.checkpoint import load_model, read_checkpoint, save_checkpoint
 from learned.data import build_samples, check_not_forbidden, split_random
 from learned.features import CHANNELS, FEATURE_VERSION, RECIPE_INPUTS, FeatureConfig
@@ -40,6 +40,15 @@ def test_two_runs_identical_weights(tiny, tmp_path):
     assert _same(_weights(tmp_path / "a.pt"), _weights(tmp_path / "b.pt"))
     train(tr, va, TrainConfig(epochs=1, seed=4), tmp_path / "c.pt", progress=False)
     assert not _same(_weights(tmp_path / "a.pt"), _weights(tmp_path / "c.pt"))
+
+
+def test_a_run_that_diverges_says_so_and_writes_no_checkpoint(tiny, tmp_path):
+    """A learning rate that blows the weights up to NaN was saved as the best epoch, and every run with it wrote
+    empty estimates: now the training stops with a one-line error and leaves no checkpoint."""
+    tr, va = tiny
+    with pytest.raises(GnssfuseError, match="training diverged in epoch 1: its loss is not finite"):
+        train(tr, va, TrainConfig(epochs=2, seed=3, lr=1e9), tmp_path / "nan.pt", progress=False)
+    assert not (tmp_path / "nan.pt").exists()
 
 
 def test_resume_reproduces_uninterrupted_run(tiny, tmp_path):
@@ -253,6 +262,9 @@ def test_forbidden_traces_and_bad_args_rejected(tmp_path):
     check_not_forbidden(tmp_path / "2021-04-28-US-MTV-1" / "Pixel4XL")  # other phones of that drive: allowed
     with pytest.raises(DataError, match="--epochs"):
         main(["--data", "toy", "--epochs", "0", "--out", str(tmp_path / "x.pt")])
+    for bad in (["--eta", "nan"], ["--lr", "nan"], ["--lr", "-1"]):
+        with pytest.raises(DataError, match=bad[0]):
+            main(["--data", "toy", *bad, "--out", str(tmp_path / "x.pt")])
     with pytest.raises(DataError, match="does not exist"):
         main(["--data", str(tmp_path / "nope"), "--out", str(tmp_path / "x.pt"), "--quiet"])
 
