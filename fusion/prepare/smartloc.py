@@ -113,7 +113,7 @@ def load_smartloc(input_path: str | Path, *, signals=None, truth: str = "auto", 
     t_ms = kwargs["t_ms"]
     odometry = None
     if "odom3" in records:
-        odom, _ = records["odom3"]
+        odom = _plausible_odometry(*records["odom3"], input_path, skipped)
         odometry = match_nearest(t_ms, *_by_time(odom, t0), truth_tol_ms)
         count_skip(skipped, "epochs_without_odometry", ~np.isfinite(odometry).all(axis=1))
     trace = Trace(name=name or trace_folder_name(input_path.parent), skipped=skipped,
@@ -123,6 +123,26 @@ def load_smartloc(input_path: str | Path, *, signals=None, truth: str = "auto", 
     if truth != "none" and gt.is_file():
         trace.truth = _truth(gt, t_ms, t0, truth_tol_ms, input_path, skipped)
     return trace
+
+
+#: Beyond these a car's odometry row is corrupt, not driven [m/s, rad/s]: one such row bent the whole graph's track.
+MAX_ODOMETRY_SPEED_MPS = 70.0
+MAX_ODOMETRY_TURN_RADPS = 3.0
+
+
+def _plausible_odometry(values: np.ndarray, line: np.ndarray, path: Path, skipped: dict) -> np.ndarray:
+    """The ``odom3`` rows (N, 13: time, ODOMETRY_COLUMNS) a car can have driven: speeds within
+    :data:`MAX_ODOMETRY_SPEED_MPS`, turn rates within :data:`MAX_ODOMETRY_TURN_RADPS`, no negative variance; the
+    others skipped, counted and warned of by their first line (``line`` (N,))."""
+    v, w, var = values[:, 1:4], values[:, 4:7], values[:, 7:]
+    ok = (np.abs(v) <= MAX_ODOMETRY_SPEED_MPS).all(1) & (np.abs(w) <= MAX_ODOMETRY_TURN_RADPS).all(1) \
+        & (var >= 0).all(1)
+    if not ok.all():
+        warnings.warn(f"{path}:{line[~ok][0]}: odometry no car drives (speed above {MAX_ODOMETRY_SPEED_MPS:g} m/s, "
+                      f"turn rate above {MAX_ODOMETRY_TURN_RADPS:g} rad/s or a negative variance); "
+                      f"{int((~ok).sum())} such line(s) skipped", stacklevel=3)
+    count_skip(skipped, "odometry_rows_implausible", ~ok)
+    return values[ok]
 
 
 def _by_time(values: np.ndarray, t0: int) -> tuple[np.ndarray, np.ndarray]:

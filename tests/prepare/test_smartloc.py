@@ -102,6 +102,25 @@ def test_bad_lines_are_counted_and_the_first_is_named(tmp_path):
     assert int(tr.mask.sum()) == 101 - 3
 
 
+def test_odometry_no_car_drives_is_skipped_and_named(tmp_path):
+    """One odom3 line turning at 50 rad/s bent the whole graph's track (187 m against 12 m on the full drive):
+    such a line is skipped, counted and named; the others stay."""
+    odo = [i for i, s in enumerate(_lines(INPUT)) if s.startswith("odom3")]
+
+    def spoil(lines):
+        out = list(lines)
+        f = out[odo[1]].split()
+        f[7] = "50.0"                                                 # wz, after the time and five rates
+        out[odo[1]] = " ".join(f) + "\n"
+        return out
+    with pytest.warns(UserWarning, match=rf"{INPUT}:{odo[1] + 1}: odometry no car drives .*1 such line"):
+        tr = load_trace(_copy(tmp_path, spoil), signals=None)
+    assert tr.skipped["odometry_rows_implausible"] == 1
+    assert np.isfinite(tr.odometry).all(axis=1).sum() == np.isfinite(load_trace(HEAD, signals=None).odometry).all(
+        axis=1).sum() - 1
+    assert np.nanmax(np.abs(tr.odometry[:, 5])) < 3.0
+
+
 def test_duplicates_exact_kept_once_conflicting_dropped(tmp_path):
     def dup(lines):
         i = _pr_lines(lines)
