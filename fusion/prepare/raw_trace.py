@@ -180,8 +180,10 @@ def _check_coverage(raw: RawObs, rows: pd.DataFrame, ok: np.ndarray, nav, precis
         msg += " (" + "; ".join(f"{Path(f).name}: {nav.records_text(f)}" for f in nav.file_spans) + ")"
     inside = span is not None and span[0] <= t.min() and t.max() <= span[1]
     if not ok.any() and precise is not None and inside:
-        raise DataError(msg + f": too few epochs, or a gap, to interpolate its orbits at the log's times (it takes "
-                              f"{N_LAGRANGE} evenly spaced epochs around each)")
+        clocks = precise.clk is not None or (precise.sp3.clock is not None and np.isfinite(precise.sp3.clock).any())
+        raise DataError(msg + (f": too few epochs, or a gap, to interpolate its orbits at the log's times (it takes "
+                               f"{N_LAGRANGE} evenly spaced epochs around each)" if clocks else
+                               ": it holds no satellite clock (pass a clock file, --clk)"))
     if not ok.any():
         raise DataError(msg + ": pass a navigation file of the log's day (--nav FILE)")
     warnings.warn(f"{msg}: {int((~ok).sum())} of {ok.size} measurements have no ephemeris", stacklevel=3)

@@ -398,3 +398,24 @@ def test_a_clock_file_that_misses_the_log_is_said(recwarn):
     recwarn.clear()
     _check_clock_coverage(rows.iloc[:2], PreciseOrbits(sp3=None, clk=clk))
     assert not recwarn.list
+
+
+@pytest.mark.parametrize("clock, said", [(0.0, "too few epochs, or a gap, to interpolate its orbits"),
+                                         (np.nan, "it holds no satellite clock \\(pass a clock file, --clk\\)")])
+def test_a_precise_file_that_spans_the_log_but_serves_none_of_it_says_why(clock, said):
+    """An SP3 whose span holds the log but that gave no measurement a state: a hole where the log is, or no
+    clock in it; not "pass a navigation file of the log's day", which it is."""
+    import pandas as pd
+    from types import SimpleNamespace
+
+    from fusion.io.sp3 import Sp3Orbits
+    from fusion.nav.precise import PreciseOrbits
+    from fusion.prepare.raw_trace import _check_coverage
+
+    t0 = gps_ms_from_calendar(2021, 4, 28, 18, 0, 0.0)
+    t = t0 + np.array([0, 6 * 3_600_000])                       # two epochs, six hours apart
+    sp3 = Sp3Orbits(t_ms=t, sats=np.array(["G01"]), pos=np.zeros((2, 1, 3)), source="p.sp3",
+                    clock=np.full((2, 1), clock))
+    rows = pd.DataFrame({"t_ns": (t0 + 3_600_000 + 1000 * np.arange(3)) * 1_000_000})
+    with pytest.raises(DataError, match=rf"covers 2021-04-28 18:00:00 to 2021-04-29 00:00:00: {said}"):
+        _check_coverage(SimpleNamespace(path="x.21o"), rows, np.zeros(3, bool), None, PreciseOrbits(sp3))
