@@ -106,6 +106,12 @@ def main(argv: list[str], prog: str = "gnssfuse simulate") -> int:
     args = ap.parse_args(argv)
     if args.epochs is not None and args.epochs < 1:
         ap.error("--epochs must be >= 1")
+    if args.seed < 0:
+        ap.error(f"--seed must be >= 0, got {args.seed}")
+    if not 0 < args.rate <= 100:
+        ap.error(f"--rate: epochs per second in (0, 100], got {args.rate}")
+    if not -1000 <= args.origin[2] <= 10_000:
+        ap.error(f"--origin: a height of -1,000 to 10,000 m, got {args.origin[2]:g}")
     rng = np.random.default_rng(args.seed)
     try:
         cfg = config_from_options(args.scenario, args.constellations, sigma_m=args.sigma,

@@ -326,6 +326,11 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "empty.21n" in err and "Traceback" not in err
     assert gnssfuse(["simulate", "--out", str(tmp_path), "--start", "2021-06-01T00:00:00"]) == 2
     assert "outside the validity" in capsys.readouterr().err
+    for bad, said in ((["--seed", "-1"], "--seed must be >= 0"), (["--rate", "nan"], "--rate: epochs per second"),
+                      (["--origin", "10,10,-1e7"], "--origin: a height of")):
+        assert gnssfuse(["simulate", "--out", str(tmp_path), "--epochs", "5", *bad]) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err
 
 
 def test_a_folder_holding_the_other_format_is_refused_and_the_same_one_overwritten(tmp_path, capsys):
