@@ -328,8 +328,10 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "outside the validity" in capsys.readouterr().err
     for bad, said in ((["--seed", "-1"], "--seed must be >= 0"), (["--rate", "nan"], "--rate: epochs per second"),
                       (["--origin", "10,10,-1e7"], "--origin: a height of")):
-        assert gnssfuse(["simulate", "--out", str(tmp_path), "--epochs", "5", *bad]) == 2
+        with pytest.raises(SystemExit) as stop:                         # argparse's own usage error
+            gnssfuse(["simulate", "--out", str(tmp_path), "--epochs", "5", *bad])
         err = capsys.readouterr().err
+        assert stop.value.code == 2
         assert said in err and "Traceback" not in err
 
 
