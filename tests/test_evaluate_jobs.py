@@ -147,3 +147,15 @@ def test_jobs_read_before_the_parser():
     assert jobs_asked(["a", "--jobs", "3", "--out", "x"]) == 3
     assert jobs_asked(["--jobs=2"]) == 2
     assert jobs_asked(["--jobs", "two"]) == 1 and jobs_asked(["--jobs"]) == 1 and jobs_asked([]) == 1
+
+
+def test_two_traces_of_one_name_are_told_apart(tmp_path, shipped_trace_dir):
+    """Two phones' folders of the same <collection>/<phone> name in one run: each row names its folder beside the
+    first, so the table does not hold two rows no one can tell apart."""
+    copy = tmp_path / "other" / shipped_trace_dir.parent.name / shipped_trace_dir.name
+    shutil.copytree(shipped_trace_dir, copy)
+    out = tmp_path / "ev"
+    assert main(["evaluate", str(shipped_trace_dir), str(copy), "--modes", "wls", "--max-epochs", "50",
+                 "--out", str(out)]) == 0
+    names = pd.read_csv(out / "metrics.csv").trace.tolist()
+    assert names[0] == "2021-04-28-US-MTV-1/Pixel4" and names[1] == f"2021-04-28-US-MTV-1/Pixel4 ({copy})"
