@@ -9,6 +9,7 @@ is in :mod:`fusion.eval.report`.
 from __future__ import annotations
 
 import re
+import shutil
 import warnings
 from pathlib import Path
 
@@ -145,6 +146,22 @@ def once_each(trace_dirs: list[Path]) -> list[Path]:
     return out
 
 
+def clear_earlier_run(out_dir: Path) -> None:
+    """Remove what an earlier ``evaluate`` wrote into ``out_dir`` (its trace folders, each holding
+    ``<mode>/metrics.json``, its figures and tables), saying so, so that no trace or figure of that run passes for
+    one of this; anything else in the folder stays."""
+    traces = [d for d in out_dir.iterdir() if d.is_dir() and any(d.glob("*/metrics.json"))]
+    tables = [out_dir / n for n in ("report.md", "metrics.csv", "metrics.md") if (out_dir / n).is_file()]
+    if not traces and not tables:
+        return
+    for d in traces + ([out_dir / "figures"] if (out_dir / "figures").is_dir() else []):
+        shutil.rmtree(d)
+    for f in tables:
+        f.unlink()
+    warnings.warn(f"{out_dir}: removed an earlier evaluation's outputs ({len(traces)} trace folder(s), its "
+                  "figures and tables)", stacklevel=2)
+
+
 def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunOptions,
              max_epochs: int | None = None, fix_truth_height: bool = True, progress: bool = True,
              argv: list[str] | None = None, jobs: int = 1,
@@ -166,6 +183,7 @@ def evaluate(trace_dirs: list[Path], modes: list[str], out_dir: Path, opts: RunO
     check_pace(jobs, scheduler)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    clear_earlier_run(out_dir)
     outcomes = run_all(trace_dirs, modes, opts, max_epochs, fix_truth_height, progress, jobs, out_dir, scheduler)
     evals = [o for o in outcomes if not isinstance(o, str)]
     failures = {str(d): o for d, o in zip(trace_dirs, outcomes) if isinstance(o, str)}

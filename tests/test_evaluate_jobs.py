@@ -159,3 +159,10 @@ def test_two_traces_of_one_name_are_told_apart(tmp_path, shipped_trace_dir):
                  "--out", str(out)]) == 0
     names = pd.read_csv(out / "metrics.csv").trace.tolist()
     assert names[0] == "2021-04-28-US-MTV-1/Pixel4" and names[1] == f"2021-04-28-US-MTV-1/Pixel4 ({copy})"
+    # the same --out again with one trace: the earlier run's second trace folder and figures go, with a word
+    (out / "notes.txt").write_text("mine")
+    with pytest.warns(UserWarning, match="removed an earlier evaluation's outputs \\(2 trace folder"):
+        assert main(["evaluate", str(copy), "--modes", "wls", "--max-epochs", "50", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["2021-04-28-US-MTV-1_Pixel4", "figures", "metrics.csv",
+                                                     "metrics.md", "notes.txt", "report.md"]
+    assert not list((out / "figures").glob("*_2_*"))
