@@ -25,7 +25,7 @@ from fusion.eval.report import (TraceEval, markdown_table, metrics_table, write_
                                 write_trace_figures)
 from fusion.io.estimates import write_outputs
 from fusion.prepare.load import load_trace, trace_name
-from fusion.modes import get_mode, run_modes, solve_initial
+from fusion.modes import MODES, get_mode, run_modes, solve_initial
 from fusion.parallel import check_pace, map_traces
 from fusion.run_types import RunOptions
 from fusion.trace import Trace
@@ -147,13 +147,14 @@ def once_each(trace_dirs: list[Path]) -> list[Path]:
 
 
 def clear_earlier_run(out_dir: Path) -> None:
-    """Remove what an earlier ``evaluate`` wrote into ``out_dir`` (its trace folders, each holding
-    ``<mode>/metrics.json``, its figures and tables), saying so, so that no trace or figure of that run passes for
-    one of this; anything else in the folder stays."""
-    traces = [d for d in out_dir.iterdir() if d.is_dir() and any(d.glob("*/metrics.json"))]
+    """Remove what an earlier ``evaluate`` wrote into ``out_dir`` (where its ``report.md`` is): its trace folders
+    (each holding ``<mode>/metrics.json``, mode folders only), figures and tables, saying so, so that no trace or
+    figure of that run passes for one of this; anything else in the folder stays."""
     tables = [out_dir / n for n in ("report.md", "metrics.csv", "metrics.md") if (out_dir / n).is_file()]
-    if not traces and not tables:
-        return
+    if not (out_dir / "report.md").is_file():
+        return                                              # no evaluation wrote here: touch nothing
+    traces = [d for d in out_dir.iterdir() if d.is_dir() and any(d.glob("*/metrics.json"))
+              and all(m.name in MODES for m in d.iterdir() if m.is_dir())]
     for d in traces + ([out_dir / "figures"] if (out_dir / "figures").is_dir() else []):
         shutil.rmtree(d)
     for f in tables:

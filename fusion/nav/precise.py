@@ -58,9 +58,9 @@ def _columns(names: np.ndarray, sat_id: np.ndarray) -> np.ndarray:
     return np.where(ids[col] == sat_id, col, -1)
 
 
-#: A Lagrange window's samples may lie at most this many times the file's usual spacing apart: across a wider gap
-#: the polynomial swings (a two-epoch file, or an hours-long hole, put satellites kilometres off).
-MAX_GAP_SPACINGS = 1.5
+#: A Lagrange window's samples may lie at most this many times the file's usual spacing apart (a missing epoch or
+#: two is no harm): across a wider gap the polynomial swings (an hours-long hole put satellites kilometres off).
+MAX_GAP_SPACINGS = 3.0
 
 
 def _lagrange(t_ms: np.ndarray, t_ref: np.ndarray, values: np.ndarray, col: np.ndarray,
