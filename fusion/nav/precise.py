@@ -58,16 +58,19 @@ def _columns(names: np.ndarray, sat_id: np.ndarray) -> np.ndarray:
     return np.where(ids[col] == sat_id, col, -1)
 
 
-#: A Lagrange window's samples may lie at most this many times the file's usual spacing apart (a missing epoch or
-#: two is no harm): across a wider gap the polynomial swings (an hours-long hole put satellites kilometres off).
-MAX_GAP_SPACINGS = 3.0
+#: A Lagrange window's samples may lie at most this far apart [s], or this many times the file's usual spacing
+#: where that is wider (a regular 30-min file). Holes across a 5-min CODE file's own samples cost 1 cm at 30 min,
+#: 0.4 m at 60 min and 350 m at 150 min (an hours-long hole put the Pixel5 kilometres off; measured on
+#: COD0MGXFIN_20211180000_01D_05M_ORB.SP3, samples removed and interpolated back).
+MAX_STEP_S = 1800.0
+MAX_GAP_SPACINGS = 1.5
 
 
 def _lagrange(t_ms: np.ndarray, t_ref: np.ndarray, values: np.ndarray, col: np.ndarray,
               t_q: np.ndarray) -> np.ndarray:
     """Interpolate (T, N, k) ``values`` of column ``col`` (Q,) at times ``t_q`` (Q,) [s since
     t_ms[0]] with :data:`N_LAGRANGE` samples; NaN where any sample is missing, the file has fewer, the
-    window holds a gap (:data:`MAX_GAP_SPACINGS`) or the time is outside."""
+    window holds a hole (:data:`MAX_STEP_S`) or the time is outside."""
     T = t_ms.size
     if T < N_LAGRANGE:
         return np.full((t_q.size, values.shape[-1]), np.nan)
@@ -76,7 +79,8 @@ def _lagrange(t_ms: np.ndarray, t_ref: np.ndarray, values: np.ndarray, col: np.n
     vw = values[win, col[:, None]]                                           # (Q, n, k)
     out = np.einsum("qn,qnk->qk", _lagrange_weights(t_ref, start, N_LAGRANGE, t_q), vw)
     steps = np.diff(t_ref)
-    ok = (t_q >= t_ref[0]) & (t_q <= t_ref[-1]) & (_widest_step(steps, start) <= MAX_GAP_SPACINGS * np.median(steps))
+    widest = max(MAX_STEP_S, MAX_GAP_SPACINGS * float(np.median(steps)))
+    ok = (t_q >= t_ref[0]) & (t_q <= t_ref[-1]) & (_widest_step(steps, start) <= widest)
     return np.where(ok[:, None], out, np.nan)
 
 

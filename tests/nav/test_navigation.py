@@ -373,6 +373,10 @@ def test_lagrange_declines_too_few_samples_and_windows_across_a_gap():
     np.testing.assert_allclose(got[[0, 3]], np.sin(t_q[[0, 3]] / 4000.0), atol=1e-9)
     few = t_ref[:N_LAGRANGE - 1]
     assert np.isnan(_lagrange((few * 1000).astype(np.int64), few, values[:N_LAGRANGE - 1], col, t_q[:1])).all()
+    short = np.r_[np.arange(20) * 300.0, 5700.0 + 1500.0 + np.arange(20) * 300.0]     # a 25-min step: a cm, kept
+    got = _lagrange((short * 1000).astype(np.int64), short, np.sin(short / 4000.0)[:, None, None], col[:1],
+                    np.array([6500.0]))[:, 0]
+    np.testing.assert_allclose(got, np.sin(6500.0 / 4000.0), atol=1e-6)
 
 
 def test_sp3_epochs_written_again_and_records_cut_short(tmp_path):
