@@ -113,7 +113,9 @@ def options_from_args(args: argparse.Namespace) -> RunOptions:
     for flag, paths in (("--nav", args.nav), ("--sp3", [args.sp3]), ("--clk", [args.clk])):
         for path in (p for p in paths if p is not None):
             if not Path(path).is_file():        # checked here: a trace that needs none would ignore it
-                raise DataError(f"{path}: {flag} file not found")
+                what = ("is a folder, not a file" if Path(path).is_dir() else "is not a regular file") \
+                    if Path(path).exists() else "file not found"
+                raise DataError(f"{path}: {flag} {what}")
     return RunOptions(weights=args.weights, elev_mask_deg=args.elev_mask, device=args.device,
                       dnn_passes=args.dnn_passes, signals=signals,
                       wls_robust=False if args.wls_plain else "exclude", learned_prior=not args.no_learned_prior,

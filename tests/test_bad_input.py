@@ -152,6 +152,8 @@ def test_a_missing_navigation_file_is_named_even_where_no_navigation_is_needed(c
     d = _write_trace(tmp_path, rows, truth)
     assert _run(d, tmp_path / "o", "--nav", str(tmp_path / "nope.21n")) == 2
     _one_line_error(capsys, tmp_path / "nope.21n", "--nav file not found")
+    assert _run(d, tmp_path / "o", "--nav", str(tmp_path)) == 2              # a folder given for a file
+    _one_line_error(capsys, tmp_path, "--nav is a folder, not a file")
 
 
 @pytest.mark.parametrize("content, message", [(b"", "(the file is empty)"), (b"hello\n", "reads: a GSDC")])

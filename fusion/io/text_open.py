@@ -54,6 +54,10 @@ def read_bytes(path: str | Path, what: str, skipped: dict[str, int] | None = Non
     without being gzip.
     """
     path = Path(path)
+    if path.is_dir():
+        raise DataError(f"{path}: a folder, not a {what} file")
+    if path.exists() and not path.is_file():
+        raise DataError(f"{path}: not a regular file (a device or pipe?), not a {what} file")
     if not path.is_file():
         raise DataError(f"{path}: {what} file not found")
     try:

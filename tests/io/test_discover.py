@@ -129,6 +129,10 @@ def test_one_reader_for_plain_and_gzip(tmp_path):
         read_bytes(fake, "x")
     with pytest.raises(DataError, match="c: x file not found"):
         read_bytes(tmp_path / "c", "x")
+    with pytest.raises(DataError, match="a folder, not a x file"):
+        read_bytes(tmp_path, "x")
+    with pytest.raises(DataError, match="not a regular file"):
+        read_bytes(Path("/dev/null"), "x")
 
 
 SP3 = """#dP2021  4 28  0  0  0.00000000       2 ORBIT IGS14 HLM  IGS
