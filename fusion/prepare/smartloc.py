@@ -44,7 +44,7 @@ from fusion.estimate.wls import solve_wls_arrays
 from fusion.geometry import line_of_sight
 from fusion.io.clean import epochs_with_enough_rows
 from fusion.io.librsf import read_librsf
-from fusion.io.truth import TRUTH_TOL_MS, check_overlap, match_nearest
+from fusion.io.truth import TRUTH_TOL_MS, check_overlap, interp_gapped, match_nearest
 from fusion.trace import SIGNALS, Trace, count_skip, pack_rows, resolve_signals, trace_folder_name
 
 log = logging.getLogger(__name__)
@@ -113,8 +113,11 @@ def load_smartloc(input_path: str | Path, *, signals=None, truth: str = "auto", 
     t_ms = kwargs["t_ms"]
     odometry = None
     if "odom3" in records:
-        odom = _plausible_odometry(*records["odom3"], input_path, skipped)
-        odometry = match_nearest(t_ms, *_by_time(odom, t0), truth_tol_ms)
+        odom_t, odom = _by_time(_plausible_odometry(*records["odom3"], input_path, skipped), t0)
+        odometry = match_nearest(t_ms, odom_t, odom, truth_tol_ms)
+        gap = ~np.isfinite(odometry).all(axis=1)       # a row skipped or not written: its neighbours' mean
+        odometry[gap] = interp_gapped(t_ms[gap], odom_t, odom, ODOMETRY_MAX_GAP_MS)
+        count_skip(skipped, "epochs_odometry_interpolated", gap & np.isfinite(odometry).all(axis=1))
         count_skip(skipped, "epochs_without_odometry", ~np.isfinite(odometry).all(axis=1))
     trace = Trace(name=name or trace_folder_name(input_path.parent), skipped=skipped,
                   odometry=odometry, **kwargs)
@@ -125,6 +128,9 @@ def load_smartloc(input_path: str | Path, *, signals=None, truth: str = "auto", 
     return trace
 
 
+#: An epoch without an odometry row of its own takes the rows around it across a gap of up to this [ms] (a row or
+#: two of the 5 Hz log): a missing step breaks the odometry chain of the graph.
+ODOMETRY_MAX_GAP_MS = 1000.0
 #: Beyond these a car's odometry row is corrupt, not driven [m/s, rad/s]: one such row bent the whole graph's track.
 MAX_ODOMETRY_SPEED_MPS = 70.0
 MAX_ODOMETRY_TURN_RADPS = 3.0
