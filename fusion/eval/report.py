@@ -86,7 +86,9 @@ def metrics_table(evals: list[TraceEval], modes: list[str]) -> pd.DataFrame:
             row.update(status="failed on every trace", epochs_solved=None, epochs_unsolved=None)
         elif errs:
             m = summarize(np.concatenate(errs))
-            row.update(status="ok", epochs_scored=m["n"], **{k: m[k] for k in METRIC_KEYS})
+            # a mode that failed on some traces pools the others only: its ALL row is not the others' ALL rows
+            part = "" if len(have) == len(evals) else f" over {len(have)} of {len(evals)} traces (failed on the rest)"
+            row.update(status="ok" + part, epochs_scored=m["n"], **{k: m[k] for k in METRIC_KEYS})
         else:
             row.update(status="no truth: metrics unavailable")
         rows.append(row)
@@ -114,13 +116,14 @@ def markdown_table(df: pd.DataFrame) -> str:
             "| horiz p95 [m] | GSDC score [m] | scored / solved / total epochs | skipped at load |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in df.itertuples(index=False):
-        if r.status == "ok":
+        if str(r.status).startswith("ok"):
             axes = [f"{_fmt(getattr(r, f'mae_{a}'))} ± {_fmt(getattr(r, f'std_{a}'))}" for a in "ned"]
             tail = [_fmt(r.h_p50), _fmt(r.h_p95), _fmt(r.gsdc_score)]
         else:
             axes, tail = [r.status] + ["", ""], ["", "", ""]
         counts = f"{_fmt(r.epochs_scored, 'd')} / {_fmt(r.epochs_solved, 'd')} / {_fmt(r.epochs_total, 'd')}"
         name = f"**{r.trace}**" if r.trace == ALL else r.trace
+        name += f" ({r.status[3:]})" if str(r.status).startswith("ok ") else ""
         lines.append("| " + " | ".join([name, r.mode, *axes, *tail, counts, r.skipped_at_load or "-"]) + " |")
     return "\n".join(lines)
 

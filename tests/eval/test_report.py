@@ -370,3 +370,27 @@ def test_report_has_a_per_trace_per_axis_calibration_table_for_modes_with_a_cova
     assert "| a/b | fused | 0.70 / 0.40 / 0.60 | 0.95 / 0.80 / 0.90 | 12 |" in lines
     assert not any("| wls |" in ln for ln in lines)
     assert calibration_lines([SimpleNamespace(trace=ev.trace, records={"wls": {"metrics": {"n": 1}}})], ["wls"]) == []
+
+
+def test_an_all_row_pooling_fewer_traces_says_so():
+    """A mode that failed on some traces (fused with --odometry on phones that carry none) pools the others
+    only: its ALL row says over how many, not a bare "ok" beside the modes that pooled every trace."""
+    from fusion.eval.metrics import summarize
+    from fusion.eval.report import TraceEval, markdown_table, metrics_table
+    from fusion.trace import Trace, empty_trace
+
+    def trace(name: str) -> Trace:
+        return Trace(**{**empty_trace(3, 4, name=name), "t_ms": np.array([0, 1000, 2000])})
+    err = np.full((3, 3), 0.5)
+    record = {"epochs_solved": 3, "metrics": summarize(err)}
+    a = TraceEval(trace=trace("a/b"), slug="a_b", errors={"wls": err, "fused": err},
+                  records={"wls": record, "fused": record})
+    c = TraceEval(trace=trace("c/d"), slug="c_d", errors={"wls": err}, records={"wls": record},
+                  failed={"fused": "the trace carries no odometry"})
+    table = metrics_table([a, c], ["wls", "fused"]).set_index(["trace", "mode"])
+    assert table.loc[(ALL, "wls"), "status"] == "ok"
+    assert table.loc[(ALL, "fused"), "status"] == "ok over 1 of 2 traces (failed on the rest)"
+    assert table.loc[("c/d", "fused"), "status"] == "failed: the trace carries no odometry"
+    row = next(ln for ln in markdown_table(metrics_table([a, c], ["wls", "fused"])).splitlines()
+               if ln.startswith(f"| **{ALL}** (over 1 of 2 traces (failed on the rest)) | fused |"))
+    assert "0.50 ± 0.00" in row                                       # the figures stay
