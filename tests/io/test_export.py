@@ -304,5 +304,6 @@ def test_epochs_the_motion_model_carried_are_marked_dead_reckoning(tmp_path):
     lines = paths["nmea"].read_text().splitlines()
     gga = [ln.split(",")[6] for ln in lines if ln[3:6] == "GGA"]
     rmc = [ln.split("*")[0].split(",")[-1] for ln in lines if ln[3:6] == "RMC"]
-    assert gga == ["1", "1", "6", "6", "1", "1", "1"] and rmc == ["A", "A", "E", "E", "A", "A", "A"]   # epoch 4 unsolved
+    # epoch 4 is unsolved: seven rows
+    assert gga == ["1", "1", "6", "6", "1", "1", "1"] and rmc == ["A", "A", "E", "E", "A", "A", "A"]
     assert _read_pos(paths["pos"]).Q.tolist() == [5, 5, 7, 7, 5, 5, 5]
