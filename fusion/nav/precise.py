@@ -60,8 +60,8 @@ def _columns(names: np.ndarray, sat_id: np.ndarray) -> np.ndarray:
 
 #: A Lagrange window's samples may lie at most this far apart [s], or this many times the file's usual spacing
 #: where that is wider (a regular 30-min file). Holes across a 5-min CODE file's own samples cost 1 cm at 30 min,
-#: 0.4 m at 60 min and 350 m at 150 min (an hours-long hole put the Pixel5 kilometres off; measured on
-#: COD0MGXFIN_20211180000_01D_05M_ORB.SP3, samples removed and interpolated back).
+#: 0.4 m at 60 min and 350 m at 150 min (an hours-long hole put the Pixel5 kilometres off;
+#: experiments/results/precise_holes.md).
 MAX_STEP_S = 1800.0
 MAX_GAP_SPACINGS = 1.5
 
