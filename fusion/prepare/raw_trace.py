@@ -32,7 +32,7 @@ from fusion.io.discover import SYSTEM_NAMES
 from fusion.io.clean import epochs_with_enough_rows
 from fusion.io.raw import RawObs
 from fusion.nav.atmosphere import iono_scale, klobuchar_l1, tropo_delay
-from fusion.nav.precise import N_LAGRANGE, precise_states
+from fusion.nav.precise import MAX_STEP_S, N_LAGRANGE, precise_states
 from fusion.nav.sat_states import SIGNAL_CLASS, broadcast_states
 from fusion.prepare.multi_clock import multi_clock_positions
 from fusion.prepare.rate_check import check_rates
@@ -181,9 +181,9 @@ def _check_coverage(raw: RawObs, rows: pd.DataFrame, ok: np.ndarray, nav, precis
     inside = span is not None and span[0] <= t.min() and t.max() <= span[1]
     if not ok.any() and precise is not None and inside:
         clocks = precise.clk is not None or (precise.sp3.clock is not None and np.isfinite(precise.sp3.clock).any())
-        raise DataError(msg + (f": too few epochs, or a gap, to interpolate its orbits at the log's times (it takes "
-                               f"{N_LAGRANGE} evenly spaced epochs around each)" if clocks else
-                               ": it holds no satellite clock (pass a clock file, --clk)"))
+        raise DataError(msg + (f": too few epochs ({N_LAGRANGE} around each time), or a hole of over "
+                               f"{MAX_STEP_S / 60:g} minutes, to interpolate its orbits at the log's times" if clocks
+                               else ": it holds no satellite clock (pass a clock file, --clk)"))
     if not ok.any():
         raise DataError(msg + ": pass a navigation file of the log's day (--nav FILE)")
     warnings.warn(f"{msg}: {int((~ok).sum())} of {ok.size} measurements have no ephemeris", stacklevel=3)

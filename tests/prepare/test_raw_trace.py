@@ -400,8 +400,9 @@ def test_a_clock_file_that_misses_the_log_is_said(recwarn):
     assert not recwarn.list
 
 
-@pytest.mark.parametrize("clock, said", [(0.0, "too few epochs, or a gap, to interpolate its orbits"),
-                                         (np.nan, "it holds no satellite clock \\(pass a clock file, --clk\\)")])
+@pytest.mark.parametrize("clock, said", [
+    (0.0, "too few epochs \\(10 around each time\\), or a hole of over 30 minutes"),
+    (np.nan, "it holds no satellite clock \\(pass a clock file, --clk\\)")])
 def test_a_precise_file_that_spans_the_log_but_serves_none_of_it_says_why(clock, said):
     """An SP3 whose span holds the log but that gave no measurement a state: a hole where the log is, or no
     clock in it; not "pass a navigation file of the log's day", which it is."""
