@@ -99,8 +99,8 @@ def load_and_run(d: Path, slug: str, modes: list[str], opts: RunOptions, max_epo
         return str(exc)
     if max_epochs is not None and trace.n_epochs > max_epochs:
         trace = trace.select(np.arange(max_epochs))
-    if slug != _slug(trace.name, set()):
-        trace.name = f"{trace.name} ({d})"        # another trace of the same name is in the run: its folder tells
+    if slug != _slug(trace_name(d), set()):     # run_all numbered it: another trace of its name is in the run
+        trace.name = f"{trace.name} ({d})"
     ev = write_trace(run_trace(trace, modes, opts, progress=progress), out_dir, slug)
     ev.figures = write_trace_figures(ev, out_dir / "figures")
     return ev

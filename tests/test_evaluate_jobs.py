@@ -6,6 +6,7 @@ import os
 import shutil
 import struct
 import time
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -159,6 +160,14 @@ def test_two_traces_of_one_name_are_told_apart(tmp_path, shipped_trace_dir):
                  "--out", str(out)]) == 0
     names = pd.read_csv(out / "metrics.csv").trace.tolist()
     assert names[0] == "2021-04-28-US-MTV-1/Pixel4" and names[1] == f"2021-04-28-US-MTV-1/Pixel4 ({copy})"
+    # a raw log, whose folder's name evaluate derives from its path before loading it, keeps its own name alone
+    from fusion.io.rinex_nav import default_nav_path
+    raw = tmp_path / "drive" / "phone"
+    raw.mkdir(parents=True)
+    shutil.copy(Path(__file__).parent / "data" / "pixel5_head.21o", raw / "x.21o")
+    assert main(["evaluate", str(raw), "--modes", "wls", "--nav", str(default_nav_path()), "--out",
+                 str(tmp_path / "raw")]) == 0
+    assert pd.read_csv(tmp_path / "raw" / "metrics.csv").trace.tolist()[0] == "drive/phone"
     # the same --out again with one trace: the earlier run's second trace folder and figures go, with a word
     (out / "notes.txt").write_text("mine")
     with pytest.warns(UserWarning, match="removed an earlier evaluation's outputs \\(2 trace folder"):
