@@ -236,9 +236,8 @@ def exclude_gross(fit: FitState, eligible: np.ndarray, settings: WlsSettings) ->
     as outliers)."""
     after, removed = fit, np.zeros(fit.used.shape, bool)
     for _ in range(settings.max_exclusions):
-        _, _, r, _ = normal_equations(after.sat_pos, after.pr, after.weights, after.x)
-        gross = eligible & (np.where(after.used, np.abs(r), 0.0).max(1) > GROSS_RESIDUAL_M)
-        gross &= after.used.sum(1) > 5
+        r, largest = _largest_residual(after)
+        gross = eligible & (largest > GROSS_RESIDUAL_M) & (after.used.sum(1) > 5)
         if not gross.any():
             break
         worst = np.argmax(np.where(after.used, np.abs(r) * np.sqrt(after.w_prior), -1.0), axis=1)
@@ -249,12 +248,17 @@ def exclude_gross(fit: FitState, eligible: np.ndarray, settings: WlsSettings) ->
     tried = removed.any(1)
     if not tried.any():
         return fit, removed
-    _, _, r, _ = normal_equations(after.sat_pos, after.pr, after.weights, after.x)
-    undo = tried & ~(after.conv & ~after.bad & ~after.runaway
-                     & (np.where(after.used, np.abs(r), 0.0).max(1) <= GROSS_RESIDUAL_M))
+    settled = after.conv & ~after.bad & ~after.runaway & (_largest_residual(after)[1] <= GROSS_RESIDUAL_M)
+    undo = tried & ~settled
     after, removed[undo] = _undo(fit, after, undo), False
     count_skip(fit.dropped, "outlier", removed)
     return after.replace(w_fit=after.weights), removed
+
+
+def _largest_residual(fit: FitState) -> tuple[np.ndarray, np.ndarray]:
+    """(E,S) the fit's residuals [m] and (E,) the largest of each epoch's used ones in magnitude."""
+    _, _, r, _ = normal_equations(fit.sat_pos, fit.pr, fit.weights, fit.x)
+    return r, np.where(fit.used, np.abs(r), 0.0).max(1)
 
 
 def exclude_faults(fit: FitState, eligible: np.ndarray, settings: WlsSettings, *, scale: float = 1.0,

@@ -21,7 +21,7 @@ import pandas as pd
 
 from fusion.geometry import ecef2ned_vec, geodetic2ecef
 from fusion.gpstime import gps_ms_to_unix_ms
-from fusion.io.estimates import bridged_rows
+from fusion.io.estimates import VELOCITY_COLUMNS, bridged_rows
 
 TALKER = "GN"    # any constellation
 KNOTS_PER_MPS = 3600.0 / 1852.0
@@ -87,8 +87,8 @@ def rmc_velocity(frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """Speed [m/s] and course [deg] per row for RMC: the frame's velocity columns where they are finite (the
     graph's own velocity), :func:`ground_velocity` of the track elsewhere."""
     speed, course = ground_velocity(frame)
-    if {"vel_n_mps", "vel_e_mps"} <= set(frame.columns):
-        north, east = frame["vel_n_mps"].to_numpy(float), frame["vel_e_mps"].to_numpy(float)
+    if set(VELOCITY_COLUMNS[:2]) <= set(frame.columns):
+        north, east = (frame[c].to_numpy(float) for c in VELOCITY_COLUMNS[:2])
         own = np.isfinite(north) & np.isfinite(east)
         s_own, c_own = speed_course(north, east)
         speed, course = np.where(own, s_own, speed), np.where(own, c_own, course)

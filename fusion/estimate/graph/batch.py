@@ -186,8 +186,13 @@ def _banded_cov(trace: Trace, inp: EpochInputs, cfg: GraphConfig, vec: VectorGra
     got = banded_marginals(vec, x, epochs, trace.n_epochs, ("pos", "vel"))
     if got is not None:
         return got["pos"], got.get("vel")
+    return _graph_cov(trace, inp, cfg, to_values(vec.layout, x)), None
+
+
+def _graph_cov(trace: Trace, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values) -> np.ndarray:
+    """(E,3,3) position marginals of GTSAM's graph that ``inp`` and ``cfg`` build, at ``values``."""
     pieces = graph_pieces(trace, inp, cfg)
-    return marginal_positions(pieces.graph(), to_values(vec.layout, x), epochs, trace.n_epochs, pieces.dense), None
+    return marginal_positions(pieces.graph(), values, np.flatnonzero(inp.keep), trace.n_epochs, pieces.dense)
 
 
 def marginals_at(trace: Trace, inp: EpochInputs, cfg: GraphConfig, values: gtsam.Values
@@ -199,8 +204,7 @@ def marginals_at(trace: Trace, inp: EpochInputs, cfg: GraphConfig, values: gtsam
     vec = vector_graph(trace, inp, cfg)
     if vec is not None:
         return _banded_cov(trace, inp, cfg, vec, from_values(vec.layout, values))
-    pieces = graph_pieces(trace, inp, cfg)
-    return marginal_positions(pieces.graph(), values, np.flatnonzero(inp.keep), trace.n_epochs, pieces.dense), None
+    return _graph_cov(trace, inp, cfg, values), None
 
 
 def _solve_gtsam(trace: Trace, inp: EpochInputs, cfg: GraphConfig, want_cov: bool, start: BatchSolution | None,
