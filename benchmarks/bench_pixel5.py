@@ -83,7 +83,7 @@ def _ours(mode: str, out: Path, t_ms: np.ndarray, extra: list[str] = ()) -> tupl
 
 def _rtklib(out: Path, t_ms: np.ndarray) -> tuple[float, np.ndarray] | None:
     from fusion.geometry import geodetic2ecef
-    from fusion.gpstime import WEEK_S
+    from fusion.io.rtklib_pos import read_pos_at
 
     exe = shutil.which("rnx2rtkp")
     if exe is None:
@@ -91,13 +91,10 @@ def _rtklib(out: Path, t_ms: np.ndarray) -> tuple[float, np.ndarray] | None:
         return None
     pos = out / "rtk.pos"
     dt, _ = _timed([exe, "-p", "0", "-o", str(pos), str(OBS), str(NAV)])
-    rows = [ln.split() for ln in pos.read_text().splitlines() if ln and not ln.startswith("%")]
-    t = np.array([int(r[0]) * WEEK_S * 1000 + round(float(r[1]) * 1000) for r in rows], np.int64)
-    llh = np.array([[float(r[2]), float(r[3]), float(r[4])] for r in rows])
+    llh = read_pos_at(pos, t_ms)[:, :3]
     est = np.full((t_ms.size, 3), np.nan)
-    idx = np.searchsorted(t_ms, t)
-    ok = (idx < t_ms.size) & (np.abs(t_ms[np.minimum(idx, t_ms.size - 1)] - t) <= 1)
-    est[idx[ok]] = geodetic2ecef(llh[ok])
+    ok = np.isfinite(llh).all(axis=1)
+    est[ok] = geodetic2ecef(llh[ok])
     return dt, est
 
 

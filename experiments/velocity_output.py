@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO / "experiments"))
 from few_satellites import NAV, PIXEL5, SHARED  # noqa: E402
 from fusion.eval.metrics import within_sigma  # noqa: E402
 from fusion.geometry import ecef2ned_vec, geodetic2ecef, ned2ecef_vec  # noqa: E402
-from fusion.gpstime import WEEK_S  # noqa: E402
+from fusion.io.rtklib_pos import read_pos_at  # noqa: E402
 from fusion.io.nmea import read_span_nmea  # noqa: E402
 from fusion.modes import run_modes, solve_initial  # noqa: E402
 from fusion.options import load_options  # noqa: E402
@@ -96,12 +96,8 @@ def rtklib_velocity(obs: Path, nav: Path, t_ms: np.ndarray, at: np.ndarray) -> n
         conf.write_text("out-outvel =on\nout-timeform =tow\n")
         subprocess.run([exe, "-k", str(conf), "-p", "0", "-o", str(pos), str(obs), str(nav)], capture_output=True,
                        check=True)
-        rows = np.array([ln.split() for ln in pos.read_text().splitlines() if ln and not ln.startswith("%")], float)
-    t = np.round(rows[:, 0] * WEEK_S * 1000 + rows[:, 1] * 1000).astype(np.int64)
-    idx = np.clip(np.searchsorted(t_ms, t), 0, t_ms.size - 1)
-    ok = np.abs(t_ms[idx] - t) <= 1
-    v = np.full((t_ms.size, 3), np.nan)
-    v[idx[ok]] = rows[ok][:, 15:18] * np.array([1.0, 1.0, -1.0])          # vn, ve, -vu: north/east/down
+        # after lat, lon, h, Q, ns, six sigmas, age and ratio: vn, ve, vu; -vu is down
+        v = read_pos_at(pos, t_ms)[:, 13:16] * np.array([1.0, 1.0, -1.0])
     have = np.isfinite(v).all(axis=1) & np.isfinite(at).all(axis=1)
     v[have] = ned2ecef_vec(v[have], at[have])
     return v

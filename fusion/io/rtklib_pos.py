@@ -85,6 +85,27 @@ def pos_lines(frame: pd.DataFrame, name: str = "") -> list[str]:
     return lines
 
 
+def read_pos_at(path: Path, t_ms: np.ndarray) -> np.ndarray:
+    """(E, k) the numeric columns after the time (latitude, longitude, height, Q, ns, sdn, ...) of a .pos file in
+    GPS week / time-of-week form, as this module or ``rnx2rtkp`` writes it, at the epochs ``t_ms`` (E,) [GPS ms,
+    increasing] within 1 ms of a line's time; NaN rows where none is."""
+    rows = _pos_rows(Path(path))
+    out = np.full((t_ms.size, max(rows.shape[1] - 2, 0)), np.nan)
+    if not len(rows) or not t_ms.size:
+        return out
+    t = np.round(rows[:, 0] * WEEK_MS + rows[:, 1] * 1000).astype(np.int64)
+    idx = np.clip(np.searchsorted(t_ms, t), 0, t_ms.size - 1)
+    ok = np.abs(t_ms[idx] - t) <= 1
+    out[idx[ok]] = rows[ok, 2:]
+    return out
+
+
+def _pos_rows(path: Path) -> np.ndarray:
+    """(N, k) the data lines of a .pos file as numbers."""
+    lines = [ln.split() for ln in path.read_text().splitlines() if ln.strip() and not ln.startswith("%")]
+    return np.array(lines, float) if lines else np.zeros((0, 2))
+
+
 def write_pos(frame: pd.DataFrame, path: Path, name: str = "") -> Path:
     path.write_text("\n".join(pos_lines(frame, name)) + "\n")
     return path

@@ -307,3 +307,15 @@ def test_epochs_the_motion_model_carried_are_marked_dead_reckoning(tmp_path):
     # epoch 4 is unsolved: seven rows
     assert gga == ["1", "1", "6", "6", "1", "1", "1"] and rmc == ["A", "A", "E", "E", "A", "A", "A"]
     assert _read_pos(paths["pos"]).Q.tolist() == [5, 5, 7, 7, 5, 5, 5]
+
+
+def test_a_pos_file_is_read_back_at_the_epochs(exported):
+    """fusion.io.rtklib_pos.read_pos_at (what the RTKLIB comparisons read rnx2rtkp's output with): each solved
+    epoch's line by its time, NaN where no line is (the unsolved epoch 4)."""
+    from fusion.io.rtklib_pos import read_pos_at
+
+    frame, paths, trace = exported
+    got = read_pos_at(paths["pos"], trace.t_ms)
+    assert np.isnan(got[4]).all() and np.isfinite(np.delete(got, 4, axis=0)).all()
+    np.testing.assert_allclose(np.delete(got, 4, axis=0)[:, :3], frame[["lat_deg", "lon_deg", "height_m"]],
+                               atol=1e-4)
